@@ -1,0 +1,87 @@
+"""Evenly sampled channel data split into gap-free segments.
+
+The Allan and PSD estimators never bridge a gap: a record is a list of contiguous segments of
+one sampling rate. This module turns sample times into such segments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class ChannelSeries:
+    """One channel of an evenly sampled record.
+
+    Attributes:
+        name: channel name, e.g. ``"gyro_x"``.
+        units: SI units of ``values``, e.g. ``"rad/s"`` or ``"m/s^2"``.
+        fs_hz: nominal sampling rate in Hz.
+        values: samples (float64), all segments concatenated.
+        segment_starts: index into ``values`` where each contiguous segment begins; always
+            starts with 0. A gap (missing samples, time going backwards) lies before each start
+            but the first.
+        t0_s: time of the first sample in seconds (epoch or record-relative).
+    """
+
+    name: str
+    units: str
+    fs_hz: float
+    values: np.ndarray
+    segment_starts: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    t0_s: float = 0.0
+
+    def segments(self) -> list[np.ndarray]:
+        """The contiguous segments as views into ``values``."""
+        bounds = np.append(self.segment_starts, len(self.values))
+        return [self.values[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+    @property
+    def n_samples(self) -> int:
+        return int(len(self.values))
+
+    @property
+    def duration_s(self) -> float:
+        """Sampled duration in seconds (sum over segments, gaps excluded)."""
+        return self.n_samples / self.fs_hz
+
+
+def is_gyro(name: str) -> bool:
+    return name.split(":")[-1].startswith("gyro")
+
+
+def channel_units(name: str) -> str:
+    """SI units of a standard channel name (``gyro_*``, ``accel_*``, ``temp``)."""
+    base = name.split(":")[-1]
+    if base.startswith("gyro"):
+        return "rad/s"
+    if base.startswith("accel"):
+        return "m/s^2"
+    if base.startswith("temp"):
+        return "degC"
+    return ""
+
+
+def estimate_rate(t: np.ndarray) -> float:
+    """Nominal sampling rate in Hz from sample times in seconds (median interval)."""
+    dt = np.diff(np.asarray(t, dtype=np.float64))
+    dt = dt[dt > 0]
+    if dt.size == 0:
+        raise ValueError("cannot infer a sampling rate: fewer than two increasing time stamps")
+    return float(1.0 / np.median(dt))
+
+
+def segment_starts_from_times(t: np.ndarray, fs_hz: float, tolerance: float = 0.5) -> np.ndarray:
+    """Indices where a new segment starts, given sample times in seconds.
+
+    A new segment starts wherever the interval to the previous sample departs from ``1/fs_hz``
+    by more than ``tolerance`` sample periods: missing samples, duplicated or backwards time.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    if t.size == 0:
+        return np.zeros(1, dtype=np.int64)
+    dt = np.diff(t) * fs_hz
+    breaks = np.flatnonzero(np.abs(dt - 1.0) > tolerance) + 1
+    return np.concatenate(([0], breaks)).astype(np.int64)

@@ -1,0 +1,5 @@
+import sys
+
+from imunoise.cli import main
+
+sys.exit(main())

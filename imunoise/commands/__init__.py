@@ -1,0 +1,1 @@
+"""One module per ``imunoise`` sub-command; each exposes ``register(subparsers)``."""
