@@ -31,8 +31,8 @@ outputs are only used once the filter is full, so nothing is bridged across a ga
 transient enters the spectrum.
 
 Degrees of freedom: for ``K`` Welch segments in one gap-free run the equivalent degrees of
-freedom follow from the window's overlap correlation ``rho_m`` (Percival & Walden 1993, eq.
-292b): ``nu = 2 K^2 / (K + 2 sum_m (K - m) rho_m^2)`` (about 1.89 K for Hann at 50 %); runs
+freedom follow from the window's overlap correlation ``rho_m`` (Welch 1967; Percival & Walden
+1993): ``nu = 2 K^2 / (K + 2 sum_m (K - m) rho_m^2)``, about 1.89 K for Hann at 50 %; runs
 separated by gaps add as independent. Neighbouring bins merged into one log-frequency point sum
 their degrees of freedom, reduced for the correlation of adjacent Hann bins (|c_1|^2 = 4/9,
 |c_2|^2 = 1/36). The interval is the chi-square interval
