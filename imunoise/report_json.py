@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from analysis.psd import PsdEstimate
 from analysis.series import ChannelSeries
+
+if TYPE_CHECKING:
+    from analysis.psd import PsdEstimate
 
 
 class AllanLike(Protocol):

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from analysis import units
-from analysis.psd import PsdEstimate
 from analysis.series import ChannelSeries
+
+if TYPE_CHECKING:
+    from analysis.psd import PsdEstimate
 
 
 def _kind(name: str) -> str | None:

@@ -6,18 +6,18 @@ import argparse
 import os
 import sys
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from analysis.psd import PsdEstimate, default_nperseg, log_psd
 from analysis.series import ChannelSeries
 from daq.readers import ReadError, open_record
 from daq.record import ChannelSelectionError, Record, select_channels
-from imunoise import report_json
 from imunoise.errors import UsageError
 from imunoise.progress import progress_bar
-from imunoise.report_text import channel_text
+
+if TYPE_CHECKING:  # scipy-backed modules load only when a command runs, not for --help
+    from analysis.psd import PsdEstimate
 
 JSON_CI = 0.95
 """Confidence level of the Allan and PSD intervals in the output."""
@@ -75,6 +75,8 @@ def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
 
 
 def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
+    from analysis.psd import default_nperseg, log_psd
+
     bounds = np.append(series.segment_starts, series.n_samples)
     longest = int(np.max(np.diff(bounds))) if series.n_samples else 0
     try:
@@ -107,6 +109,9 @@ def analyze_record(record: Record, keys: list[str], show_progress: bool | None =
 
 
 def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> dict[str, Any]:
+    """The ``analyze`` JSON document of analysed channels."""
+    from imunoise import report_json
+
     channels = {
         r.key: report_json.channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
                                         warnings=r.warnings, channel=r.key)
@@ -133,8 +138,12 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     results = analyze_record(record, keys)
     if args.json:
+        from imunoise import report_json
+
         sys.stdout.write(report_json.dumps(analysis_json(args.file, record, results)) + "\n")
     else:
+        from imunoise.report_text import channel_text
+
         for w in record.warnings:
             print(f"warning: {w}", file=sys.stderr)
         print(f"{args.file}: {len(results)} channel(s)")
