@@ -8,8 +8,10 @@ samples of a fresh ``take(10000)``. Memory is a few numbers per term whatever th
 Simulators (``Ts = 1/fs``):
 
 * ``white``: independent Gaussian samples of variance ``N^2 fs``.
-* ``quantization``: ``(e_k - e_{k-1}) fs`` with ``e`` uniform white of variance ``Q^2`` (the
-  rounding error of the integrated angle).
+* ``quantization``: ``(e_k - e_{k-1}) fs`` with ``e`` Gaussian white of variance ``Q^2``, the
+  rounding error of the integrated angle. Rounding error is closer to uniform, but the Allan
+  variance and spectrum depend only on its variance, and a Gaussian error keeps the simulated
+  data inside the Gaussian model that the misfit statistics assume.
 * ``bias_instability``: a sum of first-order Markov processes with correlation times spaced
   ``FLICKER_PER_DECADE`` per decade across ``flicker_band_s`` (default half a sample period
   to 1e5 s), each of variance ``B^2 ln(r)/pi`` for the spacing ratio r: this reproduces the
@@ -99,9 +101,7 @@ class _TermSim:
         self.rng = rng
         self.k = 0
         if name == "quantization":
-            half = math.sqrt(3.0) * self.p["Q"]
-            self.half = half
-            self.e_prev = rng.uniform(-half, half)
+            self.e_prev = rng.standard_normal() * self.p["Q"]
         elif name == "bias_instability":
             times, ratio = flicker_times(fs_hz, flicker_band_s)
             sd = self.p["B"] * math.sqrt(math.log(ratio) / math.pi)
@@ -123,7 +123,7 @@ class _TermSim:
         if self.name == "white":
             return self.rng.standard_normal(n) * (p["N"] * math.sqrt(fs))
         if self.name == "quantization":
-            e = np.concatenate(([self.e_prev], self.rng.uniform(-self.half, self.half, n)))
+            e = np.concatenate(([self.e_prev], self.rng.standard_normal(n) * p["Q"]))
             self.e_prev = e[-1]
             return np.diff(e) * fs
         if self.name in ("bias_instability", "gauss_markov"):
