@@ -15,7 +15,8 @@ where the end effect of the triangular count is m/2). The integral runs on a log
 where ``sin^4`` oscillates faster than the grid, it is averaged over each bin analytically
 (products of the two filters through their Fourier series), so no resolution is lost at large
 m. A deterministic sinusoid adds ``A^2 fs S(f0) |H_i H_j|^2(f0)``; a ramp adds
-``2 R^2 tau_i tau_j fs G_ij(0)`` (non-zero with rate random walk).
+``R^2 tau_i tau_j cov(mean d_i, mean d_j)`` where the mean difference telescopes to the
+difference of the averages at the two ends of the record.
 
 From the covariance follow each estimate's equivalent degrees of freedom
 ``nu_i = 2 avar_i^2/C_ii``, the standardised residual ``z_i`` (normal score of the chi-square
@@ -52,44 +53,32 @@ def _two_sided_psd(model: Model, u: np.ndarray, fs_hz: float) -> np.ndarray:
     return total
 
 
-def _bin_avg_cos(nu: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+def _bin_avg_cos(nu: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
     """Average of cos(pi nu u) over u in [ua, ub] (nu may be 0)."""
+    if nu == 0:
+        return np.ones_like(ua)
     x = np.pi * nu
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = (np.sin(x * ub) - np.sin(x * ua)) / (x * (ub - ua))
-    return np.where(np.abs(x * (ub - ua)) < 1e-9, np.cos(x * 0.5 * (ua + ub)), out)
+    return (np.sin(x * ub) - np.sin(x * ua)) / (x * (ub - ua))
 
 
 def _sin4_factor(m: float, um: np.ndarray, ua: np.ndarray, ub: np.ndarray,
                  fast: np.ndarray) -> np.ndarray:
-    """sin^4(pi u m): bin average where ``fast``, mid-point value elsewhere."""
-    mid = np.sin(np.pi * um * m) ** 4
-    avg = sum(a * _bin_avg_cos(np.full_like(um, 2.0 * p * m), ua, ub)
-              for p, a in enumerate(_SIN4))
-    return np.where(fast, avg, mid)
-
-
-def _pair_sin4(mi: float, mj: float, um: np.ndarray, ua: np.ndarray, ub: np.ndarray
-               ) -> np.ndarray:
-    """Bin-averaged sin^4(pi u mi) sin^4(pi u mj) (exact for fast bins, mid-point for slow)."""
-    width = ub - ua
-    fast_i = width * mi > 0.05
-    fast_j = width * mj > 0.05
-    fi = _sin4_factor(mi, um, ua, ub, fast_i)
-    fj = _sin4_factor(mj, um, ua, ub, fast_j)
-    out = fi * fj
-    both = fast_i & fast_j
-    if np.any(both):
-        u_a, u_b = ua[both], ub[both]
-        acc = np.zeros(u_a.shape)
-        for p, ap in enumerate(_SIN4):
-            for q, aq in enumerate(_SIN4):
-                nu_plus = np.full_like(u_a, 2.0 * (p * mi + q * mj))
-                nu_minus = np.full_like(u_a, 2.0 * (p * mi - q * mj))
-                acc += 0.5 * ap * aq * (_bin_avg_cos(nu_plus, u_a, u_b)
-                                        + _bin_avg_cos(nu_minus, u_a, u_b))
-        out[both] = acc
+    """sin^4(pi u m): exact bin average where ``fast``, mid-point value elsewhere."""
+    out = np.sin(np.pi * um * m) ** 4
+    if np.any(fast):
+        a, b = ua[fast], ub[fast]
+        out[fast] = sum(c * _bin_avg_cos(2.0 * p * m, a, b) for p, c in enumerate(_SIN4))
     return out
+
+
+def _pair_sin4_both_fast(mi: float, mj: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Bin average of sin^4(pi u mi) sin^4(pi u mj) through the product of Fourier series."""
+    acc = np.zeros(ua.shape)
+    for p, ap in enumerate(_SIN4):
+        for q, aq in enumerate(_SIN4):
+            acc += 0.5 * ap * aq * (_bin_avg_cos(2.0 * (p * mi + q * mj), ua, ub)
+                                    + _bin_avg_cos(2.0 * (p * mi - q * mj), ua, ub))
+    return acc
 
 
 def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarray
@@ -107,19 +96,35 @@ def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarr
     edges = np.geomspace(u_lo, 0.5, int(math.log10(0.5 / u_lo) * _POINTS_PER_DECADE) + 2)
     ua, ub = edges[:-1], edges[1:]
     um = 0.5 * (ua + ub)
+    width = ub - ua
     s2 = _two_sided_psd(model, um, fs_hz)
-    # smooth part: S^2 * 16/(sin^4(pi u)) per unit m_i^2 m_j^2, times du, times 2 fs^2
-    smooth = 2.0 * fs_hz**2 * s2 * s2 * 16.0 / np.sin(np.pi * um) ** 4 * (ub - ua)
-    sum_gamma2 = np.zeros((n, n))
+    # smooth part of S^2 |H_i|^2 |H_j|^2 du (without the sin^4 factors and 1/(m_i m_j)^2),
+    # times 2 fs^2 for both signs of f and the change of variable f = u fs
+    smooth = 2.0 * fs_hz**2 * s2 * s2 * 16.0 / np.sin(np.pi * um) ** 4 * width
+    fast = width[None, :] * m[:, None] > 0.05
+    factors = np.stack([_sin4_factor(m[i], um, ua, ub, fast[i]) for i in range(n)])
+    sum_gamma2 = (factors * smooth) @ factors.T
+    # where both filters oscillate within a bin, the two factors of equal or double m are
+    # not independent: average their product exactly (for larger ratios the cross terms of
+    # the Fourier series oscillate fast and average out, so the product of averages holds)
     for i in range(n):
         for j in range(i, n):
-            o = _pair_sin4(m[i], m[j], um, ua, ub)
-            val = float(np.sum(smooth * o)) / (m[i] ** 2 * m[j] ** 2)
-            sum_gamma2[i, j] = sum_gamma2[j, i] = val
-    sum_gamma2 += _deterministic_terms(model, fs_hz, m)
+            if m[j] not in (m[i], 2.0 * m[i]) and m[i] not in (2.0 * m[j],):
+                continue
+            both = fast[i] & fast[j]
+            if not np.any(both):
+                continue
+            exact = _pair_sin4_both_fast(m[i], m[j], ua[both], ub[both])
+            delta = float(np.sum(smooth[both] * (exact - factors[i, both] * factors[j, both])))
+            sum_gamma2[i, j] += delta
+            if j != i:
+                sum_gamma2[j, i] += delta
+    sum_gamma2 /= np.outer(m * m, m * m)
+    line, ramp = _deterministic_terms(model, fs_hz, m, n_terms, (ua, ub, um, s2))
+    sum_gamma2 += line
     m_eff = np.minimum.outer(n_terms, n_terms) - 0.5 * np.minimum.outer(m, m)
     m_eff = np.maximum(m_eff, 1.0)
-    return m_eff * sum_gamma2 / (2.0 * np.outer(n_terms, n_terms))
+    return m_eff * sum_gamma2 / (2.0 * np.outer(n_terms, n_terms)) + ramp
 
 
 def _h2(m: np.ndarray, u: float) -> np.ndarray:
@@ -127,19 +132,49 @@ def _h2(m: np.ndarray, u: float) -> np.ndarray:
     return 4.0 * np.sin(np.pi * u * m) ** 4 / (m * m * math.sin(math.pi * u) ** 2)
 
 
-def _deterministic_terms(model: Model, fs_hz: float, m: np.ndarray) -> np.ndarray:
-    extra = np.zeros((len(m), len(m)))
-    tau = m / fs_hz
-    k2 = sum(p["K"] ** 2 for name, p in model if name == "random_walk")
+def _deterministic_terms(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarray,
+                         grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+                         ) -> np.ndarray:
+    """Covariance (units^4) added by a deterministic sinusoid and a deterministic ramp.
+
+    Sinusoid: ``cov(d_k^2, d_l^2)`` gains ``4 s_k s_l gamma(l-k)``; summed, this is
+    ``M_eff A^2 fs S(f0) |H_i H_j|^2(f0)`` in the same units as ``sum gamma^2`` (returned
+    separately, see :func:`avar_covariance`). Ramp: each estimate gains ``R tau mean(d)``;
+    the mean of the differences telescopes to ``(m/M)`` times the difference of the m-sample
+    averages at the two ends of the record, whose variance ``D`` follows from the spectrum.
+    """
+    ua, ub, um, s2 = grid
+    n = len(m)
+    line = np.zeros((n, n))
+    ramp = np.zeros((n, n))
     for name, p in model:
         if name == "sinusoid":
             u0 = p["f"] / fs_hz
-            s2 = float(_two_sided_psd(model, np.array([u0]), fs_hz)[0])
+            s_n = float(_two_sided_psd(model, np.array([u0]), fs_hz)[0])
             h = _h2(m, u0)
-            extra += p["A"] ** 2 * fs_hz * s2 * np.outer(h, h)
-        elif name == "rate_ramp" and k2 > 0:
-            extra += 2.0 * p["R"] ** 2 * fs_hz * k2 * np.outer(tau, tau) ** 2
-    return extra
+            line += p["A"] ** 2 * fs_hz * s_n * np.outer(h, h)
+    r2 = sum(p["R"] ** 2 for name, p in model if name == "rate_ramp")
+    if r2 > 0:
+        width = ub - ua
+        d = np.empty(n)
+        for i in range(n):
+            span = float(n_terms[i] - 1 + m[i])  # distance between the two end averages
+            sin2_span = 0.5 * (1.0 - _bin_avg_cos(2.0 * span, ua, ub))
+            fast = width * m[i] > 0.05
+            sin2_m = np.where(fast, 0.5 * (1.0 - _bin_avg_cos(2.0 * m[i], ua, ub)),
+                              np.sin(np.pi * um * m[i]) ** 2)
+            avg2 = sin2_m / (m[i] ** 2 * np.sin(np.pi * um) ** 2)
+            d[i] = 2.0 * fs_hz * float(np.sum(s2 * avg2 * 4.0 * sin2_span * width))
+            for name, p in model:
+                if name == "sinusoid":
+                    u0 = p["f"] / fs_hz
+                    a2 = math.sin(math.pi * u0 * m[i]) ** 2 / (m[i] ** 2 * math.sin(
+                        math.pi * u0) ** 2)
+                    d[i] += 0.5 * p["A"] ** 2 * a2 * 4.0 * math.sin(math.pi * u0 * span) ** 2
+        tau = m / fs_hz
+        mean_sd = m / n_terms * np.sqrt(d)
+        ramp = r2 * np.outer(tau * mean_sd, tau * mean_sd)
+    return line, ramp
 
 
 @dataclass(frozen=True)
