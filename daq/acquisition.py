@@ -101,6 +101,7 @@ class Acquisition:
         self._opened = False
         self._late_sq = 0.0
         self._late_n = 0
+        self._outage_since: float | None = None
 
     @property
     def config(self) -> dict[str, str]:
@@ -161,7 +162,8 @@ class Acquisition:
             if late > LATE_SKIP_S:
                 t_start, k = now, 1
             try:
-                self.driver.poll()
+                if self.driver.poll() > 0:
+                    self._outage_since = None
             except PermanentDeviceError as exc:
                 yield from self._flush()
                 self._fail(str(exc))
@@ -216,10 +218,16 @@ class Acquisition:
         raise AcquisitionFailed(reason)
 
     def _recover(self, exc: DeviceError) -> None:
-        """Reopen with exponential backoff until it works or ``max_outage_s`` passes."""
+        """Reopen with exponential backoff until it works or ``max_outage_s`` passes.
+
+        The outage runs from the first fault until fresh data flows again, so a device that
+        reopens fine but never delivers still ends in failure.
+        """
         self._note_fault(str(exc))
         self.stats.state = "reconnecting"
-        t0 = self.clock.now()
+        if self._outage_since is None:
+            self._outage_since = self.clock.now()
+        t0 = self._outage_since
         backoff = 0.05
         last = str(exc)
         while True:

@@ -283,7 +283,6 @@ class Adis16350:
         self.endurance: int | None = None
         self._last_fresh_host: float | None = None
         self._last_poll_host: float | None = None
-        self._resync = False
         self.config: dict[str, str] = {}
 
     # -- register access -------------------------------------------------------------------
@@ -311,6 +310,9 @@ class Adis16350:
             # Just powered up (first conversion after 150 ms): look once more.
             self.clock.sleep(STARTUP_S)
             self.identify()
+        if self._last_fresh_host is not None:
+            # Reopening after a fault: start the part from a clean state.
+            self.reset()
         self.write_register("SMPL_PRD", self.smpl_prd)
         # The datasheet asks for the range (upper byte) before the filter (lower byte).
         self.write_register("SENS_AVG", self.sens_avg, upper_first=True)
@@ -320,7 +322,6 @@ class Adis16350:
                 f"ADIS16350 on {self.spi.port}: configuration did not stick (SMPL_PRD "
                 f"0x{back['SMPL_PRD']:04X}, SENS/AVG 0x{back['SENS_AVG']:04X})")
         self.spi.configure(min(sclk_max_hz(self.smpl_prd), 1.0e6), mode=3)
-        self._resync = self._last_fresh_host is not None
         self.config = self._describe()
 
     def close(self) -> None:
@@ -419,7 +420,6 @@ class Adis16350:
         else:
             missed = missed_between(now - (previous_poll or now), self.rate_hz)
         self._last_fresh_host = now
-        self._resync = False
         self.imu.add(data14(miso[:6]).tolist(), missed=missed)
         if with_temp:
             t = data12s(miso[6:9]).tolist()

@@ -37,8 +37,8 @@ class Adis16350Sim:
         source_rate_hz: the rate the sources were built for (they are drawn once per update).
         supply_v: supply voltage shown in SUPPLY_OUT.
 
-    Fault switches (attributes): ``stuck_data`` (no more internal updates: ND never sets),
-    ``self_test_fails``.
+    Fault switches (attributes): ``stuck_data`` (no more internal updates, ND never sets,
+    until a software reset), ``self_test_fails``.
     """
 
     def __init__(self, clock: Clock, gyro: SignalSource, accel: SignalSource,
@@ -207,6 +207,7 @@ class Adis16350Sim:
 
     def _command(self, bits: int) -> None:
         if bits & reg.CMD_SOFTWARE_RESET:
+            self.stuck_data = False
             for name, v in VOLATILE_DEFAULTS.items():
                 self.words[reg.ADDR[name]] = v
             self.words[reg.ADDR["MSC_CTRL"]] &= 0x00FF

@@ -28,7 +28,7 @@ class Itg3200Sim(RegisterChip):
     """An ITG-3200 at ``address`` driven by a gyro source in rad/s and a temperature source.
 
     Fault switches: ``who_am_i`` (the ID byte to answer), ``stuck_ready`` (data stops:
-    RAW_DATA_RDY never sets again).
+    RAW_DATA_RDY never sets again until H_RESET).
     """
 
     def __init__(self, clock: Clock, gyro: SignalSource,
@@ -42,6 +42,7 @@ class Itg3200Sim(RegisterChip):
         self._reset()
 
     def _reset(self) -> None:
+        self.stuck_ready = False  # a hung conversion is cured by a reset
         self.regs[:] = bytes(len(self.regs))
         self._int_status = 0
         self._restart()

@@ -137,20 +137,22 @@ class BusPirateSPI:
         return TransientDeviceError(f"serial port {self.port}: cannot open ({text})")
 
     def _enter_binary(self) -> None:
-        """Send 0x00 until the bridge answers ``BBIO1`` (it needs 20 from the terminal)."""
+        """Send 0x00 until the bridge answers ``BBIO1``.
+
+        One zero suffices when the bridge is already in a binary mode; from the user terminal
+        it takes twenty, so the remaining nineteen follow in one write if the first goes
+        unanswered.
+        """
         ser = self._require()
         got = bytearray()
-        for attempt in range(ENTER_ATTEMPTS):
-            self._write(bytes([BBIO_RESET]))
-            deadline = time.monotonic() + (0.02 if attempt < ENTER_ATTEMPTS - 1
-                                           else self.timeout_s)
-            while time.monotonic() < deadline:
+        for burst, wait in ((1, 0.03), (ENTER_ATTEMPTS - 1, self.timeout_s)):
+            self._write(bytes([BBIO_RESET]) * burst)
+            deadline = time.monotonic() + wait
+            while time.monotonic() < deadline and BBIO_SIGNATURE not in got:
                 chunk = self._read_some(ser)
                 got += chunk
-                if BBIO_SIGNATURE in got:
-                    break
                 if not chunk:
-                    time.sleep(0.002)
+                    time.sleep(0.001)
             if BBIO_SIGNATURE in got:
                 break
         else:
@@ -159,8 +161,8 @@ class BusPirateSPI:
                                            f"BBIO1 ({bytes(got[-16:])!r})")
             raise TransientDeviceError(f"Bus Pirate on {self.port}: no answer to binary-mode "
                                        "entry (wrong port or bridge hung)")
-        # Drain echoes of the extra zeros, then confirm one clean signature.
-        time.sleep(0.01)
+        # Let the echoes of any extra zeros arrive, drop them, then confirm one signature.
+        time.sleep(0.005)
         self._drain(ser)
         self._command(BBIO_RESET, expect=BBIO_SIGNATURE, what="enter binary mode")
 
