@@ -322,6 +322,9 @@ class Adis16350:
                 f"ADIS16350 on {self.spi.port}: configuration did not stick (SMPL_PRD "
                 f"0x{back['SMPL_PRD']:04X}, SENS/AVG 0x{back['SENS_AVG']:04X})")
         self.spi.configure(min(sclk_max_hz(self.smpl_prd), 1.0e6), mode=3)
+        # Discard whatever the output registers held from before the configuration.
+        self.clock.sleep(2.0 / self.rate_hz)
+        self.read_registers(list(IMU_REGISTERS))
         self.config = self._describe()
 
     def close(self) -> None:

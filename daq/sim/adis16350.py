@@ -199,8 +199,9 @@ class Adis16350Sim:
         old = self.words[base]
         new = (old & 0x00FF) | (data << 8) if upper else (old & 0xFF00) | data
         self.words[base] = new
-        if base == reg.ADDR["SMPL_PRD"] and new != old:
-            self._restart(0.0)
+        if base in (reg.ADDR["SMPL_PRD"], reg.ADDR["SENS_AVG"]) and new != old:
+            self._restart(0.0)  # new rate or range: the filter starts over, old data is stale
+            self._nd = 0
         if base == reg.ADDR["MSC_CTRL"] and new & reg.MSC_SELF_TEST:
             self._self_test_until = self.clock.now() + SELF_TEST_S
             self._nd = 0
