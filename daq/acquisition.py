@@ -21,7 +21,8 @@ from daq.clock import Clock, RealClock
 from daq.drivers.common import StreamBuffer
 from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
 
-LATE_SKIP_S = 1.0  # a host stall longer than this re-anchors the poll schedule
+LATE_SKIP_PERIODS = 2.0  # polls this far behind schedule re-anchor it (no burst catch-up)
+LATE_SKIP_MIN_S = 0.02
 
 
 class Driver(Protocol):
@@ -152,14 +153,16 @@ class Acquisition:
         next_flush = t_start + self.block_s
         while not self._stop.is_set():
             due = t_start + k * period
-            if due >= t_end:
+            if due >= t_end or clock.now() >= t_end:
                 break
             clock.sleep_until(due)
             now = clock.now()
             late = now - due
             self._note_late(late)
             k += 1
-            if late > LATE_SKIP_S:
+            if late > max(LATE_SKIP_PERIODS * period, LATE_SKIP_MIN_S):
+                # The host fell behind (slow bus, busy machine): polling in a burst to
+                # catch up would only re-read the newest sample, so restart the schedule.
                 t_start, k = now, 1
             try:
                 if self.driver.poll() > 0:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from daq.clock import Clock, RealClock
-from daq.drivers.common import StreamBuffer, missed_between, sign_extend
+from daq.drivers.common import PolledSampleClock, StreamBuffer, sign_extend
 from daq.errors import PermanentDeviceError, TransientDeviceError
 from daq.transports.buspirate import BusPirateSPI
 
@@ -282,7 +282,7 @@ class Adis16350:
         self.supply_v: float | None = None
         self.endurance: int | None = None
         self._last_fresh_host: float | None = None
-        self._last_poll_host: float | None = None
+        self._phase = PolledSampleClock(self.rate_hz)
         self.config: dict[str, str] = {}
 
     # -- register access -------------------------------------------------------------------
@@ -405,9 +405,9 @@ class Adis16350:
         words = [read_command(n) for n in names] + [read_command("ENDURANCE")]
         miso = self.spi.transfer_frames(words)[1:].astype(np.int64)
         now = self.clock.now()
-        previous_poll, self._last_poll_host = self._last_poll_host, now
         if not miso[0] & FLAG_ND:
             self.stale_reads += 1
+            self._phase.stale(now, self.imu.next_index - 1)
             if self._last_fresh_host is not None and \
                     now - self._last_fresh_host > max(self.stale_timeout_s, 20 / self.rate_hz):
                 raise TransientDeviceError(
@@ -420,8 +420,9 @@ class Adis16350:
         if self._last_fresh_host is None:
             self.imu.anchor(self.clock.wall())
             self.temperature.anchor(self.clock.wall())
+            self._phase.fresh(now, 0)
         else:
-            missed = missed_between(now - (previous_poll or now), self.rate_hz)
+            missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh_host = now
         self.imu.add(data14(miso[:6]).tolist(), missed=missed)
         if with_temp:

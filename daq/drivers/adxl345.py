@@ -53,7 +53,7 @@ def odr_hz(code: int) -> float:
 
 def rate_code(rate: float) -> int:
     """The BW_RATE code whose rate is nearest (in ratio) to ``rate`` Hz."""
-    if not (0.1 * 0.99 <= rate <= 3200.0 * 1.001):
+    if not (0.09 <= rate <= 3200.0 * 1.001):
         raise ValueError(f"ADXL345 rate {rate:g} Hz out of range 0.1..3200 Hz")
     return int(np.clip(round(MAX_RATE_CODE - math.log2(3200.0 / rate)), 0, MAX_RATE_CODE))
 

@@ -8,6 +8,7 @@ in the index is a gap whose length is known.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -108,14 +109,37 @@ class StreamBuffer:
         return blocks
 
 
-def missed_between(dt_s: float, fs_hz: float) -> int:
-    """Samples lost when a fresh sample is found ``dt_s`` after the previous look.
+class PolledSampleClock:
+    """Counts samples lost by a polled device (no FIFO, no sample counter on the chip).
 
-    Polling faster than the sample rate sees every sample; a look that comes more than 1.5
-    periods after the previous one has lost about ``dt_s * fs_hz - 1`` samples.
+    Keeps ``anchor``, the host time at which the device's sample 0 would have appeared, so
+    that the newest sample at host time t is ``floor((t - anchor) * fs)``. A poll that finds
+    no new data pins the phase (the next sample has not come yet) and re-anchors, so the
+    estimate follows the device's clock instead of drifting with the host's.
     """
-    periods = dt_s * fs_hz
-    return int(round(periods)) - 1 if periods > 1.5 else 0
+
+    def __init__(self, fs_hz: float) -> None:
+        self.fs_hz = float(fs_hz)
+        self.anchor: float | None = None
+
+    def reset(self) -> None:
+        self.anchor = None
+
+    def stale(self, t: float, last_index: int) -> None:
+        """A poll at host time ``t`` found nothing newer than ``last_index``."""
+        if last_index >= 0:
+            self.anchor = t - (last_index + 0.5) / self.fs_hz
+
+    def fresh(self, t: float, next_index: int) -> int:
+        """A poll at ``t`` found a new sample; how many were lost before it."""
+        if self.anchor is None:
+            self.anchor = t - (next_index + 0.5) / self.fs_hz
+            return 0
+        newest = int(math.floor((t - self.anchor) * self.fs_hz))
+        if newest < next_index:
+            self.anchor = t - (next_index + 0.5) / self.fs_hz
+            return 0
+        return newest - next_index
 
 
 def sign_extend(values: np.ndarray | int, bits: int) -> np.ndarray:

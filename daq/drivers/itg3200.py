@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from daq.clock import Clock, RealClock
-from daq.drivers.common import StreamBuffer, missed_between, sign_extend
+from daq.drivers.common import PolledSampleClock, StreamBuffer, sign_extend
 from daq.errors import PermanentDeviceError, TransientDeviceError
 from daq.transports.i2c import I2CBus
 
@@ -82,7 +82,7 @@ def rate_settings(rate_hz: float) -> tuple[int, int, float]:
     Above 1 kHz the 8 kHz internal rate is used (256 Hz filter); otherwise 1 kHz with the
     widest filter whose bandwidth stays below half the output rate (anti-aliasing).
     """
-    if not (8000.0 / 256 * 0.99 <= rate_hz <= 8000.0 * 1.001):
+    if not (1000.0 / 256 * 0.99 <= rate_hz <= 8000.0 * 1.001):
         raise ValueError(f"ITG-3200 rate {rate_hz:g} Hz out of range 3.9..8000 Hz")
     if rate_hz > 1000.0:
         cfg = 0
@@ -134,8 +134,8 @@ class Itg3200:
         self.frozen_reads = 0
         self._last_row: list[int] | None = None
         self._same_rows = 0
-        self._last_poll: float | None = None
         self._last_fresh: float | None = None
+        self._phase = PolledSampleClock(self.rate_hz)
 
     @property
     def where(self) -> str:
@@ -167,7 +167,6 @@ class Itg3200:
                                        f"(SMPLRT_DIV, DLPF_FS = {back})")
         self.clock.sleep(ZRO_SETTLE_S)
         self.bus.read_u8(self.address, REG["INT_STATUS"])  # drop data from before settling
-        self._last_poll = self.clock.now()
         self.config = {
             "device": self.name, "model": self.model, "transport": self.bus.name,
             "i2c_address": f"0x{self.address:02X}", "who_am_i": f"0x{who:02X}",
@@ -187,9 +186,9 @@ class Itg3200:
     def poll(self) -> int:
         status = self.bus.read_u8(self.address, REG["INT_STATUS"])
         now = self.clock.now()
-        previous, self._last_poll = self._last_poll, now
         if not status & INT_RAW_DATA_RDY:
             self.stale_reads += 1
+            self._phase.stale(now, self.imu.next_index - 1)
             if self._last_fresh is not None and \
                     now - self._last_fresh > max(self.stale_timeout_s, 20 / self.rate_hz):
                 raise TransientDeviceError(f"{self.where}: no data-ready for "
@@ -201,8 +200,9 @@ class Itg3200:
         if self._last_fresh is None:
             self.imu.anchor(self.clock.wall())
             self.temperature.anchor(self.clock.wall())
+            self._phase.fresh(now, 0)
         else:
-            missed = missed_between(now - (previous or now), self.rate_hz)
+            missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh = now
         index = self.imu.next_index + missed
         self.imu.add(row[1:].tolist(), missed=missed)

@@ -60,7 +60,9 @@ class Adxl345Sim(RegisterChip):
     def _update(self) -> None:
         if not self.measuring:
             return
-        index = int(math.floor((self.clock.now() - self._t0) * self.rate_hz))
+        # Sample k is ready one output period after the one before; the first one period
+        # after entering measurement mode.
+        index = int(math.floor((self.clock.now() - self._t0) * self.rate_hz)) - 1
         n = index - self._index
         if n <= 0:
             return
