@@ -7,8 +7,10 @@ so a simulated hour runs in seconds while every driver, transport and pacing pat
 
 from __future__ import annotations
 
+import heapq
 import threading
 import time
+from collections.abc import Callable
 
 
 class RealClock:
@@ -48,6 +50,23 @@ class VirtualClock:
         self._t = float(start)
         self._epoch0 = time.time() if epoch0 is None else float(epoch0)
         self._lock = threading.Lock()
+        self._timers: list[tuple[float, int, Callable[[], None]]] = []
+        self._seq = 0
+
+    def call_at(self, t: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` once simulated time reaches ``t`` (for scripted faults in tests)."""
+        with self._lock:
+            self._seq += 1
+            heapq.heappush(self._timers, (t, self._seq, fn))
+        self._run_timers()
+
+    def _run_timers(self) -> None:
+        while True:
+            with self._lock:
+                if not self._timers or self._timers[0][0] > self._t:
+                    return
+                _, _, fn = heapq.heappop(self._timers)
+            fn()
 
     def now(self) -> float:
         with self._lock:
@@ -60,6 +79,7 @@ class VirtualClock:
         if dt > 0:
             with self._lock:
                 self._t += dt
+            self._run_timers()
 
     def sleep(self, dt: float) -> None:
         self.advance(dt)
@@ -68,6 +88,7 @@ class VirtualClock:
         with self._lock:
             if t > self._t:
                 self._t = t
+        self._run_timers()
 
 
 Clock = RealClock | VirtualClock

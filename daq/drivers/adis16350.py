@@ -283,6 +283,7 @@ class Adis16350:
         self.endurance: int | None = None
         self._last_fresh_host: float | None = None
         self._phase = PolledSampleClock(self.rate_hz)
+        self._opened_at = 0.0
         self.config: dict[str, str] = {}
 
     # -- register access -------------------------------------------------------------------
@@ -325,6 +326,9 @@ class Adis16350:
         # Discard whatever the output registers held from before the configuration.
         self.clock.sleep(2.0 / self.rate_hz)
         self.read_registers(list(IMU_REGISTERS))
+        self._opened_at = self.clock.now()
+        if self._last_fresh_host is not None:
+            self._phase.reconnected()
         self.config = self._describe()
 
     def close(self) -> None:
@@ -408,11 +412,11 @@ class Adis16350:
         if not miso[0] & FLAG_ND:
             self.stale_reads += 1
             self._phase.stale(now, self.imu.next_index - 1)
-            if self._last_fresh_host is not None and \
-                    now - self._last_fresh_host > max(self.stale_timeout_s, 20 / self.rate_hz):
+            since = max(self._last_fresh_host or self._opened_at, self._opened_at)
+            if now - since > max(self.stale_timeout_s, 20 / self.rate_hz):
                 raise TransientDeviceError(
-                    f"ADIS16350 on {self.spi.port}: no new data for "
-                    f"{now - self._last_fresh_host:.2f} s (data-ready stuck)")
+                    f"ADIS16350 on {self.spi.port}: no new data for {now - since:.2f} s "
+                    "(data-ready stuck)")
             return 0
         if np.any(miso & FLAG_EA):
             self._note_status(self.read_registers(["STATUS"])["STATUS"])

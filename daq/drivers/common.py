@@ -114,24 +114,38 @@ class PolledSampleClock:
 
     Keeps ``anchor``, the host time at which the device's sample 0 would have appeared, so
     that the newest sample at host time t is ``floor((t - anchor) * fs)``. A poll that finds
-    no new data pins the phase (the next sample has not come yet) and re-anchors, so the
-    estimate follows the device's clock instead of drifting with the host's.
+    no new data pins the phase (the next sample has not come yet) and re-anchors by up to a
+    period, so the estimate follows the device's clock instead of drifting with the host's,
+    while a device that stalls still leaves a gap as long as the stall.
     """
 
     def __init__(self, fs_hz: float) -> None:
         self.fs_hz = float(fs_hz)
         self.anchor: float | None = None
+        self._resyncing = False
+        self._last_fresh: float | None = None
 
-    def reset(self) -> None:
-        self.anchor = None
+    def reconnected(self) -> None:
+        """The device was reopened: until the next fresh sample, "no new data" says nothing
+        about the samples made while it was away."""
+        self._resyncing = True
 
     def stale(self, t: float, last_index: int) -> None:
         """A poll at host time ``t`` found nothing newer than ``last_index``."""
-        if last_index >= 0:
-            self.anchor = t - (last_index + 0.5) / self.fs_hz
+        if last_index < 0 or self._resyncing or self._last_fresh is None:
+            return
+        if t - self._last_fresh > 1.5 / self.fs_hz:
+            return  # overdue: a stall, not jitter
+        pinned = t - (last_index + 0.5) / self.fs_hz
+        # Small corrections follow clock drift; a big one means the device stalled, and the
+        # time it lost must still show up as missing samples.
+        if self.anchor is None or abs(pinned - self.anchor) <= 1.0 / self.fs_hz:
+            self.anchor = pinned
 
     def fresh(self, t: float, next_index: int) -> int:
         """A poll at ``t`` found a new sample; how many were lost before it."""
+        self._resyncing = False
+        self._last_fresh = t
         if self.anchor is None:
             self.anchor = t - (next_index + 0.5) / self.fs_hz
             return 0

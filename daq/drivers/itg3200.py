@@ -135,6 +135,7 @@ class Itg3200:
         self._last_row: list[int] | None = None
         self._same_rows = 0
         self._last_fresh: float | None = None
+        self._opened_at = 0.0
         self._phase = PolledSampleClock(self.rate_hz)
 
     @property
@@ -167,6 +168,9 @@ class Itg3200:
                                        f"(SMPLRT_DIV, DLPF_FS = {back})")
         self.clock.sleep(ZRO_SETTLE_S)
         self.bus.read_u8(self.address, REG["INT_STATUS"])  # drop data from before settling
+        self._opened_at = self.clock.now()
+        if self._last_fresh is not None:
+            self._phase.reconnected()
         self.config = {
             "device": self.name, "model": self.model, "transport": self.bus.name,
             "i2c_address": f"0x{self.address:02X}", "who_am_i": f"0x{who:02X}",
@@ -189,10 +193,10 @@ class Itg3200:
         if not status & INT_RAW_DATA_RDY:
             self.stale_reads += 1
             self._phase.stale(now, self.imu.next_index - 1)
-            if self._last_fresh is not None and \
-                    now - self._last_fresh > max(self.stale_timeout_s, 20 / self.rate_hz):
+            since = max(self._last_fresh or self._opened_at, self._opened_at)
+            if now - since > max(self.stale_timeout_s, 20 / self.rate_hz):
                 raise TransientDeviceError(f"{self.where}: no data-ready for "
-                                           f"{now - self._last_fresh:.2f} s (stuck)")
+                                           f"{now - since:.2f} s (stuck)")
             return 0
         row = decode_data(self.bus.read_block(self.address, REG["TEMP_OUT_H"], DATA_BYTES))[0]
         self._check_frozen(row.tolist())
