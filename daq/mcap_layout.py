@@ -96,7 +96,7 @@ class MetadataInfo:
 class McapLayout:
     """What :func:`scan` found. ``data_end`` is the end of the last complete record of the data
     section (where a repaired file's DataEnd goes); ``complete`` is True when a DataEnd record
-    was reached (a cleanly finished file)."""
+    was reached and the footer is intact (a cleanly finished file)."""
 
     size: int
     profile: str = ""
@@ -109,6 +109,7 @@ class McapLayout:
     data_end: int = 0
     complete: bool = False
     has_summary: bool = False
+    footer_ok: bool = False
     warnings: list[str] = field(default_factory=list)
 
 
@@ -189,6 +190,7 @@ def _read_summary_definitions(buf, size: int, layout: McapLayout) -> None:
     if op != OP_FOOTER or n != 20:
         return
     (summary_start,) = _U64.unpack_from(buf, foot + RECORD_PREFIX)
+    layout.footer_ok = True
     if summary_start == 0 or summary_start >= foot:
         return
     for op, a, _b in iter_records(buf, summary_start, foot):
@@ -240,6 +242,7 @@ def scan(buf, size: int | None = None) -> McapLayout:
     _read_summary_definitions(buf, size, layout)
 
     pos = 8 + RECORD_PREFIX + n
+    layout.data_end = pos
     chunks = layout.chunks
     last: ChunkInfo | None = None
     unknown_pending = False
@@ -285,7 +288,10 @@ def scan(buf, size: int | None = None) -> McapLayout:
             data, _ = _map(buf, p)
             layout.metadata.append(MetadataInfo(name, data, pos, end - pos))
         elif op == OP_DATA_END:
-            layout.complete = True
+            layout.complete = layout.footer_ok
+            if not layout.complete:
+                layout.warnings.append("file has a damaged summary or footer: read up to the "
+                                       "end of its data section")
             layout.data_end = pos
             break
         if unknown_pending and (op != OP_MESSAGE_INDEX):

@@ -221,8 +221,8 @@ def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray,
         raise UnsupportedLayout(
             f"{tp.topic}: messages differ in layout (frame_id length or encoding)")
     stamp = head[:, p + 4:p + 12].copy()
-    t = stamp[:, :4].copy().view("<i4").ravel().astype(np.float64) + \
-        stamp[:, 4:].copy().view("<u4").ravel() * 1e-9
+    t = stamp[:, :4].copy().view("<i4").ravel().astype(np.int64) * 1_000_000_000 + \
+        stamp[:, 4:].copy().view("<u4").ravel()
     body = rec + (_PAYLOAD + tp.body)
     out = {"t": t}
     if tp.kind == "imu":
@@ -260,35 +260,57 @@ def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def _rate(t: np.ndarray, metadata: dict[str, str]) -> float:
+    """Sampling rate in Hz from stamps (int64 ns or float s): the median interval locates the
+    gaps, then the longest gap-free run gives the rate (span over intervals), which averages
+    out the jitter and rounding of individual stamps."""
+    rel = seconds(t)[0]
     try:
-        fs = estimate_rate(t)
+        fs = estimate_rate(rel)
     except ValueError:
         fs = float(metadata.get("rate_hz", "nan"))
         if not np.isfinite(fs) or fs <= 0:
             raise
+        return fs
+    bounds = np.append(segment_starts_from_times(rel, fs), rel.size)
+    lengths = np.diff(bounds)
+    k = int(np.argmax(lengths))
+    if lengths[k] >= 3:
+        a, b = int(bounds[k]), int(bounds[k + 1]) - 1
+        fs = (b - a) / float(rel[b] - rel[a])
     return fs
+
+
+def seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
+    """(times relative to the first, in s; first time in s) from int64 ns or float s."""
+    if t.size == 0:
+        return np.zeros(0), 0.0
+    if t.dtype == np.int64:
+        return (t - t[0]) * 1e-9, int(t[0]) * 1e-9
+    return t - t[0], float(t[0])
 
 
 def make_series(name: str, t: np.ndarray, values: np.ndarray, fs_hz: float,
                 warnings: list[str], units: str) -> ChannelSeries:
-    """A ChannelSeries from sample times and values: non-finite samples are dropped (the gap
-    they leave becomes a segment boundary) and gaps in time start new segments."""
+    """A ChannelSeries from sample times (int64 ns or float s) and values: non-finite samples
+    are dropped (the gap they leave becomes a segment boundary) and gaps in time start new
+    segments."""
     finite = np.isfinite(values)
     if not finite.all():
         bad = int((~finite).sum())
         warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
         t, values = t[finite], values[finite]
     values = np.ascontiguousarray(values, dtype=np.float64)
-    starts = segment_starts_from_times(t, fs_hz) if t.size else np.zeros(1, np.int64)
+    rel, t0 = seconds(t)
+    starts = segment_starts_from_times(rel, fs_hz) if t.size else np.zeros(1, np.int64)
     return ChannelSeries(name=name, units=units, fs_hz=fs_hz, values=values,
-                         segment_starts=starts, t0_s=float(t[0]) if t.size else 0.0)
+                         segment_starts=starts, t0_s=t0)
 
 
 def time_warnings(name: str, t: np.ndarray, fs_hz: float) -> list[str]:
     """Human-readable notes about gaps and backward time steps in ``t`` (seconds)."""
     if t.size < 2:
         return []
-    dt = np.diff(t)
+    dt = np.diff(seconds(t)[0])
     notes = []
     back = int((dt <= 0).sum())
     if back:
@@ -313,13 +335,14 @@ def read_mcap(path: str | Path) -> Record:
         have = arrays.get(cid)
         if have is None:
             cap = max(counts[cid], need)
-            arrays[cid] = {k: np.empty(cap, np.float64) for k in ["t", *cols]}
+            arrays[cid] = {k: np.empty(cap, np.int64 if k == "t" else np.float64)
+                           for k in ["t", *cols]}
             return
         cap = len(have["t"])
         if need > cap:
             new = max(need, cap * 2)
             for k, v in have.items():
-                grown = np.empty(new, np.float64)
+                grown = np.empty(new, v.dtype)
                 grown[:cap] = v
                 have[k] = grown
 
@@ -394,18 +417,20 @@ def iter_blocks(path: str | Path) -> Iterator[SampleBlock]:
     for decoded in iter_decoded(src):
         for cid, data in decoded.items():
             tp = src.topics[cid]
-            t = data["t"]
-            if t.size == 0:
+            ns = data["t"]
+            if ns.size == 0:
                 continue
             fs = rates.get(cid)
             if fs is None:
                 try:
-                    fs = estimate_rate(t)
+                    fs = _rate(ns, src.metadata)
                 except ValueError:
-                    fs = float(src.metadata.get("rate_hz", "0") or 0) or 1.0
+                    fs = 1.0
                 rates[cid] = fs
             cols = _split(data)
-            bounds = np.append(segment_starts_from_times(t, fs), t.size)
+            rel, t_first = seconds(ns)
+            t = rel + t_first
+            bounds = np.append(segment_starts_from_times(rel, fs), t.size)
             for a, b in zip(bounds[:-1], bounds[1:], strict=True):
                 if b <= a:
                     continue

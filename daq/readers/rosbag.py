@@ -41,7 +41,7 @@ def read_rosbag(path: str | Path) -> Record:
             for conn, _log_ns, raw in reader.messages(connections=conns):
                 m = reader.deserialize(raw, conn.msgtype)
                 d = per_topic.setdefault(conn.topic, {"t": [], "a": [], "b": [], "cov": []})
-                d["t"].append(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9)
+                d["t"].append(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)
                 if kinds[conn.topic] == "imu":
                     g, a = m.angular_velocity, m.linear_acceleration
                     d["a"].append((g.x, g.y, g.z))
@@ -61,7 +61,7 @@ def read_rosbag(path: str | Path) -> Record:
     imu_topics = [t for t in per_topic if kinds[t] == "imu"]
     for topic in imu_topics:
         d = per_topic[topic]
-        t = np.asarray(d["t"], dtype=np.float64)
+        t = np.asarray(d["t"], dtype=np.int64)
         fs = _rate(t, {})
         warnings.extend(time_warnings(topic, t, fs))
         label = topic if len(imu_topics) > 1 else ""
@@ -77,7 +77,7 @@ def read_rosbag(path: str | Path) -> Record:
     temp_topics = [t for t in per_topic if kinds[t] == "temperature"]
     if temp_topics:
         d = per_topic[temp_topics[0]]
-        t = np.asarray(d["t"], dtype=np.float64)
+        t = np.asarray(d["t"], dtype=np.int64)
         fs = _rate(t, {}) if t.size > 1 else 1.0
         temperature = make_series("temp", t, np.asarray(d["a"], dtype=np.float64), fs,
                                   warnings, "degC")
