@@ -404,14 +404,14 @@ def raw_counts(values: np.ndarray, metadata: dict[str, str], channel: str) -> np
     return np.rint((np.asarray(values, dtype=np.float64) - offset) / scale).astype(np.int64)
 
 
-def iter_blocks(path: str | Path) -> Iterator[SampleBlock]:
+def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[SampleBlock]:
     """Stream a file as SampleBlocks (one per topic, batch and gap-free run), bounded memory.
 
     Each block is contiguous in time; ``gap_before`` counts the samples missing before it
     (-1 when time went backwards or the rate is unknown). Raw counts are attached when the
-    file carries scale factors.
+    file carries scale factors. ``src`` may be passed when the file is already opened.
     """
-    src = open_mcap(path)
+    src = open_mcap(path) if src is None else src
     last_t: dict[int, float] = {}
     rates: dict[int, float] = {}
     for decoded in iter_decoded(src):
