@@ -44,6 +44,7 @@ TEMP = "temp"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 METADATA_NAME = "imunoise"
 RESERVE_NAME = ".imunoise-reserve"
+_POLL_S = 0.1
 
 
 def _software_version() -> str:
@@ -179,6 +180,9 @@ class McapRecorder:
         self.rate_hz = rate_hz
         self.rotate_s = rotate_s
         self.flush_s = flush_s
+        # The writer thread checks every _POLL_S, so flushing _POLL_S early keeps the data at
+        # risk (written but not yet durable) within flush_s of wall-clock time.
+        self._flush_wall_s = max(flush_s - _POLL_S, flush_s / 2)
         self.fsync = fsync
         self.frame_id = frame_id if frame_id is not None else f"{self.name}_link"
         self.clock = clock
@@ -270,9 +274,9 @@ class McapRecorder:
         assert self._queue is not None
         while True:
             try:
-                kind, item, wall = self._queue.get(timeout=min(0.2, self.flush_s / 4))
+                kind, item, wall = self._queue.get(timeout=min(_POLL_S, self.flush_s / 4))
             except queue.Empty:
-                if self._dirty and self.clock() - self.stats.last_flush_wall >= self.flush_s:
+                if self._dirty and self.clock() - self.stats.last_flush_wall >= self._flush_wall_s:
                     self._guarded(self._flush)
                 continue
             if kind == "close":
@@ -500,7 +504,7 @@ class McapRecorder:
                                log_ns)
         self.stats.samples += n
         self._dirty = True
-        if (wall - self.stats.last_flush_wall >= self.flush_s
+        if (wall - self.stats.last_flush_wall >= self._flush_wall_s
                 or float(t[-1]) - self._flush_t_sample >= self.flush_s):
             self._flush()
             self._flush_t_sample = float(t[-1])
