@@ -201,6 +201,7 @@ class McapRecorder:
         self._flush_t_sample: float | None = None
         self._dirty = False
         self._closed = False
+        self._last_log: dict[str, int] = {}
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self._reserve = self.out_dir / RESERVE_NAME
         self._make_reserve()
@@ -437,13 +438,18 @@ class McapRecorder:
             self._finish_file()
             self._open_file(wall, block)
 
-    def _log_times(self, t: np.ndarray, wall: float, wall_clock: bool) -> np.ndarray:
+    def _log_times(self, stream: str, t: np.ndarray, wall: float) -> np.ndarray:
+        """Log times in ns: the host receive time of the block, back-dated per sample by the
+        sample spacing, and never earlier than the stream's previous log time (so log-time
+        order equals sample order for every reader)."""
         t_ns = np.rint(t * 1e9).astype(np.int64)
-        if not wall_clock or len(t) == 0:
-            return np.maximum(t_ns, 0)
-        # Host receive time of the block, back-dated per sample by the sample spacing.
         shift = int(round(wall * 1e9)) - int(t_ns[-1])
-        return np.maximum(t_ns + shift, 0)
+        prev = self._last_log.get(stream)
+        if prev is not None:
+            shift = max(shift, prev + 1 - int(t_ns[0]))
+        log = np.maximum(t_ns + shift, 0)
+        self._last_log[stream] = int(log[-1])
+        return log
 
     def _check_raw(self, block: SampleBlock) -> None:
         for ch, raw in block.raw.items():
@@ -488,7 +494,7 @@ class McapRecorder:
                                "missing_samples": missing}, float(t[0]), wall)
         base = block.stream if block.stream.startswith("/") else f"/{self.name}/imu"
         prefix = base.rsplit("/", 1)[0] if base.count("/") > 1 else f"/{self.name}"
-        log_ns = self._log_times(t, wall, self.clock is not None)
+        log_ns = self._log_times(block.stream, t, wall)
         ch = block.channels
         has_gyro = all(c in ch for c in GYRO)
         has_accel = all(c in ch for c in ACCEL)
