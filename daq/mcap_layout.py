@@ -204,18 +204,19 @@ def _read_summary_definitions(buf, size: int, layout: McapLayout) -> None:
 
 
 def walk_chunk(buf, chunk: ChunkInfo, layout: McapLayout,
-               collect: set[int] | None = None) -> dict[int, list[int]]:
+               collect: set[int] | None = None) -> dict[int, list[tuple[int, int]]]:
     """Walk the records of one chunk: register its Schema/Channel records in ``layout`` and
-    return the record offsets (in the decompressed chunk) of messages of channels in
+    return (log_time, record offset in the decompressed chunk) of the messages of channels in
     ``collect``."""
     records = chunk_records(buf, chunk)
-    offsets: dict[int, list[int]] = {}
+    offsets: dict[int, list[tuple[int, int]]] = {}
     for op, a, b in iter_records(records, 0, len(records)):
         if op == OP_MESSAGE:
             if collect is not None:
                 (cid,) = _U16.unpack_from(records, a)
                 if cid in collect:
-                    offsets.setdefault(cid, []).append(a - RECORD_PREFIX)
+                    (log_time,) = _U64.unpack_from(records, a + 6)
+                    offsets.setdefault(cid, []).append((log_time, a - RECORD_PREFIX))
         elif op == OP_SCHEMA:
             s = parse_schema(records, a)
             layout.schemas.setdefault(s.id, s)
@@ -301,6 +302,10 @@ def scan(buf, size: int | None = None) -> McapLayout:
         layout.data_end = pos
     if unknown_pending:
         _discover_channels(buf, layout)
+    if not layout.complete and chunks and chunks[-1].mi_end >= layout.data_end:
+        # The message indexes after the last chunk of a crashed file may be cut short.
+        chunks[-1].mi = {}
+        chunks[-1].mi_end = chunks[-1].end
     for chunk in chunks:
         if not chunk.mi and not chunk.walked:
             walk_chunk(buf, chunk, layout)

@@ -28,6 +28,7 @@ from mcap.records import (
     ChunkIndex,
     DataEnd,
     Footer,
+    MessageIndex,
     MetadataIndex,
     Schema,
     Statistics,
@@ -111,6 +112,31 @@ def _summary(buf, layout: ml.McapLayout, summary_start: int) -> bytes:
     return data + tail.end() + ml.MAGIC
 
 
+def _only_message_indexes(buf, start: int, end: int) -> bool:
+    return all(op == ml.OP_MESSAGE_INDEX for op, _a, _b in ml.iter_records(buf, start, end))
+
+
+def _reindex_last_chunk(buf, layout: ml.McapLayout) -> bytes:
+    """MessageIndex records for the last chunk of a crashed file (its own may be cut short);
+    updates ``layout`` so that they follow the chunk. Empty when not applicable."""
+    if not layout.chunks:
+        return b""
+    if len(layout.chunks) > 1 and not any(c.mi for c in layout.chunks[:-1]):
+        return b""  # the file does not use message indexes
+    last = layout.chunks[-1]
+    if last.mi or not _only_message_indexes(buf, last.end, layout.data_end):
+        return b""
+    entries = ml.walk_chunk(buf, last, layout, collect=set(layout.channels))
+    builder = RecordBuilder()
+    for cid in sorted(entries):
+        start = builder.count
+        MessageIndex(channel_id=cid, records=sorted(entries[cid])).write(builder)
+        last.mi[cid] = (last.end + start + ml.RECORD_PREFIX + 6, len(entries[cid]))
+    last.mi_end = last.end + builder.count
+    layout.data_end = last.mi_end
+    return builder.end()
+
+
 def finish_in_place(path: str | Path) -> RepairResult:
     """Append a summary to a crashed MCAP file (no-op for a complete one)."""
     path = Path(path)
@@ -123,6 +149,11 @@ def finish_in_place(path: str | Path) -> RepairResult:
                 n = sum(n for c in layout.chunks for _p, n in c.mi.values())
                 return RepairResult(str(path), "already complete", n, len(layout.chunks), 0,
                                     layout.warnings)
+            cut = layout.chunks[-1].end if layout.chunks else layout.data_end
+            kept_end = layout.data_end
+            indexes = _reindex_last_chunk(buf, layout)
+            if not indexes:
+                cut = kept_end
             data_end = layout.data_end
             closing = RecordBuilder()
             DataEnd(data_section_crc=0).write(closing)
@@ -132,13 +163,13 @@ def finish_in_place(path: str | Path) -> RepairResult:
         finally:
             if isinstance(buf, mmap.mmap):
                 buf.close()
-        f.truncate(data_end)
-        f.seek(data_end)
-        f.write(closing_bytes + summary)
+        f.truncate(cut)
+        f.seek(cut)
+        f.write(indexes + closing_bytes + summary)
         f.flush()
         os.fsync(f.fileno())
     return RepairResult(str(path), "finished in place", sum(totals.values()),
-                        len(layout.chunks), size - data_end, layout.warnings)
+                        len(layout.chunks), max(size - kept_end, 0), layout.warnings)
 
 
 def rewrite(src: str | Path, dst: str | Path) -> RepairResult:
@@ -197,7 +228,7 @@ def repair(src: str | Path, dst: str | Path) -> RepairResult:
             layout = ml.scan(buf, size)
         finally:
             buf.close()
-    indexed = all(c.mi for c in layout.chunks) and not layout.unchunked_messages
+    indexed = all(c.mi for c in layout.chunks[:-1]) and not layout.unchunked_messages
     if not indexed:
         return rewrite(src, dst)
     tmp = dst.with_name(dst.name + ".part")

@@ -394,12 +394,16 @@ def read_mcap(path: str | Path) -> Record:
 
 def raw_counts(values: np.ndarray, metadata: dict[str, str], channel: str) -> np.ndarray | None:
     """Raw register counts of a channel recorded by imunoise (``value = offset + scale *
-    count``, scale and offset in the metadata record), or None when the file has no scale."""
+    count``, scale and offset in the metadata record), or None when the file has no scale
+    or a value is not finite."""
     base = channel.split(":")[-1]
     try:
         scale = float(metadata[f"scale.{base}"])
         offset = float(metadata.get(f"offset.{base}", "0"))
     except (KeyError, ValueError):
+        return None
+    values = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(values)):
         return None
     return np.rint((np.asarray(values, dtype=np.float64) - offset) / scale).astype(np.int64)
 
