@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from analysis.series import ChannelSeries, estimate_rate, segment_starts_from_times
 from daq import mcap_layout as ml
@@ -115,12 +114,12 @@ def _batches(chunks: list[ml.ChunkInfo]) -> Iterator[list[ml.ChunkInfo]]:
         yield batch
 
 
-def _gather(blob_sw: dict[int, np.ndarray], blob: np.ndarray, pos: np.ndarray,
-            width: int) -> np.ndarray:
-    sw = blob_sw.get(width)
-    if sw is None:
-        sw = blob_sw[width] = sliding_window_view(blob, width)
-    return sw[pos]
+def _overlapping(buf: np.ndarray, dtype: str) -> np.ndarray:
+    """View of ``buf`` (uint8) whose element i is the ``dtype`` value starting at byte i, so
+    that a field at any byte offset is read with one vectorised ``take``."""
+    size = np.dtype(dtype).itemsize
+    return np.ndarray(shape=(max(buf.size - size + 1, 0),), dtype=dtype, buffer=buf,
+                      strides=(1,))
 
 
 def _setup_topic(tp: _Topic, blob: np.ndarray, first: int) -> None:
@@ -158,7 +157,7 @@ def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
     blob = np.frombuffer(b"".join(parts) if len(parts) > 1 else bytes(parts[0]), np.uint8)
     del parts
     region_u8 = np.frombuffer(region, np.uint8)
-    sw: dict[int, np.ndarray] = {}
+    views = {dt: _overlapping(blob, dt) for dt in ("<u8", "<u4", "<i4", "<u2", "<f8")}
     out: dict[int, dict[str, np.ndarray]] = {}
     for cid, tp in src.topics.items():
         pos_l, cnt_l, base_l, walked = [], [], [], []
@@ -180,7 +179,7 @@ def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
             first = np.repeat(np.cumsum(cnt) - cnt, cnt)
             idx = np.repeat(np.asarray(pos_l, dtype=np.int64), cnt) + 16 * (
                 np.arange(total, dtype=np.int64) - first) + 8
-            rel = sliding_window_view(region_u8, 8)[idx].view("<u8").ravel().astype(np.int64)
+            rel = _overlapping(region_u8, "<u8")[idx].astype(np.int64)
             offsets.append(rel + np.repeat(np.asarray(base_l, dtype=np.int64), cnt))
         offsets.extend(walked)
         if not offsets:
@@ -192,7 +191,7 @@ def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
             raise ml.McapFormatError(f"{tp.topic}: message index points outside its chunk")
         if tp.frame_len < 0:
             _setup_topic(tp, blob, int(rec[0]))
-        out[cid] = _decode_topic(tp, blob, rec, sw)
+        out[cid] = _decode_topic(tp, blob, rec, views)
     return out
 
 
@@ -206,32 +205,33 @@ def _walk_offsets(records: np.ndarray, cid: int) -> np.ndarray:
 
 
 def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray,
-                  sw: dict[int, np.ndarray]) -> dict[str, np.ndarray]:
+                  views: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Check and decode the messages of one topic at record offsets ``rec`` in ``blob``."""
     if rec.max() + _PAYLOAD + tp.payload_len > blob.size:
         raise UnsupportedLayout(f"{tp.topic}: message longer than its chunk")
-    head = _gather(sw, blob, rec, _PAYLOAD + 16)
-    if not np.all(head[:, 0] == ml.OP_MESSAGE):
+    if not np.all(blob[rec] == ml.OP_MESSAGE):
         raise ml.McapFormatError(f"{tp.topic}: message index does not point at messages")
-    rlen = head[:, 1:9].copy().view("<u8").ravel()
-    p = _PAYLOAD
-    encap_ok = (head[:, p] == 0) & (head[:, p + 1] == 1)
-    flen = head[:, p + 12:p + 16].copy().view("<u4").ravel()
-    if (not np.all(encap_ok) or not np.all(flen == tp.frame_len)
-            or not np.all(rlen == ml.MESSAGE_HEADER + tp.payload_len)):
+    p = rec + _PAYLOAD
+    if (not np.all(views["<u2"][p] == 0x0100)
+            or not np.all(views["<u4"][p + 12] == tp.frame_len)
+            or not np.all(views["<u8"][rec + 1] == ml.MESSAGE_HEADER + tp.payload_len)):
         raise UnsupportedLayout(
             f"{tp.topic}: messages differ in layout (frame_id length or encoding)")
-    stamp = head[:, p + 4:p + 12].copy()
-    t = stamp[:, :4].copy().view("<i4").ravel().astype(np.int64) * 1_000_000_000 + \
-        stamp[:, 4:].copy().view("<u4").ravel()
-    body = rec + (_PAYLOAD + tp.body)
+    t = views["<i4"][p + 4].astype(np.int64)
+    t *= 1_000_000_000
+    t += views["<u4"][p + 8]
+    body = p + tp.body
+    f8 = views["<f8"]
     out = {"t": t}
     if tp.kind == "imu":
         if tp.has_gyro:
-            out["gyro"] = _gather(sw, blob, body + msgs.IMU_GYRO_OFFSET, 24).view("<f8")
+            for i, name in enumerate(GYRO):
+                out[name] = f8[body + (msgs.IMU_GYRO_OFFSET + 8 * i)]
         if tp.has_accel:
-            out["accel"] = _gather(sw, blob, body + msgs.IMU_ACCEL_OFFSET, 24).view("<f8")
+            for i, name in enumerate(ACCEL):
+                out[name] = f8[body + (msgs.IMU_ACCEL_OFFSET + 8 * i)]
     else:
-        out["temp"] = _gather(sw, blob, body, 8).view("<f8").ravel()
+        out["temp"] = f8[body]
     return out
 
 
@@ -249,14 +249,7 @@ def _channel_names(tp: _Topic) -> list[str]:
 
 
 def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    cols: dict[str, np.ndarray] = {}
-    for key, names in (("gyro", GYRO), ("accel", ACCEL)):
-        if key in data:
-            for i, name in enumerate(names):
-                cols[name] = data[key][:, i]
-    if "temp" in data:
-        cols["temp"] = data["temp"]
-    return cols
+    return {k: v for k, v in data.items() if k != "t"}
 
 
 def _rate(t: np.ndarray, metadata: dict[str, str]) -> float:
