@@ -42,7 +42,7 @@ def write_recording(hours: float, rate: float) -> Path:
         old.unlink()
     rng = np.random.default_rng(42)
     n_total = int(round(hours * 3600 * rate))
-    block = int(rate * 60)  # one minute per block
+    block = int(rate)  # one second per block, as a live acquisition hands them over
     t0 = 1.7e9
     rec = McapRecorder(OUT, "bench", threaded=False, fsync=False, rotate_s=None,
                        rate_hz=rate, reserve_bytes=0)

@@ -10,7 +10,10 @@ and says so in ``warnings``: everything before that point is usable.
 from __future__ import annotations
 
 import struct
+import threading
 from dataclasses import dataclass, field
+
+import zstandard
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -161,14 +164,18 @@ def iter_records(buf, start: int, end: int):
         pos = body + n
 
 
+_ZSTD = threading.local()
+
+
 def decompress(compression: str, data, uncompressed_size: int) -> bytes | memoryview:
     """Decompress one chunk's records (``""``, ``"zstd"`` or ``"lz4"``)."""
     if compression == "":
         return data
     if compression == "zstd":
-        import zstandard
-
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=uncompressed_size)
+        dctx = getattr(_ZSTD, "dctx", None)
+        if dctx is None:  # a decompression context is costly to create: one per thread
+            dctx = _ZSTD.dctx = zstandard.ZstdDecompressor()
+        return dctx.decompress(data, max_output_size=uncompressed_size)
     if compression == "lz4":
         import lz4.frame
 

@@ -32,7 +32,7 @@ from daq.record import Record
 
 GYRO = ("gyro_x", "gyro_y", "gyro_z")
 ACCEL = ("accel_x", "accel_y", "accel_z")
-BATCH_BYTES = 16 << 20  # uncompressed bytes decoded per batch
+BATCH_BYTES = 1 << 20  # uncompressed bytes decoded per batch (cache-sized: gathers stay hot)
 _PAYLOAD = ml.RECORD_PREFIX + ml.MESSAGE_HEADER  # record start -> CDR payload
 
 
@@ -283,11 +283,18 @@ def seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def make_series(name: str, t: np.ndarray, values: np.ndarray, fs_hz: float,
-                warnings: list[str], units: str) -> ChannelSeries:
+                warnings: list[str], units: str,
+                timing: tuple[np.ndarray, float, np.ndarray] | None = None) -> ChannelSeries:
     """A ChannelSeries from sample times (int64 ns or float s) and values: non-finite samples
     are dropped (the gap they leave becomes a segment boundary) and gaps in time start new
-    segments."""
+    segments. ``timing`` = (relative seconds, t0, segment starts) of ``t``, when already known
+    (shared by the channels of one topic)."""
     finite = np.isfinite(values)
+    if finite.all() and timing is not None:
+        _rel, t0, starts = timing
+        return ChannelSeries(name=name, units=units, fs_hz=fs_hz,
+                             values=np.ascontiguousarray(values, dtype=np.float64),
+                             segment_starts=starts, t0_s=t0)
     if not finite.all():
         bad = int((~finite).sum())
         warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
@@ -362,14 +369,17 @@ def read_mcap(path: str | Path) -> Record:
         n = fill[tp.cid]
         cols = {k: v[:n] for k, v in arrays.pop(tp.cid).items()}
         t = cols.pop("t")
-        fs = _rate(t, src.metadata)
+        rel, t0 = seconds(t)
+        fs = _rate(rel, src.metadata)
+        timing = (rel, t0, segment_starts_from_times(rel, fs))
         label = tp.topic if len(imu_topics) > 1 else ""
-        warnings.extend(time_warnings(label or tp.topic, t, fs))
+        warnings.extend(time_warnings(label or tp.topic, rel, fs))
         for name, v in cols.items():
             key = f"{label}:{name}" if label else name
             channels[key] = make_series(key, t, v, fs, warnings,
-                                        "rad/s" if name.startswith("gyro") else "m/s^2")
-        del t, cols
+                                        "rad/s" if name.startswith("gyro") else "m/s^2",
+                                        timing)
+        del t, cols, rel, timing
     if temp_topics:
         tp = temp_topics[0]
         n = fill[tp.cid]
