@@ -40,6 +40,8 @@ LINEAR_TERMS = ("white", "quantization", "bias_instability", "random_walk", "rat
 _LINEAR_PARAM = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
                  "rate_ramp": "R"}
 _Z95 = 1.959963984540054
+_LOSS = "soft_l1"
+_F_SCALE = 3.0
 
 
 class CurveLike(Protocol):
@@ -363,7 +365,8 @@ def _solve(layout: _Layout, theta0: np.ndarray, y: np.ndarray, tau: np.ndarray,
             return whiten @ (y - np.log(np.maximum(mod, 1e-300)) - bias)
 
         sol = optimize.least_squares(resid, theta, bounds=(layout.lo, layout.hi),
-                                     method="trf", max_nfev=max_nfev)
+                                     method="trf", max_nfev=max_nfev, loss=_LOSS,
+                                     f_scale=_F_SCALE)
         moved = float(np.max(np.abs(sol.x - theta))) if theta.size else 0.0
         theta = sol.x
         if moved < 0.02:
@@ -637,3 +640,72 @@ def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int =
         half = math.inf
     term = TermFit("temperature", {"coef": coef}, {"coef": (coef - half, coef + half)})
     return term, y - coef * tc
+
+
+def parse_model_spec(text: str) -> tuple[list[str], dict[int, dict[str, float]]]:
+    """``"white,gauss_markov:T=100,random_walk"`` -> term names and fixed parameters by model
+    index. A parameter written after a term (``term:P=value[:P2=value]``) is held fixed."""
+    names: list[str] = []
+    fixed: dict[int, dict[str, float]] = {}
+    for item in (s.strip() for s in text.split(",")):
+        if not item:
+            continue
+        name, *assigns = item.split(":")
+        name = name.strip()
+        names.append(name)
+        for a in assigns:
+            key, eq, value = a.partition("=")
+            try:
+                fixed.setdefault(len(names) - 1, {})[key.strip()] = float(value)
+            except ValueError:
+                raise TermError(f"bad fixed parameter {a!r} in {item!r}: use "
+                                f"{name}:PARAM=VALUE") from None
+            if not eq:
+                raise TermError(f"bad fixed parameter {a!r} in {item!r}: use "
+                                f"{name}:PARAM=VALUE")
+    parse_terms(names)
+    return names, fixed
+
+
+def fit_series(values: np.ndarray, fs_hz: float, model: ModelSpec, *,
+               segment_starts: np.ndarray | None = None,
+               temperature: np.ndarray | None = None,
+               fixed: dict[str | int, dict[str, float]] | None = None,
+               ci: float = 0.95, start: Any = None) -> tuple[FitResult, Any]:
+    """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
+    for a sinusoid, temperature regression, then :func:`fit_allan`.
+
+    Args:
+        values: rate samples in SI units, all segments concatenated.
+        fs_hz: sampling rate, Hz.
+        model: term names or ``[(term, params)]``.
+        segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
+        temperature: temperature in degC at each sample (required with ``temperature``).
+        fixed: parameters held at known values (see :func:`fit_allan`).
+        ci: confidence level of the curve's ``ci_low``/``ci_high``.
+        start: starting point of a refit (see :func:`fit_allan`).
+
+    Returns:
+        ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
+        when the model holds ``temperature``.
+    """
+    from analysis.allan import oadev
+
+    spec = normalise_model(model)
+    names = [n for n, _ in spec]
+    x = np.asarray(values, dtype=np.float64)
+    temp_term = None
+    if "temperature" in names:
+        if temperature is None:
+            raise TermError("the temperature term needs a temperature record, and this "
+                            "record has none")
+        temp_term, x = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
+    curve = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
+    line = None
+    if "sinusoid" in names:
+        bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
+        k = int(np.argmax(np.diff(bounds)))
+        line = find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
+    result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed)
+    return result, curve
+
