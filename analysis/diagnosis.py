@@ -12,9 +12,11 @@ supports ``sinusoid``, correlation with the temperature record supports ``temper
 steady slope supports ``rate_ramp``. Each candidate's p-value is the smaller of its sources'
 (Bonferroni over the sources) and the candidates are ranked by it; a candidate is
 ``significant`` when its p-value, Bonferroni-corrected for the number of candidates, is below
-``alpha``. So on data the model fully explains, nothing is flagged with probability at least
-``1 - alpha``. Outliers, gaps and a changing noise level are reported alongside: they are
-not noise terms to add, but they are why a model can look wrong.
+``alpha``. The ranking follows the p-values (kept in log form, as strong effects give values
+far below the floating-point range). So on data the model fully explains, nothing is
+flagged with probability at least ``1 - alpha``. Outliers, gaps and a changing noise level
+are reported alongside: they are not noise terms to add, but they are why a model can look
+wrong.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ class Suggestion:
         chi2_per_dof_after: misfit with the term added (``nan`` when the refit failed).
         p_value: probability of evidence this strong were the term absent, Bonferroni-corrected
             for the number of candidates (and of evidence sources).
+        log_p: natural log of ``p_value`` (keeps its order where ``p_value`` underflows).
         significant: ``p_value < alpha``.
         why: plain-words explanation: the effect, where it shows, the expected improvement.
         evidence: the evidence findings that support it (kinds).
@@ -61,6 +64,7 @@ class Suggestion:
     chi2_per_dof_before: float
     chi2_per_dof_after: float
     p_value: float
+    log_p: float
     significant: bool
     why: str
     evidence: list[str] = field(default_factory=list)
@@ -76,6 +80,7 @@ class Suggestion:
                 "chi2_per_dof_before": num(self.chi2_per_dof_before),
                 "chi2_per_dof_after": num(self.chi2_per_dof_after),
                 "significant": bool(self.significant), "p_value": num(self.p_value),
+                "log10_p": num(self.log_p / np.log(10.0)),
                 "why": self.why, "evidence": list(self.evidence)}
 
 
@@ -105,12 +110,17 @@ def _z_range(before: FitResult, after: FitResult) -> tuple[float, float] | None:
     return float(sel.min()), float(sel.max())
 
 
-def _lr_p(before: FitResult, after: FitResult, k: int) -> float:
-    """p-value of the chi2 drop from ``before`` to ``after`` with ``k`` added parameters."""
+def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
+    """Natural log of the p-value of the chi2 drop from ``before`` to ``after`` with ``k``
+    added parameters (log form: strong effects give p-values below the float range)."""
     drop = before.misfit.chi2 - after.misfit.chi2
     if not np.isfinite(drop) or drop <= 0:
-        return 1.0
-    return float(stats.chi2.sf(drop, k))
+        return 0.0
+    return float(stats.chi2.logsf(drop, k))
+
+
+def _logp(p: float) -> float:
+    return float(np.log(max(p, 1e-300)))
 
 
 def _why(term: str, rng: tuple[float, float] | None, before: float, after: float,
@@ -213,12 +223,14 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             else {}
         sources: list[float] = []
         if after is not None and term != "temperature":
-            sources.append(_lr_p(base, after, k))
+            sources.append(_lr_logp(base, after, k))
         ev = by_term.get(term)
         if ev is not None:
-            sources.append(ev.p_value)
-        p_term = min(1.0, min(sources) * len(sources)) if sources else 1.0
-        p_adj = min(1.0, p_term * len(candidates))
+            sources.append(_logp(ev.p_value))
+        # Bonferroni over the sources and over the candidates, in log form.
+        logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(len(candidates))) \
+            if sources else 0.0
+        p_adj = float(np.exp(logp))
         params: dict[str, float] = {}
         ci: dict[str, tuple[float, float]] = {}
         chi_after = float("nan")
@@ -236,17 +248,12 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         supporting = [ev] if ev is not None else []
         suggestions.append(Suggestion(
             term=term, params=params, ci95=ci, chi2_per_dof_before=before,
-            chi2_per_dof_after=chi_after, p_value=p_adj, significant=p_adj < alpha,
+            chi2_per_dof_after=chi_after, p_value=p_adj, log_p=logp,
+            significant=logp < np.log(alpha),
             why=_why(term, rng, before, chi_after, supporting),
             evidence=[f.kind for f in supporting if f.significant], fit=after))
-    suggestions.sort(key=lambda s: (s.p_value, -(s.chi2_per_dof_before
-                                                 - np.nan_to_num(s.chi2_per_dof_after,
-                                                                 nan=s.chi2_per_dof_before))))
-    # Among several significant ones, the largest fall of the misfit comes first.
-    sig = [s for s in suggestions if s.significant]
-    sig.sort(key=lambda s: (-(s.chi2_per_dof_before
-                              - np.nan_to_num(s.chi2_per_dof_after, nan=s.chi2_per_dof_before)),
-                            s.p_value))
-    rest = [s for s in suggestions if not s.significant]
-    return Diagnosis(fit=base, curve=curve, suggestions=sig + rest, findings=findings,
+    # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
+    # parameters, so a two-parameter Markov term does not win merely by being flexible.
+    suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
+    return Diagnosis(fit=base, curve=curve, suggestions=suggestions, findings=findings,
                      alpha=alpha)
