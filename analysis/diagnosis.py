@@ -119,6 +119,13 @@ def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
     return float(stats.chi2.logsf(drop, k))
 
 
+def _in_band(fit: FitResult, line_finding: Finding) -> bool:
+    """Whether the refitted sinusoid's frequency lies in the band the line search covered."""
+    f = next(t.params["f"] for t in fit.terms if t.term == "sinusoid")
+    lo, hi = line_finding.details.get("f_searched_hz", (np.inf, -np.inf))
+    return bool(lo <= f <= hi)
+
+
 def _logp(p: float) -> float:
     return float(np.log(max(p, 1e-300)))
 
@@ -217,6 +224,12 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
                 elif term == "sinusoid":
                     line = find_line(max(segments, key=len), fs_hz, min_snr=3.0)
                 after = fit_allan(curve, names + [term], line=line, fixed=fix)
+                if after.misfit.chi2 > base.misfit.chi2:
+                    # A nested model cannot fit worse: the cold start found a poorer optimum,
+                    # so start again from the given model's fit with the new term small.
+                    warm = fit_allan(curve, names + [term], start=base, line=line, fixed=fix)
+                    if warm.misfit.chi2 < after.misfit.chi2:
+                        after = warm
         except (ValueError, np.linalg.LinAlgError):
             after = None
         fix_used = fix.get(len(names), {}) if after is not None and term != "temperature" \
@@ -227,6 +240,11 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         ev = by_term.get(term)
         if ev is not None:
             sources.append(_logp(ev.p_value))
+        if term == "sinusoid" and ev is not None and not ev.significant and after is not None \
+                and _in_band(after, ev):
+            # A sinusoid big enough to bend the Allan curve is a line in the spectrum; with no
+            # line where the refit put it, the Allan improvement is some other bump.
+            sources = [_logp(ev.p_value)]
         # Bonferroni over the sources and over the candidates, in log form.
         logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(len(candidates))) \
             if sources else 0.0

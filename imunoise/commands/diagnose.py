@@ -95,6 +95,9 @@ def diagnosis_text(key: str, series: Any, diag: Any) -> str:
             lines.append(f"        {', '.join(pars)}")
         if s.significant:
             lines.append(f"        {s.why}")
+    if not any(s.significant for s in diag.suggestions) and diag.fit.failures:
+        lines.append("  the model fails, but no single added term explains the failure: look at "
+                     "the failing tau ranges above and at the evidence below")
     lines.append("")
     lines.append("  evidence")
     for f in diag.findings:
