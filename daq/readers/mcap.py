@@ -139,9 +139,9 @@ def _setup_topic(tp: _Topic, blob: np.ndarray, first: int) -> None:
         tp.has_accel = bool(acov[0] != -1.0)
 
 
-def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
-                  ) -> dict[int, dict[str, np.ndarray]]:
-    """Decode the chosen topics of consecutive chunks: {cid: {"t": ..., field: ...}}."""
+def _load_batch(fd: int, batch: list[ml.ChunkInfo]) -> tuple[bytes, np.ndarray, list[int]]:
+    """Read consecutive chunks with their message indexes and decompress them into one buffer:
+    (file region, decompressed records, offset of each chunk in them)."""
     start, stop = batch[0].start, batch[-1].mi_end
     region = os.pread(fd, stop - start, start)
     if len(region) != stop - start:
@@ -155,7 +155,15 @@ def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
         bases.append(base)
         base += len(data)
     blob = np.frombuffer(b"".join(parts) if len(parts) > 1 else bytes(parts[0]), np.uint8)
-    del parts
+    return region, blob, bases
+
+
+def _decode_batch(src: McapSource, batch: list[ml.ChunkInfo],
+                  loaded: tuple[bytes, np.ndarray, list[int]]
+                  ) -> dict[int, dict[str, np.ndarray]]:
+    """Decode the chosen topics of consecutive chunks: {cid: {"t": ..., field: ...}}."""
+    region, blob, bases = loaded
+    start = batch[0].start
     region_u8 = np.frombuffer(region, np.uint8)
     views = {dt: _overlapping(blob, dt) for dt in ("<u8", "<u4", "<i4", "<u2", "<f8")}
     out: dict[int, dict[str, np.ndarray]] = {}
@@ -239,7 +247,7 @@ def iter_decoded(src: McapSource) -> Iterator[dict[int, dict[str, np.ndarray]]]:
     """Decoded batches of the source's topics, in file order."""
     with open(src.path, "rb") as f:
         for batch in _batches(src.layout.chunks):
-            yield _decode_batch(f.fileno(), src, batch)
+            yield _decode_batch(src, batch, _load_batch(f.fileno(), batch))
 
 
 def _channel_names(tp: _Topic) -> list[str]:
