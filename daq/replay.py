@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from daq.blocks import SampleBlock
-from daq.readers import InputError, open_record
+from daq.readers import ReadError, open_record
 
 PACE_S = 0.1  # sample-time length of the pieces a paced replay hands over
 
@@ -55,9 +55,9 @@ def open_blocks(path: str | Path) -> tuple[Iterator[SampleBlock], int]:
         except UnsupportedLayout:
             return _record_blocks(path)
         except (McapFormatError, OSError) as exc:
-            raise InputError(f"{path.name}: {exc}") from exc
+            raise ReadError(f"{path.name}: {exc}") from exc
         if not src.topics:
-            raise InputError(f"{path.name}: no sensor_msgs/msg/Imu or Temperature channel")
+            raise ReadError(f"{path.name}: no sensor_msgs/msg/Imu or Temperature channel")
         total = max((tp.count for tp in src.topics.values() if tp.kind == "imu"), default=0)
         return iter_blocks(path, src=src), total
     return _record_blocks(path)

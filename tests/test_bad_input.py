@@ -7,7 +7,7 @@ import pytest
 from mcap.writer import Writer
 
 from daq import ros2_msgs as m
-from daq.readers import InputError, open_record
+from daq.readers import ReadError, open_record
 from imunoise.cli import main
 from tests.mcap_helpers import make_blocks, record_blocks
 
@@ -47,7 +47,7 @@ CASES = ["empty file", "random bytes", "not a bag", "missing file", "no messages
 @pytest.mark.parametrize("case", CASES)
 def test_open_record_raises_one_line_input_error(tmp_path, case):
     path = _bad_inputs(tmp_path)[case]
-    with pytest.raises(InputError) as err:
+    with pytest.raises(ReadError) as err:
         open_record(path)
     msg = str(err.value)
     assert "\n" not in msg and path.name in msg

@@ -50,13 +50,13 @@ def _consumers(summary):
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.readers import InputError
+    from daq.readers import ReadError
     from daq.replay import ReplaySummary, open_blocks, replay
 
     speed = _speed(args.speed)
     try:
         blocks, total = open_blocks(args.file)
-    except InputError as exc:
+    except ReadError as exc:
         raise UsageError(f"replay: {exc}") from exc
     summary = ReplaySummary()
     consumers = _consumers(summary)
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
                 replay(blocks, feed, speed, progress=step)
         else:
             replay(blocks, feed, speed)
-    except InputError as exc:
+    except ReadError as exc:
         raise UsageError(f"replay: {exc}") from exc
     except ValueError as exc:
         raise UsageError(f"replay: {args.file}: {exc}") from exc
