@@ -165,7 +165,7 @@ def _decode_batch(src: McapSource, batch: list[ml.ChunkInfo],
     region, blob, bases = loaded
     start = batch[0].start
     region_u8 = np.frombuffer(region, np.uint8)
-    views = {dt: _overlapping(blob, dt) for dt in ("<u8", "<u4", "<i4", "<u2", "<f8")}
+    views = {dt: _overlapping(blob, dt) for dt in (f"V{_HEAD.itemsize}", "V24", "<f8")}
     out: dict[int, dict[str, np.ndarray]] = {}
     for cid, tp in src.topics.items():
         pos_l, cnt_l, base_l, walked = [], [], [], []
@@ -212,34 +212,43 @@ def _walk_offsets(records: np.ndarray, cid: int) -> np.ndarray:
     return np.asarray(offs, dtype=np.int64)
 
 
+# Record start to the end of the CDR header fields, read in one gather per message.
+_HEAD = np.dtype([("op", "u1"), ("rlen", "<u8"), ("_mcap", "V22"), ("encap", "<u2"),
+                  ("_opts", "V2"), ("sec", "<i4"), ("nanosec", "<u4"), ("frame_len", "<u4")])
+_VEC3 = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+
+
 def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray,
                   views: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Check and decode the messages of one topic at record offsets ``rec`` in ``blob``."""
+    """Check and decode the messages of one topic at record offsets ``rec`` in ``blob``.
+
+    Fields are gathered as opaque byte groups (one per message for the record and CDR header,
+    one per vector), then reinterpreted: far fewer gathers than one per scalar."""
     if rec.max() + _PAYLOAD + tp.payload_len > blob.size:
         raise UnsupportedLayout(f"{tp.topic}: message longer than its chunk")
-    if not np.all(blob[rec] == ml.OP_MESSAGE):
+    head = views[f"V{_HEAD.itemsize}"][rec].view(_HEAD)
+    if not np.all(head["op"] == ml.OP_MESSAGE):
         raise ml.McapFormatError(f"{tp.topic}: message index does not point at messages")
-    p = rec + _PAYLOAD
-    if (not np.all(views["<u2"][p] == 0x0100)
-            or not np.all(views["<u4"][p + 12] == tp.frame_len)
-            or not np.all(views["<u8"][rec + 1] == ml.MESSAGE_HEADER + tp.payload_len)):
+    if (not np.all(head["encap"] == 0x0100)
+            or not np.all(head["frame_len"] == tp.frame_len)
+            or not np.all(head["rlen"] == ml.MESSAGE_HEADER + tp.payload_len)):
         raise UnsupportedLayout(
             f"{tp.topic}: messages differ in layout (frame_id length or encoding)")
-    t = views["<i4"][p + 4].astype(np.int64)
+    t = head["sec"].astype(np.int64)
     t *= 1_000_000_000
-    t += views["<u4"][p + 8]
-    body = p + tp.body
-    f8 = views["<f8"]
+    t += head["nanosec"]
+    body = rec + (_PAYLOAD + tp.body)
     out = {"t": t}
     if tp.kind == "imu":
-        if tp.has_gyro:
-            for i, name in enumerate(GYRO):
-                out[name] = f8[body + (msgs.IMU_GYRO_OFFSET + 8 * i)]
-        if tp.has_accel:
-            for i, name in enumerate(ACCEL):
-                out[name] = f8[body + (msgs.IMU_ACCEL_OFFSET + 8 * i)]
+        v24 = views["V24"]
+        for present, offset, names in ((tp.has_gyro, msgs.IMU_GYRO_OFFSET, GYRO),
+                                       (tp.has_accel, msgs.IMU_ACCEL_OFFSET, ACCEL)):
+            if present:
+                vec = v24[body + offset].view(_VEC3)
+                for axis, name in zip("xyz", names, strict=True):
+                    out[name] = vec[axis].copy()
     else:
-        out["temp"] = f8[body]
+        out["temp"] = views["<f8"][body]
     return out
 
 
@@ -248,12 +257,6 @@ def iter_decoded(src: McapSource) -> Iterator[dict[int, dict[str, np.ndarray]]]:
     with open(src.path, "rb") as f:
         for batch in _batches(src.layout.chunks):
             yield _decode_batch(src, batch, _load_batch(f.fileno(), batch))
-
-
-def _channel_names(tp: _Topic) -> list[str]:
-    if tp.kind == "temperature":
-        return ["temp"]
-    return (list(GYRO) if tp.has_gyro else []) + (list(ACCEL) if tp.has_accel else [])
 
 
 def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
