@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.series import ChannelSeries, estimate_rate, segment_starts_from_times
+from analysis.series import ChannelSeries, segment_starts_from_times
 from daq import mcap_layout as ml
 from daq import ros2_msgs as msgs
 from daq.blocks import SampleBlock
@@ -263,27 +263,6 @@ def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v for k, v in data.items() if k != "t"}
 
 
-def _rate(t: np.ndarray, metadata: dict[str, str]) -> float:
-    """Sampling rate in Hz from stamps (int64 ns or float s): the median interval locates the
-    gaps, then the longest gap-free run gives the rate (span over intervals), which averages
-    out the jitter and rounding of individual stamps."""
-    rel = seconds(t)[0]
-    try:
-        fs = estimate_rate(rel)
-    except ValueError:
-        fs = float(metadata.get("rate_hz", "nan"))
-        if not np.isfinite(fs) or fs <= 0:
-            raise
-        return fs
-    bounds = np.append(segment_starts_from_times(rel, fs), rel.size)
-    lengths = np.diff(bounds)
-    k = int(np.argmax(lengths))
-    if lengths[k] >= 3:
-        a, b = int(bounds[k]), int(bounds[k + 1]) - 1
-        fs = (b - a) / float(rel[b] - rel[a])
-    return fs
-
-
 def seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
     """(times relative to the first, in s; first time in s) from int64 ns or float s."""
     if t.size == 0:
@@ -293,44 +272,73 @@ def seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
     return t - t[0], float(t[0])
 
 
-def make_series(name: str, t: np.ndarray, values: np.ndarray, fs_hz: float,
-                warnings: list[str], units: str,
-                timing: tuple[np.ndarray, float, np.ndarray] | None = None) -> ChannelSeries:
-    """A ChannelSeries from sample times (int64 ns or float s) and values: non-finite samples
-    are dropped (the gap they leave becomes a segment boundary) and gaps in time start new
-    segments. ``timing`` = (relative seconds, t0, segment starts) of ``t``, when already known
-    (shared by the channels of one topic)."""
-    finite = np.isfinite(values)
-    if finite.all() and timing is not None:
-        _rel, t0, starts = timing
-        return ChannelSeries(name=name, units=units, fs_hz=fs_hz,
-                             values=np.ascontiguousarray(values, dtype=np.float64),
-                             segment_starts=starts, t0_s=t0)
-    if not finite.all():
-        bad = int((~finite).sum())
-        warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
-        t, values = t[finite], values[finite]
-    values = np.ascontiguousarray(values, dtype=np.float64)
-    rel, t0 = seconds(t)
-    starts = segment_starts_from_times(rel, fs_hz) if t.size else np.zeros(1, np.int64)
-    return ChannelSeries(name=name, units=units, fs_hz=fs_hz, values=values,
-                         segment_starts=starts, t0_s=t0)
+@dataclass
+class Timing:
+    """Sampling of one topic: rate (Hz), first time (s), gap-free segment starts, notes."""
+
+    fs_hz: float
+    t0_s: float
+    segment_starts: np.ndarray
+    notes: list[str]
 
 
-def time_warnings(name: str, t: np.ndarray, fs_hz: float) -> list[str]:
-    """Human-readable notes about gaps and backward time steps in ``t`` (seconds)."""
-    if t.size < 2:
-        return []
-    dt = np.diff(seconds(t)[0])
+def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = None) -> Timing:
+    """Rate, segments and anomalies of int64 nanosecond stamps, in a few passes.
+
+    The median interval (of a subsample) locates the gaps: an interval that departs from it by
+    more than half a period starts a new segment (missing samples, repeated or backward time).
+    The rate is then taken from the longest gap-free run (span over intervals), which averages
+    out jitter and the rounding of single stamps. With fewer than two increasing stamps the rate
+    comes from the ``rate_hz`` metadata, else ValueError.
+    """
+    n = ns.size
+    t0 = int(ns[0]) * 1e-9 if n else 0.0
+    dt = np.diff(ns)
+    sample = dt[:: max(1, dt.size // 100_000)]
+    sample = sample[sample > 0]
+    if sample.size == 0:
+        fs = float((metadata or {}).get("rate_hz", "nan"))
+        if not np.isfinite(fs) or fs <= 0:
+            raise ValueError("cannot infer a sampling rate: fewer than two increasing time "
+                             "stamps")
+        return Timing(fs, t0, np.zeros(1, np.int64), [])
+    period = float(np.median(sample))
+    breaks = np.flatnonzero(np.abs(dt - period) > 0.5 * period) + 1
+    bounds = np.concatenate(([0], breaks, [n]))
+    lengths = np.diff(bounds)
+    k = int(np.argmax(lengths))
+    if lengths[k] >= 3:
+        first, last = int(bounds[k]), int(bounds[k + 1]) - 1
+        fs = (last - first) / ((int(ns[last]) - int(ns[first])) * 1e-9)
+    else:
+        fs = 1e9 / period
     notes = []
-    back = int((dt <= 0).sum())
+    back = int(np.count_nonzero(dt <= 0))
     if back:
         notes.append(f"{name}: time stamps go backwards or repeat at {back} places "
                      "(treated as segment boundaries)")
-    gaps = int((dt * fs_hz > 1.5).sum())
+    gaps = int(np.count_nonzero(dt > 1.5 * period))
     if gaps:
         notes.append(f"{name}: {gaps} gaps in header.stamp (segments are analysed separately)")
-    return notes
+    return Timing(fs, t0, np.concatenate(([0], breaks)).astype(np.int64), notes)
+
+
+def make_series(name: str, t: np.ndarray, values: np.ndarray, timing: Timing,
+                warnings: list[str], units: str) -> ChannelSeries:
+    """A ChannelSeries from stamps (int64 ns), values and the topic's timing. Non-finite samples
+    are dropped with a warning; the hole they leave becomes a segment boundary."""
+    finite = np.isfinite(values)
+    if finite.all():
+        return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz,
+                             values=np.ascontiguousarray(values, dtype=np.float64),
+                             segment_starts=timing.segment_starts, t0_s=timing.t0_s)
+    bad = int((~finite).sum())
+    warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
+    t, values = t[finite], np.ascontiguousarray(values[finite], dtype=np.float64)
+    rel, t0 = seconds(t)
+    starts = segment_starts_from_times(rel, timing.fs_hz) if t.size else np.zeros(1, np.int64)
+    return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz, values=values,
+                         segment_starts=starts, t0_s=t0)
 
 
 def read_mcap(path: str | Path) -> Record:
@@ -380,17 +388,14 @@ def read_mcap(path: str | Path) -> Record:
         n = fill[tp.cid]
         cols = {k: v[:n] for k, v in arrays.pop(tp.cid).items()}
         t = cols.pop("t")
-        rel, t0 = seconds(t)
-        fs = _rate(rel, src.metadata)
-        timing = (rel, t0, segment_starts_from_times(rel, fs))
+        timing = topic_timing(t, tp.topic, src.metadata)
+        warnings.extend(timing.notes)
         label = tp.topic if len(imu_topics) > 1 else ""
-        warnings.extend(time_warnings(label or tp.topic, rel, fs))
         for name, v in cols.items():
             key = f"{label}:{name}" if label else name
-            channels[key] = make_series(key, t, v, fs, warnings,
-                                        "rad/s" if name.startswith("gyro") else "m/s^2",
-                                        timing)
-        del t, cols, rel, timing
+            channels[key] = make_series(key, t, v, timing, warnings,
+                                        "rad/s" if name.startswith("gyro") else "m/s^2")
+        del t, cols
     if temp_topics:
         tp = temp_topics[0]
         n = fill[tp.cid]
@@ -398,8 +403,8 @@ def read_mcap(path: str | Path) -> Record:
         t = cols["t"][:n]
         if len(temp_topics) > 1:
             warnings.append(f"several temperature topics: using {tp.topic}")
-        fs = _rate(t, src.metadata) if n > 1 else 1.0
-        temperature = make_series("temp", t, cols["temp"][:n], fs, warnings, "degC")
+        timing = topic_timing(t, tp.topic, {"rate_hz": "1.0"})
+        temperature = make_series("temp", t, cols["temp"][:n], timing, warnings, "degC")
     meta = dict(src.metadata)
     meta["topics"] = ",".join(tp.topic for tp in src.topics.values())
     return Record(source=str(path), channels=channels, temperature=temperature, metadata=meta,
@@ -441,7 +446,7 @@ def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[Sam
             fs = rates.get(cid)
             if fs is None:
                 try:
-                    fs = _rate(ns, src.metadata)
+                    fs = topic_timing(ns, tp.topic, src.metadata).fs_hz
                 except ValueError:
                     fs = 1.0
                 rates[cid] = fs
