@@ -63,7 +63,7 @@ class ChannelInfo:
     metadata: dict[str, str]
 
 
-@dataclass
+@dataclass(slots=True)
 class ChunkInfo:
     """One Chunk record and the MessageIndex records that follow it.
 
@@ -296,7 +296,7 @@ def scan(buf, size: int | None = None) -> McapLayout:
             comp = _COMPRESSION.get(bytes(buf[body + 32:p])) or \
                 bytes(buf[body + 32:p]).decode("utf-8", "replace")
             (rlen,) = u64(buf, p)
-            last = ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, mi_end=end)
+            last = ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, {}, end)
             chunks.append(last)
         elif op == OP_SCHEMA:
             s = parse_schema(buf, body)

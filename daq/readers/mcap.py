@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import mmap
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -158,10 +158,20 @@ def _load_batch(fd: int, batch: list[ml.ChunkInfo]) -> tuple[bytes, np.ndarray, 
     return region, blob, bases
 
 
+Sink = Callable[[_Topic, int], dict[str, np.ndarray]]
+
+
+def _columns(tp: _Topic) -> list[str]:
+    if tp.kind == "temperature":
+        return ["t", "temp"]
+    return ["t"] + (list(GYRO) if tp.has_gyro else []) + (list(ACCEL) if tp.has_accel else [])
+
+
 def _decode_batch(src: McapSource, batch: list[ml.ChunkInfo],
-                  loaded: tuple[bytes, np.ndarray, list[int]]
+                  loaded: tuple[bytes, np.ndarray, list[int]], sink: Sink | None = None
                   ) -> dict[int, dict[str, np.ndarray]]:
-    """Decode the chosen topics of consecutive chunks: {cid: {"t": ..., field: ...}}."""
+    """Decode the chosen topics of consecutive chunks: {cid: {"t": ..., field: ...}}; with a
+    ``sink``, into the arrays it hands out for (topic, message count)."""
     region, blob, bases = loaded
     start = batch[0].start
     region_u8 = np.frombuffer(region, np.uint8)
@@ -199,7 +209,10 @@ def _decode_batch(src: McapSource, batch: list[ml.ChunkInfo],
             raise ml.McapFormatError(f"{tp.topic}: message index points outside its chunk")
         if tp.frame_len < 0:
             _setup_topic(tp, blob, int(rec[0]))
-        out[cid] = _decode_topic(tp, blob, rec, views)
+        dest = sink(tp, rec.size) if sink is not None else {
+            name: np.empty(rec.size, np.int64 if name == "t" else np.float64)
+            for name in _columns(tp)}
+        out[cid] = _decode_topic(tp, blob, rec, views, dest)
     return out
 
 
@@ -218,9 +231,10 @@ _HEAD = np.dtype([("op", "u1"), ("rlen", "<u8"), ("_mcap", "V22"), ("encap", "<u
 _VEC3 = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 
 
-def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray,
-                  views: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Check and decode the messages of one topic at record offsets ``rec`` in ``blob``.
+def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray, views: dict[str, np.ndarray],
+                  dest: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Check and decode the messages of one topic at record offsets ``rec`` in ``blob`` into
+    the arrays ``dest`` (one per column of :func:`_columns`, each of ``len(rec)``).
 
     Fields are gathered as opaque byte groups (one per message for the record and CDR header,
     one per vector), then reinterpreted: far fewer gathers than one per scalar."""
@@ -234,11 +248,11 @@ def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray,
             or not np.all(head["rlen"] == ml.MESSAGE_HEADER + tp.payload_len)):
         raise UnsupportedLayout(
             f"{tp.topic}: messages differ in layout (frame_id length or encoding)")
-    t = head["sec"].astype(np.int64)
+    t = dest["t"]
+    t[:] = head["sec"]
     t *= 1_000_000_000
     t += head["nanosec"]
     body = rec + (_PAYLOAD + tp.body)
-    out = {"t": t}
     if tp.kind == "imu":
         v24 = views["V24"]
         for present, offset, names in ((tp.has_gyro, msgs.IMU_GYRO_OFFSET, GYRO),
@@ -246,17 +260,18 @@ def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray,
             if present:
                 vec = v24[body + offset].view(_VEC3)
                 for axis, name in zip("xyz", names, strict=True):
-                    out[name] = vec[axis].copy()
+                    dest[name][:] = vec[axis]
     else:
-        out["temp"] = views["<f8"][body]
-    return out
+        dest["temp"][:] = views["<f8"][body]
+    return dest
 
 
-def iter_decoded(src: McapSource) -> Iterator[dict[int, dict[str, np.ndarray]]]:
+def iter_decoded(src: McapSource, sink: Sink | None = None
+                 ) -> Iterator[dict[int, dict[str, np.ndarray]]]:
     """Decoded batches of the source's topics, in file order."""
     with open(src.path, "rb") as f:
         for batch in _batches(src.layout.chunks):
-            yield _decode_batch(src, batch, _load_batch(f.fileno(), batch))
+            yield _decode_batch(src, batch, _load_batch(f.fileno(), batch), sink)
 
 
 def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -346,36 +361,28 @@ def read_mcap(path: str | Path) -> Record:
     src = open_mcap(path)
     if not src.topics:
         raise ml.McapFormatError("no sensor_msgs/msg/Imu or Temperature channel")
-    counts = {cid: tp.count for cid, tp in src.topics.items()}
     arrays: dict[int, dict[str, np.ndarray]] = {}
-    fill: dict[int, int] = dict.fromkeys(counts, 0)
+    fill: dict[int, int] = dict.fromkeys(src.topics, 0)
 
-    def _ensure(cid: int, cols: dict[str, np.ndarray], need: int) -> None:
-        have = arrays.get(cid)
+    def sink(tp: _Topic, n: int) -> dict[str, np.ndarray]:
+        """Slices of the output arrays, allocated once from the index counts."""
+        have = arrays.get(tp.cid)
+        k = fill[tp.cid]
         if have is None:
-            cap = max(counts[cid], need)
-            arrays[cid] = {k: np.empty(cap, np.int64 if k == "t" else np.float64)
-                           for k in ["t", *cols]}
-            return
+            cap = max(tp.count, n)
+            have = arrays[tp.cid] = {c: np.empty(cap, np.int64 if c == "t" else np.float64)
+                                     for c in _columns(tp)}
         cap = len(have["t"])
-        if need > cap:
-            new = max(need, cap * 2)
-            for k, v in have.items():
-                grown = np.empty(new, v.dtype)
-                grown[:cap] = v
-                have[k] = grown
+        if k + n > cap:  # chunks without message indexes: counts were not known
+            for c, v in have.items():
+                grown = np.empty(max(k + n, 2 * cap), v.dtype)
+                grown[:k] = v[:k]
+                have[c] = grown
+        fill[tp.cid] = k + n
+        return {c: v[k:k + n] for c, v in have.items()}
 
-    for decoded in iter_decoded(src):
-        for cid, data in decoded.items():
-            cols = _split(data)
-            n = len(data["t"])
-            k = fill[cid]
-            _ensure(cid, cols, k + n)
-            dst = arrays[cid]
-            dst["t"][k:k + n] = data["t"]
-            for name, v in cols.items():
-                dst[name][k:k + n] = v
-            fill[cid] = k + n
+    for _decoded in iter_decoded(src, sink):
+        pass
     warnings = list(src.warnings)
     channels: dict[str, ChannelSeries] = {}
     temperature: ChannelSeries | None = None
