@@ -62,11 +62,8 @@ class ChannelAnalysis:
 
 
 def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
-    try:
-        from analysis.allan import oadev
-    except ImportError:
-        out.warnings.append("Allan deviation not available in this build")
-        return
+    from analysis.allan import oadev
+
     try:
         out.allan = oadev(series.values, series.fs_hz, m="octave",
                           segment_starts=series.segment_starts, ci=JSON_CI)
