@@ -168,3 +168,13 @@ def test_progress_bar_goes_to_stderr_only(capsys):
     results = analyze_record(rec, ["gyro_x"], show_progress=True)
     assert results[0].psd is not None
     assert capsys.readouterr().out == ""
+
+
+def test_progress_displays_do_not_touch_json(imu_csv, capsys, monkeypatch):
+    from imunoise.commands import analyze
+
+    monkeypatch.setattr(analyze, "_PROGRESS_FILE_BYTES", 0)
+    monkeypatch.setattr(analyze, "_PROGRESS_SAMPLES", 0)
+    assert main(["analyze", str(imu_csv), "--json", "--channel", "gyro_x"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert list(doc["channels"]) == ["gyro_x"]
