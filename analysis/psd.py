@@ -412,6 +412,8 @@ class StreamingPsd:
             fg, pg, dg, wg = _log_group(f, psd, dof, df, self._c2, self.points_per_decade)
             name = "welch" if j == 0 else f"decimate{_DECIMATION**j}"
             parts.append((fg, pg, dg, wg, np.full(len(fg), name)))
+        if not parts:
+            raise ValueError("not enough data for a PSD above min_cycles / T")
         f_all, p_all, d_all, w_all, m_all = (np.concatenate(c) for c in zip(*parts, strict=True))
         lo, hi = chi2_interval(p_all, d_all, ci)
         return PsdEstimate(f_hz=f_all, psd=p_all, dof=d_all, ci_low=lo, ci_high=hi, ci=ci,
