@@ -259,3 +259,18 @@ def test_real_adis16405_psd_reproduces_published_allan_variance():
     top = log_psd(gyro[:, 0], fs)
     density = np.sqrt(np.median(top.psd[top.method == "welch"]))
     assert 0.04 < density < 0.065
+
+
+def test_log_binning_preserves_power_and_sums_dof():
+    x = _white(100_000, seed=8)
+    raw = welch_psd(x, FS)
+    grouped = welch_psd(x, FS, points_per_decade=20)
+    assert len(grouped) < len(raw) / 3
+    assert grouped.band_power() == pytest.approx(raw.band_power(), rel=1e-12)
+    # merged points carry more dof than one bin, but less than the plain sum (bins correlate)
+    assert np.all(grouped.dof >= raw.dof[0] - 1e-9)
+    top = grouped.dof[-1]
+    n_top = round(grouped.df_hz[-1] / (FS / 256))
+    assert raw.dof[0] * n_top / 2 < top < raw.dof[0] * n_top
+    truth = 2 * 0.3**2 / FS
+    assert 0.85 <= _coverage(grouped, truth) <= 1.0
