@@ -89,9 +89,11 @@ def test_real_clock_pacing_and_jitter_are_measured():
     t0 = time.monotonic()
     n = sum(len(b) for b in acq.blocks(0.5))
     elapsed = time.monotonic() - t0
-    assert n == pytest.approx(100, abs=3)
-    assert elapsed == pytest.approx(0.5, abs=0.1)
-    assert 0 < acq.stats.jitter_s < 0.02
+    # Polls that fall more than two periods behind restart the schedule instead of bursting,
+    # so a busy host gives fewer polls, never more.
+    assert 80 <= n <= 101
+    assert 0.49 <= elapsed < 0.8
+    assert 0 < acq.stats.jitter_s < 0.05
 
 
 def test_stop_from_another_thread_ends_the_run():
@@ -108,10 +110,14 @@ def test_stop_from_another_thread_ends_the_run():
 def test_realtime_simulated_adis_through_the_pty():
     acq = open_device("sim:adis16350", rate_hz=51.2, realtime=True, seed=3)
     rec = record(acq, 1.0)
-    n = len(rec["/adis16350/imu"]["t"])
-    # On a busy host a late poll can really lose a sample; it must then be counted.
-    assert n + acq.stats.dropped == pytest.approx(51.2, abs=3)
-    assert acq.stats.dropped <= 3
+    t = rec["/adis16350/imu"]["t"]
+    n = len(t)
+    # Wall-clock scheduling on a shared host decides how many polls are late, so only
+    # bounds are fixed here (the exact accounting is tested on the virtual clock): never
+    # more samples than the part made, most of them delivered, all on the sample grid.
+    assert 0.8 * 51.2 <= n <= n + acq.stats.dropped <= 51.2 + 2
+    steps = np.round(np.diff(t) * 51.2)
+    assert np.allclose(np.diff(t) * 51.2, steps, atol=1e-3) and np.all(steps >= 1)
 
 
 def test_blocks_carry_si_values_raw_counts_and_config():
