@@ -122,6 +122,8 @@ def test_realtime_simulated_adis_through_the_pty():
 
 def test_blocks_carry_si_values_raw_counts_and_config():
     acq = open_device("sim:razor", rate_hz=50, realtime=False, seed=1)
+    before = acq.config  # known before the device is opened (recorders write it first)
+    assert before["itg3200.rate_hz"] == "50" and before["adxl345.range_g"] == "16"
     blocks: list[SampleBlock] = []
     with acq:
         blocks = list(acq.blocks(2.0))
