@@ -120,6 +120,20 @@ def test_realtime_simulated_adis_through_the_pty():
     assert np.allclose(np.diff(t) * 51.2, steps, atol=1e-3) and np.all(steps >= 1)
 
 
+def test_device_clock_drift_is_measured_not_absorbed():
+    acq = open_device("sim:itg3200", rate_hz=100, realtime=False, seed=2)
+    acq.simulator.itg.pll_error_ppm = 2000.0  # the part's clock runs 0.2 % fast
+    rec = record(acq, 60.0)
+    t = rec["/itg3200/imu"]["t"]
+    # Every sample the part made is delivered; times stay on the nominal 100 Hz grid.
+    assert acq.stats.dropped == 0
+    assert len(t) == pytest.approx(6012, abs=3)
+    assert np.allclose(np.diff(t), 0.01, rtol=0, atol=1e-6)
+    # The host sees the count run ahead of its own clock: -2000 ppm, within a period's
+    # read latency over the run (1/100 s in 60 s, 170 ppm).
+    assert acq.stats.drift_ppm == pytest.approx(-2000 / 1.002, abs=170)
+
+
 def test_blocks_carry_si_values_raw_counts_and_config():
     acq = open_device("sim:razor", rate_hz=50, realtime=False, seed=1)
     before = acq.config  # known before the device is opened (recorders write it first)

@@ -430,7 +430,7 @@ class Adis16350:
         else:
             missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh_host = now
-        self.imu.add(data14(miso[:6]).tolist(), missed=missed)
+        self.imu.add(data14(miso[:6]).tolist(), missed=missed, host_time=self.clock.wall())
         if with_temp:
             t = data12s(miso[6:9]).tolist()
             self.temperature_add(t + [int(data12u(miso[9]))], self.imu.next_index - 1)

@@ -181,7 +181,8 @@ class Adxl345:
             missed = max(1, produced - entries)
         self._last_drain = now
         if rows:
-            self.imu.add_many(decode_data(np.asarray(rows)), missed=missed)
+            self.imu.add_many(decode_data(np.asarray(rows)), missed=missed,
+                              host_time=self.clock.wall())
         return len(rows)
 
     def take_blocks(self) -> list:

@@ -214,7 +214,7 @@ class Itg3200:
             missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh = now
         index = self.imu.next_index + missed
-        self.imu.add(row[1:].tolist(), missed=missed)
+        self.imu.add(row[1:].tolist(), missed=missed, host_time=self.clock.wall())
         if index % self.temp_every == 0 or self.temperature.next_index == 0:
             target = index // self.temp_every
             if target >= self.temperature.next_index:
