@@ -90,10 +90,12 @@ def test_real_clock_pacing_and_jitter_are_measured():
     n = sum(len(b) for b in acq.blocks(0.5))
     elapsed = time.monotonic() - t0
     # Polls that fall more than two periods behind restart the schedule instead of bursting,
-    # so a busy host gives fewer polls, never more.
-    assert 80 <= n <= 101
-    assert 0.49 <= elapsed < 0.8
-    assert 0 < acq.stats.jitter_s < 0.05
+    # so a busy host gives fewer polls, never more; none comes early.
+    assert 25 <= n <= 101
+    assert 0.49 <= elapsed < 1.5
+    t = np.asarray(drv.times)
+    assert (t[-1] - t[0]) / (len(t) - 1) >= 0.005 * 0.99
+    assert 0 < acq.stats.jitter_s <= acq.stats.max_late_s
 
 
 def test_stop_from_another_thread_ends_the_run():
