@@ -1,4 +1,4 @@
-"""A rich progress bar on stderr for work that takes more than a few seconds."""
+"""Rich progress displays on stderr for work that takes more than a few seconds."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    SpinnerColumn,
     TextColumn,
     TimeElapsedColumn,
 )
@@ -17,12 +18,25 @@ from rich.progress import (
 def progress_bar(enabled: bool) -> Progress:
     """A transient progress bar drawn on stderr (never stdout); a no-op when not ``enabled``.
 
-    Use as a context manager: ``with progress_bar(big) as bar: task = bar.add_task(...)``.
+    Use as a context manager: ``with progress_bar(big) as bar: task = bar.add_task(...)``;
+    every task needs a ``total``.
     """
     return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
-        MofNCompleteColumn(),  # shows "?" while the total is unknown
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=Console(file=sys.stderr),
+        transient=True,
+        disable=not enabled,
+    )
+
+
+def spinner(enabled: bool) -> Progress:
+    """A transient spinner with elapsed time on stderr for work of unknown length."""
+    return Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
         TimeElapsedColumn(),
         console=Console(file=sys.stderr),
         transient=True,
