@@ -225,9 +225,11 @@ def _walk_offsets(records: np.ndarray, cid: int) -> np.ndarray:
     return np.asarray(offs, dtype=np.int64)
 
 
-# Record start to the end of the CDR header fields, read in one gather per message.
+# Record start to the end of the CDR header fields, read in one gather per message. (Padded to
+# 48 bytes: numpy's gather of odd-sized opaque items is 20 times slower.)
 _HEAD = np.dtype([("op", "u1"), ("rlen", "<u8"), ("_mcap", "V22"), ("encap", "<u2"),
-                  ("_opts", "V2"), ("sec", "<i4"), ("nanosec", "<u4"), ("frame_len", "<u4")])
+                  ("_opts", "V2"), ("sec", "<i4"), ("nanosec", "<u4"), ("frame_len", "<u4"),
+                  ("_pad", "V1")])
 _VEC3 = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 
 
