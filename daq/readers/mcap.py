@@ -19,6 +19,7 @@ from __future__ import annotations
 import mmap
 import os
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -270,10 +271,21 @@ def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray, views: dict[str
 
 def iter_decoded(src: McapSource, sink: Sink | None = None
                  ) -> Iterator[dict[int, dict[str, np.ndarray]]]:
-    """Decoded batches of the source's topics, in file order."""
-    with open(src.path, "rb") as f:
-        for batch in _batches(src.layout.chunks):
-            yield _decode_batch(src, batch, _load_batch(f.fileno(), batch), sink)
+    """Decoded batches of the source's topics, in file order. The next batch is read and
+    decompressed on a second thread (zstd and pread release the GIL) while this one is
+    decoded; at most two batches are in memory."""
+    batches = list(_batches(src.layout.chunks))
+    if not batches:
+        return
+    with open(src.path, "rb") as f, ThreadPoolExecutor(max_workers=1) as pool:
+        fd = f.fileno()
+        pending = pool.submit(_load_batch, fd, batches[0])
+        for i, batch in enumerate(batches):
+            loaded = pending.result()
+            if i + 1 < len(batches):
+                pending = pool.submit(_load_batch, fd, batches[i + 1])
+            yield _decode_batch(src, batch, loaded, sink)
+            del loaded
 
 
 def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
