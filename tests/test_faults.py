@@ -178,3 +178,13 @@ def test_missing_serial_port_is_named():
     acq = open_device("adis16350", port="/dev/ttyNOPE0")
     with pytest.raises(DeviceError, match="/dev/ttyNOPE0: not found"):
         acq.open()
+
+
+def test_record_command_reports_a_missing_device_in_one_line(tmp_path, capsys):
+    from imunoise.cli import main
+
+    code = main(["record", "--device", "itg3200", "--bus", "97", "--duration", "2",
+                 "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and "I2C bus 97 (/dev/i2c-97): not found" in err[0]

@@ -56,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise RuntimeFailure(f"device drivers are not available ({exc})") from exc
     from daq import ros2_msgs
+    from daq.errors import DeviceError
     from daq.recorder import McapRecorder
 
     try:
@@ -76,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
     last_print = 0.0
     last_state = None
     interrupted = False
+    device_failure = ""
     try:
         for block in acq.blocks(duration):
             rec.write(block)
@@ -95,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
                 last_print = now
     except KeyboardInterrupt:
         interrupted = True
+    except DeviceError as exc:
+        device_failure = str(exc)
     finally:
         try:
             acq.stop()
@@ -103,6 +107,9 @@ def run(args: argparse.Namespace) -> int:
             rec.close()
     if tty:
         print(file=sys.stderr)
+    if device_failure:
+        kept = ", ".join(rec.stats.files) or "no file"
+        raise RuntimeFailure(f"record: {args.device}: {device_failure} (kept: {kept})")
     if rec.error:
         raise RuntimeFailure(f"record: {rec.error}")
     files = ", ".join(rec.stats.files) or "no file (no samples)"
