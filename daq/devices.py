@@ -90,7 +90,7 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
         emulator = BusPirateEmulator(sim, seed=seed).start()
         cleanup.append(emulator.close)
         port = emulator.port
-        sim.emulator = emulator  # type: ignore[attr-defined]
+        sim.emulator = emulator
     spi = BusPirateSPI(str(port), timeout_s=float(options.pop("timeout_s", 0.5)))
     driver = Adis16350(spi, rate_hz=rate, clock=clock, **options)
     acq = Acquisition(driver, clock=clock, on_close=cleanup)
