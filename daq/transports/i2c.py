@@ -26,6 +26,7 @@ I2C_ERRNO_TEXT: dict[int, str] = {
     errno.ETIMEDOUT: "bus timeout",
     errno.EAGAIN: "arbitration lost",
     errno.EBUSY: "bus busy",
+    errno.ENODEV: "adapter gone",
 }
 
 
