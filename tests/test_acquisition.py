@@ -20,7 +20,7 @@ from daq.drivers import adxl345 as ax
 from daq.drivers import itg3200 as itg
 from daq.drivers.common import StreamBuffer
 from daq.sim.signals import white_source
-from tests.daq_helpers import DEG, G0, expected_variance, record, white_level_interval
+from tests.daq_testing import DEG, G0, expected_variance, record, white_level_interval
 
 
 def test_unknown_device_and_missing_port_or_bus():

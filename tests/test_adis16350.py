@@ -15,7 +15,7 @@ from daq.errors import PermanentDeviceError
 from daq.sim.adis16350 import Adis16350Sim
 from daq.sim.buspirate_pty import BusPirateEmulator
 from daq.transports.buspirate import BusPirateSPI
-from tests.daq_helpers import DEG, G0, constant, record
+from tests.daq_testing import DEG, G0, constant, record
 
 
 def test_gyro_scale_datasheet_example():

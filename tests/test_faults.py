@@ -9,7 +9,7 @@ import pytest
 from daq.devices import open_device
 from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
 from daq.transports.i2c import I2CBus
-from tests.daq_helpers import G0, constant
+from tests.daq_testing import G0, constant
 
 GYRO = (0.01, 0.02, -0.03)
 ACCEL = (0.0, 0.0, G0)
