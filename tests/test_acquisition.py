@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from analysis.allan import oadev
 from daq.acquisition import Acquisition
 from daq.blocks import SampleBlock
 from daq.clock import RealClock, VirtualClock
@@ -163,6 +164,12 @@ def _check_white(x, density, fs, lsb):
     assert lo <= truth <= hi, (est, lo, hi, truth)
     # And the test can fail: a 10 % wrong density is outside the interval.
     assert not (lo <= expected_variance(density * 1.1, fs, lsb) <= hi)
+    # The project's Allan engine agrees: white noise (and the quantization's white part)
+    # gives AVAR(tau) = var / m, inside its 99.9 % interval at every tau checked.
+    curve = oadev(x, fs, m=[1, 8, 64], alpha=0, ci=0.999)
+    expected = np.sqrt(truth / curve.m)
+    assert np.all((curve.ci_low <= expected) & (expected <= curve.ci_high)), (
+        curve.dev, curve.ci_low, curve.ci_high, expected)
 
 
 def test_sixty_seconds_adis_white_noise_level():
