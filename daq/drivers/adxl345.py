@@ -172,6 +172,9 @@ class Adxl345:
         rows = [self.bus.read_block(a, REG["DATAX0"], DATA_BYTES) for _ in range(entries)]
         missed = 0
         if self._last_drain is None:
+            if not rows:
+                return 0
+            # The newest entry is about as old as this read.
             self.imu.anchor(self.clock.wall() - (entries - 1) / self.rate_hz)
         elif source & INT_OVERRUN:
             # Full FIFO: how many samples came since the last drain is known only from the
