@@ -132,6 +132,16 @@ def test_long_i2c_error_burst_reconnects(kind):
     assert_accounted(acq, blocks, 4.0, 100.0)
 
 
+def test_adxl_reconnect_counts_the_samples_missed_while_away():
+    acq = open_device("sim:adxl345", rate_hz=400, realtime=False,
+                      accel=constant((0.0, 0.0, G0)))
+    blocks = run(acq, 4.0, 1.0, lambda a: a.simulator.adapter.nack_burst(12))
+    assert acq.stats.reconnects == 1 and acq.stats.gaps == 1
+    assert acq.stats.dropped > 5
+    # Up to a FIFO's worth of samples is still unread when the run ends.
+    assert_accounted(acq, blocks, 4.0, 400.0, slack=35)
+
+
 def test_itg_stuck_data_ready_reconnects_with_a_reset():
     acq = itg()
     blocks = run(acq, 5.0, 1.0, lambda a: setattr(a.simulator.itg, "stuck_ready", True))
