@@ -78,8 +78,7 @@ def test_bridge_that_stops_answering_for_a_while():
 
 
 def test_dead_bridge_fails_with_a_clear_message():
-    acq = adis()
-    acq.max_outage_s = 1.0
+    acq = adis(max_outage_s=1.0)
     with pytest.raises(AcquisitionFailed, match=r"no answer.*gave up after 1 s") as exc:
         run(acq, 30.0, 1.0, lambda a: setattr(a.simulator.emulator, "mute", True))
     assert acq.simulator.emulator.port in str(exc.value)
