@@ -72,15 +72,17 @@ class CountingDriver:
 
 def test_pacing_is_by_count_not_accumulated_sleeps():
     clock = VirtualClock(start=1000.0)
-    period = 1 / 30.0  # not exact in binary: accumulated sleeps would drift
+    period = 1 / 3.0  # not exact in binary: accumulated sleeps would drift
     drv = CountingDriver(clock, period)
-    acq = Acquisition(drv, clock=clock, block_s=1.0)
-    n = sum(len(b) for b in acq.blocks(600.0))
+    acq = Acquisition(drv, clock=clock, block_s=60.0)
+    n = sum(len(b) for b in acq.blocks(8 * 3600.0))
     t = np.asarray(drv.times)
-    assert n == len(t) == 18000
+    assert n == len(t) == 86400
     k = np.arange(len(t))
-    assert np.max(np.abs(t - (t[0] + k * period))) < 1e-9  # no drift after 10 minutes
-    assert acq.stats.jitter_s == 0.0 and acq.stats.samples == 18000
+    assert np.max(np.abs(t - (t[0] + k * period))) < 1e-8  # no drift after 8 hours
+    accumulated = t[0] + np.cumsum(np.full(len(t) - 1, period))
+    assert abs(accumulated[-1] - (t[0] + (len(t) - 1) * period)) > 1e-8  # what sums would do
+    assert acq.stats.jitter_s == 0.0 and acq.stats.samples == 86400
 
 
 def test_real_clock_pacing_and_jitter_are_measured():
