@@ -188,12 +188,13 @@ def phase_from_rate(rate: np.ndarray) -> np.ndarray:
     return u
 
 
-def _oadev_sum(u: np.ndarray, m: int) -> float:
-    """Sum over all i of (u[i+2m] - 2u[i+m] + u[i])^2, in cache-sized chunks."""
-    k = u.size - 2 * m
-    buf = np.empty(min(_CHUNK, max(k, 1)))
+def _oadev_sum(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
+    """Sum of (u[i+2m] - 2u[i+m] + u[i])^2 over start indices i in [start, stop) (default: all
+    i with i + 2m inside ``u``), in cache-sized chunks."""
+    k = u.size - 2 * m if stop is None else stop
+    buf = np.empty(min(_CHUNK, max(k - start, 1)))
     total = 0.0
-    for a in range(0, k, _CHUNK):
+    for a in range(start, k, _CHUNK):
         b = min(k, a + _CHUNK)
         v = buf[: b - a]
         np.add(u[a + 2 * m : b + 2 * m], u[a:b], out=v)
@@ -211,18 +212,22 @@ def _third_diff(x: np.ndarray, a: int, b: int, m: int, out: np.ndarray, tmp: np.
     out += tmp
 
 
-def _ohdev_sum(u: np.ndarray, m: int) -> float:
-    """Sum over all i of (u[i+3m] - 3u[i+2m] + 3u[i+m] - u[i])^2, in chunks."""
-    k = u.size - 3 * m
-    buf = np.empty(min(_CHUNK, max(k, 1)))
+def _ohdev_sum(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
+    """Sum of (u[i+3m] - 3u[i+2m] + 3u[i+m] - u[i])^2 over i in [start, stop), in chunks."""
+    k = u.size - 3 * m if stop is None else stop
+    buf = np.empty(min(_CHUNK, max(k - start, 1)))
     tmp = np.empty_like(buf)
     total = 0.0
-    for a in range(0, k, _CHUNK):
+    for a in range(start, k, _CHUNK):
         b = min(k, a + _CHUNK)
         v = buf[: b - a]
         _third_diff(u, a, b, m, v, tmp[: b - a])
         total += float(np.dot(v, v))
     return total
+
+
+#: Overlapping kernels by kind: ``f(u, m, start, stop)`` -> sum of squared differences.
+OVERLAP_KERNELS = {"oadev": _oadev_sum, "ohdev": _ohdev_sum}
 
 
 def _adev_sum(u: np.ndarray, m: int) -> tuple[float, int]:
