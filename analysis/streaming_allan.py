@@ -155,6 +155,13 @@ class StreamingAllan:
         pending = sum(a.nbytes for a in self._pending)
         return int(sum(a.nbytes for a in arrays) + pending + 16 * len(self._closed_lengths))
 
+    @property
+    def state_bound_nbytes(self) -> int:
+        """Upper bound on ``state_nbytes`` (without closed-segment bookkeeping, 16 bytes per
+        distinct closed-segment length): recent window + phase history + flush buffer + sums."""
+        sums = 8 * (3 + 4 * len(self.kinds)) * self.m_grid.size
+        return 8 * (self.noise_window + self.history_points + self.flush_samples) + sums
+
     def update(self, block: np.ndarray) -> None:
         """Feed rate samples (1-D, finite; units of the channel). Any block size."""
         arr = np.asarray(block)
