@@ -66,7 +66,7 @@ KINDS: dict[str, KindSpec] = {
 
 # Start indices handled per step of the overlapping kernels: the working set (a few vectors
 # of this length) stays in the L2 cache, which roughly halves the time on long records.
-_CHUNK = 1 << 15
+_CHUNK = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -188,9 +188,16 @@ def phase_from_rate(rate: np.ndarray) -> np.ndarray:
     return u
 
 
-def _oadev_sum(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
+def _oadev_sum(
+    u: np.ndarray,
+    m: int,
+    start: int = 0,
+    stop: int | None = None,
+    u2: np.ndarray | None = None,
+) -> float:
     """Sum of (u[i+2m] - 2u[i+m] + u[i])^2 over start indices i in [start, stop) (default: all
-    i with i + 2m inside ``u``), in cache-sized chunks."""
+    i with i + 2m inside ``u``), in cache-sized chunks. ``u2`` may hold ``2 u`` precomputed
+    (exact), which saves one pass per tau."""
     k = u.size - 2 * m if stop is None else stop
     buf = np.empty(min(_CHUNK, max(k - start, 1)))
     total = 0.0
@@ -198,8 +205,11 @@ def _oadev_sum(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -
         b = min(k, a + _CHUNK)
         v = buf[: b - a]
         np.add(u[a + 2 * m : b + 2 * m], u[a:b], out=v)
-        v -= u[a + m : b + m]
-        v -= u[a + m : b + m]
+        if u2 is None:
+            v -= u[a + m : b + m]
+            v -= u[a + m : b + m]
+        else:
+            v -= u2[a + m : b + m]
         total += float(np.dot(v, v))
     return total
 
@@ -304,16 +314,25 @@ def segment_sums(
             np.array([p[1] for p in pairs], dtype=np.int64),
         )
     counts = np.maximum(n - spec.span * ms, 0).astype(np.int64)
-    kernel = _oadev_sum if kind == "oadev" else _ohdev_sum
+    if kind == "oadev":
+        u2 = np.ldexp(u, 1)
+
+        def kernel(j: int) -> float:
+            return _oadev_sum(u, int(ms[j]), u2=u2)
+    else:
+
+        def kernel(j: int) -> float:
+            return _ohdev_sum(u, int(ms[j]))
+
     todo = [j for j in range(ms.size) if counts[j] > 0]
     sums = np.zeros(ms.size)
     if workers > 1 and len(todo) > 1:
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            for j, s in zip(todo, pool.map(lambda j: kernel(u, int(ms[j])), todo), strict=True):
+            for j, s in zip(todo, pool.map(kernel, todo), strict=True):
                 sums[j] = s
     else:
         for j in todo:
-            sums[j] = kernel(u, int(ms[j]))
+            sums[j] = kernel(j)
     return sums, counts
 
 
@@ -384,7 +403,7 @@ def allan(
     kind: str = "oadev",
     m: str | int | Sequence[int] | np.ndarray = "octave",
     segment_starts: np.ndarray | Sequence[int] | None = None,
-    ci: float = ONE_SIGMA_CI,
+    ci: float | None = ONE_SIGMA_CI,
     alpha: int | Sequence[int] | np.ndarray | None = None,
     data_type: str = "freq",
     max_m: int | None = None,
@@ -400,7 +419,9 @@ def allan(
         m: a grid name or count for ``tau_grid``, or explicit averaging factors.
         segment_starts: indices where contiguous segments begin (as
             ``analysis.series.ChannelSeries``); each is processed on its own.
-        ci: two-sided confidence level of ``ci_low``/``ci_high``.
+        ci: two-sided confidence level of ``ci_low``/``ci_high``; ``None`` for the deviations
+            only (no noise identification: ``edf``, ``ci_low``, ``ci_high`` and ``ci`` are
+            nan, ``alpha`` is the given one or 0).
         alpha: noise exponent(s) for the edf: ``None`` identifies it per tau (lag-1 ACF on
             the longest segment), an int applies to every tau, an array gives one per tau.
         data_type: ``"freq"`` (rate) or ``"phase"``.
@@ -461,6 +482,22 @@ def allan(
     var = normalise(sums, counts, ms, kind)
     dev = np.sqrt(var)
 
+    if ci is None:
+        nan = np.full(ms.size, np.nan)
+        return AllanCurve(
+            kind=kind,
+            fs_hz=float(fs_hz),
+            tau_s=ms / float(fs_hz),
+            m=ms,
+            dev=dev,
+            n_terms=counts,
+            edf=nan,
+            alpha=alpha_arr if alpha_arr is not None else np.zeros(ms.size, dtype=np.int64),
+            ci_low=nan.copy(),
+            ci_high=nan.copy(),
+            ci=float("nan"),
+            exact_upto_m=int(ms.max()) if ms.size else 0,
+        )
     if alpha_arr is None:
         if phases:
             u_long = phases[int(np.argmax(seg_points))]
@@ -507,7 +544,7 @@ def _kind_function(kind: str):
         fs_hz: float,
         m: str | int | Sequence[int] | np.ndarray = "octave",
         segment_starts: np.ndarray | Sequence[int] | None = None,
-        ci: float = ONE_SIGMA_CI,
+        ci: float | None = ONE_SIGMA_CI,
         alpha: int | Sequence[int] | np.ndarray | None = None,
         data_type: str = "freq",
         max_m: int | None = None,
