@@ -35,8 +35,6 @@ from analysis.terms import TERM_NAMES, get_term
 DEFAULT_ALPHA = 0.05
 """Family-wise probability that a correctly specified model gets any significant suggestion."""
 
-_EVIDENCE_TERM = {"spectral_line": "sinusoid", "temperature": "temperature",
-                  "drift": "rate_ramp"}
 
 
 @dataclass
@@ -46,7 +44,8 @@ class Suggestion:
     Attributes:
         term: the term added to the model.
         params: its parameters in the refitted model (SI units).
-        ci95: their 95 % intervals.
+        ci95: their 95 % intervals (linearised in log-parameter space: every candidate is
+            refitted, so the refits stay quick).
         chi2_per_dof_before: misfit of the given model.
         chi2_per_dof_after: misfit with the term added (``nan`` when the refit failed).
         p_value: probability of evidence this strong were the term absent, Bonferroni-corrected
@@ -223,11 +222,13 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
                     fix[len(names)] = {"f": f_ev.params["f"]}
                 elif term == "sinusoid":
                     line = find_line(max(segments, key=len), fs_hz, min_snr=3.0)
-                after = fit_allan(curve, names + [term], line=line, fixed=fix)
+                after = fit_allan(curve, names + [term], line=line, fixed=fix,
+                                  intervals="jacobian")
                 if after.misfit.chi2 > base.misfit.chi2:
                     # A nested model cannot fit worse: the cold start found a poorer optimum,
                     # so start again from the given model's fit with the new term small.
-                    warm = fit_allan(curve, names + [term], start=base, line=line, fixed=fix)
+                    warm = fit_allan(curve, names + [term], start=base, line=line, fixed=fix,
+                                     intervals="jacobian")
                     if warm.misfit.chi2 < after.misfit.chi2:
                         after = warm
         except (ValueError, np.linalg.LinAlgError):
