@@ -236,7 +236,9 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         fix_used = fix.get(len(names), {}) if after is not None and term != "temperature" \
             else {}
         sources: list[float] = []
-        if after is not None and term != "temperature":
+        if after is not None and term != "temperature" and after.chi2_per_dof < before:
+            # A term that leaves the misfit per degree of freedom no better is no suggestion,
+            # even if the raw chi2 fell (it does whenever the given model is wrong anyway).
             sources.append(_lr_logp(base, after, k))
         ev = by_term.get(term)
         if ev is not None:

@@ -75,7 +75,8 @@ def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
     return doc
 
 
-def diagnosis_text(key: str, series: Any, diag: Any) -> str:
+def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
+                   model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
     from analysis.terms import get_term, param_unit
 
@@ -95,7 +96,11 @@ def diagnosis_text(key: str, series: Any, diag: Any) -> str:
             lines.append(f"        {', '.join(pars)}")
         if s.significant:
             lines.append(f"        {s.why}")
-    if not any(s.significant for s in diag.suggestions) and diag.fit.failures:
+    best = next((s for s in diag.suggestions if s.significant), None)
+    if best is not None:
+        lines.append(f"  next: imunoise fit {file} --channel {key} "
+                     f"--model {model_text},{best.term}")
+    if best is None and diag.fit.failures:
         lines.append("  the model fails, but no single added term explains the failure: look at "
                      "the failing tau ranges above and at the evidence below")
     lines.append("")
@@ -127,5 +132,5 @@ def run(args: argparse.Namespace) -> int:
     else:
         for w in record.warnings:
             print(f"warning: {w}", file=sys.stderr)
-        print(diagnosis_text(key, record.series(key), diag))
+        print(diagnosis_text(key, record.series(key), diag, args.file, args.model))
     return 0
