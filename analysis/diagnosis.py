@@ -186,7 +186,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     findings.append(outl)
     findings.append(evidence.gaps(starts, x.size, fs_hz))
     findings.append(evidence.noise_level_windows(
-        segments, fs_hz, alpha=alpha, exclude=np.asarray(outl.details["indices"], int),
+        segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
         units=units))
     by_term: dict[str, Finding] = {}
     if "sinusoid" not in names:

@@ -56,3 +56,13 @@ def test_mtig_outliers_are_found():
     assert 80 <= big.size <= 130
     near = np.max(np.stack([z[np.clip(big + k, 0, m.size - 1)] for k in (-1, 0, 1)]), axis=0)
     assert np.all(near > f.details["threshold_z"])
+
+
+def test_mtig_noise_level_is_steady_once_outliers_are_left_out():
+    from analysis.evidence import noise_level_windows, outlier_indices
+
+    m = np.load(_need(DATA / "mtig_outliers" / "gyro_x.npz"))["gyro_x"].astype(float)
+    with_spikes = noise_level_windows([m], 100.0)
+    clean = noise_level_windows([m], 100.0, exclude=outlier_indices([m]))
+    assert with_spikes.params["level_ratio"] > clean.params["level_ratio"]
+    assert not clean.significant

@@ -37,6 +37,23 @@ def robust_z(x: np.ndarray) -> np.ndarray:
     return r / scale
 
 
+def _flag(segments: list[np.ndarray], alpha: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Flagged indices (into the concatenated samples), all |z|, and the threshold."""
+    z = np.concatenate([robust_z(s) for s in segments if len(s)])
+    n = z.size
+    thr = float(stats.norm.isf(0.5 * (-np.expm1(np.log1p(-alpha) / max(n, 1)))))
+    az = np.abs(z)
+    peak = np.ones(n, dtype=bool)
+    peak[1:] &= az[1:] >= az[:-1]
+    peak[:-1] &= az[:-1] >= az[1:]
+    return np.flatnonzero((az > thr) & peak), az, thr
+
+
+def outlier_indices(segments: list[np.ndarray], alpha: float = 0.05) -> np.ndarray:
+    """Every flagged sample's index into the concatenated segments (see :func:`outliers`)."""
+    return _flag(segments, alpha)[0]
+
+
 def outliers(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
              units: str = "rad/s") -> Finding:
     """Flag samples far outside the noise.
@@ -46,14 +63,8 @@ def outliers(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
         family-wise probability under Gaussian noise; ``details`` lists the count, the
         threshold and the first indices and times of the flagged samples.
     """
-    z = np.concatenate([robust_z(s) for s in segments if len(s)])
-    n = z.size
-    thr = float(stats.norm.isf(0.5 * (-np.expm1(np.log1p(-alpha) / max(n, 1)))))
-    az = np.abs(z)
-    peak = np.ones(n, dtype=bool)
-    peak[1:] &= az[1:] >= az[:-1]
-    peak[:-1] &= az[:-1] >= az[1:]
-    flagged = np.flatnonzero((az > thr) & peak)
+    flagged, az, thr = _flag(segments, alpha)
+    n = az.size
     zmax = float(az.max()) if n else 0.0
     p = family_p(float(2.0 * stats.norm.sf(zmax)), n)
     details = {"count": int(flagged.size), "threshold_z": thr,
