@@ -1,0 +1,415 @@
+"""Rolling analysis of live data: streaming Allan and PSD, the current model, refits, diagnosis.
+
+:class:`RollingAnalyzer` follows one channel; :class:`RollingSet` routes blocks of samples to one
+analyzer per channel. Feeding (``update``/``feed``) only runs the streaming estimators, which are
+vectorised and cheap; refits and diagnosis run in :meth:`RollingAnalyzer.refresh`, which the
+caller invokes from its own thread at a bounded cadence, so acquisition never waits on a fit.
+
+Blocks are taken structurally (anything with ``stream``, ``channels``, ``fs_hz`` and
+``gap_before`` attributes, e.g. ``daq.blocks.SampleBlock``), so this module imports nothing from
+``daq``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from analysis.live_estimators import AllanCurveData, OctaveAllan, StreamingWelch
+from analysis.live_fit import ORDER, TERMS, LiveFit, fit_model, rank_missing_terms
+from analysis.series import channel_units
+
+DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
+VALID_TERMS: tuple[str, ...] = tuple(ORDER)
+
+
+class BlockLike(Protocol):
+    """What :meth:`RollingSet.feed` needs from a block of samples."""
+
+    stream: str
+    channels: dict[str, np.ndarray]
+    fs_hz: float
+    gap_before: int
+
+
+def model_psd(f_hz: np.ndarray, params: dict[str, dict[str, float]], fs_hz: float) -> np.ndarray:
+    """One-sided model PSD ((channel units)^2/Hz) of the fitted terms at ``f_hz``.
+
+    Sinusoids are spectral lines and add nothing to the continuous spectrum.
+    """
+    f = np.asarray(f_hz, dtype=np.float64)
+    w = 2.0 * math.pi * f
+    out = np.zeros_like(f)
+    ts = 1.0 / fs_hz
+    for name, p in params.items():
+        if name == "white":
+            out += 2.0 * p["N"] ** 2
+        elif name == "quantization":
+            out += 2.0 * w**2 * p["Q"] ** 2 * ts
+        elif name == "bias_instability":
+            out += p["B"] ** 2 / (math.pi * f)
+        elif name == "random_walk":
+            out += 2.0 * p["K"] ** 2 / w**2
+        elif name == "rate_ramp":
+            out += 2.0 * p["R"] ** 2 / w**3
+        elif name == "gauss_markov":
+            out += 4.0 * p["sigma"] ** 2 * p["T"] / (1.0 + (w * p["T"]) ** 2)
+    return out
+
+
+@dataclass
+class ErrorPoint:
+    """One entry of the error history."""
+
+    revision: int
+    model: list[str]
+    chi2_per_dof: float
+    time_s: float
+    n_samples: int
+
+
+def _finite(x: Iterable[float]) -> list[float | None]:
+    """A JSON-safe list: non-finite numbers become ``None``."""
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(list(x), dtype=float)]
+
+
+class RollingAnalyzer:
+    """Live analysis of one channel.
+
+    Args:
+        channel: channel name (``gyro_x`` ...).
+        fs_hz: sampling rate in Hz.
+        units: SI units of the values (derived from the name when omitted).
+        model: initial model (term names).
+        refit_interval_s: least wall-clock time between two refits.
+        diagnosis_interval_s: least wall-clock time between two diagnoses.
+        history_len: error history entries kept (bounded memory).
+        nperseg: PSD segment length in samples (default: about 40 s of data, a power of two).
+    """
+
+    def __init__(self, channel: str, fs_hz: float, units: str | None = None,
+                 model: Sequence[str] = DEFAULT_MODEL, refit_interval_s: float = 2.0,
+                 diagnosis_interval_s: float = 10.0, history_len: int = 2000,
+                 nperseg: int | None = None) -> None:
+        check_terms(model)
+        self.channel = channel
+        self.fs_hz = float(fs_hz)
+        self.units = units if units is not None else channel_units(channel)
+        self.refit_interval_s = refit_interval_s
+        self.diagnosis_interval_s = diagnosis_interval_s
+        if nperseg is None:
+            nperseg = int(2 ** max(6, min(16, round(math.log2(max(self.fs_hz * 40.0, 64))))))
+        self._allan = OctaveAllan(self.fs_hz)
+        self._psd = StreamingWelch(self.fs_hz, nperseg)
+        self._lock = threading.RLock()
+        self._model = [t for t in ORDER if t in model]
+        self._model_revision = 0
+        self.n_samples = 0
+        self.n_segments = 0
+        self._new_since_fit = 0
+        self._fit: LiveFit | None = None
+        self._curve: AllanCurveData | None = None
+        self._suggestions: list[dict] = []
+        self._diag_revision = -1
+        self._last_fit_t = -math.inf
+        self._last_diag_t = -math.inf
+        self._history: deque[ErrorPoint] = deque(maxlen=history_len)
+        self.revision = 0  # bumps whenever published results change
+
+    # --- feeding (acquisition-side, cheap) -------------------------------------------------
+    def update(self, values: np.ndarray, new_segment: bool = False) -> None:
+        """Add samples (SI units). ``new_segment``: they do not follow the previous ones."""
+        v = np.asarray(values, dtype=np.float64)
+        with self._lock:
+            if new_segment or self.n_segments == 0:
+                self._allan.new_segment()
+                self._psd.new_segment()
+                self.n_segments += 1
+            self._allan.update(v)
+            self._psd.update(v)
+            self.n_samples += int(v.size)
+            self._new_since_fit += int(v.size)
+
+    # --- model ---------------------------------------------------------------------------
+    @property
+    def model(self) -> list[str]:
+        with self._lock:
+            return list(self._model)
+
+    def set_model(self, terms: Sequence[str]) -> dict[str, Any]:
+        """Replace the model and refit now. Returns the error before and after."""
+        check_terms(terms)
+        if not terms:
+            raise ValueError("the model needs at least one term")
+        with self._lock:
+            before = self._fit.chi2_per_dof if self._fit else None
+            old = list(self._model)
+            self._model = [t for t in ORDER if t in terms]
+            if self._model != old:
+                self._model_revision += 1
+        self.refresh(force=True)
+        with self._lock:
+            after = self._fit.chi2_per_dof if self._fit else None
+            return {"channel": self.channel, "model": list(self._model),
+                    "model_revision": self._model_revision,
+                    "error_before": {"chi2_per_dof": before},
+                    "error_after": {"chi2_per_dof": after}}
+
+    def add_term(self, term: str) -> dict[str, Any]:
+        check_terms([term])
+        return self.set_model(self.model + [term])
+
+    def remove_term(self, term: str) -> dict[str, Any]:
+        check_terms([term])
+        model = self.model
+        if term not in model:
+            raise ValueError(f"term {term!r} is not in the model; model: {', '.join(model)}")
+        return self.set_model([t for t in model if t != term])
+
+    # --- refit and diagnosis (off the acquisition path) ----------------------------------
+    def refresh(self, force: bool = False, now: float | None = None) -> bool:
+        """Refit (and diagnose) when due. Returns whether results changed."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            due = force or (self._new_since_fit > 0 and
+                            now - self._last_fit_t >= self.refit_interval_s)
+            if not due:
+                return False
+            curve = self._allan.curve()
+            model = list(self._model)
+            revision = self._model_revision
+            n_samples = self.n_samples
+            self._new_since_fit = 0
+            self._last_fit_t = now
+        if curve.tau_s.size < 3:
+            return False
+        fit = fit_model(curve.tau_s, curve.avar, curve.edf, model, self.fs_hz)
+        diagnose = force or revision != self._diag_revision or \
+            now - self._last_diag_t >= self.diagnosis_interval_s
+        suggestions = None
+        if diagnose:
+            suggestions = rank_missing_terms(curve.tau_s, curve.avar, curve.edf, model,
+                                             self.fs_hz, base=fit)
+        with self._lock:
+            if revision != self._model_revision:
+                return False  # the model changed meanwhile; the next refresh publishes
+            self._fit = fit
+            self._curve = curve
+            if suggestions is not None:
+                self._suggestions = suggestions
+                self._diag_revision = revision
+                self._last_diag_t = now
+            last = self._history[-1] if self._history else None
+            if last is None or last.revision != revision or \
+                    time.time() - last.time_s >= self.refit_interval_s:
+                self._history.append(ErrorPoint(revision, model, fit.chi2_per_dof,
+                                                 time.time(), n_samples))
+            self.revision += 1
+        return True
+
+    # --- views (JSON-ready dicts) --------------------------------------------------------
+    def _conventional(self) -> dict[str, tuple[str, float]]:
+        return conventional_units(self.units)
+
+    def coefficients(self) -> dict[str, Any]:
+        """Current coefficients with SI and conventional units and 95 % intervals."""
+        with self._lock:
+            fit, model = self._fit, list(self._model)
+            out: dict[str, Any] = {
+                "channel": self.channel, "units": self.units, "fs_hz": self.fs_hz,
+                "n_samples": self.n_samples, "duration_s": self.n_samples / self.fs_hz,
+                "segments": self.n_segments, "model_revision": self._model_revision,
+                "model": [], "error": None, "failures": [],
+            }
+            if fit is None:
+                out["model"] = [{"term": t, "params": {}, "ci95": {}} for t in model]
+                return out
+            conv = self._conventional()
+            for term in fit.model:
+                entry: dict[str, Any] = {"term": term, "params": {}, "ci95": {}, "units": {},
+                                         "conventional": {}}
+                for name, value in fit.params[term].items():
+                    unit = param_units(term, name, self.units)
+                    entry["params"][name] = value
+                    entry["units"][name] = unit
+                    if name in fit.ci95[term]:
+                        entry["ci95"][name] = fit.ci95[term][name]
+                    if unit in conv:
+                        label, factor = conv[unit]
+                        ci = fit.ci95[term].get(name)
+                        entry["conventional"][name] = {
+                            "value": value * factor, "units": label,
+                            "ci95": [c * factor for c in ci] if ci else None}
+                out["model"].append(entry)
+            out["error"] = {"chi2_per_dof": fit.chi2_per_dof, "max_abs_z": fit.max_abs_z}
+            out["failures"] = fit.failures
+            return out
+
+    def allan(self) -> dict[str, Any]:
+        """Allan deviation with its band, the model, each term's curve and the z residuals."""
+        with self._lock:
+            curve, fit = self._curve, self._fit
+            if curve is None:
+                curve = self._allan.curve()
+                fit = None
+            out: dict[str, Any] = {
+                "channel": self.channel, "units": self.units,
+                "tau_s": _finite(curve.tau_s), "adev": _finite(curve.dev),
+                "ci_low": _finite(curve.ci_low), "ci_high": _finite(curve.ci_high),
+                "model": list(self._model), "model_adev": None, "terms": {}, "z": None,
+                "failures": [], "error": None,
+            }
+            if fit is not None and len(fit.model_avar) == len(curve.tau_s):
+                out["model_adev"] = _finite(np.sqrt(fit.model_avar))
+                out["terms"] = {t: _finite(np.sqrt(a)) for t, a in fit.term_avar.items()}
+                out["z"] = _finite(fit.z)
+                out["failures"] = fit.failures
+                out["error"] = {"chi2_per_dof": fit.chi2_per_dof, "max_abs_z": fit.max_abs_z}
+                out["model"] = list(fit.model)
+            return out
+
+    def psd(self, max_points: int = 400) -> dict[str, Any]:
+        """PSD (log-thinned to ``max_points``) with its band and the model PSD."""
+        with self._lock:
+            est = self._psd.estimate()
+            fit = self._fit
+        out: dict[str, Any] = {"channel": self.channel, "units": f"({self.units})^2/Hz",
+                               "f_hz": [], "psd": [], "ci_low": [], "ci_high": [], "dof": [],
+                               "model_psd": None}
+        if est is None:
+            return out
+        idx = np.unique(np.geomspace(1, est.f_hz.size, max_points).astype(int) - 1)
+        f = est.f_hz[idx]
+        out.update(f_hz=_finite(f), psd=_finite(est.psd[idx]), ci_low=_finite(est.ci_low[idx]),
+                   ci_high=_finite(est.ci_high[idx]), dof=_finite(est.dof[idx]))
+        if fit is not None:
+            out["model_psd"] = _finite(model_psd(f, fit.params, self.fs_hz))
+        return out
+
+    def diagnosis(self) -> dict[str, Any]:
+        """The latest ranking of missing terms, best first."""
+        with self._lock:
+            return {"channel": self.channel, "model": list(self._model),
+                    "model_revision": self._model_revision,
+                    "error": ({"chi2_per_dof": self._fit.chi2_per_dof,
+                               "max_abs_z": self._fit.max_abs_z} if self._fit else None),
+                    "suggestions": [dict(s) for s in self._suggestions
+                                    if s["term"] not in self._model]}
+
+    def history(self) -> list[dict[str, Any]]:
+        """Error history: (model revision, model, chi2 per dof, wall time, samples)."""
+        with self._lock:
+            return [{"revision": p.revision, "model": p.model, "chi2_per_dof": p.chi2_per_dof,
+                     "time_s": p.time_s, "n_samples": p.n_samples} for p in self._history]
+
+
+def check_terms(terms: Iterable[str]) -> None:
+    """Raise ``ValueError`` naming the valid terms when one is unknown."""
+    bad = [t for t in terms if t not in TERMS]
+    if bad:
+        raise ValueError(f"unknown term {', '.join(map(repr, bad))}; valid terms: "
+                         f"{', '.join(VALID_TERMS)}")
+
+
+def param_units(term: str, param: str, units: str) -> str:
+    """SI units of a term parameter for a channel in ``units`` (``rad/s`` or ``m/s^2``)."""
+    if param == "T":
+        return "s"
+    if param == "f":
+        return "Hz"
+    base = {"white": "{u}/sqrt(Hz)", "quantization": "{q}", "bias_instability": "{u}",
+            "random_walk": "{u}/sqrt(s)", "rate_ramp": "{u}/s", "gauss_markov": "{u}",
+            "sinusoid": "{u}"}[term]
+    q = "rad" if units == "rad/s" else "m/s" if units == "m/s^2" else f"{units}*s"
+    return base.format(u=units, q=q)
+
+
+_RAD2DEG = 180.0 / math.pi
+_G = 9.80665
+
+
+def conventional_units(units: str) -> dict[str, tuple[str, float]]:
+    """Map SI parameter units to (conventional label, multiply-by factor)."""
+    if units == "rad/s":
+        return {"rad/s/sqrt(Hz)": ("deg/sqrt(h)", _RAD2DEG * 60.0),
+                "rad/s": ("deg/h", _RAD2DEG * 3600.0),
+                "rad/s/sqrt(s)": ("deg/h/sqrt(h)", _RAD2DEG * 3600.0 * 60.0),
+                "rad": ("deg", _RAD2DEG),
+                "rad/s/s": ("deg/h^2", _RAD2DEG * 3600.0**2)}
+    if units == "m/s^2":
+        return {"m/s^2/sqrt(Hz)": ("m/s/sqrt(h)", 60.0),
+                "m/s^2": ("mg", 1e3 / _G),
+                "m/s^2/sqrt(s)": ("m/s^2/sqrt(h)", 60.0),
+                "m/s": ("m/s", 1.0),
+                "m/s^2/s": ("mg/s", 1e3 / _G)}
+    return {}
+
+
+class RollingSet:
+    """One :class:`RollingAnalyzer` per analysable channel of the blocks fed.
+
+    Channels named ``gyro_*`` and ``accel_*`` are analysed; a channel name already taken by
+    another stream is keyed ``STREAM:NAME``.
+    """
+
+    def __init__(self, model: Sequence[str] = DEFAULT_MODEL, **analyzer_kwargs: Any) -> None:
+        check_terms(model)
+        self._model = list(model)
+        self._kwargs = analyzer_kwargs
+        self._lock = threading.Lock()
+        self._analyzers: dict[str, RollingAnalyzer] = {}
+        self._keys: dict[tuple[str, str], str] = {}
+
+    def feed(self, block: BlockLike) -> None:
+        """Route a block's channels to their analyzers (new segment after a gap)."""
+        gap = getattr(block, "gap_before", 0) != 0
+        for name, values in block.channels.items():
+            if channel_units(name) not in ("rad/s", "m/s^2"):
+                continue
+            analyzer = self._analyzer(block.stream, name, block.fs_hz)
+            analyzer.update(values, new_segment=gap)
+
+    def _analyzer(self, stream: str, name: str, fs_hz: float) -> RollingAnalyzer:
+        key = self._keys.get((stream, name))
+        if key is not None:
+            return self._analyzers[key]
+        with self._lock:
+            key = name if name not in self._analyzers else f"{stream}:{name}"
+            self._analyzers[key] = RollingAnalyzer(key, fs_hz, units=channel_units(name),
+                                                   model=self._model, **self._kwargs)
+            self._keys[(stream, name)] = key
+            return self._analyzers[key]
+
+    @property
+    def channels(self) -> list[str]:
+        with self._lock:
+            return list(self._analyzers)
+
+    def get(self, channel: str) -> RollingAnalyzer:
+        """The analyzer of ``channel``; ``KeyError`` naming the valid channels otherwise."""
+        with self._lock:
+            if channel not in self._analyzers:
+                valid = ", ".join(self._analyzers) or "(none yet)"
+                raise KeyError(f"unknown channel {channel!r}; valid channels: {valid}")
+            return self._analyzers[channel]
+
+    def refresh(self, force: bool = False) -> bool:
+        """Refit every channel that is due. Returns whether anything changed."""
+        with self._lock:
+            analyzers = list(self._analyzers.values())
+        changed = False
+        for a in analyzers:
+            changed |= a.refresh(force=force)
+        return changed
+
+    @property
+    def revision(self) -> int:
+        with self._lock:
+            return sum(a.revision for a in self._analyzers.values())
