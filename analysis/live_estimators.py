@@ -61,7 +61,8 @@ class PsdData:
     ci_high: np.ndarray
 
 
-def chi2_band(value: np.ndarray, dof: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+def chi2_band(value: np.ndarray, dof: np.ndarray,
+              level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
     """Two-sided chi-square interval of a variance-like estimate with ``dof`` degrees of freedom."""
     dof = np.maximum(np.asarray(dof, dtype=np.float64), 1e-9)
     alpha = (1.0 - level) / 2.0

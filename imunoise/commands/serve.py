@@ -1,0 +1,171 @@
+"""``imunoise serve``: acquire (or replay), record and analyse live; API and dashboard over HTTP.
+
+Acquisition runs in its own thread and never waits on the analysis or on HTTP; refits run at a
+bounded cadence on another thread. Ctrl-C stops acquisition, finishes the file being written and
+exits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from imunoise.errors import RuntimeFailure, UsageError
+
+TOKEN_ENV = "IMUNOISE_TOKEN"
+DEVICES = ("adis16350", "itg3200", "adxl345", "razor", "sim:adis16350", "sim:razor")
+_LOOPBACK_NAMES = {"localhost"}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="live analyzer + API + dashboard", description=__doc__)
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--device", metavar="DEV",
+                     help=f"device to acquire ({', '.join(DEVICES)}); default sim:adis16350")
+    src.add_argument("--replay", metavar="FILE", help="feed a recording instead of a device")
+    p.add_argument("--serial", dest="serial_port", metavar="P",
+                   help="serial port of the SPI bridge (ADIS16350), e.g. /dev/ttyUSB0")
+    p.add_argument("--bus", type=int, metavar="N", help="I2C bus number (ITG-3200, ADXL345)")
+    p.add_argument("--rate", type=float, metavar="HZ", help="sampling rate in Hz")
+    p.add_argument("--seed", type=int, help="simulator random seed")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1; any other needs a token)")
+    p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
+    p.add_argument("--out", metavar="DIR", help="record MCAP files here (default: no recording)")
+    p.add_argument("--token", help=f"token required by changing requests (or ${TOKEN_ENV})")
+    p.add_argument("--model", default="white,bias_instability,random_walk", metavar="TERMS",
+                   help="initial model (comma-separated terms)")
+    p.add_argument("--refit-interval", type=float, default=2.0, metavar="S",
+                   help="least time between refits, s (default 2)")
+    p.set_defaults(func=run)
+
+
+def is_loopback(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and ``localhost``."""
+    if host in _LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_security(host: str, token: str | None) -> None:
+    """Binding beyond loopback requires a token (changes then require it)."""
+    if not is_loopback(host) and not token:
+        raise UsageError(f"serve: binding {host} exposes the API beyond this machine; give "
+                         f"--token T or set {TOKEN_ENV}")
+
+
+def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
+    """The block source, its description for /health, and whether it is a live device."""
+    if args.replay:
+        path = Path(args.replay)
+        if not path.exists():
+            raise UsageError(f"serve: no such file: {path}")
+        try:
+            from daq.readers import iter_blocks
+        except ImportError as exc:
+            raise RuntimeFailure(f"serve: file reading is not available: {exc}") from None
+        return iter_blocks(path), {"spec": f"replay:{path.name}", "path": str(path)}, False
+    spec = args.device or "sim:adis16350"
+    if spec not in DEVICES:
+        raise UsageError(f"serve: unknown device {spec!r}; valid: {', '.join(DEVICES)}")
+    try:
+        from daq.devices import open_device
+    except ImportError as exc:
+        raise RuntimeFailure(f"serve: device support is not available: {exc}") from None
+    kwargs: dict[str, Any] = {}
+    for key, value in (("port", args.serial_port), ("bus", args.bus), ("rate_hz", args.rate),
+                       ("seed", args.seed)):
+        if value is not None:
+            kwargs[key] = value
+    try:
+        acq = open_device(spec, **kwargs)
+    except (ValueError, FileNotFoundError) as exc:
+        raise UsageError(f"serve: {exc}") from None
+    except OSError as exc:
+        raise RuntimeFailure(f"serve: cannot open {spec}: {exc}") from None
+    info = {"spec": spec, **{k: v for k, v in kwargs.items() if k != "seed"}}
+    config = getattr(acq, "config", None)
+    if isinstance(config, dict):
+        info["config"] = {str(k): str(v) for k, v in config.items()}
+    return acq, info, True
+
+
+def open_recorder(out: str, device: str, config: dict[str, str] | None) -> Any:
+    try:
+        from daq.recorder import McapRecorder
+    except ImportError as exc:
+        raise RuntimeFailure(f"serve: recording is not available: {exc}") from None
+    try:
+        return McapRecorder(out, device, config=config)
+    except OSError as exc:
+        raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from analysis.rolling import RollingSet, check_terms
+    from imunoise.live import LiveService
+    from web.app import create_app
+
+    token = args.token or os.environ.get(TOKEN_ENV) or None
+    check_security(args.host, token)
+    if not 0 < args.port < 65536:
+        raise UsageError(f"serve: bad port {args.port}")
+    model = [t.strip() for t in args.model.split(",") if t.strip()]
+    try:
+        check_terms(model)
+    except ValueError as exc:
+        raise UsageError(f"serve: {exc}") from None
+    if args.refit_interval <= 0:
+        raise UsageError("serve: --refit-interval must be positive")
+
+    source, info, realtime = open_source(args)
+    sinks = []
+    recorder = None
+    if args.out and realtime:
+        recorder = open_recorder(args.out, info["spec"], info.get("config"))
+        sinks.append(recorder)
+    service = LiveService(
+        source, RollingSet(model=model, refit_interval_s=args.refit_interval), sinks=sinks,
+        device=info, realtime=realtime,
+        current_file=(lambda: recorder.stats.file or None) if recorder else None)
+    app = create_app(service, token=token)
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
+                            timeout_graceful_shutdown=2, lifespan="on")
+    server = uvicorn.Server(config)
+    service.start()
+    url_host = f"[{args.host}]" if ":" in args.host else args.host
+    print(f"imunoise: serving {info['spec']} on http://{url_host}:{args.port}/ "
+          f"(API docs at /docs); Ctrl-C stops", file=sys.stderr, flush=True)
+    stopping = threading.Event()
+
+    def _terminate(signum: int, frame: object) -> None:  # SIGTERM from docker stop
+        stopping.set()
+        server.should_exit = True
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
+    try:
+        server.run()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        service.stop()
+        if recorder is not None and getattr(recorder, "error", None):
+            print(f"imunoise: recording: {recorder.error}", file=sys.stderr)
+        files = getattr(getattr(recorder, "stats", None), "files", None)
+        if files:
+            print(f"imunoise: recorded {', '.join(map(str, files))}", file=sys.stderr)
+    if not server.started:
+        raise RuntimeFailure(f"serve: could not listen on {args.host}:{args.port}")
+    return 0
