@@ -28,6 +28,8 @@ from analysis.series import channel_units
 
 DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
 VALID_TERMS: tuple[str, ...] = tuple(ORDER)
+# Octave Allan points needed before missing terms are ranked (a shaped term has two parameters).
+MIN_TAUS_FOR_DIAGNOSIS = 8
 
 
 class BlockLike(Protocol):
@@ -73,6 +75,12 @@ class ErrorPoint:
     chi2_per_dof: float
     time_s: float
     n_samples: int
+
+
+def _error(fit: LiveFit | None) -> dict[str, float | None]:
+    if fit is None:
+        return {"chi2_per_dof": None, "max_abs_z": None}
+    return {"chi2_per_dof": fit.chi2_per_dof, "max_abs_z": fit.max_abs_z}
 
 
 def _finite(x: Iterable[float]) -> list[float | None]:
@@ -149,18 +157,16 @@ class RollingAnalyzer:
         if not terms:
             raise ValueError("the model needs at least one term")
         with self._lock:
-            before = self._fit.chi2_per_dof if self._fit else None
+            before = _error(self._fit)
             old = list(self._model)
             self._model = [t for t in ORDER if t in terms]
             if self._model != old:
                 self._model_revision += 1
         self.refresh(force=True)
         with self._lock:
-            after = self._fit.chi2_per_dof if self._fit else None
             return {"channel": self.channel, "model": list(self._model),
                     "model_revision": self._model_revision,
-                    "error_before": {"chi2_per_dof": before},
-                    "error_after": {"chi2_per_dof": after}}
+                    "error_before": before, "error_after": _error(self._fit)}
 
     def add_term(self, term: str) -> dict[str, Any]:
         check_terms([term])
@@ -194,7 +200,9 @@ class RollingAnalyzer:
         diagnose = force or revision != self._diag_revision or \
             now - self._last_diag_t >= self.diagnosis_interval_s
         suggestions = None
-        if diagnose:
+        if curve.tau_s.size < MIN_TAUS_FOR_DIAGNOSIS:
+            suggestions = []
+        elif diagnose:
             suggestions = rank_missing_terms(curve.tau_s, curve.avar, curve.edf, model,
                                              self.fs_hz, base=fit)
         with self._lock:
