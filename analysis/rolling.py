@@ -99,7 +99,7 @@ class RollingAnalyzer:
         refit_interval_s: least wall-clock time between two refits.
         diagnosis_interval_s: least wall-clock time between two diagnoses.
         history_len: error history entries kept (bounded memory).
-        nperseg: PSD segment length in samples (default: about 40 s of data, a power of two).
+        nperseg: PSD segment length in samples (default: about 10 s of data, a power of two).
     """
 
     def __init__(self, channel: str, fs_hz: float, units: str | None = None,
@@ -113,7 +113,7 @@ class RollingAnalyzer:
         self.refit_interval_s = refit_interval_s
         self.diagnosis_interval_s = diagnosis_interval_s
         if nperseg is None:
-            nperseg = int(2 ** max(6, min(16, round(math.log2(max(self.fs_hz * 40.0, 64))))))
+            nperseg = int(2 ** max(6, min(16, round(math.log2(max(self.fs_hz * 10.0, 64))))))
         self._allan = OctaveAllan(self.fs_hz)
         self._psd = StreamingWelch(self.fs_hz, nperseg)
         self._lock = threading.RLock()

@@ -27,6 +27,7 @@ class SourceStats:
     gaps: int = 0
     reconnects: int = 0
     samples: int = 0
+    max_late_s: float = 0.0  # worst lateness of a paced block against its schedule
 
 
 @dataclass
@@ -100,6 +101,10 @@ class SyntheticImu:
                 delay = due - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
+                else:
+                    self.stats.max_late_s = max(self.stats.max_late_s, -delay)
+                if not self._plugged.is_set():
+                    continue
             block = self._make(gap)
             gap = 0
             emitted += self.block
@@ -132,3 +137,20 @@ def running_server(app, host: str = "127.0.0.1") -> Iterator[str]:
     finally:
         server.should_exit = True
         thread.join(10)
+
+
+class CountingSink:
+    """A sink that counts what it is given (samples, blocks after a gap), like a recorder."""
+
+    def __init__(self) -> None:
+        self.samples = 0
+        self.gap_blocks = 0
+        self.closed = False
+
+    def write(self, block: SampleBlock) -> None:
+        self.samples += len(block)
+        if block.gap_before != 0:
+            self.gap_blocks += 1
+
+    def close(self) -> None:
+        self.closed = True

@@ -90,16 +90,16 @@ def create_app(service: LiveService, token: str | None = None,
         return Response(status_code=204)
 
     @app.get("/health", response_model=Health, summary="liveness, device state, drops, file")
-    def health() -> dict[str, Any]:
+    async def health() -> dict[str, Any]:
         return service.health()
 
     @app.get("/channels", summary="channels being analysed")
-    def channels() -> dict[str, Any]:
+    async def channels() -> dict[str, Any]:
         return {"channels": service.analyzers.channels, "valid_terms": list(VALID_TERMS)}
 
     @app.get("/coefficients", response_model=Coefficients,
              summary="current noise coefficients per channel, with units and 95 % intervals")
-    def coefficients() -> dict[str, Any]:
+    async def coefficients() -> dict[str, Any]:
         out: dict[str, Any] = {}
         for name in service.analyzers.channels:
             out[name] = service.analyzers.get(name).coefficients()
@@ -109,20 +109,20 @@ def create_app(service: LiveService, token: str | None = None,
 
     @app.get("/allan", response_model=AllanCurve,
              summary="Allan deviation with its 95 % band, the model and each term")
-    def allan(channel: str | None = Query(None, description="e.g. gyro_x")) -> dict[str, Any]:
+    async def allan(channel: str | None = Query(None, description="e.g. gyro_x")) -> dict[str, Any]:
         return analyzer(channel).allan()
 
     @app.get("/psd", response_model=PsdCurve, summary="PSD with its 95 % band and the model")
-    def psd(channel: str | None = Query(None, description="e.g. gyro_x")) -> dict[str, Any]:
+    async def psd(channel: str | None = Query(None, description="e.g. gyro_x")) -> dict[str, Any]:
         return analyzer(channel).psd()
 
     @app.get("/diagnosis", response_model=Diagnosis,
              summary="missing terms ranked by how much they would lower the error")
-    def diagnosis(channel: str | None = Query(None)) -> dict[str, Any]:
+    async def diagnosis(channel: str | None = Query(None)) -> dict[str, Any]:
         return analyzer(channel).diagnosis()
 
     @app.get("/model", response_model=ModelState, summary="current model and error history")
-    def get_model(channel: str | None = Query(None)) -> dict[str, Any]:
+    async def get_model(channel: str | None = Query(None)) -> dict[str, Any]:
         a = analyzer(channel)
         d = a.diagnosis()
         return {"channel": a.channel, "model": d["model"], "model_revision": d["model_revision"],
