@@ -20,6 +20,8 @@ from imunoise.errors import RuntimeFailure, UsageError
 
 TOKEN_ENV = "IMUNOISE_TOKEN"
 DEVICES = ("adis16350", "itg3200", "adxl345", "razor", "sim:adis16350", "sim:razor")
+SERIAL_DEVICES = ("adis16350",)
+I2C_DEVICES = ("itg3200", "adxl345", "razor")
 _LOOPBACK_NAMES = {"localhost"}
 
 
@@ -82,8 +84,11 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     except ImportError as exc:
         raise RuntimeFailure(f"serve: device support is not available: {exc}") from None
     kwargs: dict[str, Any] = {}
-    for key, value in (("port", args.serial_port), ("bus", args.bus), ("rate_hz", args.rate),
-                       ("seed", args.seed)):
+    base = spec.removeprefix("sim:")
+    wanted = (("port", args.serial_port if base in SERIAL_DEVICES else None),
+              ("bus", args.bus if base in I2C_DEVICES else None),
+              ("rate_hz", args.rate), ("seed", args.seed))
+    for key, value in wanted:
         if value is not None:
             kwargs[key] = value
     try:
