@@ -1,8 +1,8 @@
 """Rolling analysis of live data: streaming Allan and PSD, the current model, refits, diagnosis.
 
-:class:`RollingAnalyzer` follows one channel; :class:`RollingSet` routes blocks of samples to one
-analyzer per channel. Feeding (``update``/``feed``) only runs the streaming estimators, which are
-vectorised and cheap; refits and diagnosis run in :meth:`RollingAnalyzer.refresh`, which the
+:class:`RollingAnalyzer` takes blocks of samples and keeps one :class:`ChannelAnalyzer` per
+channel. Feeding (``update``) only runs the streaming estimators, which are
+vectorised and cheap; refits and diagnosis run in :meth:`ChannelAnalyzer.refresh`, which the
 caller invokes from its own thread at a bounded cadence, so acquisition never waits on a fit.
 
 Blocks are taken structurally (anything with ``stream``, ``channels``, ``fs_hz`` and
@@ -33,7 +33,7 @@ MIN_TAUS_FOR_DIAGNOSIS = 8
 
 
 class BlockLike(Protocol):
-    """What :meth:`RollingSet.feed` needs from a block of samples."""
+    """What :meth:`RollingAnalyzer.update` needs from a block of samples."""
 
     stream: str
     channels: dict[str, np.ndarray]
@@ -88,7 +88,7 @@ def _finite(x: Iterable[float]) -> list[float | None]:
     return [float(v) if math.isfinite(v) else None for v in np.asarray(list(x), dtype=float)]
 
 
-class RollingAnalyzer:
+class ChannelAnalyzer:
     """Live analysis of one channel.
 
     Args:
@@ -360,8 +360,8 @@ def conventional_units(units: str) -> dict[str, tuple[str, float]]:
     return {}
 
 
-class RollingSet:
-    """One :class:`RollingAnalyzer` per analysable channel of the blocks fed.
+class RollingAnalyzer:
+    """One :class:`ChannelAnalyzer` per analysable channel of the blocks fed.
 
     Channels named ``gyro_*`` and ``accel_*`` are analysed; a channel name already taken by
     another stream is keyed ``STREAM:NAME``.
@@ -372,10 +372,10 @@ class RollingSet:
         self._model = list(model)
         self._kwargs = analyzer_kwargs
         self._lock = threading.Lock()
-        self._analyzers: dict[str, RollingAnalyzer] = {}
+        self._analyzers: dict[str, ChannelAnalyzer] = {}
         self._keys: dict[tuple[str, str], str] = {}
 
-    def feed(self, block: BlockLike) -> None:
+    def update(self, block: BlockLike) -> None:
         """Route a block's channels to their analyzers (new segment after a gap)."""
         gap = getattr(block, "gap_before", 0) != 0
         for name, values in block.channels.items():
@@ -384,13 +384,13 @@ class RollingSet:
             analyzer = self._analyzer(block.stream, name, block.fs_hz)
             analyzer.update(values, new_segment=gap)
 
-    def _analyzer(self, stream: str, name: str, fs_hz: float) -> RollingAnalyzer:
+    def _analyzer(self, stream: str, name: str, fs_hz: float) -> ChannelAnalyzer:
         key = self._keys.get((stream, name))
         if key is not None:
             return self._analyzers[key]
         with self._lock:
             key = name if name not in self._analyzers else f"{stream}:{name}"
-            self._analyzers[key] = RollingAnalyzer(key, fs_hz, units=channel_units(name),
+            self._analyzers[key] = ChannelAnalyzer(key, fs_hz, units=channel_units(name),
                                                    model=self._model, **self._kwargs)
             self._keys[(stream, name)] = key
             return self._analyzers[key]
@@ -400,7 +400,7 @@ class RollingSet:
         with self._lock:
             return list(self._analyzers)
 
-    def get(self, channel: str) -> RollingAnalyzer:
+    def get(self, channel: str) -> ChannelAnalyzer:
         """The analyzer of ``channel``; ``KeyError`` naming the valid channels otherwise."""
         with self._lock:
             if channel not in self._analyzers:

@@ -6,7 +6,7 @@ Three roles, two threads:
   file) and hands each one to the recorder and to a queue for the analyzer. It never waits on
   analysis or HTTP: for a live device the queue is large and ``put_nowait`` is used, so a stalled
   analyzer costs analysis coverage (counted in ``health()``) but never a recorded sample;
-- the *analysis thread* drains the queue into a :class:`analysis.rolling.RollingSet` and refits
+- the *analysis thread* drains the queue into a :class:`analysis.rolling.RollingAnalyzer` and refits
   at the analyzers' own bounded cadence;
 - HTTP handlers only read published results (and change a model, which refits that channel).
 """
@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
-from analysis.rolling import BlockLike, RollingSet
+from analysis.rolling import BlockLike, RollingAnalyzer
 
 
 class Sink(Protocol):
@@ -57,10 +57,11 @@ class LiveService:
     """Acquisition + recording + rolling analysis, with a thread-safe view for the API.
 
     Args:
-        source: iterable of sample blocks (an acquisition, a file reader, a generator). If it
-            has ``stats`` (a dict, dataclass or object) it is reported in ``health()``; if it has
-            ``stop()``/``close()`` they are called on shutdown.
-        analyzers: the rolling analyzers (a fresh :class:`RollingSet` by default).
+        source: a ``daq.acquisition.Acquisition`` (its ``blocks()`` are iterated) or any
+            iterable of sample blocks (a file reader, a generator). Its ``stats`` (a dict,
+            dataclass or object), if any, are reported in ``health()``; its ``stop()`` and
+            ``close()``, if any, are called on shutdown.
+        analyzers: the rolling analyzers (a fresh :class:`RollingAnalyzer` by default).
         sinks: block consumers called on the acquisition thread, e.g. the recorder. Each
             ``write`` must return quickly (queue the work).
         device: description of the source for ``health()`` (spec, port, rate ...).
@@ -70,12 +71,12 @@ class LiveService:
         current_file: callable returning the path of the file being written, if any.
     """
 
-    def __init__(self, source: Iterable[BlockLike], analyzers: RollingSet | None = None,
+    def __init__(self, source: Iterable[BlockLike], analyzers: RollingAnalyzer | None = None,
                  sinks: Iterable[Sink] = (), device: dict[str, Any] | None = None,
                  realtime: bool = True, queue_blocks: int = 20000,
                  current_file: Callable[[], str | None] | None = None) -> None:
         self.source = source
-        self.analyzers = analyzers if analyzers is not None else RollingSet()
+        self.analyzers = analyzers if analyzers is not None else RollingAnalyzer()
         self.sinks = list(sinks)
         self.device = dict(device or {})
         self.realtime = realtime
@@ -141,7 +142,8 @@ class LiveService:
     # --- threads -------------------------------------------------------------------------
     def _acquire(self) -> None:
         try:
-            for block in self.source:
+            blocks = getattr(self.source, "blocks", None)
+            for block in (blocks() if callable(blocks) else self.source):
                 n = len(block.t) if hasattr(block, "t") else \
                     len(next(iter(block.channels.values()), ()))
                 for sink in self.sinks:
@@ -195,7 +197,7 @@ class LiveService:
                     done = True
                     continue
                 try:
-                    self.analyzers.feed(b)
+                    self.analyzers.update(b)
                 except Exception as exc:  # noqa: BLE001 - bad block: report, keep going
                     self.error = f"analysis: {type(exc).__name__}: {exc}"
                 n = len(b.t) if hasattr(b, "t") else 0

@@ -8,7 +8,7 @@ import pytest
 from scipy import signal
 
 from analysis.live_estimators import OctaveAllan, StreamingWelch
-from analysis.rolling import RollingAnalyzer, RollingSet, model_psd
+from analysis.rolling import ChannelAnalyzer, RollingAnalyzer, model_psd
 from daq.blocks import SampleBlock
 
 FS = 100.0
@@ -81,7 +81,7 @@ def test_streaming_welch_equals_scipy_welch() -> None:
 
 def test_default_fit_recovers_coefficients_within_their_intervals() -> None:
     y = _white_rw(360_000, 4)
-    a = RollingAnalyzer("gyro_x", FS)
+    a = ChannelAnalyzer("gyro_x", FS)
     _feed_random_blocks(a, y)
     assert a.refresh(force=True)
     c = a.coefficients()
@@ -101,7 +101,7 @@ def test_default_fit_recovers_coefficients_within_their_intervals() -> None:
 def test_sinusoid_is_diagnosed_and_adding_it_lowers_the_error() -> None:
     t = np.arange(360_000) / FS
     y = _white_rw(t.size, 6) + 0.01 * np.sin(2 * np.pi * 2.7 * t)
-    a = RollingAnalyzer("gyro_x", FS)
+    a = ChannelAnalyzer("gyro_x", FS)
     a.update(y)
     a.refresh(force=True)
     d = a.diagnosis()
@@ -122,7 +122,7 @@ def test_sinusoid_is_diagnosed_and_adding_it_lowers_the_error() -> None:
 
 
 def test_model_errors_name_the_valid_terms() -> None:
-    a = RollingAnalyzer("gyro_x", FS)
+    a = ChannelAnalyzer("gyro_x", FS)
     with pytest.raises(ValueError, match="valid terms: white, quantization"):
         a.add_term("flicker")
     with pytest.raises(ValueError, match="not in the model"):
@@ -132,12 +132,12 @@ def test_model_errors_name_the_valid_terms() -> None:
 
 
 def test_rolling_set_routes_channels_and_segments_on_gaps() -> None:
-    rs = RollingSet(refit_interval_s=0.0)
+    rs = RollingAnalyzer(refit_interval_s=0.0)
     y = _white_rw(3000, 7)
     for i, gap in ((0, 0), (1000, 0), (2000, -1)):
-        rs.feed(SampleBlock(stream="/a/imu", t=np.arange(1000) / FS, fs_hz=FS, gap_before=gap,
+        rs.update(SampleBlock(stream="/a/imu", t=np.arange(1000) / FS, fs_hz=FS, gap_before=gap,
                             channels={"gyro_x": y[i:i + 1000], "temp": np.full(1000, 25.0)}))
-    rs.feed(SampleBlock(stream="/b/imu", t=np.arange(10) / FS, fs_hz=FS,
+    rs.update(SampleBlock(stream="/b/imu", t=np.arange(10) / FS, fs_hz=FS,
                         channels={"gyro_x": np.zeros(10)}))
     assert rs.channels == ["gyro_x", "/b/imu:gyro_x"]
     a = rs.get("gyro_x")

@@ -18,7 +18,7 @@ from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 
-from analysis.rolling import VALID_TERMS, RollingAnalyzer
+from analysis.rolling import VALID_TERMS, ChannelAnalyzer
 from imunoise import __version__
 from imunoise.live import LiveService
 from web.models import (
@@ -70,7 +70,7 @@ def create_app(service: LiveService, token: str | None = None,
             raise HTTPException(401, "this server requires a token for changes: send "
                                      f"'Authorization: Bearer TOKEN' or '{TOKEN_HEADER}'")
 
-    def analyzer(channel: str | None) -> RollingAnalyzer:
+    def analyzer(channel: str | None) -> ChannelAnalyzer:
         channels = service.analyzers.channels
         if channel is None:
             if not channels:

@@ -71,18 +71,20 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
         path = Path(args.replay)
         if not path.exists():
             raise UsageError(f"serve: no such file: {path}")
+        from daq.readers import ReadError
+        from daq.replay import open_blocks
+
         try:
-            from daq.readers import iter_blocks
-        except ImportError as exc:
-            raise RuntimeFailure(f"serve: file reading is not available: {exc}") from None
-        return iter_blocks(path), {"spec": f"replay:{path.name}", "path": str(path)}, False
+            blocks, total = open_blocks(path)
+        except ReadError as exc:
+            raise UsageError(f"serve: {exc}") from None
+        return blocks, {"spec": f"replay:{path.name}", "samples_in_file": total}, False
     spec = args.device or "sim:adis16350"
     if spec not in DEVICES:
         raise UsageError(f"serve: unknown device {spec!r}; valid: {', '.join(DEVICES)}")
-    try:
-        from daq.devices import open_device
-    except ImportError as exc:
-        raise RuntimeFailure(f"serve: device support is not available: {exc}") from None
+    from daq.devices import open_device
+    from daq.errors import DeviceError
+
     kwargs: dict[str, Any] = {}
     base = spec.removeprefix("sim:")
     wanted = (("port", args.serial_port if base in SERIAL_DEVICES else None),
@@ -93,24 +95,48 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
             kwargs[key] = value
     try:
         acq = open_device(spec, **kwargs)
-    except (ValueError, FileNotFoundError) as exc:
-        raise UsageError(f"serve: {exc}") from None
-    except OSError as exc:
+    except ValueError as exc:
+        raise UsageError(f"serve: {str(exc).replace('--port', '--serial')}") from None
+    try:
+        acq.open()  # fail now, with the reason, rather than in the acquisition thread
+    except (DeviceError, OSError) as exc:
+        acq.close()
         raise RuntimeFailure(f"serve: cannot open {spec}: {exc}") from None
-    info = {"spec": spec, **{k: v for k, v in kwargs.items() if k != "seed"}}
-    config = getattr(acq, "config", None)
-    if isinstance(config, dict):
-        info["config"] = {str(k): str(v) for k, v in config.items()}
+    info: dict[str, Any] = {"spec": spec, **{k: v for k, v in kwargs.items() if k != "seed"}}
+    info["config"] = {str(k): str(v) for k, v in (getattr(acq, "config", {}) or {}).items()}
     return acq, info, True
 
 
-def open_recorder(out: str, device: str, config: dict[str, str] | None) -> Any:
+class RecorderSink:
+    """Feeds the MCAP recorder and records device state changes as status events."""
+
+    def __init__(self, recorder: Any, acquisition: Any) -> None:
+        self.recorder = recorder
+        self.acquisition = acquisition
+        self._state: str | None = None
+
+    def write(self, block: Any) -> None:
+        self.recorder.write(block)
+        state = str(getattr(getattr(self.acquisition, "stats", None), "state", ""))
+        if self._state is not None and state != self._state:
+            from daq import ros2_msgs
+
+            level = ros2_msgs.OK if state in ("running", "ok") else ros2_msgs.WARN
+            self.recorder.event(level, f"device state: {state}",
+                                {"event": "state", "state": state},
+                                t=float(block.t[-1]) if len(block) else None)
+        self._state = state
+
+    def close(self) -> None:
+        self.recorder.close()
+
+
+def open_recorder(out: str, device: str, config: dict[str, str] | None,
+                  rate_hz: float | None) -> Any:
+    from daq.recorder import McapRecorder
+
     try:
-        from daq.recorder import McapRecorder
-    except ImportError as exc:
-        raise RuntimeFailure(f"serve: recording is not available: {exc}") from None
-    try:
-        return McapRecorder(out, device, config=config)
+        return McapRecorder(out, device, config=config, rate_hz=rate_hz)
     except OSError as exc:
         raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
 
@@ -118,7 +144,7 @@ def open_recorder(out: str, device: str, config: dict[str, str] | None) -> Any:
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from analysis.rolling import RollingSet, check_terms
+    from analysis.rolling import RollingAnalyzer, check_terms
     from imunoise.live import LiveService
     from web.app import create_app
 
@@ -138,10 +164,14 @@ def run(args: argparse.Namespace) -> int:
     sinks = []
     recorder = None
     if args.out and realtime:
-        recorder = open_recorder(args.out, info["spec"], info.get("config"))
-        sinks.append(recorder)
+        try:
+            recorder = open_recorder(args.out, info["spec"], info.get("config"), args.rate)
+        except RuntimeFailure:
+            source.close()
+            raise
+        sinks.append(RecorderSink(recorder, source))
     service = LiveService(
-        source, RollingSet(model=model, refit_interval_s=args.refit_interval), sinks=sinks,
+        source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval), sinks=sinks,
         device=info, realtime=realtime,
         current_file=(lambda: recorder.stats.file or None) if recorder else None)
     app = create_app(service, token=token)
