@@ -1,12 +1,9 @@
-"""Light-weight streaming Allan variance and PSD for live monitoring.
+"""Light-weight streaming Allan variance for live monitoring.
 
-Both estimators take blocks of samples, keep memory bounded whatever the record length, never
-bridge a gap (``new_segment()``), and return their curves with 95 % chi-square bands.
-
-- :class:`OctaveAllan`: non-overlapping Allan variance at octave cluster sizes m = 1, 2, 4, ...,
-  computed with a pyramid of pairwise cluster averages (O(1) memory per octave, O(n) work).
-- :class:`StreamingWelch`: Welch periodogram with a fixed segment length (Hann window,
-  non-overlapping segments, mean removed), averaged over every complete segment seen.
+:class:`OctaveAllan` is the non-overlapping Allan variance at octave cluster sizes
+m = 1, 2, 4, ..., computed with a pyramid of pairwise cluster averages: O(1) memory per octave
+whatever the record length, O(n) work, block-size invariant, and no cluster ever spans a gap
+(``new_segment()``). Curves come with 95 % chi-square bands.
 """
 
 from __future__ import annotations
@@ -14,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal, stats
+from scipy import stats
 
 
 @dataclass
@@ -41,24 +38,6 @@ class AllanCurveData:
     @property
     def dev(self) -> np.ndarray:
         return np.sqrt(self.avar)
-
-
-@dataclass
-class PsdData:
-    """One-sided power spectral density.
-
-    Attributes:
-        f_hz: frequencies in Hz (DC excluded).
-        psd: PSD in (channel units)^2/Hz.
-        dof: degrees of freedom of each point.
-        ci_low, ci_high: 95 % interval of the PSD.
-    """
-
-    f_hz: np.ndarray
-    psd: np.ndarray
-    dof: np.ndarray
-    ci_low: np.ndarray
-    ci_high: np.ndarray
 
 
 def chi2_band(value: np.ndarray, dof: np.ndarray,
@@ -138,55 +117,3 @@ class OctaveAllan:
         lo, hi = chi2_band(avar, edf)
         return AllanCurveData(tau_s=m / self.fs_hz, m=m, avar=avar, edf=edf,
                               n_terms=counts[keep], ci_low=np.sqrt(lo), ci_high=np.sqrt(hi))
-
-
-class StreamingWelch:
-    """Welch PSD accumulated over fixed-length segments, bounded memory.
-
-    Args:
-        fs_hz: sampling rate in Hz.
-        nperseg: segment length in samples (frequency resolution ``fs_hz/nperseg``).
-    """
-
-    def __init__(self, fs_hz: float, nperseg: int = 4096) -> None:
-        if not fs_hz > 0:
-            raise ValueError(f"sampling rate must be positive, got {fs_hz}")
-        self.fs_hz = float(fs_hz)
-        self.nperseg = int(nperseg)
-        self._pending = np.empty(0)
-        self._sum: np.ndarray | None = None
-        self._segments = 0
-
-    def new_segment(self) -> None:
-        """Drop the incomplete segment: the next sample is not contiguous."""
-        self._pending = np.empty(0)
-
-    def update(self, values: np.ndarray) -> None:
-        """Add contiguous samples (channel units)."""
-        y = np.asarray(values, dtype=np.float64).ravel()
-        buf = np.concatenate((self._pending, y)) if self._pending.size else y
-        n_full = buf.size // self.nperseg
-        if n_full:
-            segs = buf[: n_full * self.nperseg].reshape(n_full, self.nperseg)
-            segs = segs[np.all(np.isfinite(segs), axis=1)]
-            if len(segs):
-                _, p = signal.periodogram(segs, fs=self.fs_hz, window="hann",
-                                          detrend="constant", axis=-1)
-                total = p.sum(axis=0)
-                self._sum = total if self._sum is None else self._sum + total
-                self._segments += len(segs)
-        self._pending = buf[n_full * self.nperseg:].copy()
-
-    @property
-    def segments(self) -> int:
-        return self._segments
-
-    def estimate(self) -> PsdData | None:
-        """The averaged PSD without DC, or ``None`` before the first complete segment."""
-        if self._sum is None or self._segments == 0:
-            return None
-        f = np.fft.rfftfreq(self.nperseg, 1.0 / self.fs_hz)[1:]
-        psd = self._sum[1:] / self._segments
-        dof = np.full(psd.shape, 2.0 * self._segments)
-        lo, hi = chi2_band(psd, dof)
-        return PsdData(f_hz=f, psd=psd, dof=dof, ci_low=lo, ci_high=hi)

@@ -22,9 +22,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from analysis.live_estimators import AllanCurveData, OctaveAllan, StreamingWelch
+from analysis.live_estimators import AllanCurveData, OctaveAllan
 from analysis.live_fit import ORDER, TERMS, LiveFit, fit_model, rank_missing_terms
+from analysis.psd import StreamingPsd
 from analysis.series import channel_units
+from analysis.terms import get_term
+from analysis.units import param_units as _param_units
 
 DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
 VALID_TERMS: tuple[str, ...] = tuple(ORDER)
@@ -44,25 +47,13 @@ class BlockLike(Protocol):
 def model_psd(f_hz: np.ndarray, params: dict[str, dict[str, float]], fs_hz: float) -> np.ndarray:
     """One-sided model PSD ((channel units)^2/Hz) of the fitted terms at ``f_hz``.
 
-    Sinusoids are spectral lines and add nothing to the continuous spectrum.
+    Sinusoids are spectral lines and add nothing to the continuous spectrum drawn here.
     """
     f = np.asarray(f_hz, dtype=np.float64)
-    w = 2.0 * math.pi * f
     out = np.zeros_like(f)
-    ts = 1.0 / fs_hz
     for name, p in params.items():
-        if name == "white":
-            out += 2.0 * p["N"] ** 2
-        elif name == "quantization":
-            out += 2.0 * w**2 * p["Q"] ** 2 * ts
-        elif name == "bias_instability":
-            out += p["B"] ** 2 / (math.pi * f)
-        elif name == "random_walk":
-            out += 2.0 * p["K"] ** 2 / w**2
-        elif name == "rate_ramp":
-            out += 2.0 * p["R"] ** 2 / w**3
-        elif name == "gauss_markov":
-            out += 4.0 * p["sigma"] ** 2 * p["T"] / (1.0 + (w * p["T"]) ** 2)
+        if name != "sinusoid":
+            out += get_term(name).psd(f, fs_hz, **p)
     return out
 
 
@@ -99,28 +90,27 @@ class ChannelAnalyzer:
         refit_interval_s: least wall-clock time between two refits.
         diagnosis_interval_s: least wall-clock time between two diagnoses.
         history_len: error history entries kept (bounded memory).
-        nperseg: PSD segment length in samples (default: about 10 s of data, a power of two).
+        nperseg: PSD segment length in samples at every level of the decimation cascade.
     """
 
     def __init__(self, channel: str, fs_hz: float, units: str | None = None,
                  model: Sequence[str] = DEFAULT_MODEL, refit_interval_s: float = 2.0,
                  diagnosis_interval_s: float = 10.0, history_len: int = 2000,
-                 nperseg: int | None = None) -> None:
+                 nperseg: int = 256) -> None:
         check_terms(model)
         self.channel = channel
         self.fs_hz = float(fs_hz)
         self.units = units if units is not None else channel_units(channel)
         self.refit_interval_s = refit_interval_s
         self.diagnosis_interval_s = diagnosis_interval_s
-        if nperseg is None:
-            nperseg = int(2 ** max(6, min(16, round(math.log2(max(self.fs_hz * 10.0, 64))))))
         self._allan = OctaveAllan(self.fs_hz)
-        self._psd = StreamingWelch(self.fs_hz, nperseg)
+        self._psd = StreamingPsd(self.fs_hz, nperseg=nperseg)
         self._lock = threading.RLock()
         self._model = [t for t in ORDER if t in model]
         self._model_revision = 0
         self.n_samples = 0
         self.n_segments = 0
+        self._gap_pending = False
         self._new_since_fit = 0
         self._fit: LiveFit | None = None
         self._curve: AllanCurveData | None = None
@@ -134,16 +124,28 @@ class ChannelAnalyzer:
     # --- feeding (acquisition-side, cheap) -------------------------------------------------
     def update(self, values: np.ndarray, new_segment: bool = False) -> None:
         """Add samples (SI units). ``new_segment``: they do not follow the previous ones."""
-        v = np.asarray(values, dtype=np.float64)
+        v = np.asarray(values, dtype=np.float64).ravel()
+        finite = np.isfinite(v)
+        if finite.all():
+            runs = [v]
+            leading_gap = trailing_gap = False
+        else:  # non-finite samples are a gap: analyse the finite runs as separate segments
+            edges = np.flatnonzero(np.diff(np.concatenate(([0], finite.view(np.int8), [0]))))
+            runs = [v[a:b] for a, b in zip(edges[0::2], edges[1::2], strict=True)]
+            leading_gap, trailing_gap = not finite[0], not finite[-1]
         with self._lock:
-            if new_segment or self.n_segments == 0:
-                self._allan.new_segment()
-                self._psd.new_segment()
-                self.n_segments += 1
-            self._allan.update(v)
-            self._psd.update(v)
-            self.n_samples += int(v.size)
-            self._new_since_fit += int(v.size)
+            self._gap_pending |= new_segment or leading_gap
+            for k, run in enumerate(runs):
+                if self._gap_pending or k > 0 or self.n_segments == 0:
+                    self._allan.new_segment()
+                    self._psd.new_segment()
+                    self.n_segments += 1
+                    self._gap_pending = False
+                self._allan.update(run)
+                self._psd.update(run)
+                self.n_samples += int(run.size)
+                self._new_since_fit += int(run.size)
+            self._gap_pending |= trailing_gap
 
     # --- model ---------------------------------------------------------------------------
     @property
@@ -223,9 +225,6 @@ class ChannelAnalyzer:
         return True
 
     # --- views (JSON-ready dicts) --------------------------------------------------------
-    def _conventional(self) -> dict[str, tuple[str, float]]:
-        return conventional_units(self.units)
-
     def coefficients(self) -> dict[str, Any]:
         """Current coefficients with SI and conventional units and 95 % intervals."""
         with self._lock:
@@ -239,22 +238,19 @@ class ChannelAnalyzer:
             if fit is None:
                 out["model"] = [{"term": t, "params": {}, "ci95": {}} for t in model]
                 return out
-            conv = self._conventional()
             for term in fit.model:
                 entry: dict[str, Any] = {"term": term, "params": {}, "ci95": {}, "units": {},
                                          "conventional": {}}
                 for name, value in fit.params[term].items():
-                    unit = param_units(term, name, self.units)
+                    pu = _param_units(name, self.channel)
+                    ci = fit.ci95[term].get(name)
                     entry["params"][name] = value
-                    entry["units"][name] = unit
-                    if name in fit.ci95[term]:
-                        entry["ci95"][name] = fit.ci95[term][name]
-                    if unit in conv:
-                        label, factor = conv[unit]
-                        ci = fit.ci95[term].get(name)
-                        entry["conventional"][name] = {
-                            "value": value * factor, "units": label,
-                            "ci95": [c * factor for c in ci] if ci else None}
+                    entry["units"][name] = pu.si
+                    if ci:
+                        entry["ci95"][name] = ci
+                    entry["conventional"][name] = {
+                        "value": value * pu.factor, "units": pu.conventional,
+                        "ci95": [c * pu.factor for c in ci] if ci else None}
                 out["model"].append(entry)
             out["error"] = {"chi2_per_dof": fit.chi2_per_dof, "max_abs_z": fit.max_abs_z}
             out["failures"] = fit.failures
@@ -284,9 +280,12 @@ class ChannelAnalyzer:
             return out
 
     def psd(self, max_points: int = 400) -> dict[str, Any]:
-        """PSD (log-thinned to ``max_points``) with its band and the model PSD."""
+        """Log-frequency PSD (thinned to ``max_points``) with its band and the model PSD."""
         with self._lock:
-            est = self._psd.estimate()
+            try:
+                est = self._psd.estimate()
+            except ValueError:  # not one full segment yet
+                est = None
             fit = self._fit
         out: dict[str, Any] = {"channel": self.channel, "units": f"({self.units})^2/Hz",
                                "f_hz": [], "psd": [], "ci_low": [], "ci_high": [], "dof": [],
@@ -324,40 +323,6 @@ def check_terms(terms: Iterable[str]) -> None:
     if bad:
         raise ValueError(f"unknown term {', '.join(map(repr, bad))}; valid terms: "
                          f"{', '.join(VALID_TERMS)}")
-
-
-def param_units(term: str, param: str, units: str) -> str:
-    """SI units of a term parameter for a channel in ``units`` (``rad/s`` or ``m/s^2``)."""
-    if param == "T":
-        return "s"
-    if param == "f":
-        return "Hz"
-    base = {"white": "{u}/sqrt(Hz)", "quantization": "{q}", "bias_instability": "{u}",
-            "random_walk": "{u}/sqrt(s)", "rate_ramp": "{u}/s", "gauss_markov": "{u}",
-            "sinusoid": "{u}"}[term]
-    q = "rad" if units == "rad/s" else "m/s" if units == "m/s^2" else f"{units}*s"
-    return base.format(u=units, q=q)
-
-
-_RAD2DEG = 180.0 / math.pi
-_G = 9.80665
-
-
-def conventional_units(units: str) -> dict[str, tuple[str, float]]:
-    """Map SI parameter units to (conventional label, multiply-by factor)."""
-    if units == "rad/s":
-        return {"rad/s/sqrt(Hz)": ("deg/sqrt(h)", _RAD2DEG * 60.0),
-                "rad/s": ("deg/h", _RAD2DEG * 3600.0),
-                "rad/s/sqrt(s)": ("deg/h/sqrt(h)", _RAD2DEG * 3600.0 * 60.0),
-                "rad": ("deg", _RAD2DEG),
-                "rad/s/s": ("deg/h^2", _RAD2DEG * 3600.0**2)}
-    if units == "m/s^2":
-        return {"m/s^2/sqrt(Hz)": ("m/s/sqrt(h)", 60.0),
-                "m/s^2": ("mg", 1e3 / _G),
-                "m/s^2/sqrt(s)": ("m/s^2/sqrt(h)", 60.0),
-                "m/s": ("m/s", 1.0),
-                "m/s^2/s": ("mg/s", 1e3 / _G)}
-    return {}
 
 
 class RollingAnalyzer:
