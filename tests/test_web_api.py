@@ -13,12 +13,12 @@ from imunoise.cli import main
 from imunoise.live import LiveService
 from web.app import create_app
 
-N_BLOCKS = 3000  # 300,000 samples per channel at 100 Hz: 50 minutes of data
+N_BLOCKS = 300  # of 1000 samples: 300,000 samples per channel at 100 Hz, 50 minutes
 
 
 @pytest.fixture(scope="module")
 def service():
-    svc = LiveService(SyntheticImu(n_blocks=N_BLOCKS), realtime=False).start()
+    svc = LiveService(SyntheticImu(block=1000, n_blocks=N_BLOCKS), realtime=False).start()
     assert svc.wait(60)
     svc.stop()  # joins the analysis thread after its final forced refit
     return svc
@@ -43,17 +43,17 @@ def _all_finite(xs) -> bool:
 def test_health_reports_device_counts_and_channels(client) -> None:
     h = client.get("/health").json()
     assert h["status"] == "ok"
-    assert h["samples"] == {"received": N_BLOCKS * 100, "analysed": N_BLOCKS * 100,
+    assert h["samples"] == {"received": N_BLOCKS * 1000, "analysed": N_BLOCKS * 1000,
                             "not_analysed": 0, "dropped": 0}
     assert h["channels"] == ["gyro_x", "gyro_y"]
-    assert h["device"]["stats"]["samples"] == N_BLOCKS * 100
+    assert h["device"]["stats"]["samples"] == N_BLOCKS * 1000
     assert h["recording"]["file"] is None
 
 
 def test_coefficients_have_units_intervals_and_record_length(client) -> None:
     c = client.get("/coefficients").json()
-    assert c["samples_seen"] == 2 * N_BLOCKS * 100
-    assert c["record_length_s"] == pytest.approx(N_BLOCKS)
+    assert c["samples_seen"] == 2 * N_BLOCKS * 1000
+    assert c["record_length_s"] == pytest.approx(N_BLOCKS * 10)
     gy = c["channels"]["gyro_y"]
     assert [t["term"] for t in gy["model"]] == ["white", "bias_instability", "random_walk"]
     white = gy["model"][0]
@@ -150,7 +150,7 @@ def test_event_stream_pushes_updates(client) -> None:
     assert "event: update" in lines
     payload = json.loads(lines[-1][5:])
     assert payload["channels"] == ["gyro_x", "gyro_y"]
-    assert payload["samples"]["received"] == N_BLOCKS * 100
+    assert payload["samples"]["received"] == N_BLOCKS * 1000
 
 
 def test_token_guards_changes_but_not_reads(service) -> None:

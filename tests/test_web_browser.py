@@ -28,7 +28,7 @@ pytestmark = pytest.mark.skipif(
 
 @pytest.fixture(scope="module")
 def url():
-    svc = LiveService(SyntheticImu(n_blocks=3000), realtime=False).start()
+    svc = LiveService(SyntheticImu(block=1000, n_blocks=300), realtime=False).start()
     assert svc.wait(60)
     svc.stop()
     with running_server(create_app(svc)) as base:
