@@ -32,6 +32,17 @@ function plot(id, opts, data) {
   el.dataset.points = String(data[0].length);
 }
 
+// Log scales span whole decades around the finite positive data (uPlot's automatic log range
+// misbehaves on spans of less than about two decades).
+function decades(u, min, max) {
+  if (!(min > 0) || !(max > 0)) return [1e-12, 1];
+  let lo = Math.floor(Math.log10(min));
+  let hi = Math.ceil(Math.log10(max));
+  if (hi <= lo) hi = lo + 1;
+  return [10 ** lo, 10 ** hi];
+}
+const LOG = { distr: 3, range: decades };
+
 function logAxis(label) {
   return { label, values: (u, vals) => vals.map((v) => fmt(v, 2)) };
 }
@@ -52,7 +63,7 @@ function drawAllan(a) {
     });
   }
   plot("allan-plot", {
-    scales: { x: { distr: 3 }, y: { distr: 3 } },
+    scales: { x: LOG, y: LOG },
     series, bands: [{ series: [2, 3], fill: "#1f77b422" }],
     axes: [logAxis("averaging time tau (s)"), logAxis(`Allan deviation (${a.units})`)],
   }, data);
@@ -61,7 +72,7 @@ function drawAllan(a) {
   const bad = z.map((v) => (v !== null && Math.abs(v) > 3 ? v : null));
   plot("z-plot", {
     height: 140,
-    scales: { x: { distr: 3 } },
+    scales: { x: LOG },
     series: [{ label: "tau (s)" },
       { label: "z", stroke: "#1f77b4", paths: () => null, points: { show: true, size: 6 } },
       { label: "failure", stroke: "#d00", fill: "#d00", paths: () => null,
@@ -85,7 +96,7 @@ function drawPsd(p) {
     series.push({ label: "model", stroke: "#000", width: 2 });
     data.push(p.model_psd.map((v) => (v > 0 ? v : null)));
   }
-  plot("psd-plot", { scales: { x: { distr: 3 }, y: { distr: 3 } }, series,
+  plot("psd-plot", { scales: { x: LOG, y: LOG }, series,
     bands: [{ series: [2, 3], fill: "#1f77b422" }],
     axes: [logAxis("frequency (Hz)"), logAxis(p.units)] }, data);
 }
@@ -119,7 +130,7 @@ function drawModel(m) {
   $("history").innerHTML = h.slice(-12).reverse().map((p) =>
     `<li>rev ${p.revision}: χ²/dof ${fmt(p.chi2_per_dof)} [${p.model.join(", ")}]</li>`).join("");
   if (h.length) {
-    plot("history-plot", { height: 150, scales: { y: { distr: 3 } },
+    plot("history-plot", { height: 150, scales: { y: LOG },
       series: [{ label: "time" }, { label: "χ²/dof", stroke: "#d62728", width: 2,
         points: { show: true } }],
       axes: [{}, logAxis("χ²/dof")] },
