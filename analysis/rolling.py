@@ -301,9 +301,17 @@ class ChannelAnalyzer:
         return out
 
     def diagnosis(self) -> dict[str, Any]:
-        """The latest ranking of missing terms, best first."""
+        """The latest ranking of missing terms, best first (``note`` says why it is empty)."""
         with self._lock:
-            return {"channel": self.channel, "model": list(self._model),
+            n_taus = self._curve.tau_s.size if self._curve is not None else 0
+            if n_taus < MIN_TAUS_FOR_DIAGNOSIS:
+                note = (f"waiting for data: the diagnosis needs {MIN_TAUS_FOR_DIAGNOSIS} octaves "
+                        f"of averaging time, the data so far give {n_taus}")
+            elif len(self._model) == len(ORDER):
+                note = "every term is already in the model"
+            else:
+                note = ""
+            return {"channel": self.channel, "model": list(self._model), "note": note,
                     "model_revision": self._model_revision,
                     "error": ({"chi2_per_dof": self._fit.chi2_per_dof,
                                "max_abs_z": self._fit.max_abs_z} if self._fit else None),

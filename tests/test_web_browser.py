@@ -135,5 +135,6 @@ def test_a_young_record_with_short_tau_range_renders_without_errors(browser, tmp
         assert int(page.locator("#allan-plot").get_attribute("data-points")) == 7
         page.wait_for_timeout(300)  # let the plots draw
         assert page.evaluate("1 + 1") == 2  # the page is responsive, not stuck drawing
+        assert "waiting for data" in page.locator("#suggestions").inner_text()
         assert errors == [], errors
     page.close()

@@ -94,6 +94,7 @@ class Suggestion(BaseModel):
 class Diagnosis(BaseModel):
     channel: str
     model: list[str]
+    note: str = Field("", description="why there are no suggestions yet, if so")
     model_revision: int
     error: Error | None
     suggestions: list[Suggestion]

@@ -145,7 +145,10 @@ function drawDiagnosis(d) {
       <span class="${s.significant ? "sig" : ""}">${s.significant ? "significant" : "not significant"}</span>:
       χ²/dof after ${fmt(s.chi2_per_dof_after)} (${ps})<span class="why">${s.why}</span></li>`;
   });
-  $("suggestions").innerHTML = items.join("") || "<li>no candidate terms left</li>";
+  const note = document.createElement("li");
+  note.textContent = d.note || "no candidate terms left";
+  $("suggestions").innerHTML = items.join("");
+  if (!items.length) $("suggestions").appendChild(note);
 }
 
 async function refresh() {
