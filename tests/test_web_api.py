@@ -131,6 +131,12 @@ def test_no_file_is_served_outside_the_static_folder(client) -> None:
     assert client.get("/static/vendor/uplot/LICENSE").status_code == 200
 
 
+def test_foreign_host_header_is_refused_on_loopback(client) -> None:
+    # A page on another site that rebinds its name to 127.0.0.1 sends its own Host header.
+    assert client.get("/coefficients", headers={"Host": "evil.example"}).status_code == 400
+    assert client.get("/coefficients", headers={"Host": "localhost:8000"}).status_code == 200
+
+
 def test_openapi_documents_every_endpoint(client) -> None:
     assert client.get("/docs").status_code == 200
     paths = client.get("/openapi.json").json()["paths"]

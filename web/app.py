@@ -17,6 +17,7 @@ from typing import Any
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from analysis.rolling import VALID_TERMS, ChannelAnalyzer
 from imunoise import __version__
@@ -36,8 +37,12 @@ STATIC_DIR = Path(__file__).resolve().parent / "static"
 TOKEN_HEADER = "X-Imunoise-Token"
 
 
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
+
+
 def create_app(service: LiveService, token: str | None = None,
-               event_interval_s: float = 0.5) -> FastAPI:
+               event_interval_s: float = 0.5,
+               allowed_hosts: tuple[str, ...] | None = LOOPBACK_HOSTS) -> FastAPI:
     """Build the app around a running :class:`LiveService`.
 
     Args:
@@ -45,6 +50,8 @@ def create_app(service: LiveService, token: str | None = None,
         token: when set, mutating endpoints require it (``Authorization: Bearer TOKEN`` or the
             ``X-Imunoise-Token`` header).
         event_interval_s: how often the event stream checks for new results, s.
+        allowed_hosts: accepted ``Host`` headers (None: any). The loopback default stops a
+            web page from reaching the service through DNS rebinding.
     """
     closing = asyncio.Event()
 
@@ -174,4 +181,6 @@ def create_app(service: LiveService, token: str | None = None,
                                  headers={"Cache-Control": "no-cache"})
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    if allowed_hosts is not None:
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(allowed_hosts))
     return app

@@ -146,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
 
     from analysis.rolling import RollingAnalyzer, check_terms
     from imunoise.live import LiveService
-    from web.app import create_app
+    from web.app import LOOPBACK_HOSTS, create_app
 
     token = args.token or os.environ.get(TOKEN_ENV) or None
     check_security(args.host, token)
@@ -174,7 +174,8 @@ def run(args: argparse.Namespace) -> int:
         source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval), sinks=sinks,
         device=info, realtime=realtime,
         current_file=(lambda: recorder.stats.file or None) if recorder else None)
-    app = create_app(service, token=token)
+    app = create_app(service, token=token,
+                     allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
                             timeout_graceful_shutdown=2, lifespan="on")
     server = uvicorn.Server(config)
