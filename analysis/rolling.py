@@ -89,13 +89,17 @@ class ChannelAnalyzer:
         model: initial model (term names).
         refit_interval_s: least wall-clock time between two refits.
         diagnosis_interval_s: least wall-clock time between two diagnoses.
-        history_len: error history entries kept (bounded memory).
+        history_interval_s: least time between two error-history entries of one model
+            revision (a model change always adds one).
+        history_len: error history entries kept (bounded memory; 2000 entries at 10 s cover
+            5.5 h, older ones are dropped).
         nperseg: PSD segment length in samples at every level of the decimation cascade.
     """
 
     def __init__(self, channel: str, fs_hz: float, units: str | None = None,
                  model: Sequence[str] = DEFAULT_MODEL, refit_interval_s: float = 2.0,
-                 diagnosis_interval_s: float = 10.0, history_len: int = 2000,
+                 diagnosis_interval_s: float = 10.0, history_interval_s: float = 10.0,
+                 history_len: int = 2000,
                  nperseg: int = 256) -> None:
         check_terms(model)
         self.channel = channel
@@ -103,6 +107,7 @@ class ChannelAnalyzer:
         self.units = units if units is not None else channel_units(channel)
         self.refit_interval_s = refit_interval_s
         self.diagnosis_interval_s = diagnosis_interval_s
+        self.history_interval_s = history_interval_s
         self._allan = OctaveAllan(self.fs_hz)
         self._psd = StreamingPsd(self.fs_hz, nperseg=nperseg)
         self._lock = threading.RLock()
@@ -218,7 +223,7 @@ class ChannelAnalyzer:
                 self._last_diag_t = now
             last = self._history[-1] if self._history else None
             if last is None or last.revision != revision or \
-                    time.time() - last.time_s >= self.refit_interval_s:
+                    time.time() - last.time_s >= self.history_interval_s:
                 self._history.append(ErrorPoint(revision, model, fit.chi2_per_dof,
                                                  time.time(), n_samples))
             self.revision += 1
