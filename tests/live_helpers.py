@@ -101,8 +101,8 @@ class SyntheticImu:
                 delay = due - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-                else:
-                    self.stats.max_late_s = max(self.stats.max_late_s, -delay)
+                late = time.monotonic() - due  # oversleep or a late start, both count
+                self.stats.max_late_s = max(self.stats.max_late_s, late)
                 if not self._plugged.is_set():
                     continue
             block = self._make(gap)
