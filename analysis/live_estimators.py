@@ -107,10 +107,11 @@ class OctaveAllan:
             y = 0.5 * (y[0::2] + y[1::2])
 
     def curve(self, min_terms: int = 4) -> AllanCurveData:
-        """Allan variance at every octave with at least ``min_terms`` differences."""
+        """Allan variance at every octave with at least ``min_terms`` differences (octaves
+        where the signal did not change at all are left out: no log-scale value exists)."""
         counts = np.array([o.count for o in self._octaves], dtype=np.float64)
         sums = np.array([o.sumsq for o in self._octaves], dtype=np.float64)
-        keep = counts >= min_terms
+        keep = (counts >= min_terms) & (sums > 0)  # a constant signal has nothing to show
         m = (2 ** np.arange(len(self._octaves), dtype=np.float64))[keep]
         avar = 0.5 * sums[keep] / counts[keep]
         edf = counts[keep]

@@ -145,3 +145,11 @@ def test_rolling_set_routes_channels_and_segments_on_gaps() -> None:
     assert a.n_samples == 3000 and a.n_segments == 2
     with pytest.raises(KeyError, match="valid channels: gyro_x, /b/imu:gyro_x"):
         rs.get("temp")
+
+
+def test_a_stuck_sensor_gives_no_curve_and_no_fit_rather_than_zeros() -> None:
+    a = ChannelAnalyzer("gyro_x", FS)
+    a.update(np.full(10_000, 0.25))
+    assert a.refresh(force=True) is False
+    assert a.allan()["tau_s"] == [] and a.coefficients()["error"] is None
+    assert "waiting for data" in a.diagnosis()["note"]

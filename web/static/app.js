@@ -91,7 +91,8 @@ function drawPsd(p) {
   if (!p.f_hz.length) { $("psd-plot").textContent = "waiting for a full PSD segment…"; return; }
   const series = [{ label: "f (Hz)" }, { label: "PSD", stroke: "#1f77b4", width: 1 },
     { label: "95 % high", stroke: "#1f77b433" }, { label: "95 % low", stroke: "#1f77b433" }];
-  const data = [p.f_hz, p.psd, p.ci_high, p.ci_low];
+  const pos = (ys) => ys.map((v) => (v > 0 ? v : null));
+  const data = [p.f_hz, pos(p.psd), pos(p.ci_high), pos(p.ci_low)];
   if (p.model_psd) {
     series.push({ label: "model", stroke: "#000", width: 2 });
     data.push(p.model_psd.map((v) => (v > 0 ? v : null)));
