@@ -11,8 +11,9 @@ import time
 from pathlib import Path
 
 import httpx
-from live_helpers import free_port
 from mcap.reader import make_reader
+
+from tests.live_helpers import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -7,10 +7,10 @@ import math
 
 import httpx
 import pytest
-from live_helpers import SINE_A, SINE_F, SyntheticImu, running_server
 
 from imunoise.cli import main
 from imunoise.live import LiveService
+from tests.live_helpers import SINE_A, SINE_F, SyntheticImu, running_server
 from web.app import create_app
 
 N_BLOCKS = 300  # of 1000 samples: 300,000 samples per channel at 100 Hz, 50 minutes

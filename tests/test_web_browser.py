@@ -7,9 +7,9 @@ import shutil
 from pathlib import Path
 
 import pytest
-from live_helpers import SyntheticImu, running_server
 
 from imunoise.live import LiveService
+from tests.live_helpers import SyntheticImu, running_server
 from web.app import create_app
 
 try:

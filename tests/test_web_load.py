@@ -12,9 +12,9 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from live_helpers import free_port, running_server
 
 from imunoise.live import LiveService
+from tests.live_helpers import free_port, running_server
 from web.app import create_app
 
 HERE = Path(__file__).resolve().parent
