@@ -34,7 +34,7 @@ import numpy as np
 from scipy import ndimage, optimize, signal, special
 
 from analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
-from analysis.terms import TermError, ar1_avar_shape, get_term, parse_terms
+from analysis.terms import TERMS, TermError, ar1_avar_shape, get_term, parse_terms
 
 LINEAR_TERMS = ("white", "quantization", "bias_instability", "random_walk", "rate_ramp")
 _LINEAR_PARAM = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
@@ -323,7 +323,7 @@ def _avar_of(layout: _Layout, params: list[dict[str, float]], tau: np.ndarray, f
              ) -> np.ndarray:
     total = np.zeros_like(tau)
     for n, p in _model_terms(layout, params):
-        total += get_term(n).avar(tau, fs, **p)
+        total += TERMS[n].avar_fn(tau, fs, **p)  # parameters already validated
     return total
 
 
