@@ -103,7 +103,7 @@ class SyncedFile:
 class RecorderStats:
     """Counters for the status line; sizes in bytes, times in seconds."""
 
-    samples: int = 0
+    samples: int = 0  # inertial samples (Imu messages)
     messages: int = 0
     files: list[str] = field(default_factory=list)
     file: str = ""
@@ -244,10 +244,11 @@ class McapRecorder:
 
     def flush(self) -> None:
         """Write and fsync everything recorded so far (waits for the writer thread)."""
-        if self._queue is not None:
+        if self._queue is not None and self._thread is not None:
             done = threading.Event()
             self._queue.put(("flush", done, 0.0))
-            done.wait()
+            while not done.wait(0.5) and self._thread.is_alive():
+                pass
         else:
             self._guarded(self._flush)
 
@@ -301,6 +302,12 @@ class McapRecorder:
             fn(*args)
         except OSError as exc:
             self._on_write_error(exc)
+        except Exception as exc:  # noqa: BLE001 - a bad block must not lose the file
+            self.error = f"recording stopped: {type(exc).__name__}: {exc}"
+            try:
+                self._finish_file()
+            except Exception:  # noqa: BLE001 - the data already flushed stays readable
+                pass
 
     # ---- files ------------------------------------------------------------------------------
 
@@ -345,6 +352,8 @@ class McapRecorder:
         self._file_t0_sample = None
         self._writer.add_metadata(METADATA_NAME, self._metadata(block))
         self._file.sync(self.fsync)
+        if self.fsync:
+            _fsync_dir(self.out_dir)  # the new name must survive a power cut too
         self.stats.files.append(str(path))
         self.stats.file = str(path)
 
@@ -508,7 +517,8 @@ class McapRecorder:
                                           frame_id=self.frame_id)
             self._add_messages(self._channel(f"{prefix}/temperature", msgs.TEMPERATURE), rec,
                                log_ns)
-        self.stats.samples += n
+        if has_gyro or has_accel:
+            self.stats.samples += n
         self._dirty = True
         if (wall - self.stats.last_flush_wall >= self._flush_wall_s
                 or float(t[-1]) - self._flush_t_sample >= self.flush_s):
@@ -541,6 +551,14 @@ class McapRecorder:
         self._sequence[cid] += 1
         self.stats.events += 1
         self._dirty = True
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _size(path: str) -> int:

@@ -16,7 +16,7 @@ import numpy as np
 from daq.clock import Clock, RealClock
 from daq.drivers.common import PolledSampleClock, StreamBuffer, sign_extend
 from daq.errors import PermanentDeviceError, TransientDeviceError
-from daq.transports.buspirate import BusPirateSPI
+from daq.transports.buspirate import SPI_SPEEDS_HZ, BusPirateSPI, speed_index
 
 DEG = math.pi / 180.0
 G0 = 9.80665
@@ -248,6 +248,8 @@ class Adis16350:
         range_dps: gyro range, 300, 150 or 75 deg/s.
         taps: Bartlett FIR taps (power of two, at least 4 at 150 deg/s and 16 at 75 deg/s).
         temp_period_s: how often the three temperatures and the supply are read.
+        self_test: run the internal self-test when first opened (result in ``config``; a
+            failure is recorded, not fatal, so a marginal part can still be characterised).
         clock: time source for pacing waits (shared with a simulator in tests).
     """
 
@@ -256,7 +258,7 @@ class Adis16350:
     stale_timeout_s = 0.5
 
     def __init__(self, spi: BusPirateSPI, *, rate_hz: float = 102.4, range_dps: int = 300,
-                 taps: int | None = None, temp_period_s: float = 1.0,
+                 taps: int | None = None, temp_period_s: float = 1.0, self_test: bool = True,
                  clock: Clock | None = None) -> None:
         self.spi = spi
         self.smpl_prd = smpl_prd_for_rate(rate_hz)
@@ -284,7 +286,9 @@ class Adis16350:
         self._last_fresh_host: float | None = None
         self._phase = PolledSampleClock(self.rate_hz)
         self._opened_at = 0.0
-        self.config: dict[str, str] = {}
+        self.run_self_test = self_test
+        self.self_test_result = ""
+        self.config: dict[str, str] = self._describe()
 
     # -- register access -------------------------------------------------------------------
     def read_registers(self, names: list[str] | tuple[str, ...]) -> dict[str, int]:
@@ -314,6 +318,9 @@ class Adis16350:
         if self._last_fresh_host is not None:
             # Reopening after a fault: start the part from a clean state.
             self.reset()
+        elif self.run_self_test:
+            failed = self.self_test()
+            self.self_test_result = "passed" if not failed else "failed: " + "; ".join(failed)
         self.write_register("SMPL_PRD", self.smpl_prd)
         # The datasheet asks for the range (upper byte) before the filter (lower byte).
         self.write_register("SENS_AVG", self.sens_avg, upper_first=True)
@@ -385,11 +392,13 @@ class Adis16350:
         return decode_status(self.read_registers(["STATUS"])["STATUS"])
 
     def _describe(self) -> dict[str, str]:
+        """Configuration for the recording's metadata (device answers filled in by open)."""
         gyro_lsb = GYRO_LSB_DPS[self.range_dps] * DEG
+        sclk = min(sclk_max_hz(self.smpl_prd), 1.0e6)
         return {
             "device": self.name, "model": self.model,
             "transport": f"Bus Pirate binary SPI on {self.spi.port}, mode 3, "
-                         f"{(self.spi.speed_hz or 0) / 1e3:g} kHz",
+                         f"{(self.spi.speed_hz or SPI_SPEEDS_HZ[speed_index(sclk)]) / 1e3:g} kHz",
             "rate_hz": f"{self.rate_hz:.6g}", "smpl_prd": f"0x{self.smpl_prd:04X}",
             "gyro_range_dps": str(self.range_dps), "filter_taps": str(self.taps),
             "sens_avg": f"0x{self.sens_avg:04X}",
@@ -399,6 +408,7 @@ class Adis16350:
             "supply_v": f"{self.supply_v:.3f}" if self.supply_v is not None else "",
             "flash_endurance": str(self.endurance),
             "temperature_rate_hz": f"{self.rate_hz / self.temp_every:.6g}",
+            "self_test": self.self_test_result,
         }
 
     # -- sampling --------------------------------------------------------------------------
@@ -428,7 +438,7 @@ class Adis16350:
         else:
             missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh_host = now
-        self.imu.add(data14(miso[:6]).tolist(), missed=missed)
+        self.imu.add(data14(miso[:6]).tolist(), missed=missed, host_time=self.clock.wall())
         if with_temp:
             t = data12s(miso[6:9]).tolist()
             self.temperature_add(t + [int(data12u(miso[9]))], self.imu.next_index - 1)

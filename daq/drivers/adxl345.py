@@ -114,9 +114,10 @@ class Adxl345:
         scale = G0 / LSB_PER_G
         self.imu = StreamBuffer(f"{prefix}/imu", ["accel_x", "accel_y", "accel_z"],
                                 self.rate_hz, lambda raw: raw * scale)
-        self.config: dict[str, str] = {}
         self.overruns = 0
         self._last_drain: float | None = None
+        self._reopened = False
+        self.config: dict[str, str] = self._describe(None)
 
     @property
     def where(self) -> str:
@@ -144,10 +145,16 @@ class Adxl345:
         if back != expected:
             raise TransientDeviceError(f"{self.where}: configuration did not stick ({back})")
         self.clock.sleep(TURN_ON_S + 1.0 / self.rate_hz)
-        self._last_drain = None
-        self.config = {
+        # Reopened after a fault: the FIFO was flushed, so the first drain has to count the
+        # samples made since the last good one from the host clock.
+        self._reopened = self._last_drain is not None
+        self.config = self._describe(devid)
+    def _describe(self, devid: int | None) -> dict[str, str]:
+        """Configuration for the recording's metadata (DEVID filled in by open)."""
+        return {
             "device": self.name, "model": self.model, "transport": self.bus.name,
-            "i2c_address": f"0x{a:02X}", "devid": f"0x{devid:02X}",
+            "i2c_address": f"0x{self.address:02X}",
+            "devid": f"0x{devid:02X}" if devid is not None else "",
             "rate_hz": f"{self.rate_hz:.6g}", "bw_rate": f"0x{self.code:02X}",
             "bandwidth_hz": f"{self.rate_hz / 2:.6g}", "range_g": str(self.range_g),
             "data_format": f"0x{self.format:02X}", "full_res": "1",
@@ -168,7 +175,16 @@ class Adxl345:
         rows = [self.bus.read_block(a, REG["DATAX0"], DATA_BYTES) for _ in range(entries)]
         missed = 0
         if self._last_drain is None:
+            if not rows:
+                return 0
+            # The newest entry is about as old as this read.
             self.imu.anchor(self.clock.wall() - (entries - 1) / self.rate_hz)
+        elif self._reopened:
+            if not rows:
+                return 0
+            produced = int(round((now - self._last_drain) * self.rate_hz))
+            missed = max(0, produced - entries)
+            self._reopened = False
         elif source & INT_OVERRUN:
             # Full FIFO: how many samples came since the last drain is known only from the
             # host clock; at least one was overwritten.
@@ -177,7 +193,8 @@ class Adxl345:
             missed = max(1, produced - entries)
         self._last_drain = now
         if rows:
-            self.imu.add_many(decode_data(np.asarray(rows)), missed=missed)
+            self.imu.add_many(decode_data(np.asarray(rows)), missed=missed,
+                              host_time=self.clock.wall())
         return len(rows)
 
     def take_blocks(self) -> list:
