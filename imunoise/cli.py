@@ -17,6 +17,7 @@ COMMAND_MODULES: list[str] = [
     "diagnose",
     "reproduce",
     "record",
+    "serve",
     "replay",
     "repair",
 ]
