@@ -14,9 +14,9 @@ steady slope supports ``rate_ramp``. Each candidate's p-value is the smaller of 
 ``significant`` when its p-value, Bonferroni-corrected for the number of candidates, is below
 ``alpha``. The ranking follows the p-values (kept in log form, as strong effects give values
 far below the floating-point range). So on data the model fully explains, nothing is
-flagged with probability at least ``1 - alpha``. Outliers, gaps and a changing noise level
-are reported alongside: they are not noise terms to add, but they are why a model can look
-wrong.
+flagged with probability at least ``1 - alpha``. Outliers, gaps, a changing noise level and
+the shortest taus a sensor's filter pulls below the model are reported alongside: they are
+not noise terms to add, but they are why a model can look wrong.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 from scipy import stats
 
 from analysis import evidence
-from analysis.evidence.finding import Finding
+from analysis.evidence.finding import Finding, family_p
 from analysis.fit import FitResult, find_line, fit_allan, fit_series
 from analysis.terms import TERM_NAMES, get_term
 
@@ -118,6 +118,29 @@ def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
     return float(stats.chi2.logsf(drop, k))
 
 
+def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
+    """The shortest taus the fit set aside because they lie below every sum of terms (a
+    filter's signature), or None."""
+    used = getattr(fit, "used", None)
+    if used is None or bool(np.all(used)):
+        return None
+    aside = ~np.asarray(used, dtype=bool)
+    z = np.asarray(fit.z)[aside]
+    tau = np.asarray(fit.tau_s)[aside]
+    if not bool(np.all(z < 0)):
+        return None  # measured above the model there: a missing term, which the refits test
+    zmax = float(np.max(np.abs(z)))
+    p = family_p(float(2.0 * stats.norm.sf(zmax)), int(np.size(fit.z)))
+    why = (f"The Allan deviation at tau = {tau.min():.3g} .. {tau.max():.3g} s lies "
+           f"below every sum of noise terms (|z| up to "
+           f"{zmax:.1f}): the sensor's anti-aliasing or decimation filter averages the white "
+           f"noise over a few samples. No noise term describes a filter; these taus are left "
+           f"out of the parameter estimates but still count in chi2/dof.")
+    return Finding("sensor_filter", None, zmax, "max |z|", p, alpha, {},
+                   {"tau_s": [float(tau.min()), float(tau.max())]}, why,
+                   {"taus_set_aside": [float(t) for t in tau]})
+
+
 def _in_band(fit: FitResult, line_finding: Finding) -> bool:
     """Whether the refitted sinusoid's frequency lies in the band the line search covered."""
     f = next(t.params["f"] for t in fit.terms if t.term == "sinusoid")
@@ -188,6 +211,9 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     findings.append(evidence.noise_level_windows(
         segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
         units=units))
+    filt = _sensor_filter(base, alpha)
+    if filt is not None:
+        findings.append(filt)
     by_term: dict[str, Finding] = {}
     if "sinusoid" not in names:
         try:
