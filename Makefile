@@ -16,11 +16,11 @@ run: $(STAMP)
 	$(BIN)/imunoise serve --device sim:adis16350 --out data
 
 test: $(STAMP)
-	$(BIN)/ruff check analysis daq web imunoise tests bench
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check analysis daq web imunoise tests bench
+	$(BIN)/ruff check .
 
 bench: $(STAMP)
 	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
