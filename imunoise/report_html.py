@@ -59,8 +59,7 @@ def _conventional(param: str, kind: str) -> tuple[str, float] | None:
 
 def _si_unit(param: str, units: str) -> str:
     """SI unit of a term parameter for a channel in ``units`` (rad/s or m/s^2)."""
-    base = "rad" if units.startswith("rad") else "m/s"
-    rate = f"{base}/s"
+    base, rate = ("rad", "rad/s") if units.startswith("rad") else ("m/s", "m/s^2")
     return {
         "N": f"{rate}/\u221aHz", "Q": base, "B": rate, "K": f"{rate}/\u221as",
         "R": f"{rate}/s", "sigma": rate, "T": "s", "A": rate, "f": "Hz", "coef": f"{rate}/\u00b0C",
@@ -132,10 +131,11 @@ def _record_section(rec: Mapping, src: str) -> str:
     for key, label, unit in labels:
         if key in rec and rec[key] is not None:
             v = rec[key]
-            text = _num(v, 6) if isinstance(v, float) else escape(str(v))
+            text = (_num(v, 6) if isinstance(v, float) else escape(str(v))) + (
+                f" {unit}" if unit else "")
             if key == "duration_s" and isinstance(v, int | float):
                 text += f" ({v / 3600:.2f} h)"
-            rows.append((label, text + (f" {unit}" if unit else "")))
+            rows.append((label, text))
     tr = rec.get("temperature_range_degC")
     if tr:
         rows.append(("temperature range", f"{_num(tr[0], 4)} to {_num(tr[1], 4)} \u00b0C "

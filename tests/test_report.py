@@ -1,0 +1,218 @@
+"""HTML report: parsed, self-contained, rendered by headless Chromium; the SVG plotter."""
+
+from __future__ import annotations
+
+import shutil
+import struct
+import subprocess
+import zlib
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from analysis.discrete import discretize
+from imunoise.report_html import render_report
+from imunoise.svg_plot import Plot
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+class _Collector(HTMLParser):
+    """Tags, attributes and text of a document, checking that every element is closed."""
+
+    VOID = {"meta", "br", "img", "input", "link", "hr", "col", "area", "base", "source", "wbr"}
+    SVG_EMPTY = {"rect", "line", "polyline", "polygon", "circle", "path"}
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tags: list[tuple[str, dict]] = []
+        self.stack: list[str] = []
+        self.text: list[str] = []
+        self.errors: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+        if tag not in self.VOID:
+            self.stack.append(tag)
+
+    def handle_startendtag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+
+    def handle_endtag(self, tag):
+        if not self.stack or self.stack[-1] != tag:
+            self.errors.append(f"unexpected </{tag}> with open {self.stack[-3:]}")
+            return
+        self.stack.pop()
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def _channel_doc(name: str, units: str, fs: float = 100.0) -> dict:
+    n_, b_, k_ = (3e-4, 4e-5, 2e-6) if units == "rad/s" else (2e-3, 1e-4, 3e-5)
+    tau = 2.0 ** np.arange(0, 17) / fs
+    avar = n_**2 / tau + 2 * np.log(2) / np.pi * b_**2 + k_**2 * tau / 3
+    adev = np.sqrt(avar) * (1 + 0.03 * np.sin(np.arange(tau.size)))
+    half = 1.96 / np.sqrt(np.maximum(2 * (1e6 / (tau * fs)) / 3, 1.0))
+    f = np.logspace(-3, np.log10(fs / 2), 60)
+    psd = 2 * n_**2 + 2 * b_**2 / (np.pi * f) + k_**2 / (2 * np.pi**2 * f**2)
+    model = [
+        {"term": "white", "params": {"N": n_}, "ci95": {"N": [0.99 * n_, 1.01 * n_]}},
+        {"term": "bias_instability", "params": {"B": b_}, "ci95": {"B": [0.8 * b_, 1.2 * b_]}},
+        {"term": "random_walk", "params": {"K": k_}, "ci95": {"K": [0.5 * k_, 1.5 * k_]}},
+    ]
+    dm = discretize(model, fs, units, tau_range_s=(tau[0], tau[-1]))
+    return {
+        "channel": name, "units": units, "fs_hz": fs, "n_samples": 1_000_000,
+        "duration_s": 1e4, "model": model,
+        "error": {"chi2_per_dof": 3.7, "max_abs_z": 4.2},
+        "failures": [{"tau_s": [0.16, 0.64], "max_abs_z": 4.2,
+                      "direction": "measured above model"}],
+        "allan": {"tau_s": tau.tolist(), "adev": adev.tolist(),
+                  "ci_low": (adev * np.exp(-half)).tolist(),
+                  "ci_high": (adev * np.exp(half)).tolist(),
+                  "model_adev": np.sqrt(avar).tolist(),
+                  "z": np.clip(np.log(adev**2 / avar) / (2 * half / 1.96), -5, 5).tolist()},
+        "psd": {"f_hz": f.tolist(), "psd": psd.tolist(), "ci_low": (psd * 0.8).tolist(),
+                "ci_high": (psd * 1.25).tolist()},
+        "model_psd": {"f_hz": f.tolist(), "psd": psd.tolist()},
+        "terms_adev": {"white": (n_ / np.sqrt(tau)).tolist(),
+                       "bias_instability": np.full(tau.size, 0.664 * b_).tolist(),
+                       "random_walk": (k_ * np.sqrt(tau / 3)).tolist()},
+        "discrete_model": dm.to_dict(),
+        "discrete_check": {"tau_s": tau.tolist(), "adev": (np.sqrt(dm.avar(tau)) * 1.01).tolist(),
+                           "inside": 16, "total": 17, "n_samples": 1_000_000},
+        "suggestions": [{"term": "sinusoid", "params": {"A": 2e-4, "f": 2.7},
+                         "chi2_per_dof_after": 1.05, "significant": True,
+                         "why": "Allan deviation oscillates near tau = 0.16 s & the PSD has a "
+                                "line at 2.7 Hz: add a sinusoid <vibration>"}],
+    }
+
+
+def _doc() -> dict:
+    return {
+        "file": "night.mcap",
+        "record": {"device": "adis16350", "fs_hz": 100.0, "duration_s": 10000.0,
+                   "n_samples": 1_000_000, "segments": 2, "gaps": 1, "gap_time_s": 0.5,
+                   "dropped": 50, "temperature_range_degC": [24.5, 31.25],
+                   "warnings": ["file was truncated: read up to the last complete chunk"]},
+        "channels": {"gyro_x": _channel_doc("gyro_x", "rad/s"),
+                     "accel_z": _channel_doc("accel_z", "m/s^2")},
+    }
+
+
+def test_report_is_well_formed_and_self_contained():
+    html = render_report(_doc())
+    p = _Collector()
+    p.feed(html)
+    p.close()
+    assert p.errors == [] and p.stack == []
+    tags = [t for t, _ in p.tags]
+    assert tags.count("svg") == 6  # Allan, z, PSD per channel
+    assert "script" not in tags and "link" not in tags and "img" not in tags
+    for _, attrs in p.tags:
+        for key, value in attrs.items():
+            if key in ("href", "src") and value:
+                assert value.startswith("#"), (key, value)  # only in-page anchors
+    assert "http://" not in html.replace('xmlns="http://www.w3.org/2000/svg"', "")
+    assert "https://" not in html and "@import" not in html and "url(http" not in html
+
+
+def test_report_content():
+    html = render_report(_doc())
+    p = _Collector()
+    p.feed(html)
+    text = " ".join(p.text)
+    # record facts
+    for needle in ("adis16350", "1000000", "10000 s (2.78 h)", "24.5 to 31.25 \u00b0C",
+                   "samples dropped", "truncated"):
+        assert needle in text, needle
+    # coefficient in SI and conventional units, with 95 % intervals:
+    # N = 3e-4 rad/s/sqrt(Hz) = 3e-4 * 180/pi * 60 deg/sqrt(h) = 1.031 deg/sqrt(h)
+    assert "3\u00d710" in html and "rad/s/\u221aHz" in text
+    assert "1.031 deg/sqrt(h)" in text
+    assert "[1.021, 1.041] deg/sqrt(h)" in text
+    # B = 4e-5 rad/s = 8.251 deg/h; accel B = 1e-4 m/s^2 = 0.0102 mg
+    assert "8.251 deg/h" in text and "0.0102 mg" in text
+    # diagnosis: error before and after, escaped explanation
+    assert "3.7 \u2192 1.05" in text
+    assert "&lt;vibration&gt;" in html and "<vibration>" not in html
+    # failing range and discrete model
+    assert "0.16 to 0.64 s" in text and "measured above model" in text
+    assert "0.999" in text  # a_d of a Markov state shows its digits
+    assert "16 of 17 averaging times" in text
+    assert "has no finite state model" in text
+    # legends of the Allan plot
+    for label in ("measured, 95 % band", "fitted model", "term: white",
+                  "simulated discrete model"):
+        assert label in html
+
+
+def test_report_handles_missing_parts():
+    doc = {"file": "x.csv", "channels": {"gyro_x": {"units": "rad/s", "fs_hz": 10.0,
+                                                     "model": [], "error": None,
+                                                     "failures": [], "allan": {}, "psd": {}}}}
+    html = render_report(doc)
+    assert "No model was fitted" in html and "no data" in html
+    p = _Collector()
+    p.feed(html)
+    assert p.errors == []
+
+
+def _png_rows(path: Path) -> tuple[int, int, np.ndarray]:
+    """Width, height and the filtered scan lines (one row per image row) of a PNG."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat, width, height = 8, b"", 0, 0
+    while pos < len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        chunk = data[pos + 8:pos + 8 + length]
+        if kind == b"IHDR":
+            width, height = struct.unpack(">II", chunk[:8])
+        elif kind == b"IDAT":
+            idat += chunk
+        pos += 12 + length
+    rows = np.frombuffer(zlib.decompress(idat), dtype=np.uint8).reshape(height, -1)
+    return width, height, rows
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (apt-get install "
+                    "chromium); the report's browser rendering cannot be checked")
+def test_report_renders_in_headless_chromium(tmp_path):
+    page = tmp_path / "report.html"
+    page.write_text(render_report(_doc()))
+    shot = tmp_path / "shot.png"
+    r = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
+                        "--disable-background-networking", "--hide-scrollbars",
+                        "--window-size=1200,2400", f"--screenshot={shot}", page.as_uri()],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    width, height, rows = _png_rows(shot)
+    assert (width, height) == (1200, 2400)
+    # A blank page filters to all-zero scan lines after the first; text, plot frames, curves
+    # and bands leave many rows with content and many distinct rows.
+    busy = np.count_nonzero(rows[1:, 1:], axis=1) > 20
+    assert busy.mean() > 0.3, busy.mean()
+    assert len({r.tobytes() for r in rows[1:][busy]}) > 500
+
+
+def test_svg_plot_axes_and_gaps():
+    p = Plot("t", "tau (s)", "adev (rad/s)")
+    x = np.array([0.01, 0.1, 1.0, 10.0, 100.0])
+    p.line(x, [1e-3, np.nan, 1e-4, 3e-5, 1e-5], "measured")
+    p.band(x, [9e-4, 1e-4, 9e-5, 2e-5, 0.0], [1.1e-3, 1e-3, 1.1e-4, 4e-5, 2e-5], "band")
+    svg = p.svg()
+    # decade labels 10^-2 ... 10^2 (as superscripts), and the NaN splits the polyline
+    for e in ("\u22122", "\u22121"):
+        assert f'font-size="9">{e}</tspan>' in svg
+    assert ">1<" in svg and ">10<" in svg
+    assert svg.count("<polyline") == 1  # the first point is alone: no segment
+    assert svg.count("<polygon") == 1  # the zero lower bound cannot be drawn on a log axis
+    empty = Plot("e", "x", "y").svg()
+    assert "no data" in empty
+    lin = Plot("z", "tau (s)", "z", y_log=False)
+    lin.markers([1.0, 10.0], [-3.0, 2.0]).hline(0.0)
+    svg = lin.svg()
+    assert ">\u22122<" in svg and ">0<" in svg and ">2<" in svg
