@@ -83,7 +83,8 @@ def _channel_doc(name: str, units: str, fs: float = 100.0) -> dict:
                        "random_walk": (k_ * np.sqrt(tau / 3)).tolist()},
         "discrete_model": dm.to_dict(),
         "discrete_check": {"tau_s": tau.tolist(), "adev": (np.sqrt(dm.avar(tau)) * 1.01).tolist(),
-                           "inside": 16, "total": 17, "n_samples": 1_000_000},
+                           "inside": 16, "total": 17, "n_samples": 1_000_000,
+                           "exact_inside": 15, "exact_total": 17},
         "suggestions": [{"term": "sinusoid", "params": {"A": 2e-4, "f": 2.7},
                          "chi2_per_dof_after": 1.05, "significant": True,
                          "why": "Allan deviation oscillates near tau = 0.16 s & the PSD has a "
@@ -142,7 +143,7 @@ def test_report_content():
     # failing range and discrete model
     assert "0.16 to 0.64 s" in text and "measured above model" in text
     assert "0.999" in text  # a_d of a Markov state shows its digits
-    assert "16 of 17 averaging times" in text
+    assert "16 of 17 averaging times" in text and "band at 15 of 17" in text
     assert "has no finite state model" in text
     # legends of the Allan plot
     for label in ("measured, 95 % band", "fitted model", "term: white",
