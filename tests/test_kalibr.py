@@ -143,3 +143,17 @@ def test_cli_bad_inputs_exit_2_nothing_written(tmp_path):
         assert r.returncode == 2 and len(lines) == 1 and needle in lines[0], r.stderr
         assert not out.exists()
     assert list(tmp_path.glob(".imu.yaml.*")) == []
+
+
+def test_cli_output_folder_missing_or_unwritable(tmp_path, capsys):
+    src = tmp_path / "analysis.json"
+    src.write_text(json.dumps(_doc()))
+    assert main(["export-kalibr", str(src), "-o", str(tmp_path / "nope" / "imu.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not exist" in err[0]
+    # a folder in place of the output file: the rename fails, exit 1, temporary removed
+    (tmp_path / "imu.yaml").mkdir()
+    assert main(["export-kalibr", str(src), "-o", str(tmp_path / "imu.yaml")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot write" in err[0]
+    assert list(tmp_path.glob(".imu.yaml.*")) == []

@@ -12,10 +12,10 @@ import json
 import math
 import os
 import sys
-import tempfile
 from pathlib import Path
 
-from imunoise.errors import RuntimeFailure, UsageError
+from imunoise.errors import UsageError
+from imunoise.files import write_text_atomically
 from imunoise.kalibr import COMBINE, KalibrError, kalibr_values, render_yaml
 
 
@@ -78,26 +78,6 @@ def run(args: argparse.Namespace) -> int:
     if args.output == "-":
         sys.stdout.write(text)
         return 0
-    write_atomically(Path(args.output), text)
+    write_text_atomically(args.output, text)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
-
-
-def write_atomically(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that a failure leaves no half-written file."""
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise UsageError(f"{path}: folder {directory} does not exist")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
-        try:
-            with os.fdopen(fd, "w") as fh:
-                fh.write(text)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-    except OSError as exc:
-        raise RuntimeFailure(f"cannot write {path}: {exc.strerror or exc}") from None
