@@ -65,12 +65,20 @@ def channel_units(name: str) -> str:
 
 
 def estimate_rate(t: np.ndarray) -> float:
-    """Nominal sampling rate in Hz from sample times in seconds (median interval)."""
+    """Nominal sampling rate in Hz from sample times in seconds.
+
+    The median interval picks the nominal period robustly (gaps and backward jumps do not move
+    it); the rate is then the mean over the intervals within half a period of it, which is exact
+    for clean time stamps and unbiased for jittered or coarsely quantised ones (1 ms stamps at
+    300 Hz), rounded to 9 significant digits.
+    """
     dt = np.diff(np.asarray(t, dtype=np.float64))
     dt = dt[dt > 0]
     if dt.size == 0:
         raise ValueError("cannot infer a sampling rate: fewer than two increasing time stamps")
-    return float(1.0 / np.median(dt))
+    med = float(np.median(dt))
+    near = dt[np.abs(dt - med) < 0.5 * med]
+    return float(f"{1.0 / float(np.mean(near)):.9g}")
 
 
 def segment_starts_from_times(t: np.ndarray, fs_hz: float, tolerance: float = 0.5) -> np.ndarray:

@@ -3,8 +3,38 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
+from analysis.series import ChannelSeries
+from daq.readers import ReadError, open_record
+from daq.record import ChannelSelectionError, Record, select_channels
 from imunoise.errors import UsageError
+from imunoise.progress import progress_bar
+
+if TYPE_CHECKING:  # scipy-backed modules load only when a command runs, not for --help
+    from analysis.psd import PsdEstimate
+
+JSON_CI = 0.95
+"""Confidence level of the Allan and PSD intervals in the output."""
+
+# Samples (summed over channels) above which the work takes more than a few seconds.
+_PROGRESS_SAMPLES = 2_000_000
+_PROGRESS_FILE_BYTES = 30_000_000
+
+
+def _positive_rate(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad rate {text!r}: give Hz, e.g. 100") from None
+    if not value > 0 or not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"bad rate {text!r}: must be positive")
+    return value
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -12,10 +42,112 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__)
     p.add_argument("file", help="input recording (.csv, .mcap or rosbag2 folder)")
     p.add_argument("--channel", action="append", default=[], metavar="SEL",
-                   help="channel to analyse (repeatable), e.g. gyro_x or /imu:gyro_x")
+                   help="channel to analyse (repeatable), e.g. gyro_x or /imu:gyro_x; "
+                        "default: every IMU channel")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
+    p.add_argument("--rate", type=_positive_rate, metavar="HZ",
+                   help="sampling rate in Hz (needed for a CSV without a time column 't')")
     p.set_defaults(func=run)
 
 
+@dataclass
+class ChannelAnalysis:
+    """What ``analyze`` computed for one channel."""
+
+    key: str
+    series: ChannelSeries
+    allan: Any | None = None  # analysis.allan.AllanCurve
+    psd: PsdEstimate | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
+    try:
+        from analysis.allan import oadev
+    except ImportError:
+        out.warnings.append("Allan deviation not available in this build")
+        return
+    try:
+        out.allan = oadev(series.values, series.fs_hz, m="octave",
+                          segment_starts=series.segment_starts, ci=JSON_CI)
+    except ValueError as exc:
+        out.warnings.append(f"no Allan deviation: {exc}")
+
+
+def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
+    from analysis.psd import default_nperseg, log_psd
+
+    bounds = np.append(series.segment_starts, series.n_samples)
+    longest = int(np.max(np.diff(bounds))) if series.n_samples else 0
+    try:
+        out.psd = log_psd(series.values, series.fs_hz, segment_starts=series.segment_starts,
+                          ci=JSON_CI, nperseg=default_nperseg(longest))
+    except ValueError as exc:
+        out.warnings.append(f"no PSD: {exc}")
+
+
+def analyze_record(record: Record, keys: list[str], show_progress: bool | None = None
+                   ) -> list[ChannelAnalysis]:
+    """Allan deviation and PSD of the selected channels of a record."""
+    total = sum(record.series(k).n_samples for k in keys)
+    if show_progress is None:
+        show_progress = total > _PROGRESS_SAMPLES
+    results = []
+    with progress_bar(show_progress) as bar:
+        task = bar.add_task("analysing", total=2 * len(keys))
+        for key in keys:
+            series = record.series(key)
+            out = ChannelAnalysis(key=key, series=series)
+            bar.update(task, description=f"{key}: Allan deviation")
+            _allan(series, out)
+            bar.advance(task)
+            bar.update(task, description=f"{key}: PSD")
+            _psd(series, out)
+            bar.advance(task)
+            results.append(out)
+    return results
+
+
+def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> dict[str, Any]:
+    """The ``analyze`` JSON document of analysed channels."""
+    from imunoise import report_json
+
+    channels = {
+        r.key: report_json.channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
+                                        warnings=r.warnings, channel=r.key)
+        for r in results
+    }
+    return report_json.analyze_json(path, channels, record.warnings)
+
+
+def _read(path: str, rate_hz: float | None) -> Record:
+    big = os.path.isfile(path) and os.path.getsize(path) > _PROGRESS_FILE_BYTES
+    with progress_bar(big) as bar:
+        bar.add_task(f"reading {path}", total=None)
+        try:
+            return open_record(path, rate_hz=rate_hz)
+        except ReadError as exc:
+            raise UsageError(str(exc)) from None
+
+
 def run(args: argparse.Namespace) -> int:
-    raise UsageError("analyze: not available yet")
+    record = _read(args.file, args.rate)
+    try:
+        keys = select_channels(record, args.channel)
+    except ChannelSelectionError as exc:
+        raise UsageError(str(exc)) from None
+    results = analyze_record(record, keys)
+    if args.json:
+        from imunoise import report_json
+
+        sys.stdout.write(report_json.dumps(analysis_json(args.file, record, results)) + "\n")
+    else:
+        from imunoise.report_text import channel_text
+
+        for w in record.warnings:
+            print(f"warning: {w}", file=sys.stderr)
+        print(f"{args.file}: {len(results)} channel(s)")
+        for r in results:
+            print()
+            print(channel_text(r.key, r.series, r.allan, r.psd, r.warnings))
+    return 0

@@ -1,0 +1,596 @@
+"""Composite noise-model fit to a measured Allan curve, with honest intervals and misfit.
+
+The model's Allan variance is the sum of its terms' (:mod:`analysis.terms`). The fit works on
+``ln(avar)`` at every tau of the curve:
+
+1. Starting values without hand-picked tau windows: the linear terms (white, quantization,
+   bias instability, random walk, ramp) are linear in their squared parameters, so a
+   non-negative least-squares solve on the relative residuals, weighted by each estimate's
+   degrees of freedom, gives them all at once. Each Gauss-Markov term adds a grid search over
+   its correlation time T (the amplitude stays linear); a sinusoid starts from the strongest
+   spectral line when the caller supplies one (see :func:`find_line`), else from a grid in f.
+2. Generalised least squares on ``ln(avar)`` with parameters in log form (positivity): the
+   residuals are whitened with the covariance of the log estimates across taus computed from
+   the model itself (:func:`analysis.misfit.avar_covariance`), corrected for the chi-square law
+   of each estimate (mean ``psi(nu/2) - ln(nu/2)``, variance ``psi'(nu/2)``). The covariance is
+   computed for the starting model, the fit solved, and the covariance recomputed for the
+   result.
+3. 95 % intervals from the whitened Jacobian (``(J^T J)^-1`` in log-parameter space,
+   so intervals are asymmetric and positive); the misfit (chi2 per degree of freedom, z per
+   tau, failing tau ranges) from :func:`analysis.misfit.misfit`.
+
+``temperature`` is not part of the Allan fit: :func:`regress_temperature` removes it from the
+series first (see :func:`fit_series`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from scipy import ndimage, optimize, signal, special
+
+from analysis.misfit import Misfit, avar_covariance, failures, misfit
+from analysis.terms import TermError, ar1_avar_shape, get_term, parse_terms
+
+LINEAR_TERMS = ("white", "quantization", "bias_instability", "random_walk", "rate_ramp")
+_LINEAR_PARAM = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
+                 "rate_ramp": "R"}
+_Z95 = 1.959963984540054
+
+
+class CurveLike(Protocol):
+    """What the fit needs from an Allan curve (``analysis.allan.AllanCurve`` provides it)."""
+
+    fs_hz: float
+    tau_s: np.ndarray
+    m: np.ndarray
+    dev: np.ndarray
+    n_terms: np.ndarray
+
+
+ModelSpec = Sequence[str] | Sequence[tuple[str, dict[str, float]]] | str
+
+
+@dataclass
+class TermFit:
+    """One fitted term: parameters (SI) and their 95 % intervals."""
+
+    term: str
+    params: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"term": self.term, "params": dict(self.params),
+                "ci95": {k: [float(a), float(b)] for k, (a, b) in self.ci95.items()}}
+
+
+@dataclass
+class FitResult:
+    """A fitted model and how well it explains the measured Allan curve.
+
+    Attributes:
+        terms: fitted terms in model order (``temperature`` included when fitted upstream).
+        fs_hz: sampling rate, Hz.
+        tau_s, m, n_terms: the curve's averaging times (s), factors, number of differences.
+        avar_measured: measured Allan variance (units^2).
+        avar_fit: model Allan variance at ``tau_s``.
+        term_avar: per-term model Allan variance at ``tau_s`` (for plotting).
+        misfit: z per tau, chi2 and the rest (:class:`analysis.misfit.Misfit`).
+        failures: CONTRACT.md ``failures`` entries.
+        param_cov: covariance of the log-parameters (order of :attr:`free_params`).
+        free_params: ``(term index, parameter name)`` of each fitted parameter.
+    """
+
+    terms: list[TermFit]
+    fs_hz: float
+    tau_s: np.ndarray
+    m: np.ndarray
+    n_terms: np.ndarray
+    avar_measured: np.ndarray
+    avar_fit: np.ndarray
+    term_avar: list[np.ndarray]
+    misfit: Misfit
+    failures: list[dict]
+    param_cov: np.ndarray
+    free_params: list[tuple[int, str]] = field(default_factory=list)
+
+    @property
+    def params(self) -> list[tuple[str, dict[str, float]]]:
+        """The model as ``[(term, params)]``, usable as a starting point of a refit."""
+        return [(t.term, dict(t.params)) for t in self.terms]
+
+    @property
+    def ci95(self) -> list[dict[str, tuple[float, float]]]:
+        return [t.ci95 for t in self.terms]
+
+    @property
+    def chi2_per_dof(self) -> float:
+        return self.misfit.chi2_per_dof
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.misfit.z
+
+    @property
+    def max_abs_z(self) -> float:
+        return self.misfit.max_abs_z
+
+    def model_avar(self, tau_s: np.ndarray | float) -> np.ndarray:
+        """Model Allan variance at any ``tau_s`` (the fitted noise terms; temperature, removed
+        upstream, contributes nothing)."""
+        tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))
+        return sum((_term_avar(t.term, t.params, tau, self.fs_hz) for t in self.terms),
+                   np.zeros_like(tau))
+
+    def term_avar_at(self, tau_s: np.ndarray | float) -> dict[str, np.ndarray]:
+        """Per-term Allan variance at ``tau_s`` keyed ``term`` (``term#2`` for repeats)."""
+        tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))
+        out: dict[str, np.ndarray] = {}
+        for t in self.terms:
+            key, k = t.term, 1
+            while key in out:
+                k += 1
+                key = f"{t.term}#{k}"
+            out[key] = _term_avar(t.term, t.params, tau, self.fs_hz)
+        return out
+
+    def allan_dict(self, ci_low: np.ndarray | None = None, ci_high: np.ndarray | None = None
+                   ) -> dict[str, list[float]]:
+        """CONTRACT.md ``allan`` block (deviations, not variances)."""
+        adev = np.sqrt(self.avar_measured)
+        return {"tau_s": self.tau_s.tolist(), "adev": adev.tolist(),
+                "ci_low": (ci_low if ci_low is not None else adev).tolist(),
+                "ci_high": (ci_high if ci_high is not None else adev).tolist(),
+                "model_adev": np.sqrt(self.avar_fit).tolist(),
+                "z": self.misfit.z.tolist()}
+
+    def error_dict(self) -> dict[str, float]:
+        return {"chi2_per_dof": float(self.chi2_per_dof), "max_abs_z": float(self.max_abs_z)}
+
+
+def _term_avar(name: str, params: dict[str, float], tau: np.ndarray, fs: float) -> np.ndarray:
+    if name == "temperature":
+        return np.zeros_like(tau)
+    return get_term(name).avar(tau, fs, **params)
+
+
+# --- model specification --------------------------------------------------------------------
+
+def normalise_model(model: ModelSpec) -> list[tuple[str, dict[str, float] | None]]:
+    """``"white,random_walk"``, ``["white"]`` or ``[("white", {"N": 1e-3})]`` ->
+    ``[(term, params or None)]``; unknown terms raise :class:`TermError`."""
+    if isinstance(model, str):
+        return [(n, None) for n in parse_terms(model)]
+    out: list[tuple[str, dict[str, float] | None]] = []
+    for item in model:
+        if isinstance(item, str):
+            out.append((item, None))
+        else:
+            name, params = item
+            out.append((name, dict(params) if params is not None else None))
+    parse_terms([n for n, _ in out])
+    return out
+
+
+# --- starting values ------------------------------------------------------------------------
+
+def _linear_shape(name: str, tau: np.ndarray, fs: float) -> np.ndarray:
+    return get_term(name).avar(tau, fs, **{_LINEAR_PARAM[name]: 1.0})
+
+
+def _nnls_weighted(design: np.ndarray, avar: np.ndarray, w: np.ndarray
+                   ) -> tuple[np.ndarray, float]:
+    a = design / avar[:, None] * w[:, None]
+    b = w.copy()
+    scale = np.max(np.abs(a), axis=0)
+    scale[scale == 0] = 1.0
+    coef, rnorm = optimize.nnls(a / scale, b, maxiter=50 * a.shape[1])
+    return coef / scale, float(rnorm)
+
+
+def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float,
+                  nu: np.ndarray, duration_s: float, line: tuple[float, float] | None
+                  ) -> list[dict[str, float]]:
+    w = np.sqrt(nu / 2.0)
+    columns: list[np.ndarray] = []
+    owners: list[int] = []
+    for i, n in enumerate(names):
+        if n in LINEAR_TERMS:
+            columns.append(_linear_shape(n, tau, fs))
+            owners.append(i)
+    fixed_extra: dict[int, dict[str, float]] = {}
+    base = np.stack(columns, axis=1) if columns else np.zeros((len(tau), 0))
+
+    def solve(extra_cols: list[np.ndarray]) -> tuple[np.ndarray, float]:
+        d = np.concatenate([base] + [c[:, None] for c in extra_cols], axis=1)
+        if d.shape[1] == 0:
+            return np.zeros(0), float(np.sum(w * w))
+        return _nnls_weighted(d, avar, w)
+
+    extra_cols: list[np.ndarray] = []
+    extra_owner: list[int] = []
+    t_grid = np.geomspace(2.0 / fs, max(duration_s / 2.0, 4.0 / fs), 36)
+    for i, n in enumerate(names):
+        if n == "gauss_markov":
+            best = None
+            for t in t_grid:
+                col = ar1_avar_shape(tau * fs, 1.0 / (fs * t))
+                _, r = solve(extra_cols + [col])
+                if best is None or r < best[0]:
+                    best = (r, t, col)
+            assert best is not None
+            extra_cols.append(best[2])
+            extra_owner.append(i)
+            fixed_extra[i] = {"T": float(best[1])}
+        elif n == "sinusoid":
+            if line is not None:
+                f0 = line[0]
+            else:
+                best = None
+                for f in np.geomspace(2.0 / duration_s, 0.45 * fs, 60):
+                    col = get_term("sinusoid").avar(tau, fs, A=1.0, f=f)
+                    _, r = solve(extra_cols + [col])
+                    if best is None or r < best[0]:
+                        best = (r, f)
+                assert best is not None
+                f0 = float(best[1])
+            extra_cols.append(get_term("sinusoid").avar(tau, fs, A=1.0, f=f0))
+            extra_owner.append(i)
+            fixed_extra[i] = {"f": float(f0)}
+    coef, _ = solve(extra_cols)
+    start: list[dict[str, float]] = [dict() for _ in names]
+    all_owners = owners + extra_owner
+    all_cols = list(base.T) + extra_cols
+    for c, owner, col in zip(coef, all_owners, all_cols, strict=True):
+        # a term the data do not need starts small but positive (log parameters)
+        floor = 1e-4 * float(np.min(avar / np.maximum(col, 1e-300)))
+        c2 = max(float(c), floor)
+        n = names[owner]
+        if n in LINEAR_TERMS:
+            start[owner][_LINEAR_PARAM[n]] = math.sqrt(c2)
+        elif n == "gauss_markov":
+            start[owner] = {"sigma": math.sqrt(c2), **fixed_extra[owner]}
+        elif n == "sinusoid":
+            amp = math.sqrt(c2)
+            if line is not None and c <= 0:
+                amp = line[1]
+            start[owner] = {"A": amp, **fixed_extra[owner]}
+    return start
+
+
+# --- the fit --------------------------------------------------------------------------------
+
+@dataclass
+class _Layout:
+    names: list[str]
+    keys: list[tuple[int, str]]
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+def _layout(names: list[str], fs: float, duration_s: float) -> _Layout:
+    keys: list[tuple[int, str]] = []
+    lo: list[float] = []
+    hi: list[float] = []
+    for i, n in enumerate(names):
+        if n == "temperature":
+            continue
+        for p in get_term(n).params:
+            keys.append((i, p.name))
+            if p.name == "T":
+                lo.append(math.log(0.2 / fs))
+                hi.append(math.log(max(50.0 * duration_s, 1.0 / fs)))
+            elif p.name == "f":
+                lo.append(math.log(0.5 / duration_s))
+                hi.append(math.log(0.5 * fs))
+            else:
+                lo.append(math.log(1e-30))
+                hi.append(math.log(1e6))
+    return _Layout(names, keys, np.array(lo), np.array(hi))
+
+
+def _unpack(layout: _Layout, theta: np.ndarray) -> list[dict[str, float]]:
+    params: list[dict[str, float]] = [dict() for _ in layout.names]
+    for (i, name), v in zip(layout.keys, theta, strict=True):
+        params[i][name] = float(math.exp(v))
+    return params
+
+
+def _model_terms(layout: _Layout, params: list[dict[str, float]]
+                 ) -> list[tuple[str, dict[str, float]]]:
+    return [(n, p) for n, p in zip(layout.names, params, strict=True) if n != "temperature"]
+
+
+def _avar_of(layout: _Layout, params: list[dict[str, float]], tau: np.ndarray, fs: float
+             ) -> np.ndarray:
+    total = np.zeros_like(tau)
+    for n, p in _model_terms(layout, params):
+        total += get_term(n).avar(tau, fs, **p)
+    return total
+
+
+def _log_weights(model: list[tuple[str, dict[str, float]]], fs: float, m: np.ndarray,
+                 n_terms: np.ndarray, avar_model: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whitening matrix, mean bias of ln(avar_hat) and the covariance of the AVAR estimates."""
+    cov = avar_covariance(model, fs, m, n_terms)
+    var = np.clip(np.diag(cov), 1e-300, None)
+    nu = np.clip(2.0 * avar_model**2 / var, 1.0, 1e12)
+    sd = np.sqrt(var)
+    corr = cov / np.outer(sd, sd)
+    log_sd = np.sqrt(special.polygamma(1, nu / 2.0))
+    bias = special.digamma(nu / 2.0) - np.log(nu / 2.0)
+    cov_log = corr * np.outer(log_sd, log_sd)
+    w, v = np.linalg.eigh(cov_log)
+    w = np.maximum(w, 1e-6 * w.max())
+    whiten = (v / np.sqrt(w)).T
+    return whiten, bias, cov
+
+
+def _default_nu(curve: CurveLike) -> np.ndarray:
+    edf = getattr(curve, "edf", None)
+    if edf is not None and len(edf) == len(curve.tau_s) and np.all(np.isfinite(edf)):
+        return np.maximum(np.asarray(edf, dtype=np.float64), 1.0)
+    m = np.asarray(curve.m, dtype=np.float64)
+    return np.maximum(1.5 * np.asarray(curve.n_terms, dtype=np.float64) / m, 1.0)
+
+
+def _solve(layout: _Layout, theta0: np.ndarray, y: np.ndarray, tau: np.ndarray,
+           m: np.ndarray, n_terms: np.ndarray, fs: float, max_nfev: int) -> np.ndarray:
+    """GLS on ln(avar): whitening from the model at the current point, solved, refreshed once."""
+    theta = theta0
+    for _ in range(2):
+        params = _unpack(layout, theta)
+        whiten, bias, _ = _log_weights(_model_terms(layout, params), fs, m, n_terms,
+                                       _avar_of(layout, params, tau, fs))
+
+        def resid(th: np.ndarray, whiten: np.ndarray = whiten, bias: np.ndarray = bias
+                  ) -> np.ndarray:
+            mod = _avar_of(layout, _unpack(layout, th), tau, fs)
+            return whiten @ (y - np.log(np.maximum(mod, 1e-300)) - bias)
+
+        sol = optimize.least_squares(resid, theta, bounds=(layout.lo, layout.hi),
+                                     method="trf", max_nfev=max_nfev)
+        moved = float(np.max(np.abs(sol.x - theta))) if theta.size else 0.0
+        theta = sol.x
+        if moved < 0.02:
+            break
+    return theta
+
+
+def _neg2_loglik(layout: _Layout, theta: np.ndarray, y: np.ndarray, tau: np.ndarray,
+                 m: np.ndarray, n_terms: np.ndarray, fs: float) -> float:
+    """-2 log-likelihood of ln(avar) under the model at ``theta`` (Gaussian approximation with
+    the model's own covariance), to choose among local optima."""
+    params = _unpack(layout, theta)
+    avar_model = _avar_of(layout, params, tau, fs)
+    whiten, bias, _ = _log_weights(_model_terms(layout, params), fs, m, n_terms, avar_model)
+    r = whiten @ (y - np.log(np.maximum(avar_model, 1e-300)) - bias)
+    logdet = -2.0 * float(np.sum(np.log(np.abs(np.linalg.eigvalsh(whiten @ whiten.T)))) / 2.0)
+    return float(r @ r) + logdet
+
+
+def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndarray,
+                   avar: np.ndarray, fs: float) -> list[list[dict[str, float]]]:
+    """Extra starting points: each linear term that the linear solve left near zero is raised
+    to a third of the measured AVAR where its shape is most prominent. Correlated terms (rate
+    random walk and ramp, flicker and a Markov bias) otherwise let one term swallow the other
+    and the fit settle in the wrong valley."""
+    out: list[list[dict[str, float]]] = []
+    for i, n in enumerate(names):
+        if n not in LINEAR_TERMS:
+            continue
+        key = _LINEAR_PARAM[n]
+        shape = _linear_shape(n, tau, fs)
+        level = float(np.max(shape / avar))  # 1/c at which the term alone reaches the data
+        c_now = start[i][key] ** 2
+        if c_now * level < 0.05:
+            bumped = [dict(p) for p in start]
+            bumped[i][key] = math.sqrt(0.3 / level)
+            out.append(bumped)
+    return out
+
+
+def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
+              line: tuple[float, float] | None = None, temperature: TermFit | None = None,
+              family_rate: float = 0.10, max_nfev: int = 200) -> FitResult:
+    """Fit a sum of noise terms to a measured overlapping Allan curve.
+
+    Args:
+        curve: the measured curve (``analysis.allan.AllanCurve`` or any object with ``fs_hz``,
+            ``tau_s``, ``m``, ``dev``, ``n_terms``; ``edf`` is used for starting values when
+            present).
+        model: term names (``"white,random_walk"`` or a list) or ``[(term, params)]``; given
+            parameters are starting values.
+        start: a previous :class:`FitResult` or ``[(term, params)]`` to start from (a cheap
+            refit: the starting-value search is skipped).
+        line: ``(f_hz, amplitude)`` of the strongest spectral line, the start of a sinusoid.
+        temperature: the fitted temperature coefficient (from :func:`regress_temperature`),
+            carried into the result when the model holds ``temperature``.
+        family_rate: probability that a correct model reports any failure (sets the |z|
+            threshold).
+        max_nfev: cap on model evaluations of the least-squares solver.
+
+    Raises:
+        TermError: unknown term, or a model with no term to fit.
+        ValueError: a curve with fewer taus than free parameters, or non-positive values.
+    """
+    spec = normalise_model(model)
+    names = [n for n, _ in spec]
+    fs = float(curve.fs_hz)
+    tau = np.asarray(curve.tau_s, dtype=np.float64)
+    m = np.asarray(curve.m, dtype=np.float64)
+    n_terms = np.asarray(curve.n_terms, dtype=np.float64)
+    avar = np.asarray(curve.dev, dtype=np.float64) ** 2
+    keep = np.isfinite(avar) & (avar > 0) & (n_terms > 0)
+    tau, m, n_terms, avar = tau[keep], m[keep], n_terms[keep], avar[keep]
+    duration = float((n_terms[0] + 2 * m[0] - 1) / fs) if len(m) else 0.0
+    layout = _layout(names, fs, duration)
+    n_free = len(layout.keys)
+    if n_free == 0:
+        raise TermError("the model has no noise term to fit to the Allan curve")
+    if len(tau) <= n_free:
+        raise ValueError(f"the Allan curve has {len(tau)} usable taus, too few for "
+                         f"{n_free} free parameters: record longer data")
+
+    if start is not None:
+        start_params = start.params if isinstance(start, FitResult) else list(start)
+        start_list = _match_start(names, start_params)
+    elif all(p is not None for _, p in spec):
+        start_list = [dict(p or {}) for _, p in spec]
+    else:
+        nu0 = _default_nu(curve)[keep]
+        start_list = _start_values(names, tau, avar, fs, nu0, duration, line)
+        for i, (_, p) in enumerate(spec):
+            if p is not None:
+                start_list[i].update(p)
+    y = np.log(avar)
+    starts = [start_list]
+    if start is None:
+        starts += _bumped_starts(names, start_list, tau, avar, fs)
+    best: tuple[float, np.ndarray] | None = None
+    for cand in starts:
+        theta0 = np.array([math.log(max(cand[i][k], 1e-300)) for i, k in layout.keys])
+        theta0 = np.clip(theta0, layout.lo + 1e-9, layout.hi - 1e-9)
+        theta = _solve(layout, theta0, y, tau, m, n_terms, fs, max_nfev)
+        score = _neg2_loglik(layout, theta, y, tau, m, n_terms, fs)
+        if best is None or score < best[0]:
+            best = (score, theta)
+    assert best is not None
+    theta = best[1]
+
+    params = _unpack(layout, theta)
+    model_final = _model_terms(layout, params)
+    avar_fit = _avar_of(layout, params, tau, fs)
+    cov = avar_covariance(model_final, fs, m, n_terms)
+    mf = misfit(avar, avar_fit, cov, n_free, family_rate)
+    whiten, bias, _ = _log_weights(model_final, fs, m, n_terms, avar_fit)
+
+    def resid_final(th: np.ndarray) -> np.ndarray:
+        mod = _avar_of(layout, _unpack(layout, th), tau, fs)
+        return whiten @ (y - np.log(np.maximum(mod, 1e-300)) - bias)
+
+    jac = _jacobian(resid_final, theta)
+    param_cov = np.linalg.pinv(jac.T @ jac)
+    sd = np.sqrt(np.clip(np.diag(param_cov), 0.0, None))
+    ci: list[dict[str, tuple[float, float]]] = [dict() for _ in names]
+    for (i, k), th, s in zip(layout.keys, theta, sd, strict=True):
+        ci[i][k] = (float(math.exp(th - _Z95 * s)), float(math.exp(min(th + _Z95 * s, 700))))
+
+    terms_out: list[TermFit] = []
+    for i, n in enumerate(names):
+        if n == "temperature":
+            if temperature is None:
+                raise TermError("the temperature term needs a temperature record: fit the "
+                                "series with fit_series(..., temperature=...)")
+            terms_out.append(temperature)
+        else:
+            terms_out.append(TermFit(n, params[i], ci[i]))
+    term_avar = [_term_avar(t.term, t.params, tau, fs) for t in terms_out]
+    return FitResult(terms=terms_out, fs_hz=fs, tau_s=tau, m=m.astype(np.int64),
+                     n_terms=n_terms.astype(np.int64), avar_measured=avar, avar_fit=avar_fit,
+                     term_avar=term_avar, misfit=mf,
+                     failures=failures(tau, mf.z, mf.threshold), param_cov=param_cov,
+                     free_params=list(layout.keys))
+
+
+def _jacobian(fun: Any, theta: np.ndarray, step: float = 1e-5) -> np.ndarray:
+    f0 = fun(theta)
+    jac = np.empty((f0.size, theta.size))
+    for k in range(theta.size):
+        th = theta.copy()
+        th[k] += step
+        jac[:, k] = (fun(th) - f0) / step
+    return jac
+
+
+def _match_start(names: list[str], start: list[tuple[str, dict[str, float]]]
+                 ) -> list[dict[str, float]]:
+    """Starting parameters for ``names`` from a previous model; new terms start small."""
+    pool = [(n, dict(p)) for n, p in start]
+    out: list[dict[str, float]] = []
+    for n in names:
+        hit = next((k for k, (pn, _) in enumerate(pool) if pn == n), None)
+        if hit is not None:
+            out.append(pool.pop(hit)[1])
+        else:
+            out.append(_small_default(n))
+    return out
+
+
+def _small_default(name: str) -> dict[str, float]:
+    return {"white": {"N": 1e-6}, "quantization": {"Q": 1e-9}, "bias_instability": {"B": 1e-7},
+            "random_walk": {"K": 1e-9}, "rate_ramp": {"R": 1e-10},
+            "gauss_markov": {"sigma": 1e-6, "T": 10.0}, "sinusoid": {"A": 1e-6, "f": 1.0},
+            "temperature": {"coef": 0.0}}[name]
+
+
+# --- helpers on the series ------------------------------------------------------------------
+
+def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0
+              ) -> tuple[float, float] | None:
+    """Frequency (Hz) and amplitude (units) of the strongest spectral line, or None.
+
+    Welch spectrum (Hann, up to 2^15 samples per segment); the line is the bin standing
+    furthest above the running median of its neighbourhood (by at least ``min_snr``); its
+    power is the excess summed over the main lobe (``A = sqrt(2 P)``)."""
+    x = np.asarray(values, dtype=np.float64)
+    if x.size < 64:
+        return None
+    nper = int(min(1 << 15, 1 << int(math.log2(x.size))))
+    f, p = signal.welch(x - x.mean(), fs=fs_hz, nperseg=nper)
+    if p.size < 16:
+        return None
+    floor = np.maximum(ndimage.median_filter(p, size=31, mode="nearest"), 1e-300)
+    ratio = p / floor
+    ratio[:4] = 0.0  # the lowest bins carry drift, not lines
+    ratio[-4:] = 0.0  # nor does the edge at the Nyquist frequency
+    k = int(np.argmax(ratio))
+    if ratio[k] < min_snr:
+        return None
+    lo, hi = max(k - 3, 0), min(k + 4, p.size)
+    df = f[1] - f[0]
+    power = float(np.sum(p[lo:hi] - floor[lo:hi]) * df)
+    weights = p[lo:hi] - floor[lo:hi]
+    f_line = float(np.sum(f[lo:hi] * weights) / np.sum(weights))
+    return f_line, math.sqrt(max(2.0 * power, 0.0))
+
+
+def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int = 10
+                        ) -> tuple[TermFit, np.ndarray]:
+    """Least-squares regression of the rate on temperature (with offset).
+
+    Returns the ``temperature`` term (coef in rate units per degC, 95 % interval) and the
+    corrected rate ``rate - coef (temperature - mean temperature)``. The interval comes from
+    refitting the coefficient on ``blocks`` contiguous blocks (Student t on their spread),
+    which stays honest when the residual noise is coloured, as it is for inertial sensors.
+    """
+    y = np.asarray(rate, dtype=np.float64)
+    t = np.asarray(temperature, dtype=np.float64)
+    if y.shape != t.shape:
+        raise ValueError(f"temperature record has {t.size} samples, rate {y.size}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError("temperature record holds non-finite values")
+    tc = t - t.mean()
+    sxx = float(tc @ tc)
+    if sxx <= 0:
+        raise ValueError("temperature is constant: its coefficient cannot be estimated")
+    coef = float(tc @ (y - y.mean()) / sxx)
+    per_block = []
+    for yb, tb in zip(np.array_split(y, blocks), np.array_split(t, blocks), strict=True):
+        tbc = tb - tb.mean()
+        s = float(tbc @ tbc)
+        if s > 0:
+            per_block.append(float(tbc @ (yb - yb.mean()) / s))
+    if len(per_block) >= 3:
+        from scipy import stats
+        half = float(stats.t.ppf(0.975, len(per_block) - 1) * np.std(per_block, ddof=1)
+                     / math.sqrt(len(per_block)))
+    else:
+        half = math.inf
+    term = TermFit("temperature", {"coef": coef}, {"coef": (coef - half, coef + half)})
+    return term, y - coef * tc

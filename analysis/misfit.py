@@ -1,0 +1,265 @@
+"""How far a measured Allan curve lies from a noise model, honestly.
+
+The overlapping Allan variance estimates at neighbouring taus share most of their data, so they
+are correlated. For a model made of Gaussian noise terms (plus deterministic ramp and sinusoid)
+this module computes the covariance matrix of the overlapping AVAR estimates at all taus of a
+curve, from the model's spectrum:
+
+With ``d_k^(m)`` the difference of two adjacent m-sample averages (``avar = E[d^2]/2``) and
+``M`` the number of such differences, ``cov(avar_i, avar_j) = sum_k sum_l 2 gamma_ij(l-k)^2 /
+(4 M_i M_j)`` where ``gamma_ij`` is the cross-covariance of the two difference sequences. By
+Parseval ``sum_s gamma_ij(s)^2 = fs int S(f)^2 |H_i(f)|^2 |H_j(f)|^2 df`` (two-sided PSD S,
+``|H_m|^2 = 4 sin^4(pi f m/fs)/(m^2 sin^2(pi f/fs))``), and the double sum is
+``M_eff sum_s gamma^2`` with ``M_eff = min(M_i, M_j) - max(m_i, m_j)/2`` (exact for white noise,
+where the end effect of the triangular count is m/2). The integral runs on a log-frequency grid;
+where ``sin^4`` oscillates faster than the grid, it is averaged over each bin analytically
+(products of the two filters through their Fourier series), so no resolution is lost at large
+m. A deterministic sinusoid adds ``A^2 fs S(f0) |H_i H_j|^2(f0)``; a ramp adds
+``R^2 tau_i tau_j cov(mean d_i, mean d_j)`` where the mean difference telescopes to the
+difference of the averages at the two ends of the record.
+
+From the covariance follow each estimate's equivalent degrees of freedom
+``nu_i = 2 avar_i^2/C_ii``, the standardised residual ``z_i`` (normal score of the chi-square
+probability of the measurement given the model) and ``chi2 = z^T R^-1 z`` with ``R`` the
+correlation matrix, divided by the degrees of freedom left after the fit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from analysis.terms import get_term
+
+Model = Sequence[tuple[str, dict[str, float]]]
+
+_GAUSSIAN_TERMS = ("white", "quantization", "bias_instability", "random_walk", "gauss_markov")
+_SIN4 = (3.0 / 8.0, -0.5, 1.0 / 8.0)  # sin^4 x = 3/8 - cos(2x)/2 + cos(4x)/8
+_POINTS_PER_DECADE = 160
+Z_CLIP = 12.0
+
+
+def _two_sided_psd(model: Model, u: np.ndarray, fs_hz: float) -> np.ndarray:
+    """Two-sided PSD (units^2/Hz) of the model's Gaussian terms at f = u fs."""
+    f = u * fs_hz
+    total = np.zeros_like(u)
+    for name, params in model:
+        if name in _GAUSSIAN_TERMS:
+            total += 0.5 * get_term(name).psd(f, fs_hz, **params)
+    return total
+
+
+def _bin_avg_cos(nu: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Average of cos(pi nu u) over u in [ua, ub] (nu may be 0)."""
+    if nu == 0:
+        return np.ones_like(ua)
+    x = np.pi * nu
+    return (np.sin(x * ub) - np.sin(x * ua)) / (x * (ub - ua))
+
+
+def _sin4_factor(m: float, um: np.ndarray, ua: np.ndarray, ub: np.ndarray,
+                 fast: np.ndarray) -> np.ndarray:
+    """sin^4(pi u m): exact bin average where ``fast``, mid-point value elsewhere."""
+    out = np.sin(np.pi * um * m) ** 4
+    if np.any(fast):
+        a, b = ua[fast], ub[fast]
+        out[fast] = sum(c * _bin_avg_cos(2.0 * p * m, a, b) for p, c in enumerate(_SIN4))
+    return out
+
+
+def _pair_sin4_both_fast(mi: float, mj: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Bin average of sin^4(pi u mi) sin^4(pi u mj) through the product of Fourier series."""
+    acc = np.zeros(ua.shape)
+    for p, ap in enumerate(_SIN4):
+        for q, aq in enumerate(_SIN4):
+            acc += 0.5 * ap * aq * (_bin_avg_cos(2.0 * (p * mi + q * mj), ua, ub)
+                                    + _bin_avg_cos(2.0 * (p * mi - q * mj), ua, ub))
+    return acc
+
+
+def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarray
+                    ) -> np.ndarray:
+    """Covariance matrix (units^4) of overlapping AVAR estimates at averaging factors ``m``
+    (samples) with ``n_terms`` squared differences each, for data following ``model``.
+
+    Terms without a spectrum of their own (``temperature``, removed by regression) are left
+    out; a ramp and a sinusoid enter through their interaction with the Gaussian noise.
+    """
+    m = np.asarray(m, dtype=np.float64)
+    n_terms = np.asarray(n_terms, dtype=np.float64)
+    n = len(m)
+    u_lo = 1e-4 / max(m.max(), 1.0)
+    edges = np.geomspace(u_lo, 0.5, int(math.log10(0.5 / u_lo) * _POINTS_PER_DECADE) + 2)
+    ua, ub = edges[:-1], edges[1:]
+    um = 0.5 * (ua + ub)
+    width = ub - ua
+    s2 = _two_sided_psd(model, um, fs_hz)
+    # smooth part of S^2 |H_i|^2 |H_j|^2 du (without the sin^4 factors and 1/(m_i m_j)^2),
+    # times 2 fs^2 for both signs of f and the change of variable f = u fs
+    smooth = 2.0 * fs_hz**2 * s2 * s2 * 16.0 / np.sin(np.pi * um) ** 4 * width
+    fast = width[None, :] * m[:, None] > 0.05
+    factors = np.stack([_sin4_factor(m[i], um, ua, ub, fast[i]) for i in range(n)])
+    sum_gamma2 = (factors * smooth) @ factors.T
+    # where both filters oscillate within a bin, the two factors of equal or double m are
+    # not independent: average their product exactly (for larger ratios the cross terms of
+    # the Fourier series oscillate fast and average out, so the product of averages holds)
+    for i in range(n):
+        for j in range(i, n):
+            if m[j] not in (m[i], 2.0 * m[i]) and m[i] not in (2.0 * m[j],):
+                continue
+            both = fast[i] & fast[j]
+            if not np.any(both):
+                continue
+            exact = _pair_sin4_both_fast(m[i], m[j], ua[both], ub[both])
+            delta = float(np.sum(smooth[both] * (exact - factors[i, both] * factors[j, both])))
+            sum_gamma2[i, j] += delta
+            if j != i:
+                sum_gamma2[j, i] += delta
+    sum_gamma2 /= np.outer(m * m, m * m)
+    line, ramp = _deterministic_terms(model, fs_hz, m, n_terms, (ua, ub, um, s2))
+    sum_gamma2 += line
+    m_eff = np.minimum.outer(n_terms, n_terms) - 0.5 * np.minimum.outer(m, m)
+    m_eff = np.maximum(m_eff, 1.0)
+    return m_eff * sum_gamma2 / (2.0 * np.outer(n_terms, n_terms)) + ramp
+
+
+def _h2(m: np.ndarray, u: float) -> np.ndarray:
+    """|H_m(u)|^2 of the difference of two m-sample averages at u = f/fs."""
+    return 4.0 * np.sin(np.pi * u * m) ** 4 / (m * m * math.sin(math.pi * u) ** 2)
+
+
+def _deterministic_terms(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarray,
+                         grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+                         ) -> np.ndarray:
+    """Covariance (units^4) added by a deterministic sinusoid and a deterministic ramp.
+
+    Sinusoid: ``cov(d_k^2, d_l^2)`` gains ``4 s_k s_l gamma(l-k)``; summed, this is
+    ``M_eff A^2 fs S(f0) |H_i H_j|^2(f0)`` in the same units as ``sum gamma^2`` (returned
+    separately, see :func:`avar_covariance`). Ramp: each estimate gains ``R tau mean(d)``;
+    the mean of the differences telescopes to ``(m/M)`` times the difference of the m-sample
+    averages at the two ends of the record, whose variance ``D`` follows from the spectrum.
+    """
+    ua, ub, um, s2 = grid
+    n = len(m)
+    line = np.zeros((n, n))
+    ramp = np.zeros((n, n))
+    for name, p in model:
+        if name == "sinusoid":
+            u0 = p["f"] / fs_hz
+            s_n = float(_two_sided_psd(model, np.array([u0]), fs_hz)[0])
+            h = _h2(m, u0)
+            line += p["A"] ** 2 * fs_hz * s_n * np.outer(h, h)
+    r2 = sum(p["R"] ** 2 for name, p in model if name == "rate_ramp")
+    if r2 > 0:
+        width = ub - ua
+        d = np.empty(n)
+        for i in range(n):
+            span = float(n_terms[i] - 1 + m[i])  # distance between the two end averages
+            sin2_span = 0.5 * (1.0 - _bin_avg_cos(2.0 * span, ua, ub))
+            fast = width * m[i] > 0.05
+            sin2_m = np.where(fast, 0.5 * (1.0 - _bin_avg_cos(2.0 * m[i], ua, ub)),
+                              np.sin(np.pi * um * m[i]) ** 2)
+            avg2 = sin2_m / (m[i] ** 2 * np.sin(np.pi * um) ** 2)
+            d[i] = 2.0 * fs_hz * float(np.sum(s2 * avg2 * 4.0 * sin2_span * width))
+            for name, p in model:
+                if name == "sinusoid":
+                    u0 = p["f"] / fs_hz
+                    a2 = math.sin(math.pi * u0 * m[i]) ** 2 / (m[i] ** 2 * math.sin(
+                        math.pi * u0) ** 2)
+                    d[i] += 0.5 * p["A"] ** 2 * a2 * 4.0 * math.sin(math.pi * u0 * span) ** 2
+        tau = m / fs_hz
+        mean_sd = m / n_terms * np.sqrt(d)
+        ramp = r2 * np.outer(tau * mean_sd, tau * mean_sd)
+    return line, ramp
+
+
+@dataclass(frozen=True)
+class Misfit:
+    """Standardised residuals of a measured Allan curve against a model.
+
+    Attributes:
+        z: per-tau standardised residual (positive: measured above model).
+        nu: per-tau equivalent degrees of freedom under the model.
+        corr: correlation matrix of the estimates across taus.
+        chi2: ``z^T corr^-1 z``.
+        dof: degrees of freedom (taus used minus fitted parameters, at least 1).
+        chi2_per_dof: ``chi2/dof``.
+        threshold: |z| beyond which a tau is flagged.
+    """
+
+    z: np.ndarray
+    nu: np.ndarray
+    corr: np.ndarray
+    chi2: float
+    dof: int
+    chi2_per_dof: float
+    threshold: float
+
+    @property
+    def max_abs_z(self) -> float:
+        return float(np.max(np.abs(self.z))) if self.z.size else 0.0
+
+
+def failure_threshold(n_tau: int, family_rate: float = 0.10) -> float:
+    """|z| threshold so that a correct model flags any tau with probability <= family_rate
+    (Sidak correction over ``n_tau`` two-sided tests; conservative for correlated taus)."""
+    per = 1.0 - (1.0 - family_rate) ** (1.0 / max(n_tau, 1))
+    return float(stats.norm.isf(per / 2.0))
+
+
+def standardised_residuals(avar_meas: np.ndarray, avar_model: np.ndarray, nu: np.ndarray
+                           ) -> np.ndarray:
+    """Normal scores of the measured AVAR under the scaled chi-square law of the model."""
+    x = nu * np.asarray(avar_meas) / np.asarray(avar_model)
+    lower = stats.chi2.logcdf(x, nu)
+    upper = stats.chi2.logsf(x, nu)
+    z = np.where(lower < upper, -stats.norm.isf(np.exp(lower)), stats.norm.isf(np.exp(upper)))
+    return np.clip(np.nan_to_num(z, nan=0.0, posinf=Z_CLIP, neginf=-Z_CLIP), -Z_CLIP, Z_CLIP)
+
+
+def misfit(avar_meas: np.ndarray, avar_model: np.ndarray, cov: np.ndarray, n_params: int,
+           family_rate: float = 0.10) -> Misfit:
+    """Misfit of measured AVARs to model AVARs with the model's estimate covariance ``cov``."""
+    var = np.clip(np.diag(cov), 1e-300, None)
+    nu = np.clip(2.0 * np.asarray(avar_model) ** 2 / var, 1.0, 1e12)
+    sd = np.sqrt(var)
+    corr = cov / np.outer(sd, sd)
+    z = standardised_residuals(avar_meas, avar_model, nu)
+    chi2 = float(z @ _solve_psd(corr, z))
+    dof = max(len(z) - n_params, 1)
+    return Misfit(z=z, nu=nu, corr=corr, chi2=chi2, dof=dof, chi2_per_dof=chi2 / dof,
+                  threshold=failure_threshold(len(z), family_rate))
+
+
+def _solve_psd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve with a symmetric positive semi-definite matrix, guarding against round-off."""
+    w, v = np.linalg.eigh(a)
+    w = np.maximum(w, 1e-9 * max(w.max(), 1e-300))
+    return v @ ((v.T @ b) / w)
+
+
+def failures(tau_s: np.ndarray, z: np.ndarray, threshold: float) -> list[dict]:
+    """Groups of consecutive taus with ``|z| > threshold`` and the same sign, as CONTRACT.md's
+    ``failures`` entries."""
+    out: list[dict] = []
+    flagged = np.abs(z) > threshold
+    i = 0
+    while i < len(z):
+        if not flagged[i]:
+            i += 1
+            continue
+        sign = np.sign(z[i])
+        j = i
+        while j + 1 < len(z) and flagged[j + 1] and np.sign(z[j + 1]) == sign:
+            j += 1
+        seg = z[i:j + 1]
+        out.append({"tau_s": [float(tau_s[i]), float(tau_s[j])],
+                    "max_abs_z": float(np.max(np.abs(seg))),
+                    "direction": "measured above model" if sign > 0 else
+                    "measured below model"})
+        i = j + 1
+    return out

@@ -1,0 +1,156 @@
+"""Replay benchmark: an 8 h, 100 Hz, 6-axis recording (2.88 M Imu messages) read three ways.
+
+    python bench/replay.py [--hours 8] [--rate 100] [--reuse]
+
+Writes the file once with the recorder (1 s chunks, as a live recording has), then times in the
+same run:
+  (a) ``imunoise analyze FILE --json`` from file to JSON (a separate process; its peak RSS),
+  (b) the ``mcap`` library's own reader merely iterating the messages (a separate process),
+  (c) the bulk reader alone (``daq.readers.open_record``) in this process: messages per second.
+Targets: (a) <= half of (b), peak memory of (a) under 400 MB, (c) >= 3 million messages/s.
+If ``analyze`` is not available, (a) is reported as missing and the bulk load in a separate
+process (``open_record`` to arrays) is timed in its place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from daq.blocks import SampleBlock  # noqa: E402
+from daq.readers import open_record  # noqa: E402
+from daq.recorder import McapRecorder  # noqa: E402
+
+OUT = ROOT / "bench" / "out"
+GYRO_LSB = 0.07326 * np.pi / 180
+ACCEL_LSB = 2.522e-3 * 9.80665
+
+
+def write_recording(hours: float, rate: float) -> Path:
+    """Quantized white noise plus a slow random walk, written as a live recorder would."""
+    OUT.mkdir(parents=True, exist_ok=True)
+    for old in OUT.glob("bench_*.mcap"):
+        old.unlink()
+    rng = np.random.default_rng(42)
+    n_total = int(round(hours * 3600 * rate))
+    block = int(rate)  # one second per block, as a live acquisition hands them over
+    t0 = 1.7e9
+    rec = McapRecorder(OUT, "bench", threaded=False, fsync=False, rotate_s=None,
+                       rate_hz=rate, reserve_bytes=0)
+    walk = np.zeros(6)
+    names = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
+    for k in range(0, n_total, block):
+        n = min(block, n_total - k)
+        t = t0 + (k + np.arange(n)) / rate
+        ch, raw = {}, {}
+        for i, name in enumerate(names):
+            lsb = GYRO_LSB if i < 3 else ACCEL_LSB
+            drift = walk[i] + np.cumsum(rng.normal(0, 0.02, n))
+            walk[i] = drift[-1]
+            counts = np.rint(rng.normal(0, 8, n) + drift).astype(np.int64)
+            raw[name] = counts
+            ch[name] = counts * lsb
+        rec.write(SampleBlock("/bench/imu", t, ch, rate, raw=raw))
+        ts = t[:: int(rate)]
+        rec.write(SampleBlock("/bench/temperature", ts,
+                              {"temp": 25.0 + 0.001 * np.arange(len(ts))}, 1.0))
+    rec.close()
+    (path,) = OUT.glob("bench_*.mcap")
+    return path
+
+
+def run_child(argv: list[str], stdout_path: Path | None = None) -> tuple[float, float, int]:
+    """Wall time (s), peak RSS (MB) and exit code of a child process."""
+    out = open(stdout_path, "wb") if stdout_path else subprocess.DEVNULL
+    t = time.perf_counter()
+    proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.PIPE, cwd=ROOT,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    _pid, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = proc.stderr.read().decode(errors="replace").strip()
+    if stdout_path:
+        out.close()
+    if proc.returncode != 0 and err:
+        print(f"  ({' '.join(argv[-3:])}: exit {proc.returncode}: {err.splitlines()[-1]})")
+    return wall, usage.ru_maxrss / 1024.0, proc.returncode
+
+
+MCAP_ITERATE = """
+import sys
+from mcap.reader import make_reader
+n = 0
+with open(sys.argv[1], "rb") as f:
+    for _ in make_reader(f).iter_messages(log_time_order=False):
+        n += 1
+print(n)
+"""
+
+BULK_LOAD = """
+import sys
+from daq.readers import open_record
+r = open_record(sys.argv[1])
+print(sum(s.n_samples for s in r.channels.values()))
+"""
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--hours", type=float, default=8.0)
+    ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--reuse", action="store_true", help="reuse bench/out/bench_*.mcap")
+    args = ap.parse_args()
+    existing = sorted(OUT.glob("bench_*.mcap"))
+    if args.reuse and existing:
+        path = existing[0]
+    else:
+        t = time.perf_counter()
+        path = write_recording(args.hours, args.rate)
+        print(f"wrote {path.name}: {path.stat().st_size / 1e6:.1f} MB in "
+              f"{time.perf_counter() - t:.1f} s")
+    n_imu = int(round(args.hours * 3600 * args.rate))
+
+    reads = []
+    for _ in range(3):
+        t = time.perf_counter()
+        r = open_record(path)
+        reads.append(time.perf_counter() - t)
+        assert r.channels["gyro_x"].n_samples == n_imu, r.channels["gyro_x"].n_samples
+        del r
+    t_read = float(np.median(reads))
+    rate_read = n_imu / t_read
+    print(f"(c) bulk reader, in process: {t_read:.2f} s median of 3 "
+          f"-> {rate_read / 1e6:.2f} M Imu messages/s (target >= 3.0)")
+
+    t_mcap, rss_mcap, _ = run_child([sys.executable, "-c", MCAP_ITERATE, str(path)])
+    print(f"(b) mcap make_reader().iter_messages(), no decoding: {t_mcap:.2f} s "
+          f"(peak {rss_mcap:.0f} MB)")
+
+    json_out = OUT / "analyze.json"
+    t_an, rss_an, code = run_child([sys.executable, "-m", "imunoise", "analyze", str(path),
+                                    "--json"], json_out)
+    if code == 0:
+        label = "(a) imunoise analyze FILE --json"
+    else:
+        label = "(a') analyze unavailable; bulk load to arrays in a separate process"
+        t_an, rss_an, code = run_child([sys.executable, "-c", BULK_LOAD, str(path)])
+    ratio = t_an / t_mcap
+    print(f"{label}: {t_an:.2f} s, peak {rss_an:.0f} MB "
+          f"-> {ratio:.3f} of (b) (target <= 0.5), memory target < 400 MB")
+    ok = ratio <= 0.5 and rss_an < 400 and rate_read >= 3e6
+    print("all targets met" if ok else "TARGET MISSED")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

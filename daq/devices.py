@@ -1,0 +1,114 @@
+"""Open a device by name: real hardware or a register-level simulator behind real transports.
+
+``open_device("sim:adis16350")`` starts a Bus Pirate emulator on a pseudo-terminal with the
+ADIS16350 model behind it and drives it with the real driver through the real pyserial;
+``open_device("sim:razor")`` puts the ITG-3200 and ADXL345 models under smbus2's ioctl layer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from daq.acquisition import Acquisition
+from daq.clock import Clock, RealClock, VirtualClock
+
+DEVICES: dict[str, str] = {
+    "adis16350": "ADIS16350 through a Bus Pirate serial-SPI bridge (--port)",
+    "itg3200": "ITG-3200 gyroscope on I2C (--bus)",
+    "adxl345": "ADXL345 accelerometer on I2C (--bus)",
+    "razor": "ITG-3200 + ADXL345 on one I2C bus (--bus), as two streams",
+    "sim:adis16350": "simulated ADIS16350 behind an emulated Bus Pirate on a pty",
+    "sim:itg3200": "simulated ITG-3200 under smbus2",
+    "sim:adxl345": "simulated ADXL345 under smbus2",
+    "sim:razor": "simulated ITG-3200 + ADXL345 under smbus2",
+}
+DEFAULT_RATES_HZ = {"adis16350": 102.4, "itg3200": 100.0, "adxl345": 100.0, "razor": 100.0}
+
+
+def valid_devices() -> str:
+    return ", ".join(DEVICES)
+
+
+def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
+                rate_hz: float | None = None, seed: int | None = None,
+                realtime: bool = True, clock: Clock | None = None,
+                **options: object) -> Acquisition:
+    """An :class:`Acquisition` for ``spec`` (see :data:`DEVICES`), not yet opened.
+
+    Args:
+        spec: device name; ``sim:`` prefixes select the simulators.
+        port: serial port of the Bus Pirate (``adis16350``).
+        bus: I2C bus number (``itg3200``, ``adxl345``, ``razor``).
+        rate_hz: sample rate (the nearest one the chip supports is used; see ``config``).
+        seed: seed of the simulated noise.
+        realtime: simulators run in real time (False: as fast as the host allows, on a
+            virtual clock shared by simulator and acquisition).
+        clock: explicit clock (overrides ``realtime``).
+        options: driver options (``range_dps``, ``taps``, ``range_g``, ``address``...) and
+            simulator options (``gyro``, ``accel``, ``temperature`` sources).
+
+    Raises:
+        ValueError: unknown spec, or a missing ``port``/``bus``, naming the valid choices.
+    """
+    if spec not in DEVICES:
+        raise ValueError(f"unknown device {spec!r}: choose one of {valid_devices()}")
+    simulated = spec.startswith("sim:")
+    base = spec.removeprefix("sim:")
+    rate = float(rate_hz) if rate_hz is not None else DEFAULT_RATES_HZ[base]
+    if rate <= 0:
+        raise ValueError(f"rate must be positive, got {rate_hz}")
+    if clock is None:
+        clock = RealClock() if (realtime or not simulated) else VirtualClock()
+    if not simulated:
+        if base == "adis16350" and not port:
+            raise ValueError("device adis16350 needs --port (the Bus Pirate's serial port, "
+                             "e.g. /dev/ttyUSB0)")
+        if base != "adis16350" and bus is None:
+            raise ValueError(f"device {base} needs --bus (the I2C bus number, e.g. 1 for "
+                             "/dev/i2c-1)")
+    builder = _BUILDERS[base]
+    return builder(simulated=simulated, port=port, bus=bus, rate=rate,
+                   seed=0 if seed is None else int(seed), clock=clock, options=dict(options))
+
+
+def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, seed: int,
+          clock: Clock, options: dict) -> Acquisition:
+    from daq.drivers.adis16350 import Adis16350, sample_rate_hz, smpl_prd_for_rate
+    from daq.transports.buspirate import BusPirateSPI
+
+    cleanup: list[Callable[[], None]] = []
+    sim = None
+    if simulated:
+        from daq.sim.adis16350 import Adis16350Sim
+        from daq.sim.buspirate_pty import BusPirateEmulator
+        from daq.sim.signals import default_sources
+
+        fs = sample_rate_hz(smpl_prd_for_rate(rate))
+        gyro, accel = default_sources("adis16350", fs, seed)
+        sim = Adis16350Sim(clock, options.pop("gyro", gyro), options.pop("accel", accel),
+                           options.pop("temperature", None), source_rate_hz=fs)
+        emulator = BusPirateEmulator(sim, seed=seed).start()
+        cleanup.append(emulator.close)
+        port = emulator.port
+        sim.emulator = emulator  # type: ignore[attr-defined]
+    spi = BusPirateSPI(str(port), timeout_s=float(options.pop("timeout_s", 0.5)))
+    driver = Adis16350(spi, rate_hz=rate, clock=clock, **options)
+    acq = Acquisition(driver, clock=clock, on_close=cleanup)
+    acq.simulator = sim
+    return acq
+
+
+def _i2c(*, simulated: bool, port: str | None, bus: int | None, rate: float, seed: int,
+         clock: Clock, options: dict, which: str) -> Acquisition:
+    from daq.drivers.i2c_devices import build_i2c_acquisition
+
+    return build_i2c_acquisition(which, simulated=simulated, bus=bus, rate=rate, seed=seed,
+                                 clock=clock, options=options)
+
+
+_BUILDERS: dict[str, Callable[..., Acquisition]] = {
+    "adis16350": _adis,
+    "itg3200": lambda **kw: _i2c(which="itg3200", **kw),
+    "adxl345": lambda **kw: _i2c(which="adxl345", **kw),
+    "razor": lambda **kw: _i2c(which="razor", **kw),
+}

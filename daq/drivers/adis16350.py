@@ -1,0 +1,452 @@
+"""ADIS16350/ADIS16355 tri-axis gyroscope and accelerometer on SPI (datasheet Rev. B).
+
+Register table, pure scaling functions, and a driver that talks through a serial-to-SPI
+bridge. The part has no product-id register and no burst mode: it is identified by the answer
+pattern of its registers (a plausible supply reading, unused bits clear), and every register
+is read with pipelined 16-bit frames (the reply to frame n arrives in frame n+1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from daq.clock import Clock, RealClock
+from daq.drivers.common import PolledSampleClock, StreamBuffer, sign_extend
+from daq.errors import PermanentDeviceError, TransientDeviceError
+from daq.transports.buspirate import BusPirateSPI
+
+DEG = math.pi / 180.0
+G0 = 9.80665
+
+
+@dataclass(frozen=True)
+class Register:
+    """One 16-bit register: lower byte address, data bits, signedness, LSB size and unit."""
+
+    name: str
+    addr: int
+    bits: int = 16
+    signed: bool = False
+    lsb: float = 1.0
+    unit: str = ""
+
+
+# Datasheet Table 6 / Table 9.
+REGISTERS: dict[str, Register] = {r.name: r for r in [
+    Register("ENDURANCE", 0x00),
+    Register("SUPPLY_OUT", 0x02, 12, False, 1.8315e-3, "V"),
+    Register("XGYRO_OUT", 0x04, 14, True, 0.07326, "deg/s"),
+    Register("YGYRO_OUT", 0x06, 14, True, 0.07326, "deg/s"),
+    Register("ZGYRO_OUT", 0x08, 14, True, 0.07326, "deg/s"),
+    Register("XACCL_OUT", 0x0A, 14, True, 2.522e-3, "g"),
+    Register("YACCL_OUT", 0x0C, 14, True, 2.522e-3, "g"),
+    Register("ZACCL_OUT", 0x0E, 14, True, 2.522e-3, "g"),
+    Register("XTEMP_OUT", 0x10, 12, True, 0.1453, "degC"),
+    Register("YTEMP_OUT", 0x12, 12, True, 0.1453, "degC"),
+    Register("ZTEMP_OUT", 0x14, 12, True, 0.1453, "degC"),
+    Register("AUX_ADC", 0x16, 12, False, 0.6105e-3, "V"),
+    Register("XGYRO_OFF", 0x1A, 13, True, 0.018315, "deg/s"),
+    Register("YGYRO_OFF", 0x1C, 13, True, 0.018315, "deg/s"),
+    Register("ZGYRO_OFF", 0x1E, 13, True, 0.018315, "deg/s"),
+    Register("XACCL_OFF", 0x20, 12, True, 2.522e-3, "g"),
+    Register("YACCL_OFF", 0x22, 12, True, 2.522e-3, "g"),
+    Register("ZACCL_OFF", 0x24, 12, True, 2.522e-3, "g"),
+    Register("ALM_MAG1", 0x26),
+    Register("ALM_MAG2", 0x28),
+    Register("ALM_SMPL1", 0x2A),
+    Register("ALM_SMPL2", 0x2C),
+    Register("ALM_CTRL", 0x2E),
+    Register("AUX_DAC", 0x30, 12),
+    Register("GPIO_CTRL", 0x32),
+    Register("MSC_CTRL", 0x34),
+    Register("SMPL_PRD", 0x36),
+    Register("SENS_AVG", 0x38),
+    Register("SLP_CNT", 0x3A),
+    Register("STATUS", 0x3C),
+    Register("COMMAND", 0x3E),
+]}
+ADDR = {name: r.addr for name, r in REGISTERS.items()}
+OUTPUT_REGISTERS = ("SUPPLY_OUT", "XGYRO_OUT", "YGYRO_OUT", "ZGYRO_OUT", "XACCL_OUT",
+                    "YACCL_OUT", "ZACCL_OUT", "XTEMP_OUT", "YTEMP_OUT", "ZTEMP_OUT", "AUX_ADC")
+IMU_REGISTERS = ("XGYRO_OUT", "YGYRO_OUT", "ZGYRO_OUT", "XACCL_OUT", "YACCL_OUT", "ZACCL_OUT")
+TEMP_REGISTERS = ("XTEMP_OUT", "YTEMP_OUT", "ZTEMP_OUT", "SUPPLY_OUT")
+
+# Output register flags (bits 15 and 14).
+FLAG_ND = 0x8000  # new data since the last read
+FLAG_EA = 0x4000  # STATUS has an error or alarm
+WRITE_BIT = 0x8000
+
+# COMMAND bits (Table 15).
+CMD_SOFTWARE_RESET = 0x80
+CMD_PRECISION_AUTONULL = 0x10
+CMD_FLASH_UPDATE = 0x08
+CMD_DAC_LATCH = 0x04
+CMD_FACTORY_RESTORE = 0x02
+CMD_AUTONULL = 0x01
+
+# MSC_CTRL bits (Table 28).
+MSC_SELF_TEST = 1 << 10
+
+# STATUS bits (Table 31), LSB first.
+STATUS_BITS: dict[int, str] = {
+    0: "supply below 4.75 V",
+    1: "supply above 5.25 V",
+    2: "control register update failed",
+    3: "SPI communication failure",
+    4: "sensor over-range",
+    5: "self-test failed",
+    8: "alarm 1 active",
+    9: "alarm 2 active",
+    10: "X gyro self-diagnostic error",
+    11: "Y gyro self-diagnostic error",
+    12: "Z gyro self-diagnostic error",
+    13: "X accelerometer self-diagnostic error",
+    14: "Y accelerometer self-diagnostic error",
+    15: "Z accelerometer self-diagnostic error",
+}
+STATUS_OVER_RANGE = 1 << 4
+STATUS_SPI_FAILURE = 1 << 3
+STATUS_SELF_TEST = 1 << 5
+
+# SMPL_PRD (Tables 16/17): Ts = TB * (NS + 1).
+SMPL_TIME_BASE_S = {0: 1.0 / 1638.4, 1: 18.921e-3}
+SMPL_PRD_DEFAULT = 0x01
+SMPL_PRD_FAST_MAX = 0x09  # SMPL_PRD <= 0x09: fast mode, SCLK up to 2 MHz; else 300 kHz
+SCLK_MAX_FAST_HZ = 2.0e6
+SCLK_MAX_NORMAL_HZ = 300e3
+
+# SENS/AVG (Tables 20/21): range code in [10:8], Bartlett taps 2^M in [2:0].
+GYRO_RANGES_DPS: dict[int, int] = {300: 0b100, 150: 0b010, 75: 0b001}
+GYRO_LSB_DPS: dict[int, float] = {300: 0.07326, 150: 0.03663, 75: 0.018315}
+MIN_TAPS_EXPONENT: dict[int, int] = {300: 0, 150: 2, 75: 4}
+MAX_TAPS_EXPONENT = 6
+SENS_AVG_DEFAULT = 0x0402
+
+ACCEL_LSB_G = 2.522e-3
+TEMP_LSB_C = 0.1453
+TEMP_OFFSET_C = 25.0
+SUPPLY_LSB_V = 1.8315e-3
+SUPPLY_PLAUSIBLE_V = (4.5, 5.5)
+
+STARTUP_S = 0.150
+RESET_WAIT_S = 0.290
+SELF_TEST_WAIT_S = 0.050
+
+
+# -- pure conversions ----------------------------------------------------------------------
+def sample_rate_hz(smpl_prd: int) -> float:
+    """Output rate in Hz of a SMPL_PRD value."""
+    tb = SMPL_TIME_BASE_S[(smpl_prd >> 7) & 1]
+    return 1.0 / (tb * ((smpl_prd & 0x7F) + 1))
+
+
+def supported_rates_hz() -> dict[int, float]:
+    """All SMPL_PRD settings the datasheet allows (0x01 is the minimum) and their rates."""
+    return {v: sample_rate_hz(v) for v in range(0x01, 0x100) if v != 0x80}
+
+
+def smpl_prd_for_rate(rate_hz: float) -> int:
+    """The SMPL_PRD value whose rate is closest (in ratio) to ``rate_hz``."""
+    if not (0.4 <= rate_hz <= 820.0):
+        raise ValueError(f"ADIS16350 rate {rate_hz:g} Hz out of range 0.413..819.2 Hz")
+    rates = supported_rates_hz()
+    return min(rates, key=lambda v: abs(math.log(rates[v] / rate_hz)))
+
+
+def sclk_max_hz(smpl_prd: int) -> float:
+    """Fastest SPI clock the datasheet allows at this SMPL_PRD (fast vs normal mode)."""
+    fast = (smpl_prd & 0x80) == 0 and (smpl_prd & 0x7F) <= SMPL_PRD_FAST_MAX
+    return SCLK_MAX_FAST_HZ if fast else SCLK_MAX_NORMAL_HZ
+
+
+def sens_avg_value(range_dps: int, taps: int) -> int:
+    """SENS/AVG register for a gyro range (deg/s) and a number of Bartlett taps (1..64)."""
+    if range_dps not in GYRO_RANGES_DPS:
+        raise ValueError(f"ADIS16350 gyro range {range_dps} deg/s: choose one of "
+                         f"{sorted(GYRO_RANGES_DPS)}")
+    m = int(round(math.log2(taps))) if taps >= 1 else -1
+    if taps < 1 or 2 ** m != taps or m > MAX_TAPS_EXPONENT:
+        raise ValueError(f"ADIS16350 filter taps {taps}: choose a power of two from 1 to 64")
+    if m < MIN_TAPS_EXPONENT[range_dps]:
+        raise ValueError(f"ADIS16350 range +-{range_dps} deg/s needs at least "
+                         f"{2 ** MIN_TAPS_EXPONENT[range_dps]} filter taps")
+    return (GYRO_RANGES_DPS[range_dps] << 8) | m
+
+
+def decode_sens_avg(value: int) -> tuple[int, int]:
+    """(range in deg/s, taps) from SENS/AVG; ValueError if the range code is not valid."""
+    code = (value >> 8) & 0x07
+    for rng, c in GYRO_RANGES_DPS.items():
+        if c == code:
+            return rng, 1 << (value & 0x07)
+    raise ValueError(f"SENS/AVG 0x{value:04X}: no valid range code")
+
+
+def data14(words: np.ndarray | int) -> np.ndarray:
+    """Signed 14-bit data field of output words (ND/EA flags stripped)."""
+    return sign_extend(words, 14)
+
+
+def data12s(words: np.ndarray | int) -> np.ndarray:
+    """Signed 12-bit data field (temperatures)."""
+    return sign_extend(words, 12)
+
+
+def data12u(words: np.ndarray | int) -> np.ndarray:
+    """Unsigned 12-bit data field (supply, AUX ADC)."""
+    return np.asarray(words, dtype=np.int64) & 0x0FFF
+
+
+def gyro_rad_s(counts: np.ndarray, range_dps: int = 300) -> np.ndarray:
+    """Gyro counts to rad/s at the configured range."""
+    return np.asarray(counts, dtype=np.float64) * (GYRO_LSB_DPS[range_dps] * DEG)
+
+
+def accel_m_s2(counts: np.ndarray) -> np.ndarray:
+    """Accelerometer counts to m/s^2 (2.522 mg per LSB)."""
+    return np.asarray(counts, dtype=np.float64) * (ACCEL_LSB_G * G0)
+
+
+def temp_c(counts: np.ndarray) -> np.ndarray:
+    """Temperature counts to degC (0 LSB = 25 degC, 0.1453 degC per LSB)."""
+    return TEMP_OFFSET_C + np.asarray(counts, dtype=np.float64) * TEMP_LSB_C
+
+
+def supply_v(counts: np.ndarray | int) -> np.ndarray:
+    """SUPPLY_OUT counts to volts."""
+    return np.asarray(counts, dtype=np.float64) * SUPPLY_LSB_V
+
+
+def decode_status(value: int) -> list[str]:
+    """Names of the STATUS flags that are set."""
+    return [text for bit, text in STATUS_BITS.items() if value & (1 << bit)]
+
+
+def read_command(name: str) -> int:
+    """DIN word that asks for register ``name`` (answered in the next frame)."""
+    return ADDR[name] << 8
+
+
+def write_commands(name: str, value: int, upper_first: bool = False) -> list[int]:
+    """DIN words writing the 16-bit ``value`` to register ``name`` (one byte per frame)."""
+    a = ADDR[name]
+    lo = WRITE_BIT | (a << 8) | (value & 0xFF)
+    hi = WRITE_BIT | ((a + 1) << 8) | ((value >> 8) & 0xFF)
+    return [hi, lo] if upper_first else [lo, hi]
+
+
+# -- driver --------------------------------------------------------------------------------
+class Adis16350:
+    """ADIS16350 behind a Bus Pirate: identify, configure, poll samples, self-test.
+
+    Args:
+        spi: the bridge (opened and closed by this driver).
+        rate_hz: requested output rate; the nearest SMPL_PRD setting is used.
+        range_dps: gyro range, 300, 150 or 75 deg/s.
+        taps: Bartlett FIR taps (power of two, at least 4 at 150 deg/s and 16 at 75 deg/s).
+        temp_period_s: how often the three temperatures and the supply are read.
+        clock: time source for pacing waits (shared with a simulator in tests).
+    """
+
+    name = "adis16350"
+    model = "ADIS16350"
+    stale_timeout_s = 0.5
+
+    def __init__(self, spi: BusPirateSPI, *, rate_hz: float = 102.4, range_dps: int = 300,
+                 taps: int | None = None, temp_period_s: float = 1.0,
+                 clock: Clock | None = None) -> None:
+        self.spi = spi
+        self.smpl_prd = smpl_prd_for_rate(rate_hz)
+        self.rate_hz = sample_rate_hz(self.smpl_prd)
+        if taps is None:
+            taps = max(4, 2 ** MIN_TAPS_EXPONENT.get(range_dps, 0))
+        self.sens_avg = sens_avg_value(range_dps, taps)
+        self.range_dps, self.taps = range_dps, taps
+        self.clock = clock or RealClock()
+        self.temp_every = max(1, int(round(temp_period_s * self.rate_hz)))
+        self.poll_period_s = 1.0 / (self.rate_hz * 1.02)
+        gyro_lsb = GYRO_LSB_DPS[range_dps] * DEG
+        scale = np.array([gyro_lsb] * 3 + [ACCEL_LSB_G * G0] * 3)
+        self.imu = StreamBuffer(f"/{self.name}/imu",
+                                ["gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"],
+                                self.rate_hz, lambda raw: raw * scale)
+        self.temperature = StreamBuffer(
+            f"/{self.name}/temperature", ["temp"], self.rate_hz / self.temp_every,
+            lambda raw: temp_c(raw[:, :3].mean(axis=1, keepdims=True)),
+            raw_names=["temp_x", "temp_y", "temp_z", "supply"])
+        self.status_seen: dict[str, int] = {}
+        self.stale_reads = 0
+        self.supply_v: float | None = None
+        self.endurance: int | None = None
+        self._last_fresh_host: float | None = None
+        self._phase = PolledSampleClock(self.rate_hz)
+        self._opened_at = 0.0
+        self.config: dict[str, str] = {}
+
+    # -- register access -------------------------------------------------------------------
+    def read_registers(self, names: list[str] | tuple[str, ...]) -> dict[str, int]:
+        """Raw 16-bit words of ``names`` with pipelined frames (N + 1 frames for N)."""
+        words = [read_command(n) for n in names] + [read_command("ENDURANCE")]
+        miso = self.spi.transfer_frames(words)
+        return {n: int(miso[i + 1]) for i, n in enumerate(names)}
+
+    def write_register(self, name: str, value: int, upper_first: bool = False) -> None:
+        self.spi.transfer_frames(write_commands(name, value, upper_first))
+
+    def command(self, bits: int) -> None:
+        """Write the COMMAND register (one frame: only the lower byte is defined)."""
+        self.spi.transfer_frames([WRITE_BIT | (ADDR["COMMAND"] << 8) | (bits & 0xFF)])
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def open(self) -> None:
+        """Connect, identify, configure rate and range, verify by reading back."""
+        self.spi.open()
+        self.spi.configure(SCLK_MAX_NORMAL_HZ * 0.9, mode=3)
+        try:
+            self.identify()
+        except PermanentDeviceError:
+            # Just powered up (first conversion after 150 ms): look once more.
+            self.clock.sleep(STARTUP_S)
+            self.identify()
+        if self._last_fresh_host is not None:
+            # Reopening after a fault: start the part from a clean state.
+            self.reset()
+        self.write_register("SMPL_PRD", self.smpl_prd)
+        # The datasheet asks for the range (upper byte) before the filter (lower byte).
+        self.write_register("SENS_AVG", self.sens_avg, upper_first=True)
+        back = self.read_registers(["SMPL_PRD", "SENS_AVG", "STATUS"])
+        if back["SMPL_PRD"] != self.smpl_prd or back["SENS_AVG"] != self.sens_avg:
+            raise TransientDeviceError(
+                f"ADIS16350 on {self.spi.port}: configuration did not stick (SMPL_PRD "
+                f"0x{back['SMPL_PRD']:04X}, SENS/AVG 0x{back['SENS_AVG']:04X})")
+        self.spi.configure(min(sclk_max_hz(self.smpl_prd), 1.0e6), mode=3)
+        # Discard whatever the output registers held from before the configuration.
+        self.clock.sleep(2.0 / self.rate_hz)
+        self.read_registers(list(IMU_REGISTERS))
+        self._opened_at = self.clock.now()
+        if self._last_fresh_host is not None:
+            self._phase.reconnected()
+        self.config = self._describe()
+
+    def close(self) -> None:
+        self.spi.close()
+
+    def identify(self) -> dict[str, int]:
+        """Check the answer pattern of an ADIS16350; PermanentDeviceError if it is not one."""
+        regs = self.read_registers(["SUPPLY_OUT", "SMPL_PRD", "SENS_AVG", "SUPPLY_OUT",
+                                    "ENDURANCE"])
+        where = f"ADIS16350 on {self.spi.port}"
+        words = [regs["SUPPLY_OUT"], regs["SMPL_PRD"], regs["SENS_AVG"]]
+        if all(w == 0xFFFF for w in words) or all(w == 0 for w in words):
+            raise PermanentDeviceError(f"{where}: no answer on SPI (MISO reads "
+                                       f"0x{words[0]:04X}; check wiring and sensor power)")
+        volts = float(supply_v(data12u(regs["SUPPLY_OUT"])))
+        lo, hi = SUPPLY_PLAUSIBLE_V
+        if not (lo <= volts <= hi) or regs["SUPPLY_OUT"] & 0x3000:
+            raise PermanentDeviceError(f"{where}: not an ADIS16350 (SUPPLY_OUT "
+                                       f"0x{regs['SUPPLY_OUT']:04X} = {volts:.2f} V, expected "
+                                       f"{lo}-{hi} V)")
+        if regs["SMPL_PRD"] & 0xFF00 or regs["SENS_AVG"] & 0xF8F8:
+            raise PermanentDeviceError(f"{where}: not an ADIS16350 (unused bits set: SMPL_PRD "
+                                       f"0x{regs['SMPL_PRD']:04X}, SENS/AVG "
+                                       f"0x{regs['SENS_AVG']:04X})")
+        try:
+            decode_sens_avg(regs["SENS_AVG"])
+        except ValueError as exc:
+            raise PermanentDeviceError(f"{where}: not an ADIS16350 ({exc})") from exc
+        self.supply_v = volts
+        self.endurance = regs["ENDURANCE"]
+        return regs
+
+    def reset(self) -> None:
+        """Software reset; waits until the part answers again."""
+        self.command(CMD_SOFTWARE_RESET)
+        self.clock.sleep(RESET_WAIT_S)
+
+    def self_test(self) -> list[str]:
+        """Run the internal self-test; the failing flags (empty list: passed)."""
+        self.spi.transfer_frames([WRITE_BIT | ((ADDR["MSC_CTRL"] + 1) << 8)
+                                  | (MSC_SELF_TEST >> 8)])
+        deadline = self.clock.now() + RESET_WAIT_S
+        self.clock.sleep(SELF_TEST_WAIT_S)
+        while self.read_registers(["MSC_CTRL"])["MSC_CTRL"] & MSC_SELF_TEST:
+            if self.clock.now() > deadline:
+                raise TransientDeviceError(f"ADIS16350 on {self.spi.port}: self-test did not "
+                                           "finish")
+            self.clock.sleep(0.01)
+        status = self.read_registers(["STATUS"])["STATUS"]
+        return decode_status(status)
+
+    def read_status(self) -> list[str]:
+        """Read (and so clear) STATUS; the flags that were set."""
+        return decode_status(self.read_registers(["STATUS"])["STATUS"])
+
+    def _describe(self) -> dict[str, str]:
+        gyro_lsb = GYRO_LSB_DPS[self.range_dps] * DEG
+        return {
+            "device": self.name, "model": self.model,
+            "transport": f"Bus Pirate binary SPI on {self.spi.port}, mode 3, "
+                         f"{(self.spi.speed_hz or 0) / 1e3:g} kHz",
+            "rate_hz": f"{self.rate_hz:.6g}", "smpl_prd": f"0x{self.smpl_prd:04X}",
+            "gyro_range_dps": str(self.range_dps), "filter_taps": str(self.taps),
+            "sens_avg": f"0x{self.sens_avg:04X}",
+            "scale_gyro_rad_s_per_lsb": f"{gyro_lsb:.9g}",
+            "scale_accel_m_s2_per_lsb": f"{ACCEL_LSB_G * G0:.9g}",
+            "scale_temp_degc_per_lsb": f"{TEMP_LSB_C}", "temp_offset_degc": f"{TEMP_OFFSET_C}",
+            "supply_v": f"{self.supply_v:.3f}" if self.supply_v is not None else "",
+            "flash_endurance": str(self.endurance),
+            "temperature_rate_hz": f"{self.rate_hz / self.temp_every:.6g}",
+        }
+
+    # -- sampling --------------------------------------------------------------------------
+    def poll(self) -> int:
+        """Read one sample if a new one is there; the number of fresh samples (0 or 1)."""
+        with_temp = self.imu.next_index % self.temp_every == 0
+        names = IMU_REGISTERS + (TEMP_REGISTERS if with_temp else ())
+        words = [read_command(n) for n in names] + [read_command("ENDURANCE")]
+        miso = self.spi.transfer_frames(words)[1:].astype(np.int64)
+        now = self.clock.now()
+        if not miso[0] & FLAG_ND:
+            self.stale_reads += 1
+            self._phase.stale(now, self.imu.next_index - 1)
+            since = max(self._last_fresh_host or self._opened_at, self._opened_at)
+            if now - since > max(self.stale_timeout_s, 20 / self.rate_hz):
+                raise TransientDeviceError(
+                    f"ADIS16350 on {self.spi.port}: no new data for {now - since:.2f} s "
+                    "(data-ready stuck)")
+            return 0
+        if np.any(miso & FLAG_EA):
+            self._note_status(self.read_registers(["STATUS"])["STATUS"])
+        missed = 0
+        if self._last_fresh_host is None:
+            self.imu.anchor(self.clock.wall())
+            self.temperature.anchor(self.clock.wall())
+            self._phase.fresh(now, 0)
+        else:
+            missed = self._phase.fresh(now, self.imu.next_index)
+        self._last_fresh_host = now
+        self.imu.add(data14(miso[:6]).tolist(), missed=missed)
+        if with_temp:
+            t = data12s(miso[6:9]).tolist()
+            self.temperature_add(t + [int(data12u(miso[9]))], self.imu.next_index - 1)
+        return 1
+
+    def temperature_add(self, row: list[int], imu_index: int) -> None:
+        """Temperature sample taken with IMU sample ``imu_index``."""
+        target = imu_index // self.temp_every
+        if target >= self.temperature.next_index:
+            self.temperature.add(row, missed=target - self.temperature.next_index)
+
+    def _note_status(self, status: int) -> None:
+        for flag in decode_status(status):
+            self.status_seen[flag] = self.status_seen.get(flag, 0) + 1
+
+    def take_blocks(self) -> list:
+        return self.imu.take() + self.temperature.take()
+
+    @property
+    def streams(self) -> list[StreamBuffer]:
+        return [self.imu, self.temperature]

@@ -1,0 +1,162 @@
+"""Pieces shared by the device drivers: stream buffers and sample-time reconstruction.
+
+A driver records each sample it reads as (sample index, raw counts). The sample index counts
+device samples since the first one, including samples known to be missed, so sample times are
+``t_anchor + index / fs`` (the configured rate and the count, never the host clock) and a jump
+in the index is a gap whose length is known.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from daq.blocks import SampleBlock
+
+
+class StreamBuffer:
+    """Raw samples of one stream waiting to become :class:`SampleBlock` objects.
+
+    Args:
+        stream: stream name, e.g. ``/adis16350/imu``.
+        channels: channel names in the order of the raw columns.
+        fs_hz: configured sample rate of the stream.
+        to_si: maps the raw count matrix ``(n, len(raw_names))`` to SI values
+            ``(n, len(channels))``.
+        raw_names: names under which raw columns go into ``SampleBlock.raw`` (default:
+            ``channels``); extra raw columns beyond the SI channels are allowed.
+    """
+
+    def __init__(self, stream: str, channels: Sequence[str], fs_hz: float,
+                 to_si: Callable[[np.ndarray], np.ndarray],
+                 raw_names: Sequence[str] | None = None) -> None:
+        self.stream = stream
+        self.channels = list(channels)
+        self.raw_names = list(raw_names) if raw_names is not None else list(channels)
+        self.fs_hz = float(fs_hz)
+        self.to_si = to_si
+        self.t_anchor: float | None = None
+        self._idx: list[int] = []
+        self._rows: list[Sequence[int]] = []
+        self._last_index = -1
+        self._last_emitted = -1
+        self.samples = 0
+        self.missed = 0
+        self.gaps = 0
+
+    def anchor(self, wall_time_s: float) -> None:
+        """Set the time of sample index 0 (host epoch seconds), once."""
+        if self.t_anchor is None:
+            self.t_anchor = float(wall_time_s)
+
+    @property
+    def next_index(self) -> int:
+        return self._last_index + 1
+
+    def add(self, row: Sequence[int], *, missed: int = 0) -> None:
+        """Append one sample that follows ``missed`` lost samples."""
+        index = self._last_index + 1 + max(0, int(missed))
+        self._idx.append(index)
+        self._rows.append(row)
+        self._last_index = index
+        self.samples += 1
+        if missed > 0:
+            self.missed += int(missed)
+            self.gaps += 1
+
+    def add_many(self, rows: np.ndarray, *, missed: int = 0) -> None:
+        """Append consecutive samples (a FIFO drain) after ``missed`` lost samples."""
+        n = len(rows)
+        if n == 0:
+            return
+        start = self._last_index + 1 + max(0, int(missed))
+        self._idx.extend(range(start, start + n))
+        self._rows.extend(np.asarray(rows).tolist())
+        self._last_index = start + n - 1
+        self.samples += n
+        if missed > 0:
+            self.missed += int(missed)
+            self.gaps += 1
+
+    def take(self) -> list[SampleBlock]:
+        """Blocks for everything buffered, split at gaps (``gap_before`` = samples missing)."""
+        if not self._idx:
+            return []
+        idx = np.asarray(self._idx, dtype=np.int64)
+        raw = np.asarray(self._rows, dtype=np.int64).reshape(len(idx), -1)
+        self._idx, self._rows = [], []
+        si = self.to_si(raw)
+        prev = np.concatenate(([self._last_emitted], idx[:-1]))
+        jumps = idx - prev - 1
+        starts = np.flatnonzero(jumps != 0)
+        if starts.size == 0 or starts[0] != 0:
+            starts = np.concatenate(([0], starts))
+        bounds = np.append(starts, len(idx))
+        t_anchor = self.t_anchor or 0.0
+        blocks = []
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            t = t_anchor + idx[a:b] / self.fs_hz
+            blocks.append(SampleBlock(
+                stream=self.stream, t=t,
+                channels={c: si[a:b, k].copy() for k, c in enumerate(self.channels)},
+                fs_hz=self.fs_hz,
+                raw={c: raw[a:b, k].copy() for k, c in enumerate(self.raw_names)},
+                gap_before=int(max(jumps[a], 0)),
+            ))
+        self._last_emitted = int(idx[-1])
+        return blocks
+
+
+class PolledSampleClock:
+    """Counts samples lost by a polled device (no FIFO, no sample counter on the chip).
+
+    Keeps ``anchor``, the host time at which the device's sample 0 would have appeared, so
+    that the newest sample at host time t is ``floor((t - anchor) * fs)``. A poll that finds
+    no new data pins the phase (the next sample has not come yet) and re-anchors by up to a
+    period, so the estimate follows the device's clock instead of drifting with the host's,
+    while a device that stalls still leaves a gap as long as the stall.
+    """
+
+    def __init__(self, fs_hz: float) -> None:
+        self.fs_hz = float(fs_hz)
+        self.anchor: float | None = None
+        self._resyncing = False
+        self._last_fresh: float | None = None
+
+    def reconnected(self) -> None:
+        """The device was reopened: until the next fresh sample, "no new data" says nothing
+        about the samples made while it was away."""
+        self._resyncing = True
+
+    def stale(self, t: float, last_index: int) -> None:
+        """A poll at host time ``t`` found nothing newer than ``last_index``."""
+        if last_index < 0 or self._resyncing or self._last_fresh is None:
+            return
+        if t - self._last_fresh > 1.5 / self.fs_hz:
+            return  # overdue: a stall, not jitter
+        pinned = t - (last_index + 0.5) / self.fs_hz
+        # Small corrections follow clock drift; a big one means the device stalled, and the
+        # time it lost must still show up as missing samples.
+        if self.anchor is None or abs(pinned - self.anchor) <= 1.0 / self.fs_hz:
+            self.anchor = pinned
+
+    def fresh(self, t: float, next_index: int) -> int:
+        """A poll at ``t`` found a new sample; how many were lost before it."""
+        self._resyncing = False
+        self._last_fresh = t
+        if self.anchor is None:
+            self.anchor = t - (next_index + 0.5) / self.fs_hz
+            return 0
+        newest = int(math.floor((t - self.anchor) * self.fs_hz))
+        if newest < next_index:
+            self.anchor = t - (next_index + 0.5) / self.fs_hz
+            return 0
+        return newest - next_index
+
+
+def sign_extend(values: np.ndarray | int, bits: int) -> np.ndarray:
+    """Two's-complement values of ``bits`` bits (upper bits ignored) as signed integers."""
+    v = np.asarray(values, dtype=np.int64) & ((1 << bits) - 1)
+    return np.where(v & (1 << (bits - 1)), v - (1 << bits), v)

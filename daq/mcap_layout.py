@@ -1,0 +1,332 @@
+"""Record-level layout of an MCAP file, read tolerantly (complete, crashed or truncated files).
+
+:func:`scan` walks the top-level records of the data section once (about three per chunk) and
+returns where every chunk, message index, schema, channel and metadata record lies, without
+decompressing chunks except to find Schema/Channel records that a crashed file has only inside
+chunks. It stops at the first record that does not fit in the file or is not a valid opcode,
+and says so in ``warnings``: everything before that point is usable.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+from dataclasses import dataclass, field
+
+import zstandard
+
+MAGIC = b"\x89MCAP0\r\n"
+
+OP_HEADER = 0x01
+OP_FOOTER = 0x02
+OP_SCHEMA = 0x03
+OP_CHANNEL = 0x04
+OP_MESSAGE = 0x05
+OP_CHUNK = 0x06
+OP_MESSAGE_INDEX = 0x07
+OP_METADATA = 0x0C
+OP_DATA_END = 0x0F
+OP_MAX = 0x0F
+
+RECORD_PREFIX = 9  # opcode u8 + length u64
+MESSAGE_HEADER = 22  # channel u16, sequence u32, log_time u64, publish_time u64
+FOOTER_LENGTH = RECORD_PREFIX + 20
+
+_U8 = struct.Struct("<B")
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+_PREFIX = struct.Struct("<BQ")
+_CHUNK_HEAD = struct.Struct("<QQQI")
+
+
+class McapFormatError(ValueError):
+    """The file is not an MCAP file, or its records cannot be parsed."""
+
+
+@dataclass
+class SchemaInfo:
+    id: int
+    name: str
+    encoding: str
+    data: bytes
+
+
+@dataclass
+class ChannelInfo:
+    id: int
+    schema_id: int
+    topic: str
+    message_encoding: str
+    metadata: dict[str, str]
+
+
+@dataclass
+class ChunkInfo:
+    """One Chunk record and the MessageIndex records that follow it.
+
+    ``mi`` maps channel id to (file offset of the first (log_time, offset) entry, entry count).
+    ``has_index`` is False when no MessageIndex follows the chunk (the records must be walked).
+    """
+
+    start: int
+    end: int
+    message_start_time: int
+    message_end_time: int
+    uncompressed_size: int
+    uncompressed_crc: int
+    compression: str
+    data_offset: int
+    data_length: int
+    mi: dict[int, tuple[int, int]] = field(default_factory=dict)
+    mi_end: int = 0
+    walked: bool = False
+
+    @property
+    def has_index(self) -> bool:
+        return bool(self.mi)
+
+
+@dataclass
+class MetadataInfo:
+    name: str
+    data: dict[str, str]
+    offset: int
+    length: int
+
+
+@dataclass
+class McapLayout:
+    """What :func:`scan` found. ``data_end`` is the end of the last complete record of the data
+    section (where a repaired file's DataEnd goes); ``complete`` is True when a DataEnd record
+    was reached and the footer is intact (a cleanly finished file)."""
+
+    size: int
+    profile: str = ""
+    library: str = ""
+    schemas: dict[int, SchemaInfo] = field(default_factory=dict)
+    channels: dict[int, ChannelInfo] = field(default_factory=dict)
+    chunks: list[ChunkInfo] = field(default_factory=list)
+    metadata: list[MetadataInfo] = field(default_factory=list)
+    unchunked_messages: int = 0
+    data_end: int = 0
+    complete: bool = False
+    has_summary: bool = False
+    footer_ok: bool = False
+    warnings: list[str] = field(default_factory=list)
+
+
+def _string(buf, pos: int) -> tuple[str, int]:
+    (n,) = _U32.unpack_from(buf, pos)
+    pos += 4
+    return bytes(buf[pos:pos + n]).decode("utf-8", "replace"), pos + n
+
+
+def _map(buf, pos: int) -> tuple[dict[str, str], int]:
+    (n,) = _U32.unpack_from(buf, pos)
+    pos += 4
+    end = pos + n
+    out: dict[str, str] = {}
+    while pos < end:
+        key, pos = _string(buf, pos)
+        value, pos = _string(buf, pos)
+        out[key] = value
+    return out, end
+
+
+def parse_schema(buf, pos: int) -> SchemaInfo:
+    (sid,) = _U16.unpack_from(buf, pos)
+    name, pos = _string(buf, pos + 2)
+    encoding, pos = _string(buf, pos)
+    (n,) = _U32.unpack_from(buf, pos)
+    return SchemaInfo(sid, name, encoding, bytes(buf[pos + 4:pos + 4 + n]))
+
+
+def parse_channel(buf, pos: int) -> ChannelInfo:
+    cid, sid = struct.unpack_from("<HH", buf, pos)
+    topic, pos = _string(buf, pos + 4)
+    encoding, pos = _string(buf, pos)
+    metadata, _ = _map(buf, pos)
+    return ChannelInfo(cid, sid, topic, encoding, metadata)
+
+
+def iter_records(buf, start: int, end: int):
+    """Yield (opcode, body_start, body_end) of the records in ``buf[start:end]``; stops
+    quietly at a record that does not fit."""
+    pos = start
+    limit = end - RECORD_PREFIX
+    while pos <= limit:
+        op, n = _PREFIX.unpack_from(buf, pos)
+        body = pos + RECORD_PREFIX
+        if body + n > end:
+            return
+        yield op, body, body + n
+        pos = body + n
+
+
+_ZSTD = threading.local()
+
+
+def decompress(compression: str, data, uncompressed_size: int) -> bytes | memoryview:
+    """Decompress one chunk's records (``""``, ``"zstd"`` or ``"lz4"``)."""
+    if compression == "":
+        return data
+    if compression == "zstd":
+        dctx = getattr(_ZSTD, "dctx", None)
+        if dctx is None:  # a decompression context is costly to create: one per thread
+            dctx = _ZSTD.dctx = zstandard.ZstdDecompressor()
+        return dctx.decompress(data, max_output_size=uncompressed_size)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(bytes(data))
+    raise McapFormatError(f"unsupported chunk compression {compression!r}")
+
+
+def chunk_records(buf, chunk: ChunkInfo) -> bytes | memoryview:
+    data = buf[chunk.data_offset:chunk.data_offset + chunk.data_length]
+    return decompress(chunk.compression, data, chunk.uncompressed_size)
+
+
+def _read_summary_definitions(buf, size: int, layout: McapLayout) -> None:
+    """Schemas and channels from the summary section of a cleanly finished file."""
+    if size < len(MAGIC) * 2 + FOOTER_LENGTH or bytes(buf[size - 8:size]) != MAGIC:
+        return
+    foot = size - 8 - FOOTER_LENGTH
+    op, n = _PREFIX.unpack_from(buf, foot)
+    if op != OP_FOOTER or n != 20:
+        return
+    (summary_start,) = _U64.unpack_from(buf, foot + RECORD_PREFIX)
+    layout.footer_ok = True
+    if summary_start == 0 or summary_start >= foot:
+        return
+    for op, a, _b in iter_records(buf, summary_start, foot):
+        if op == OP_SCHEMA:
+            s = parse_schema(buf, a)
+            layout.schemas[s.id] = s
+        elif op == OP_CHANNEL:
+            c = parse_channel(buf, a)
+            layout.channels[c.id] = c
+    layout.has_summary = True
+
+
+def walk_chunk(buf, chunk: ChunkInfo, layout: McapLayout,
+               collect: set[int] | None = None) -> dict[int, list[tuple[int, int]]]:
+    """Walk the records of one chunk: register its Schema/Channel records in ``layout`` and
+    return (log_time, record offset in the decompressed chunk) of the messages of channels in
+    ``collect``."""
+    records = chunk_records(buf, chunk)
+    offsets: dict[int, list[tuple[int, int]]] = {}
+    for op, a, b in iter_records(records, 0, len(records)):
+        if op == OP_MESSAGE:
+            if collect is not None:
+                (cid,) = _U16.unpack_from(records, a)
+                if cid in collect:
+                    (log_time,) = _U64.unpack_from(records, a + 6)
+                    offsets.setdefault(cid, []).append((log_time, a - RECORD_PREFIX))
+        elif op == OP_SCHEMA:
+            s = parse_schema(records, a)
+            layout.schemas.setdefault(s.id, s)
+        elif op == OP_CHANNEL:
+            c = parse_channel(records, a)
+            layout.channels.setdefault(c.id, c)
+        del b
+    chunk.walked = True
+    return offsets
+
+
+def scan(buf, size: int | None = None) -> McapLayout:
+    """Scan an MCAP file held in ``buf`` (an mmap or bytes). Raises McapFormatError when the
+    file does not start with the MCAP magic and a Header record."""
+    size = len(buf) if size is None else size
+    layout = McapLayout(size=size)
+    if size < len(MAGIC) + RECORD_PREFIX or bytes(buf[:8]) != MAGIC:
+        raise McapFormatError("not an MCAP file (bad magic)")
+    op, n = _PREFIX.unpack_from(buf, 8)
+    if op != OP_HEADER or 8 + RECORD_PREFIX + n > size:
+        raise McapFormatError("not an MCAP file (no header record)")
+    layout.profile, pos = _string(buf, 8 + RECORD_PREFIX)
+    layout.library, _ = _string(buf, pos)
+    _read_summary_definitions(buf, size, layout)
+
+    pos = 8 + RECORD_PREFIX + n
+    layout.data_end = pos
+    chunks = layout.chunks
+    last: ChunkInfo | None = None
+    unknown_pending = False
+    while True:
+        if pos + RECORD_PREFIX > size:
+            if pos < size or not layout.complete:
+                layout.warnings.append(
+                    f"file ends without a summary after {pos} bytes (crashed or truncated "
+                    "recording): read up to the last complete record")
+            break
+        op, n = _PREFIX.unpack_from(buf, pos)
+        body = pos + RECORD_PREFIX
+        end = body + n
+        if op == 0 or op > OP_MAX or end > size:
+            layout.warnings.append(
+                f"file is truncated or damaged at byte {pos} of {size}: read up to the last "
+                "complete record")
+            break
+        if op == OP_CHUNK:
+            t0, t1, usize, crc = _CHUNK_HEAD.unpack_from(buf, body)
+            comp, p = _string(buf, body + 28)
+            (rlen,) = _U64.unpack_from(buf, p)
+            last = ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, mi_end=end)
+            chunks.append(last)
+        elif op == OP_MESSAGE_INDEX:
+            (cid,) = _U16.unpack_from(buf, body)
+            (nbytes,) = _U32.unpack_from(buf, body + 2)
+            if last is not None and last.mi_end == pos:
+                last.mi[cid] = (body + 6, nbytes // 16)
+                last.mi_end = end
+                if cid not in layout.channels:
+                    unknown_pending = True
+        elif op == OP_SCHEMA:
+            s = parse_schema(buf, body)
+            layout.schemas.setdefault(s.id, s)
+        elif op == OP_CHANNEL:
+            c = parse_channel(buf, body)
+            layout.channels.setdefault(c.id, c)
+        elif op == OP_MESSAGE:
+            layout.unchunked_messages += 1
+        elif op == OP_METADATA:
+            name, p = _string(buf, body)
+            data, _ = _map(buf, p)
+            layout.metadata.append(MetadataInfo(name, data, pos, end - pos))
+        elif op == OP_DATA_END:
+            layout.complete = layout.footer_ok
+            if not layout.complete:
+                layout.warnings.append("file has a damaged summary or footer: read up to the "
+                                       "end of its data section")
+            layout.data_end = pos
+            break
+        if unknown_pending and (op != OP_MESSAGE_INDEX):
+            _discover_channels(buf, layout)
+            unknown_pending = False
+        pos = end
+        layout.data_end = pos
+    if unknown_pending:
+        _discover_channels(buf, layout)
+    if not layout.complete and chunks and chunks[-1].mi_end >= layout.data_end:
+        # The message indexes after the last chunk of a crashed file may be cut short.
+        chunks[-1].mi = {}
+        chunks[-1].mi_end = chunks[-1].end
+    for chunk in chunks:
+        if not chunk.mi and not chunk.walked:
+            walk_chunk(buf, chunk, layout)
+    return layout
+
+
+def _discover_channels(buf, layout: McapLayout) -> None:
+    """Find Channel/Schema records of channel ids named by message indexes, walking chunks
+    backwards from the newest (a channel record precedes its first message)."""
+    wanted = {cid for c in layout.chunks for cid in c.mi if cid not in layout.channels}
+    for chunk in reversed(layout.chunks):
+        if not wanted:
+            return
+        if chunk.walked:
+            continue
+        walk_chunk(buf, chunk, layout)
+        wanted = {cid for cid in wanted if cid not in layout.channels}

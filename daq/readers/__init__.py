@@ -1,0 +1,80 @@
+"""Input files to :class:`daq.record.Record`: one entry point, dispatching on the path.
+
+- ``.csv``: :mod:`daq.readers.csv` (CONTRACT.md's column layout).
+- ``.mcap``: the bulk numpy reader (:mod:`daq.readers.mcap`), falling back to per-message
+  decoding through rosbags (:mod:`daq.readers.rosbag`) for layouts the bulk reader does not take.
+- a rosbag2 folder (``metadata.yaml``): rosbags; a folder holding exactly one ``.mcap`` file is
+  read as that file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from daq.record import Record
+
+
+class ReadError(ValueError):
+    """The input cannot be read: missing, unsupported, empty or malformed. One-line message."""
+
+
+def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
+    """Read a recording into memory.
+
+    Args:
+        path: a ``.csv`` or ``.mcap`` file, or a rosbag2 folder.
+        rate_hz: nominal sampling rate in Hz; needed for a CSV without a time column ``t``,
+            otherwise it overrides the rate inferred from the time stamps.
+
+    Raises:
+        ReadError: missing, unsupported, empty or malformed input.
+    """
+    p = Path(path)
+    if rate_hz is not None and not rate_hz > 0:
+        raise ReadError(f"bad rate {rate_hz}: must be a positive number of Hz")
+    if not p.exists():
+        raise ReadError(f"{p}: no such file or directory")
+    if p.is_dir():
+        if (p / "metadata.yaml").is_file():
+            return _read_bag(p)
+        mcaps = sorted(p.glob("*.mcap"))
+        if len(mcaps) == 1:
+            return _read_mcap_file(mcaps[0])
+        raise ReadError(f"{p}: is a folder but not a rosbag2 bag (no metadata.yaml)")
+    suffix = p.suffix.lower()
+    if suffix == ".csv":
+        from daq.readers.csv import read_csv
+
+        return read_csv(p, rate_hz=rate_hz)
+    if suffix == ".mcap":
+        return _read_mcap_file(p)
+    raise ReadError(f"{p}: unsupported file type {suffix or '(none)'!r}: expected .csv, .mcap "
+                    "or a rosbag2 folder")
+
+
+def _read_bag(path: Path) -> Record:
+    from daq.readers.rosbag import RosbagReadError, read_rosbag
+
+    try:
+        return read_rosbag(path)
+    except RosbagReadError as exc:
+        raise ReadError(str(exc)) from exc
+
+
+def _read_mcap_file(path: Path) -> Record:
+    from daq.mcap_layout import McapFormatError
+    from daq.readers.mcap import UnsupportedLayout, read_mcap
+    from daq.readers.rosbag import RosbagReadError, read_rosbag
+
+    try:
+        return read_mcap(path)
+    except UnsupportedLayout as exc:
+        reason = str(exc)
+    except (McapFormatError, OSError) as exc:
+        raise ReadError(f"{path.name}: {exc}") from exc
+    try:
+        record = read_rosbag(path)
+    except RosbagReadError as exc:
+        raise ReadError(f"{path.name}: {reason}; per-message reading failed too ({exc})") from exc
+    record.warnings.insert(0, f"read message by message ({reason})")
+    return record

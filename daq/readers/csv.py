@@ -1,0 +1,250 @@
+"""CSV recordings: one header row, a time column ``t`` in seconds (or a given rate), channel
+columns ``gyro_x gyro_y gyro_z`` (rad/s) and ``accel_x accel_y accel_z`` (m/s^2), any subset, and
+``temp`` (degC). Other columns are ignored.
+
+How imperfect files are read (each case adds a one-line warning to the record):
+
+- a gap in ``t`` (an interval off the nominal one by more than half a period) starts a new
+  segment; the estimators never bridge it;
+- time going backwards or repeating also starts a new segment (the samples are kept);
+- rows whose ``t`` is not a finite number are dropped (they cannot be placed in time);
+- a NaN, an infinite or an empty channel value removes that sample from that channel only and
+  splits the channel's segment around it;
+- an incomplete last line (a logger killed mid-write) is dropped.
+
+Anything else that is malformed (no known channel columns, text where a number should be, a row
+with a different number of fields, binary data) is a :class:`ReadError` naming the line.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+
+from analysis.series import ChannelSeries, channel_units, estimate_rate, segment_starts_from_times
+from daq.readers import ReadError
+from daq.record import TEMPERATURE_KEY, Record
+
+TIME_COLUMN = "t"
+CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
+_DELIMITERS = (",", ";", "\t")
+_ROW_ERROR = re.compile(r"at row (\d+)")
+_NON_SPACE = re.compile(rb"\S")
+_EMPTY_FIELD = re.compile(rb"(?<=[,;\t])(?=[,;\t\r\n])|^(?=[,;\t])|(?<=[,;\t])$", re.MULTILINE)
+
+
+def _header(data: bytes, path: Path) -> tuple[list[str], str, int]:
+    """Column names, delimiter and the byte offset where the data rows start."""
+    end = data.find(b"\n")
+    line = data if end < 0 else data[:end]
+    body_start = len(data) if end < 0 else end + 1
+    if b"\x00" in data[:4096]:
+        raise ReadError(f"{path}: not a CSV file (binary data)")
+    try:
+        text = line.decode("utf-8-sig").strip()
+    except UnicodeDecodeError:
+        raise ReadError(f"{path}: not a CSV file (header is not text)") from None
+    delim = next((d for d in _DELIMITERS if d in text), ",")
+    names = [n.strip().strip('"').strip("'").strip().lower() for n in text.split(delim)]
+    return names, delim, body_start
+
+
+def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                        int]:
+    """Drop non-finite samples; a segment starts where ``seg_flags`` says or after a dropped one.
+
+    Returns the kept values, their segment starts and the number dropped.
+    """
+    bad = ~np.isfinite(values)
+    n_bad = int(bad.sum())
+    if n_bad == 0:
+        return values, np.flatnonzero(seg_flags).astype(np.int64), 0
+    keep = ~bad
+    flags = seg_flags.copy()
+    flags[1:] |= bad[:-1]
+    new_index = np.cumsum(keep) - 1
+    starts = new_index[flags & keep]
+    return values[keep], starts.astype(np.int64), n_bad
+
+
+def _describe_gaps(t: np.ndarray, starts: np.ndarray) -> list[str]:
+    if len(starts) <= 1:
+        return []
+    idx = starts[1:]
+    dt = t[idx] - t[idx - 1]
+    back = int(np.sum(dt <= 0))
+    out = []
+    if back:
+        first = int(idx[np.argmax(dt <= 0)])
+        out.append(f"time goes backwards or repeats {back} time(s) (first at data row "
+                   f"{first + 1}); treated as gaps")
+    fwd = dt[dt > 0]
+    if fwd.size:
+        out.append(f"{fwd.size} gap(s) in time (largest {float(fwd.max()):.6g} s); segments are "
+                   "analysed separately")
+    return out
+
+
+def _load(text: bytes, usecols: list[int], delim: str, path: Path) -> np.ndarray:
+    """Parse the rows after the header line of ``text`` (the whole file)."""
+    def attempt(buf: bytes) -> np.ndarray:
+        return np.loadtxt(io.BytesIO(buf), delimiter=delim, usecols=usecols, dtype=np.float64,
+                          ndmin=2, comments=None, encoding="utf-8", skiprows=1)
+
+    try:
+        try:
+            return attempt(text)
+        except ValueError as exc:
+            if "string ''" not in str(exc):
+                raise
+            # empty fields are missing values: read them as NaN
+            return attempt(_EMPTY_FIELD.sub(b"nan", text))
+    except (ValueError, UnicodeDecodeError) as exc:
+        found = _locate_bad_line(text, usecols, delim)
+        msg = found if found else _ROW_ERROR.sub("", str(exc).split(";")[0]).strip()
+        raise ReadError(f"{path}: bad CSV data: {msg}") from None
+
+
+def _locate_bad_line(text: bytes, usecols: list[int], delim: str) -> str | None:
+    """Describe the first data line the fast parser rejected (error path only)."""
+    need = max(usecols) + 1
+    d = delim.encode()
+    for number, line in enumerate(text.split(b"\n")[1:], start=2):
+        fields = line.rstrip(b"\r").split(d)
+        if len(fields) == 1 and not fields[0].strip():
+            continue
+        if len(fields) < need:
+            return f"line {number} has {len(fields)} field(s), expected at least {need}"
+        for c in usecols:
+            value = fields[c].strip()
+            try:
+                float(value or b"nan")
+            except ValueError:
+                shown = value[:20].decode("utf-8", "replace")
+                return f"line {number}, column {c + 1}: {shown!r} is not a number"
+    return None
+
+
+def _blank(data: bytes, start: int = 0) -> bool:
+    return _NON_SPACE.search(data, start) is None
+
+
+def _drop_incomplete_last_line(data: bytes, body_start: int, delim: str, n_names: int,
+                               warnings: list[str]) -> bytes:
+    """Drop the last line if it has fewer fields than the line before it (or the header).
+
+    ``data`` is the whole file; the data rows begin at ``body_start``. Copies only when a line
+    is dropped.
+    """
+    end = len(data)
+    while end > body_start and data[end - 1] in b"\r\n":
+        end -= 1
+    cut = data.rfind(b"\n", body_start, end)
+    d = delim.encode()
+    if cut >= 0:
+        prev_start = data.rfind(b"\n", body_start, cut) + 1 or body_start
+        expected = data.count(d, max(prev_start, body_start), cut)
+        last_start = cut + 1
+    else:
+        expected = n_names - 1
+        last_start = body_start
+    if data.count(d, last_start, end) < expected:
+        warnings.append("last line is incomplete (file cut off while writing); dropped")
+        return data[:last_start]
+    return data
+
+
+def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
+    """Read an IMU CSV file into a :class:`Record` (SI units, gap-free segments).
+
+    Args:
+        path: the CSV file.
+        rate_hz: nominal sampling rate in Hz. Required when there is no ``t`` column; with one,
+            it replaces the rate inferred from the median time step.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ReadError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if _blank(data):
+        raise ReadError(f"{path}: empty file")
+    names, delim, body_start = _header(data, path)
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ReadError(f"{path}: duplicate column(s) {', '.join(dup)}")
+    channels = [c for c in CHANNEL_COLUMNS if c in names]
+    if not channels:
+        shown = ", ".join(n for n in names[:8] if n) or "(none)"
+        raise ReadError(f"{path}: no IMU channel columns (expected some of "
+                        f"{', '.join(CHANNEL_COLUMNS)}; found {shown})")
+    has_t = TIME_COLUMN in names
+    if not has_t and rate_hz is None:
+        raise ReadError(f"{path}: no time column 't'; give the sampling rate with --rate HZ")
+    has_temp = TEMPERATURE_KEY in names
+
+    warnings: list[str] = []
+    data = _drop_incomplete_last_line(data, body_start, delim, len(names), warnings)
+    if _blank(data, body_start):
+        raise ReadError(f"{path}: no data rows after the header")
+
+    wanted = ([TIME_COLUMN] if has_t else []) + channels + ([TEMPERATURE_KEY] if has_temp else [])
+    usecols = [names.index(c) for c in wanted]
+    table = _load(data, usecols, delim, path)
+    cols = dict(zip(wanted, np.ascontiguousarray(table.T), strict=True))
+    n_rows = table.shape[0]
+
+    if has_t:
+        t = cols[TIME_COLUMN]
+        good_t = np.isfinite(t)
+        if not good_t.all():
+            n_bad = int((~good_t).sum())
+            warnings.append(f"{n_bad} row(s) without a valid time dropped")
+            cols = {k: v[good_t] for k, v in cols.items()}
+            t = cols[TIME_COLUMN]
+        if len(t) < 2:
+            raise ReadError(f"{path}: need at least two rows with valid times")
+        try:
+            fs = float(rate_hz) if rate_hz is not None else estimate_rate(t)
+        except ValueError as exc:
+            raise ReadError(f"{path}: {exc}") from None
+        starts = segment_starts_from_times(t, fs)
+        warnings.extend(_describe_gaps(t, starts))
+        t0 = float(t[0])
+    else:
+        fs = float(rate_hz)  # type: ignore[arg-type]
+        starts = np.zeros(1, dtype=np.int64)
+        t0 = 0.0
+    n = len(next(iter(cols.values())))
+    seg_flags = np.zeros(n, dtype=bool)
+    seg_flags[starts] = True
+
+    def series(name: str) -> ChannelSeries | None:
+        values, seg_starts, n_bad = _split_channel(cols[name], seg_flags)
+        if n_bad:
+            warnings.append(f"{name}: {n_bad} missing or non-finite value(s) removed; segments "
+                            "split around them")
+        if values.size == 0:
+            warnings.append(f"{name}: no valid values; channel left out")
+            return None
+        return ChannelSeries(name=name, units=channel_units(name), fs_hz=fs, values=values,
+                             segment_starts=seg_starts, t0_s=t0)
+
+    out: dict[str, ChannelSeries] = {}
+    for name in channels:
+        s = series(name)
+        if s is not None:
+            out[name] = s
+    if not out:
+        raise ReadError(f"{path}: no valid values in any IMU channel")
+    temperature = series(TEMPERATURE_KEY) if has_temp else None
+    ignored = [n for n in names if n not in wanted]
+    metadata = {"format": "csv", "rows": str(n_rows), "columns": ",".join(wanted),
+                "fs_hz": f"{fs:.9g}"}
+    if ignored:
+        metadata["ignored_columns"] = ",".join(ignored)
+    return Record(source=str(path), channels=out, temperature=temperature, metadata=metadata,
+                  warnings=warnings)

@@ -1,0 +1,87 @@
+"""Common wire behaviour of simple I2C register chips: a pointer, auto-increment, reads."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from daq.clock import Clock
+
+CHUNK = 4096
+
+
+class RegisterChip:
+    """Byte registers behind a pointer that the first written byte sets.
+
+    Subclasses override :meth:`_update` (bring registers up to the clock), :meth:`_on_write`
+    and :meth:`_read_byte` for registers with side effects.
+    """
+
+    n_registers = 0x40
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self.regs = bytearray(self.n_registers)
+        self.pointer = 0
+        self.power_on = clock.now()
+
+    def i2c_write(self, data: bytes) -> None:
+        self._update()
+        if not data:
+            return
+        self.pointer = data[0] % self.n_registers
+        for value in data[1:]:
+            self._on_write(self.pointer, value)
+            self.pointer = self._next(self.pointer)
+
+    def i2c_read(self, n: int) -> bytes:
+        self._update()
+        out = bytearray()
+        start = self.pointer
+        for _ in range(n):
+            out.append(self._read_byte(self.pointer) & 0xFF)
+            self.pointer = self._next(self.pointer)
+        self._after_read(start, n)
+        return bytes(out)
+
+    def _next(self, pointer: int) -> int:
+        return (pointer + 1) % self.n_registers
+
+    def _update(self) -> None:
+        pass
+
+    def _on_write(self, reg: int, value: int) -> None:
+        self.regs[reg] = value
+
+    def _read_byte(self, reg: int) -> int:
+        return self.regs[reg]
+
+    def _after_read(self, start: int, n: int) -> None:
+        pass
+
+
+class SourceBuffer:
+    """Draws a triad signal source in chunks and hands out the next samples in order."""
+
+    def __init__(self, source) -> None:
+        self.source = source
+        self._buf = np.zeros((0, 3))
+        self._pos = 0
+
+    def take(self, n: int) -> np.ndarray:
+        parts = []
+        while n > 0:
+            if self._pos >= len(self._buf):
+                self._buf, self._pos = self.source(max(CHUNK, min(n, 1 << 16))), 0
+            k = min(n, len(self._buf) - self._pos)
+            parts.append(self._buf[self._pos:self._pos + k])
+            self._pos += k
+            n -= k
+        return np.vstack(parts) if parts else np.zeros((0, 3))
+
+    def skip_take_last(self, n: int) -> np.ndarray:
+        """Advance ``n`` samples (n >= 1), returning only the last (bounded memory)."""
+        while n > len(self._buf) - self._pos:
+            n -= len(self._buf) - self._pos
+            self._buf, self._pos = self.source(CHUNK), 0
+        self._pos += n
+        return self._buf[self._pos - 1]

@@ -1,0 +1,111 @@
+"""``imunoise record``: record a device into crash-safe ROS 2 MCAP files."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from imunoise.errors import RuntimeFailure, UsageError
+from imunoise.options import parse_duration
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("record", help="record a device to MCAP", description=__doc__ + """
+
+Files are ROS 2 bags (sensor_msgs/msg/Imu on /DEVICE/imu, sensor_msgs/msg/Temperature on
+/DEVICE/temperature, gap and status events on /diagnostics), flushed and fsync'ed every second
+and rotated hourly, named DEVICE_YYYYmmddTHHMMSSZ.mcap (UTC start time). Ctrl-C stops cleanly.""",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", required=True, metavar="DEV",
+                   help="adis16350, itg3200, adxl345, razor, sim:adis16350 or sim:razor")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--port", metavar="P", help="serial port of the SPI bridge")
+    where.add_argument("--bus", type=int, metavar="N", help="I2C bus number")
+    p.add_argument("--rate", type=float, metavar="HZ", help="sampling rate in Hz")
+    p.add_argument("--duration", metavar="D", help="stop after D (90s, 30m, 8h); default: "
+                   "until Ctrl-C")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--rotate", default="1h", metavar="D",
+                   help="start a new file after D (default 1h; 0 = never)")
+    p.add_argument("--seed", type=int, help="random seed of a simulated device")
+    p.set_defaults(func=run)
+
+
+def _status_line(rec, acq, t_start: float) -> str:
+    stats = getattr(acq, "stats", None)
+    dropped = getattr(stats, "dropped", 0) if stats is not None else 0
+    state = getattr(stats, "state", "") if stats is not None else ""
+    elapsed = max(time.monotonic() - t_start, 1e-9)
+    rate = rec.stats.samples / elapsed
+    size = rec.stats.bytes_written / 1e6
+    name = Path(rec.stats.file).name if rec.stats.file else "-"
+    hms = time.strftime("%H:%M:%S", time.gmtime(elapsed))
+    return (f"{hms}  {rate:8.1f} Hz  {rec.stats.samples:>10,d} samples  {dropped} dropped  "
+            f"{state}  {name}  {size:.2f} MB")
+
+
+def run(args: argparse.Namespace) -> int:
+    duration = parse_duration(args.duration) if args.duration else None
+    rotate_s = None if args.rotate.strip() in ("0", "0s") else parse_duration(args.rotate)
+    if args.rate is not None and not args.rate > 0:
+        raise UsageError(f"bad rate {args.rate}: must be positive (Hz)")
+    try:
+        from daq.devices import open_device
+    except ImportError as exc:
+        raise RuntimeFailure(f"device drivers are not available ({exc})") from exc
+    from daq import ros2_msgs
+    from daq.recorder import McapRecorder
+
+    try:
+        acq = open_device(args.device, port=args.port, bus=args.bus, rate_hz=args.rate,
+                          seed=args.seed)
+    except (ValueError, KeyError) as exc:
+        raise UsageError(f"record: {exc}") from exc
+    except OSError as exc:
+        raise RuntimeFailure(f"record: cannot open {args.device}: {exc}") from exc
+    try:
+        rec = McapRecorder(args.out, args.device, config=dict(getattr(acq, "config", {}) or {}),
+                           rate_hz=args.rate, rotate_s=rotate_s)
+    except OSError as exc:
+        acq.close()
+        raise RuntimeFailure(f"record: {exc}") from exc
+    tty = sys.stderr.isatty()
+    t_start = time.monotonic()
+    last_print = 0.0
+    last_state = None
+    interrupted = False
+    try:
+        for block in acq.blocks(duration):
+            rec.write(block)
+            state = getattr(getattr(acq, "stats", None), "state", None)
+            if state != last_state and last_state is not None:
+                rec.event(ros2_msgs.WARN if state not in ("running", "ok") else ros2_msgs.OK,
+                          f"device state: {state}", {"event": "state", "state": str(state)},
+                          t=float(block.t[-1]) if len(block) else None)
+            last_state = state
+            if rec.error:
+                break
+            now = time.monotonic()
+            if now - last_print >= (0.5 if tty else 60.0):
+                line = _status_line(rec, acq, t_start)
+                print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr,
+                      flush=True)
+                last_print = now
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        try:
+            acq.stop()
+        finally:
+            acq.close()
+            rec.close()
+    if tty:
+        print(file=sys.stderr)
+    if rec.error:
+        raise RuntimeFailure(f"record: {rec.error}")
+    files = ", ".join(rec.stats.files) or "no file (no samples)"
+    how = "stopped by Ctrl-C" if interrupted else "done"
+    print(f"record: {how}: {rec.stats.samples} samples in {files}", file=sys.stderr)
+    return 0

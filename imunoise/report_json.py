@@ -1,0 +1,126 @@
+"""JSON documents of the command line (``analyze``, ``fit``, ``diagnose``), built in one place.
+
+Every number is a plain float; a value that is not finite becomes ``null`` so the output is
+strict JSON. Shapes follow the contract: a channel document carries ``channel, units, fs_hz,
+n_samples, duration_s, model, error, failures, allan`` and, for ``analyze``, ``psd``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from analysis.series import ChannelSeries
+
+if TYPE_CHECKING:
+    from analysis.psd import PsdEstimate
+
+
+class AllanLike(Protocol):
+    """The parts of an Allan curve (``analysis.allan.AllanCurve``) that the JSON shows."""
+
+    tau_s: np.ndarray
+    dev: np.ndarray
+    ci_low: np.ndarray
+    ci_high: np.ndarray
+    edf: np.ndarray
+    ci: float
+
+
+def floats(values: Iterable[float] | np.ndarray) -> list[float | None]:
+    """A list of plain floats, non-finite values as None."""
+    arr = np.asarray(values, dtype=np.float64).ravel()
+    return [float(v) if np.isfinite(v) else None for v in arr.tolist()]
+
+
+def number(value: float | None) -> float | None:
+    """One plain float, or None when missing or not finite."""
+    if value is None:
+        return None
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
+def allan_json(curve: AllanLike | None, model_adev: Sequence[float] | np.ndarray = (),
+               z: Sequence[float] | np.ndarray = ()) -> dict[str, Any]:
+    """The ``allan`` object: measured deviation with its interval, model curve and z-scores."""
+    if curve is None:
+        return {"tau_s": [], "adev": [], "ci_low": [], "ci_high": [], "model_adev": floats(
+            model_adev), "z": floats(z), "edf": [], "ci": None}
+    return {
+        "tau_s": floats(curve.tau_s),
+        "adev": floats(curve.dev),
+        "ci_low": floats(curve.ci_low),
+        "ci_high": floats(curve.ci_high),
+        "model_adev": floats(model_adev),
+        "z": floats(z),
+        "edf": floats(curve.edf),
+        "ci": number(curve.ci),
+    }
+
+
+def psd_json(est: PsdEstimate | None) -> dict[str, Any]:
+    """The ``psd`` object: one-sided PSD (units^2/Hz) with its interval, dof and method."""
+    if est is None:
+        return {"f_hz": [], "psd": [], "ci_low": [], "ci_high": [], "dof": [], "method": [],
+                "ci": None}
+    return {
+        "f_hz": floats(est.f_hz),
+        "psd": floats(est.psd),
+        "ci_low": floats(est.ci_low),
+        "ci_high": floats(est.ci_high),
+        "dof": floats(est.dof),
+        "method": [str(m) for m in est.method],
+        "ci": number(est.ci),
+    }
+
+
+def channel_json(
+    series: ChannelSeries,
+    allan: AllanLike | None,
+    *,
+    model: Sequence[Mapping[str, Any]] = (),
+    error: Mapping[str, Any] | None = None,
+    failures: Sequence[Mapping[str, Any]] = (),
+    model_adev: Sequence[float] | np.ndarray = (),
+    z: Sequence[float] | np.ndarray = (),
+    psd: PsdEstimate | None = None,
+    include_psd: bool = False,
+    warnings: Sequence[str] = (),
+    channel: str | None = None,
+) -> dict[str, Any]:
+    """One channel's document (the ``fit`` shape, plus ``psd`` when ``include_psd``).
+
+    ``channel`` is the record's key for the series (default: the series name).
+    """
+    doc: dict[str, Any] = {
+        "channel": channel or series.name,
+        "units": series.units,
+        "fs_hz": number(series.fs_hz),
+        "n_samples": series.n_samples,
+        "duration_s": number(series.duration_s),
+        "n_segments": int(len(series.segment_starts)),
+        "model": [dict(m) for m in model],
+        "error": dict(error) if error is not None else None,
+        "failures": [dict(f) for f in failures],
+        "allan": allan_json(allan, model_adev, z),
+    }
+    if include_psd or psd is not None:
+        doc["psd"] = psd_json(psd)
+    if warnings:
+        doc["warnings"] = list(warnings)
+    return doc
+
+
+def analyze_json(file: str, channels: Mapping[str, dict[str, Any]],
+                 warnings: Sequence[str] = ()) -> dict[str, Any]:
+    """The ``analyze`` document: ``{"file", "channels": {key: channel document}, "warnings"}``."""
+    return {"file": file, "channels": dict(channels), "warnings": list(warnings)}
+
+
+def dumps(doc: Mapping[str, Any]) -> str:
+    """Strict JSON text (no NaN or Infinity tokens)."""
+    return json.dumps(doc, allow_nan=False, separators=(",", ":"))

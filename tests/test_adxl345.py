@@ -1,0 +1,131 @@
+"""ADXL345: scaling and rate codes; FIFO behaviour of the model; the driver against the model
+under the real smbus2 at every rate code and every range."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from daq.clock import VirtualClock
+from daq.devices import open_device
+from daq.drivers import adxl345 as ax
+from daq.errors import PermanentDeviceError
+from daq.sim.adxl345 import Adxl345Sim
+from daq.sim.fake_i2c import SimulatedI2CAdapter
+from daq.transports.i2c import I2CBus
+from tests.daq_helpers import G0, constant, record
+
+
+def test_scaling_and_byte_order():
+    assert ax.accel_m_s2(256) == pytest.approx(G0)  # 256 LSB/g
+    assert ax.accel_m_s2(1) / G0 * 1e3 == pytest.approx(3.9, abs=0.01)  # 3.9 mg/LSB
+    b = np.array([0x00, 0x01, 0x00, 0xFF, 0x01, 0x00])  # little-endian
+    assert ax.decode_data(b).tolist() == [[256, -256, 1]]
+
+
+def test_rate_codes():
+    assert ax.odr_hz(0x0F) == 3200 and ax.odr_hz(0x0A) == 100
+    assert ax.odr_hz(0x00) == pytest.approx(0.1, rel=0.03)  # table rounds 0.0977 Hz
+    assert ax.rate_code(100) == 0x0A and ax.rate_code(3200) == 0x0F
+    assert ax.rate_code(0.1) == 0x00 and ax.rate_code(12.5) == 0x07
+    assert ax.data_format(2) == 0x08 and ax.data_format(16) == 0x0B
+    with pytest.raises(ValueError, match="choose one of"):
+        ax.data_format(3)
+
+
+def _chip():
+    clock = VirtualClock()
+    sim = Adxl345Sim(clock, constant((0.0, 0.0, G0)))
+    bus = SimulatedI2CAdapter({0x53: sim}, clock=clock).open_bus()
+    return clock, sim, bus
+
+
+def test_power_up_state_and_standby():
+    clock, sim, bus = _chip()
+    assert bus.read_byte_data(0x53, ax.REG["DEVID"]) == 0xE5
+    assert bus.read_byte_data(0x53, ax.REG["BW_RATE"]) == 0x0A
+    clock.advance(1.0)
+    assert bus.read_byte_data(0x53, ax.REG["FIFO_STATUS"]) == 0  # standby: no data
+    assert sim.samples_made == 0
+
+
+def test_fifo_stream_mode_overrun_and_pop():
+    clock, sim, bus = _chip()
+    bus.write_byte_data(0x53, ax.REG["DATA_FORMAT"], 0x08)
+    bus.write_byte_data(0x53, ax.REG["FIFO_CTL"], (ax.FIFO_STREAM << 6) | 16)
+    bus.write_byte_data(0x53, ax.REG["POWER_CTL"], 0x08)
+    clock.advance(0.1001)  # 10 samples at 100 Hz
+    assert bus.read_byte_data(0x53, ax.REG["FIFO_STATUS"]) & 0x3F == 10
+    src = bus.read_byte_data(0x53, ax.REG["INT_SOURCE"])
+    assert src & ax.INT_DATA_READY and not src & ax.INT_WATERMARK
+    row = bus.read_i2c_block_data(0x53, ax.REG["DATAX0"], 6)
+    assert ax.decode_data(np.array(row)).tolist() == [[0, 0, 256]]
+    assert bus.read_byte_data(0x53, ax.REG["FIFO_STATUS"]) & 0x3F == 9  # popped one
+    clock.advance(1.0)  # 100 more: stream mode keeps the newest 33
+    assert bus.read_byte_data(0x53, ax.REG["FIFO_STATUS"]) & 0x3F == 33
+    assert bus.read_byte_data(0x53, ax.REG["INT_SOURCE"]) & ax.INT_OVERRUN
+    assert sim.samples_lost == 109 - 33
+    bus.read_i2c_block_data(0x53, ax.REG["DATAX0"], 6)
+    assert not bus.read_byte_data(0x53, ax.REG["INT_SOURCE"]) & ax.INT_OVERRUN
+
+
+ACCEL = (0.7, -1.2, G0)
+
+
+@pytest.mark.parametrize("code", range(16))
+def test_driver_against_simulator_every_rate(code):
+    rate = ax.odr_hz(code)
+    n_target = 100
+    acq = open_device("sim:adxl345", rate_hz=rate, realtime=False, accel=constant(ACCEL))
+    sim = acq.simulator.adxl
+    rec = record(acq, n_target / rate)
+    imu = rec["/adxl345/imu"]
+    assert acq.config["bw_rate"] == f"0x{code:02X}"
+    assert acq.stats.dropped == 0
+    assert abs(len(imu["t"]) - n_target) <= max(3, 0.1 * rate / 10 + 1) + 33
+    # Whatever was made and not read is still in the FIFO: nothing vanished.
+    assert len(imu["t"]) + len(sim.fifo) == sim.samples_made
+    lsb = G0 / 256
+    tol = lsb * (1.0 if code >= 0x0E else 0.5) + 1e-12  # LSB forced to 0 at 1600/3200 Hz
+    for k, axis in enumerate("xyz"):
+        assert np.allclose(imu["ch"][f"accel_{axis}"], ACCEL[k], atol=tol)
+    t = imu["t"]
+    assert np.allclose(np.diff(t), 1 / rate, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("range_g", [2, 4, 8, 16])
+def test_driver_every_range_full_resolution(range_g):
+    accel = (1.5 * G0, -1.9 * G0, 3.0 * G0)
+    acq = open_device("sim:adxl345", rate_hz=100, realtime=False, range_g=range_g,
+                      accel=constant(accel))
+    rec = record(acq, 0.5)
+    raw = rec["/adxl345/imu"]["raw"]
+    assert np.all(raw["accel_x"] == 384)  # 1.5 g at 256 LSB/g, any range
+    assert np.all(raw["accel_y"] == round(-1.9 * 256))
+    top = 2 ** (ax.full_res_bits(range_g) - 1) - 1
+    assert np.all(raw["accel_z"] == min(768, top))  # 3 g clips at +-2 g (10 bits)
+
+
+def test_fifo_overrun_becomes_a_gap_of_the_right_length():
+    acq = open_device("sim:adxl345", rate_hz=400, realtime=False, accel=constant(ACCEL))
+    sim = acq.simulator.adxl
+    n = 0
+    gaps = []
+    with acq:
+        for b in acq.blocks(3.0):
+            n += len(b)
+            gaps.append(b.gap_before)
+            if n > 400 and not sim.samples_lost:
+                acq.clock.advance(0.5)  # the host stalls for half a second
+    assert sim.samples_lost > 100
+    assert sum(gaps) == pytest.approx(sim.samples_lost, abs=2)
+    assert acq.driver.overruns == 1
+
+
+def test_wrong_devid_is_refused():
+    clock = VirtualClock()
+    sim = Adxl345Sim(clock, constant((0, 0, 0)))
+    sim.devid = 0x00
+    drv = ax.Adxl345(I2CBus(1, opener=SimulatedI2CAdapter({0x53: sim}).open_bus), clock=clock)
+    with pytest.raises(PermanentDeviceError, match="DEVID reads 0x00, expected 0xE5"):
+        drv.open()

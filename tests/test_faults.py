@@ -1,0 +1,180 @@
+"""Faults injected by the simulators, through the real pyserial / smbus2 stacks and the
+acquisition loop: transient ones are survived with the gap marked, permanent ones stop the
+loop with a clear message."""
+
+from __future__ import annotations
+
+import pytest
+
+from daq.devices import open_device
+from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
+from daq.transports.i2c import I2CBus
+from tests.daq_helpers import G0, constant
+
+GYRO = (0.01, 0.02, -0.03)
+ACCEL = (0.0, 0.0, G0)
+
+
+def adis(**kw):
+    return open_device("sim:adis16350", rate_hz=102.4, realtime=False, timeout_s=0.1,
+                       gyro=constant(GYRO), accel=constant(ACCEL), **kw)
+
+
+def run(acq, duration, fault_at_s, inject):
+    """Record ``duration`` s of device time; call ``inject(acq)`` once at ``fault_at_s``."""
+    blocks = []
+    done = False
+    t0 = None
+    with acq:
+        for b in acq.blocks(duration):
+            t0 = b.t[0] if t0 is None else t0
+            blocks.append(b)
+            if not done and b.t[-1] - t0 >= fault_at_s:
+                inject(acq)
+                done = True
+    return blocks
+
+
+def imu_count(blocks, stream_suffix="/imu"):
+    n = sum(len(b) for b in blocks if b.stream.endswith(stream_suffix))
+    dropped = sum(b.gap_before for b in blocks if b.stream.endswith(stream_suffix))
+    return n, dropped
+
+
+def assert_accounted(acq, blocks, duration, rate, slack=3):
+    """Delivered plus flagged-missing samples cover the whole run; times stay on the grid."""
+    n, dropped = imu_count(blocks)
+    assert dropped == acq.stats.dropped
+    assert abs(n + dropped - duration * rate) <= slack
+    imu = [b for b in blocks if b.stream.endswith("/imu")]
+    for prev, b in zip(imu[:-1], imu[1:], strict=True):
+        steps = round((b.t[0] - prev.t[-1]) * rate)
+        assert steps == b.gap_before + 1
+
+
+def test_serial_garbage_reconnects_and_marks_the_gap():
+    acq = adis()
+    blocks = run(acq, 6.0, 2.0, lambda a: a.simulator.emulator.inject_garbage(5))
+    assert acq.stats.reconnects == 1 and acq.stats.gaps == 1
+    assert "garbage" in acq.stats.last_error
+    assert acq.stats.dropped > 10  # reset and restart of the part take a few tenths of a s
+    assert_accounted(acq, blocks, 6.0, 102.4)
+    assert acq.stats.state == "stopped"
+
+
+def test_bridge_that_stops_answering_for_a_while():
+    acq = adis()
+
+    def inject(a):
+        a.simulator.emulator.mute = True
+        a.clock.call_at(a.clock.now() + 1.0,
+                        lambda: setattr(a.simulator.emulator, "mute", False))
+
+    blocks = run(acq, 8.0, 1.0, inject)
+    assert acq.stats.reconnects == 1
+    assert "no answer" in acq.stats.last_error
+    assert acq.stats.dropped > 0
+    assert_accounted(acq, blocks, 8.0, 102.4)
+
+
+def test_dead_bridge_fails_with_a_clear_message():
+    acq = adis()
+    acq.max_outage_s = 1.0
+    with pytest.raises(AcquisitionFailed, match=r"no answer.*gave up after 1 s") as exc:
+        run(acq, 30.0, 1.0, lambda a: setattr(a.simulator.emulator, "mute", True))
+    assert acq.simulator.emulator.port in str(exc.value)
+    assert acq.stats.state.startswith("failed: ")
+    assert acq.stats.reconnects == 0
+
+
+def test_unplug_and_replug_of_the_tty():
+    acq = adis()
+
+    def inject(a):
+        a.simulator.emulator.unplug()
+        a.clock.call_at(a.clock.now() + 1.0, a.simulator.emulator.replug)
+
+    blocks = run(acq, 8.0, 2.0, inject)
+    assert acq.stats.reconnects == 1
+    assert_accounted(acq, blocks, 8.0, 102.4)
+
+
+def test_adis_stuck_data_ready_is_cured_by_a_reset():
+    acq = adis()
+    blocks = run(acq, 8.0, 2.0, lambda a: setattr(a.simulator, "stuck_data", True))
+    assert acq.stats.reconnects == 1
+    assert "data-ready stuck" in acq.stats.last_error
+    n, dropped = imu_count(blocks)
+    assert dropped >= 0.5 * 102.4  # at least the stale timeout
+    assert_accounted(acq, blocks, 8.0, 102.4)
+
+
+def itg(**kw):
+    return open_device("sim:itg3200", rate_hz=100, realtime=False, gyro=constant(GYRO), **kw)
+
+
+def test_short_nack_burst_is_absorbed_by_retries():
+    acq = itg()
+    blocks = run(acq, 3.0, 1.0, lambda a: a.simulator.adapter.nack_burst(2))
+    assert acq.driver.bus.retried == 2
+    assert acq.stats.reconnects == 0 and acq.stats.dropped == 0
+    assert_accounted(acq, blocks, 3.0, 100.0)
+
+
+@pytest.mark.parametrize("kind", ["nack_burst", "io_error_burst"])
+def test_long_i2c_error_burst_reconnects(kind):
+    acq = itg()
+    blocks = run(acq, 4.0, 1.0, lambda a: getattr(a.simulator.adapter, kind)(10))
+    assert acq.stats.reconnects == 1
+    reason = "no answer (NACK)" if kind == "nack_burst" else "I/O error"
+    assert reason in acq.stats.last_error and "device 0x68" in acq.stats.last_error
+    assert acq.stats.dropped > 0
+    assert_accounted(acq, blocks, 4.0, 100.0)
+
+
+def test_itg_stuck_data_ready_reconnects_with_a_reset():
+    acq = itg()
+    blocks = run(acq, 5.0, 1.0, lambda a: setattr(a.simulator.itg, "stuck_ready", True))
+    assert acq.stats.reconnects == 1
+    assert "no data-ready" in acq.stats.last_error
+    assert acq.stats.dropped >= 50
+    assert_accounted(acq, blocks, 5.0, 100.0)
+
+
+def test_wrong_chip_after_reconnect_stops_the_loop():
+    acq = open_device("sim:razor", rate_hz=100, realtime=False)
+
+    def inject(a):
+        a.simulator.itg.who_am_i = 0x00
+        a.simulator.adapter.nack_burst(10)
+
+    with pytest.raises(AcquisitionFailed, match="WHO_AM_I reads 0x00"):
+        run(acq, 10.0, 1.0, inject)
+    assert acq.stats.state.startswith("failed: ITG-3200 at 0x68")
+
+
+def test_wrong_chip_at_start_is_an_error_not_a_retry():
+    acq = open_device("sim:adxl345", rate_hz=100, realtime=False)
+    acq.simulator.adxl.devid = 0x1F
+    with pytest.raises(PermanentDeviceError, match="DEVID reads 0x1F"):
+        acq.open()
+    acq.close()
+
+
+def test_missing_bus_and_no_permission_name_the_bus():
+    acq = open_device("itg3200", bus=97)
+    with pytest.raises(DeviceError, match=r"I2C bus 97 \(/dev/i2c-97\): not found"):
+        acq.open()
+
+    def denied(bus):
+        raise PermissionError(13, "Permission denied")
+
+    i2c = I2CBus(5, opener=denied)
+    with pytest.raises(PermanentDeviceError, match=r"I2C bus 5 .*permission denied.*i2c group"):
+        i2c.open()
+
+
+def test_missing_serial_port_is_named():
+    acq = open_device("adis16350", port="/dev/ttyNOPE0")
+    with pytest.raises(DeviceError, match="/dev/ttyNOPE0: not found"):
+        acq.open()
