@@ -9,6 +9,16 @@ from pathlib import Path
 from imunoise.errors import RuntimeFailure, UsageError
 
 
+def check_output_folder(path: str | Path) -> None:
+    """Fail early (before long work) when the folder of an output file does not exist."""
+    path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise UsageError(f"{path}: folder {directory} does not exist")
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder, not a file name")
+
+
 def write_text_atomically(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same folder, then rename.
 

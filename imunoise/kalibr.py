@@ -15,8 +15,10 @@ a random walk, both in continuous time, and uses one value per sensor for all th
 Axis combination: by default the largest of the three axes' point estimates (``max``, the
 conservative choice for a filter); ``rms`` (root mean square) and ``mean`` are offered. An
 optional inflation factor multiplies all four values and is stated in the file. When an axis'
-K estimate is zero (random walk not resolved within the record), its upper 95 % bound is used
-instead and the file says so. Each axis' own values and 95 % intervals are written as comments.
+random walk is not resolved within the record (K zero, or its interval collapsed onto the
+estimate), K is replaced by the largest value the measured Allan band allows,
+min over tau of sqrt(3 ci_high^2 / tau), and the file says so. Each axis' own values and 95 %
+intervals are written as comments.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ class AxisValues:
     N_ci: tuple[float, float] | None
     K: float
     K_ci: tuple[float, float] | None
-    K_from_upper_bound: bool = False
+    K_from_allan_bound: bool = False
 
 
 @dataclass
@@ -81,8 +83,26 @@ def _term(channel_doc: Mapping, term: str, param: str) -> tuple[float, tuple | N
     return None
 
 
+def _allan_bound(channel_doc: Mapping) -> float | None:
+    """Largest K consistent with the measured Allan band: min over tau of sqrt(3 hi^2 / tau).
+
+    A random walk adds K^2 tau/3 to the Allan variance, so it cannot exceed the measured upper
+    95 % bound at any averaging time.
+    """
+    al = channel_doc.get("allan") or {}
+    tau, hi = al.get("tau_s") or [], al.get("ci_high") or []
+    vals = [math.sqrt(3.0 * h * h / t) for t, h in zip(tau, hi, strict=False)
+            if t and h is not None and t > 0 and math.isfinite(h) and h > 0]
+    return min(vals) if vals else None
+
+
 def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
-    """N and K of one fitted channel (contract JSON ``fit`` keys)."""
+    """N and K of one fitted channel (contract JSON ``fit`` keys).
+
+    When the random walk is not resolved (K zero, or its interval collapsed onto the estimate,
+    as when the fit sits on its lower bound), K becomes the largest value the measured Allan
+    band allows (:func:`_allan_bound`), and the axis is marked.
+    """
     n = _term(channel_doc, "white", "N")
     k = _term(channel_doc, "random_walk", "K")
     missing = [t for t, v in (("white", n), ("random_walk", k)) if v is None]
@@ -90,12 +110,15 @@ def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
         raise KalibrError(f"{name}: the fitted model has no {' or '.join(missing)} term; Kalibr "
                           "needs white and random_walk")
     k_val, k_ci = k
-    upper = False
-    if k_val <= 0.0:
-        if not k_ci or not k_ci[1] > 0:
-            raise KalibrError(f"{name}: random walk K is zero with no upper bound; record longer")
-        k_val, upper = k_ci[1], True
-    return AxisValues(name, n[0], n[1], k_val, k_ci, upper)
+    resolved = k_val > 0.0 and k_ci is not None and k_ci[1] > k_val * (1.0 + 1e-6)
+    bounded = False
+    if not resolved:
+        bound = _allan_bound(channel_doc)
+        if bound is None:
+            raise KalibrError(f"{name}: random walk K is not resolved and the Allan curve is "
+                              "missing: record longer data")
+        k_val, bounded = bound, True
+    return AxisValues(name, n[0], n[1], k_val, k_ci, bounded)
 
 
 def _combine(values: list[float], how: str) -> float:
@@ -206,7 +229,8 @@ def render_yaml(imu: KalibrImu, source: str = "") -> str:
         _, _, n_unit, k_unit = _KIND_KEYS[kind]
         for ax in imu.axes.get(kind, []):
             lines.append(f"#   {ax.channel}: N = {_f(ax.N)} {n_unit} ({_ci_text(ax.N_ci)})")
-            note = " (zero estimate: upper 95 % bound used)" if ax.K_from_upper_bound else ""
+            note = (" (random walk not resolved: largest K inside the measured Allan band)"
+                    if ax.K_from_allan_bound else "")
             lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} ({_ci_text(ax.K_ci)})"
                          f"{note}")
     return "\n".join(lines) + "\n"

@@ -24,6 +24,7 @@ import numpy as np
 from analysis.discrete import DiscreteModel, discretize, simulate
 
 MAX_CHECK_SAMPLES = 1 << 23  # 8.4 M samples: 67 MB per array, about two seconds to simulate
+DEFAULT_MODEL = ("white", "bias_instability", "random_walk")
 
 
 def _model_tuples(doc: Mapping) -> list[tuple[str, dict[str, float]]]:
@@ -69,7 +70,7 @@ def discrete_check(dm: DiscreteModel, doc: Mapping, seed: int = 0) -> dict | Non
     if m.size == 0:
         return None
     y = simulate(dm, n, seed)
-    curve = oadev(y, fs, m=m)
+    curve = oadev(y, fs, m=m, alpha=0)  # only the deviation is used: skip noise identification
     sim_tau = np.asarray(curve.tau_s, dtype=np.float64)
     sim_dev = np.asarray(curve.dev, dtype=np.float64)
     # agreement at the measured taus that the simulation also has
@@ -161,3 +162,56 @@ def record_facts(record, channels: Mapping[str, Mapping] | None = None) -> dict:
     facts["metadata"] = {k: v for k, v in md.items() if k not in dropped and k != "device"}
     facts["warnings"] = list(getattr(record, "warnings", []) or [])
     return facts
+
+
+def fill_fit(doc: dict, curve, model=DEFAULT_MODEL) -> None:
+    """Fit ``model`` to a channel whose document has no model yet (CONTRACT.md fit keys).
+
+    ``curve`` is the channel's :class:`analysis.allan.AllanCurve`. On a curve too short for
+    the model the document keeps an empty model and gains a warning.
+    """
+    if doc.get("model") or curve is None:
+        return
+    from analysis.fit import fit_allan
+    from analysis.terms import TermError
+
+    try:
+        fit = fit_allan(curve, list(model))
+    except (ValueError, TermError) as exc:
+        doc.setdefault("warnings", []).append(f"no model fitted: {exc}")
+        return
+    doc["model"] = [t.to_dict() for t in fit.terms]
+    doc["error"] = fit.error_dict()
+    doc["failures"] = [dict(f) for f in fit.failures]
+    al = doc.setdefault("allan", {})
+    tau = np.asarray(al.get("tau_s") or [], dtype=np.float64)
+    model_adev = np.sqrt(fit.model_avar(tau)) if tau.size else np.array([])
+    z = np.full(tau.size, np.nan)
+    pos = np.searchsorted(tau, fit.tau_s)
+    ok = (pos < tau.size) & np.isclose(tau[np.minimum(pos, max(tau.size - 1, 0))], fit.tau_s)
+    z[pos[ok]] = np.asarray(fit.z)[ok]
+    al["model_adev"] = [float(v) if np.isfinite(v) else None for v in model_adev]
+    al["z"] = [float(v) if np.isfinite(v) else None for v in z]
+
+
+REPORT_ONLY_KEYS = ("terms_adev", "model_psd", "discrete_check")
+
+
+def complete_document(doc: dict, record, curves: Mapping[str, object], full: bool = False,
+                      seed: int = 0) -> dict:
+    """Fit channels that lack a model, add ``discrete_model`` (and, with ``full``, the
+    report's curves and the record's facts) to an ``analyze`` document."""
+    for key, ch in doc.get("channels", {}).items():
+        fill_fit(ch, curves.get(key))
+        extend_channel(ch, full=full, seed=seed)
+    if full:
+        doc["record"] = record_facts(record)
+    return doc
+
+
+def without_report_extras(doc: dict) -> dict:
+    """The document as ``analyze --json`` prints it: no report-only curves or facts."""
+    out = {k: v for k, v in doc.items() if k != "record"}
+    out["channels"] = {k: {kk: vv for kk, vv in ch.items() if kk not in REPORT_ONLY_KEYS}
+                       for k, ch in doc.get("channels", {}).items()}
+    return out

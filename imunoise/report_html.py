@@ -266,7 +266,7 @@ def _allan_plot(name: str, ch: Mapping, units: str) -> str:
             d = np.asarray(dev, dtype=np.float64)
             if d.size == tau.size:
                 p.line(tau, d, f"term: {term}", color=PALETTE[(i + 2) % len(PALETTE)],
-                       width=1.2, dash="5 3")
+                       width=1.2, dash="5 3", autoscale=False)
         chk = ch.get("discrete_check") or {}
         st = _arr(chk, "tau_s")
         if st.size:

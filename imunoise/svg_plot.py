@@ -34,6 +34,7 @@ class _Item:
     width: float = 1.6
     dash: str | None = None
     opacity: float = 0.25
+    autoscale: bool = True  # whether the item's values set the axis ranges
 
 
 @dataclass
@@ -72,10 +73,14 @@ class Plot:
         return self
 
     def line(self, x, y, label: str | None = None, color: str | None = None,
-             width: float = 1.6, dash: str | None = None) -> Plot:
-        """Polyline through the points; broken where a value is missing or not drawable."""
+             width: float = 1.6, dash: str | None = None, autoscale: bool = True) -> Plot:
+        """Polyline through the points; broken where a value is missing or not drawable.
+
+        With ``autoscale=False`` the line does not widen the y range (a negligible model term
+        far below the data is clipped rather than squeezing the data into a corner).
+        """
         self.items.append(_Item("line", label, self._color(color), _arr(x), _arr(y),
-                                width=width, dash=dash))
+                                width=width, dash=dash, autoscale=autoscale))
         return self
 
     def markers(self, x, y, label: str | None = None, color: str | None = None,
@@ -144,7 +149,7 @@ class Plot:
         for it in self.items:
             if axis == "x":
                 vals.append(it.x)
-            else:
+            elif it.autoscale:
                 vals.extend(a for a in (it.y, it.y2, it.y0) if a is not None)
         if not vals:
             return None

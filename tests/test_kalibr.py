@@ -74,12 +74,23 @@ def test_yaml_reads_back_with_exact_keys_and_comments():
     assert "#   accel_x: K = 4.000000e-05 m/s^3/sqrt(Hz)" in text
 
 
-def test_zero_random_walk_uses_upper_bound_and_says_so():
+def test_unresolved_random_walk_uses_the_allan_band_bound():
     ch = _doc()["channels"]
-    ch["gyro_z"] = _channel(1.5e-4, 0.0, k_ci=[0.0, 9.0e-6])
+    # K on its lower bound with a collapsed interval, as a fit reports an unresolved term
+    ch["gyro_z"] = _channel(1.5e-4, 5.8e-19, k_ci=[5.8e-19, 5.8e-19])
+    ch["gyro_z"]["allan"] = {"tau_s": [1.0, 10.0, 100.0, 1000.0],
+                             "ci_high": [2e-4, 7e-5, 3e-5, 2e-5]}
     imu = kalibr_values(ch)
-    assert imu.gyroscope_random_walk == 9.0e-6
-    assert "(zero estimate: upper 95 % bound used)" in render_yaml(imu)
+    # bound = min sqrt(3 hi^2 / tau) = sqrt(3) * min(2e-4, 2.21e-5, 3e-6, 6.32e-7)
+    bound = math.sqrt(3.0) * 2e-5 / math.sqrt(1000.0)
+    assert imu.axes["gyro"][2].K == pytest.approx(bound, rel=1e-12)
+    assert imu.gyroscope_random_walk == 3.0e-6  # gyro_y's resolved K is still the largest
+    text = render_yaml(imu)
+    assert "gyro_z: K = 1.095445e-06" in text
+    assert "(random walk not resolved: largest K inside the measured Allan band)" in text
+    ch["gyro_z"]["allan"] = {}
+    with pytest.raises(KalibrError, match="gyro_z: random walk K is not resolved"):
+        kalibr_values(ch)
 
 
 def test_missing_parts_are_clear_errors():

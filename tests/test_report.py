@@ -217,3 +217,13 @@ def test_svg_plot_axes_and_gaps():
     lin.markers([1.0, 10.0], [-3.0, 2.0]).hline(0.0)
     svg = lin.svg()
     assert ">\u22122<" in svg and ">0<" in svg and ">2<" in svg
+
+
+def test_negligible_term_does_not_stretch_the_axis():
+    tau = np.array([0.01, 0.1, 1.0, 10.0])
+    p = Plot("t", "tau (s)", "adev (rad/s)")
+    p.line(tau, [1e-3, 3e-4, 1e-4, 3e-5], "measured")
+    p.line(tau, [1e-20, 1e-19, 1e-18, 1e-17], "term: random_walk", autoscale=False)
+    svg = p.svg()
+    assert 'font-size="9">\u22123</tspan>' in svg
+    assert 'font-size="9">\u221219</tspan>' not in svg
