@@ -23,6 +23,7 @@ from html import escape
 
 import numpy as np
 
+from analysis.units import conventional, si_unit
 from imunoise import __version__
 from imunoise.svg_plot import PALETTE, Plot
 
@@ -45,25 +46,20 @@ _PARAM_ORDER = ("N", "Q", "B", "K", "R", "sigma", "T", "A", "f", "coef")
 
 
 def _conventional(param: str, kind: str) -> tuple[str, float] | None:
-    """Conventional unit label and SI-to-conventional factor, when the units table has one."""
-    try:
-        from analysis.units import conventional
-    except ImportError:
-        return None
+    """Conventional unit label and SI-to-conventional factor, None for an unknown parameter."""
     try:
         label, factor = conventional(param, kind)
-    except (KeyError, ValueError):
+    except ValueError:
         return None
     return str(label), float(factor)
 
 
-def _si_unit(param: str, units: str) -> str:
-    """SI unit of a term parameter for a channel in ``units`` (rad/s or m/s^2)."""
-    base, rate = ("rad", "rad/s") if units.startswith("rad") else ("m/s", "m/s^2")
-    return {
-        "N": f"{rate}/\u221aHz", "Q": base, "B": rate, "K": f"{rate}/\u221as",
-        "R": f"{rate}/s", "sigma": rate, "T": "s", "A": rate, "f": "Hz", "coef": f"{rate}/\u00b0C",
-    }.get(param, "")
+def _si_unit(param: str, kind: str) -> str:
+    """SI unit of a term parameter for a gyro or accelerometer channel."""
+    try:
+        return si_unit(param, kind)
+    except ValueError:
+        return ""
 
 
 def _num(v: float | None, digits: int = 4) -> str:
@@ -81,7 +77,7 @@ def _num(v: float | None, digits: int = 4) -> str:
 def _interval(ci: Sequence[float] | None, factor: float = 1.0) -> str:
     if not ci or len(ci) != 2 or ci[0] is None or ci[1] is None:
         return "\u2013"
-    return f"[{_num(ci[0] * factor, 3)}, {_num(ci[1] * factor, 3)}]"
+    return f"[{_num(ci[0] * factor)}, {_num(ci[1] * factor)}]"
 
 
 def _kind(channel: str) -> str:
@@ -175,7 +171,7 @@ def _summary_section(channels: Mapping[str, Mapping]) -> str:
                 cells.append(f'<td class="num">{_num(v * conv[1], 3)} {escape(conv[0])}</td>')
             else:
                 cells.append(f'<td class="num">{_num(v, 3)} '
-                             f'{escape(_si_unit(p, ch.get("units", "")))}</td>')
+                             f'{escape(_si_unit(p, _kind(name)))}</td>')
         err = ch.get("error") or {}
         chi2 = err.get("chi2_per_dof")
         cells.append(f'<td class="num">{_num(chi2, 3)}</td>')
@@ -193,19 +189,19 @@ def _channel_section(name: str, ch: Mapping) -> str:
     out = [f'<h2 id="ch-{escape(name)}">{escape(name)} <span class="muted">({escape(units)}, '
            f'{_num(ch.get("fs_hz"), 6)} Hz, {ch.get("n_samples", "?")} samples)</span></h2>']
     out.append("<h3>Fitted model</h3>")
-    out.append(_coefficient_table(ch, kind, units))
+    out.append(_coefficient_table(ch, kind))
     out.append(_error_block(ch))
     out.append('<div class="plots">')
     out.append(_allan_plot(name, ch, units))
     out.append(_z_plot(name, ch))
     out.append(_psd_plot(name, ch, units))
     out.append("</div>")
-    out.append(_discrete_block(ch, units))
+    out.append(_discrete_block(ch, units, kind))
     out.append(_diagnosis_block(ch))
     return "\n".join(out)
 
 
-def _coefficient_table(ch: Mapping, kind: str, units: str) -> str:
+def _coefficient_table(ch: Mapping, kind: str) -> str:
     model = ch.get("model") or []
     if not model:
         return '<p class="muted">No model was fitted.</p>'
@@ -218,7 +214,7 @@ def _coefficient_table(ch: Mapping, kind: str, units: str) -> str:
         keys = sorted(params, key=lambda p: _PARAM_ORDER.index(p) if p in _PARAM_ORDER else 99)
         for p in keys:
             v = float(params[p])
-            si = _si_unit(p, units)
+            si = _si_unit(p, kind)
             conv = _conventional(p, kind)
             conv_cells = ("<td>\u2013</td><td>\u2013</td>" if conv is None else
                           f'<td class="num">{_num(v * conv[1])} {escape(conv[0])}</td>'
@@ -304,7 +300,7 @@ def _psd_plot(name: str, ch: Mapping, units: str) -> str:
     return p.svg()
 
 
-def _discrete_block(ch: Mapping, units: str) -> str:
+def _discrete_block(ch: Mapping, units: str, kind: str) -> str:
     dm = ch.get("discrete_model")
     if not dm:
         return ""
@@ -313,7 +309,7 @@ def _discrete_block(ch: Mapping, units: str) -> str:
         ("white measurement noise \u03c3<sub>d</sub> = N\u221afs",
          f"{_num(dm['white_sigma'])} {escape(units)}"),
         ("quantization: angle error std Q (sample = \u0394e/dt)",
-         f"{_num(dm['quantization_sigma'])} {escape(units)}\u00b7s"),
+         f"{_num(dm['quantization_sigma'])} {escape(_si_unit('Q', kind))}"),
         ("random-walk bias step K\u221adt", f"{_num(dm['random_walk_step'])} {escape(units)}"),
     ]
     if dm.get("ramp_rate"):
