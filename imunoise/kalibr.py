@@ -229,10 +229,11 @@ def render_yaml(imu: KalibrImu, source: str = "") -> str:
         _, _, n_unit, k_unit = _KIND_KEYS[kind]
         for ax in imu.axes.get(kind, []):
             lines.append(f"#   {ax.channel}: N = {_f(ax.N)} {n_unit} ({_ci_text(ax.N_ci)})")
-            note = (" (random walk not resolved: largest K inside the measured Allan band)"
-                    if ax.K_from_allan_bound else "")
-            lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} ({_ci_text(ax.K_ci)})"
-                         f"{note}")
+            if ax.K_from_allan_bound:
+                lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} (random walk not "
+                             "resolved: largest K inside the measured Allan band)")
+            else:
+                lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} ({_ci_text(ax.K_ci)})")
     return "\n".join(lines) + "\n"
 
 

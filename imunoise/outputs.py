@@ -170,7 +170,7 @@ def fill_fit(doc: dict, curve, model=DEFAULT_MODEL) -> None:
     ``curve`` is the channel's :class:`analysis.allan.AllanCurve`. On a curve too short for
     the model the document keeps an empty model and gains a warning.
     """
-    if doc.get("model") or curve is None:
+    if doc.get("model") or curve is None or doc.get("units") not in ("rad/s", "m/s^2"):
         return
     from analysis.fit import fit_allan
     from analysis.terms import TermError

@@ -227,3 +227,69 @@ def test_negligible_term_does_not_stretch_the_axis():
     svg = p.svg()
     assert 'font-size="9">\u22123</tspan>' in svg
     assert 'font-size="9">\u221219</tspan>' not in svg
+
+
+# --- end to end: analyze --report on CSV and MCAP recordings ---------------------------------
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    from tests.outputs_inputs import write_csv, write_mcap
+
+    d = tmp_path_factory.mktemp("rec")
+    return {"csv": write_csv(d / "still.csv"), "mcap": write_mcap(d / "mcap")}
+
+
+@pytest.mark.parametrize("kind", ["csv", "mcap"])
+def test_analyze_report_end_to_end(recordings, kind, tmp_path, capsys):
+    import json
+
+    from imunoise.cli import main
+    from tests.outputs_inputs import FS
+
+    out = tmp_path / "night.html"
+    assert main(["analyze", str(recordings[kind]), "--json", "--report", str(out)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    html = out.read_text()
+    assert list(tmp_path.iterdir()) == [out]  # no temporary left behind
+    chans = doc["channels"]
+    assert sorted(chans) == sorted(f"{s}_{a}" for s in ("gyro", "accel") for a in "xyz")
+    inside = total = 0
+    for name, ch in chans.items():
+        # the JSON carries the discrete model and nothing that only the report needs
+        assert not {"terms_adev", "model_psd", "discrete_check"} & set(ch)
+        dm = ch["discrete_model"]
+        n_fit = next(t["params"]["N"] for t in ch["model"] if t["term"] == "white")
+        fs = ch["fs_hz"]
+        assert fs == pytest.approx(FS, rel=1e-8)
+        assert dm["white_sigma"] == pytest.approx(n_fit * np.sqrt(fs), rel=1e-12)
+        k_fit = next(t["params"]["K"] for t in ch["model"] if t["term"] == "random_walk")
+        assert dm["random_walk_step"] == pytest.approx(k_fit / np.sqrt(fs), rel=1e-12)
+        approx = dm["bias_instability_approximation"]
+        if approx is not None:  # B may be fitted as exactly zero on a short record
+            assert approx["max_rel_avar_error"] <= 0.02
+            assert approx["tau_range_s"][0] == pytest.approx(1 / fs)
+            assert 2 <= len(dm["markov"]) <= 20
+        assert f'id="ch-{name}"' in html
+    p = _Collector()
+    p.feed(html)
+    assert p.errors == []
+    assert [t for t, _ in p.tags].count("svg") == 3 * 6
+    text = " ".join(p.text)
+    # the simulated discrete model against the measurement, per channel, stated in the report
+    import re
+
+    checks = re.findall(r"agrees with the measurement at (\d+) of (\d+) averaging times", text)
+    assert len(checks) == 6
+    for a, b in checks:
+        inside += int(a)
+        total += int(b)
+    # A correct model agrees at about 95 % of taus (two independent estimates compared on
+    # their combined interval); neighbouring taus are correlated, so allow a wide margin.
+    assert total >= 6 * 8 and inside >= 0.8 * total, (inside, total)
+    assert re.search(r"samples\s*40000\b", text)
+    assert re.search(rf"gaps\s*{1 if kind == 'mcap' else 0}\b", text)
+    if kind == "mcap":
+        assert "sim:adis16350" in text
+        assert "1 gaps in header.stamp" in text  # the reader's warning is shown
+    # temperature 30 +- 2 degC over the record
+    assert "28 to 32 \u00b0C (spread 4 \u00b0C)" in text

@@ -61,10 +61,33 @@ def load_channels(path: str, rate_hz: float | None = None) -> tuple[dict, dict]:
         if not isinstance(doc, dict) or not isinstance(doc.get("channels"), dict):
             raise UsageError(f"{path}: not an analyze JSON document (no 'channels' object)")
         return doc["channels"], doc
-    from imunoise.analysis_doc import analyze_document
+    return fitted_channels(path, rate_hz), {"file": path}
 
-    doc = analyze_document(path, rate_hz=rate_hz, with_psd=False)
-    return doc["channels"], doc
+
+def fitted_channels(path: str, rate_hz: float | None = None) -> dict[str, dict]:
+    """Every inertial channel of a recording with the default model fitted (fit documents)."""
+    from analysis.allan import oadev
+    from daq.readers import ReadError, open_record
+    from imunoise.outputs import fill_fit
+    from imunoise.report_json import channel_json
+
+    try:
+        record = open_record(path, rate_hz=rate_hz)
+    except ReadError as exc:
+        raise UsageError(str(exc)) from None
+    channels: dict[str, dict] = {}
+    for key, series in record.channels.items():
+        if series.units not in ("rad/s", "m/s^2"):
+            continue
+        try:
+            curve = oadev(series.values, series.fs_hz, m="octave",
+                          segment_starts=series.segment_starts, ci=0.95)
+        except ValueError as exc:
+            raise UsageError(f"{path}: {key}: no Allan deviation ({exc})") from None
+        doc = channel_json(series, curve, channel=key)
+        fill_fit(doc, curve)
+        channels[key] = doc
+    return channels
 
 
 def run(args: argparse.Namespace) -> int:
