@@ -168,3 +168,51 @@ def test_cli_output_folder_missing_or_unwritable(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot write" in err[0]
     assert list(tmp_path.glob(".imu.yaml.*")) == []
+
+
+# --- end to end on recordings ----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    from tests.outputs_inputs import write_csv, write_mcap
+
+    d = tmp_path_factory.mktemp("rec")
+    return {"csv": write_csv(d / "still.csv"), "mcap": write_mcap(d / "mcap")}
+
+
+@pytest.mark.parametrize("kind", ["csv", "mcap"])
+def test_export_from_recording(recordings, kind, tmp_path):
+    from tests.outputs_inputs import ACCEL_MODEL, GYRO_MODEL
+
+    out = tmp_path / "imu.yaml"
+    assert main(["export-kalibr", str(recordings[kind]), "-o", str(out)]) == 0
+    text = out.read_text()
+    data = yaml.safe_load(text)
+    assert set(data) == KALIBR_KEYS
+    assert data["update_rate"] == pytest.approx(100.0, rel=1e-8)
+    assert data["rostopic"] == ("/adis16350/imu" if kind == "mcap" else "/imu0")
+    # 40,000 samples pin N to well under 1 % per axis; the largest of three axes is within 2 %.
+    assert data["gyroscope_noise_density"] == pytest.approx(GYRO_MODEL[0][1]["N"], rel=0.02)
+    assert data["accelerometer_noise_density"] == pytest.approx(ACCEL_MODEL[0][1]["N"], rel=0.02)
+    # K is poorly determined by 400 s of data; the largest axis value must still be of the
+    # right order (the truth lies inside the widest per-axis interval or the Allan bound).
+    for key, model in (("gyroscope_random_walk", GYRO_MODEL),
+                       ("accelerometer_random_walk", ACCEL_MODEL)):
+        k_true = model[2][1]["K"]
+        assert k_true / 3 < data[key] < k_true * 4, (key, data[key])
+    for ch in ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"):
+        assert f"#   {ch}: N = " in text and f"#   {ch}: K = " in text
+    # the same file from the analyze JSON of the recording gives the same values
+    j = tmp_path / "a.json"
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["analyze", str(recordings[kind]), "--json"]) == 0
+    j.write_text(buf.getvalue())
+    out2 = tmp_path / "imu2.yaml"
+    assert main(["export-kalibr", str(j), "-o", str(out2)]) == 0
+    again = yaml.safe_load(out2.read_text())
+    for key in KALIBR_KEYS - {"rostopic"}:
+        assert again[key] == pytest.approx(data[key], rel=1e-6)

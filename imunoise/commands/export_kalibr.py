@@ -32,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--topic", default=None, metavar="TOPIC",
                    help="IMU topic to use when the file has several")
     p.add_argument("--rostopic", default=None, metavar="NAME",
-                   help="value of rostopic in the YAML (default: the IMU topic or /imu0)")
+                   help="value of rostopic in the YAML (default: the recording's IMU topic, "
+                        "else /imu0)")
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
                    help="sample rate of a CSV without a time column")
     p.set_defaults(func=run)
@@ -49,7 +50,7 @@ def _factor(text: str) -> float:
 
 
 def load_channels(path: str, rate_hz: float | None = None) -> tuple[dict, dict]:
-    """(channels, document) of fitted channels from a recording or an analyze JSON file."""
+    """Fitted channels and facts (``file``, ``rostopic``) from a recording or analyze JSON."""
     p = Path(path)
     if not p.exists():
         raise UsageError(f"{path}: no such file or folder")
@@ -60,12 +61,20 @@ def load_channels(path: str, rate_hz: float | None = None) -> tuple[dict, dict]:
             raise UsageError(f"{path}: not an analyze JSON document ({exc})") from None
         if not isinstance(doc, dict) or not isinstance(doc.get("channels"), dict):
             raise UsageError(f"{path}: not an analyze JSON document (no 'channels' object)")
-        return doc["channels"], doc
-    return fitted_channels(path, rate_hz), {"file": path}
+        return doc["channels"], {"file": path, "rostopic": None}
+    return fitted_channels(path, rate_hz)
 
 
-def fitted_channels(path: str, rate_hz: float | None = None) -> dict[str, dict]:
-    """Every inertial channel of a recording with the default model fitted (fit documents)."""
+def imu_topic(metadata: dict[str, str]) -> str | None:
+    """The one IMU topic a reader listed in ``metadata["topics"]``, if there is exactly one."""
+    topics = [t for t in metadata.get("topics", "").split(",") if t.strip()]
+    imu = [t.strip() for t in topics if not t.strip().lower().endswith(("temperature", "temp"))]
+    return imu[0] if len(imu) == 1 else None
+
+
+def fitted_channels(path: str, rate_hz: float | None = None) -> tuple[dict[str, dict], dict]:
+    """Every inertial channel of a recording with the default model fitted (fit documents),
+    and ``{"file", "rostopic"}`` facts of the recording."""
     from analysis.allan import oadev
     from daq.readers import ReadError, open_record
     from imunoise.outputs import fill_fit
@@ -87,13 +96,14 @@ def fitted_channels(path: str, rate_hz: float | None = None) -> dict[str, dict]:
         doc = channel_json(series, curve, channel=key)
         fill_fit(doc, curve)
         channels[key] = doc
-    return channels
+    return channels, {"file": path, "rostopic": imu_topic(record.metadata)}
 
 
 def run(args: argparse.Namespace) -> int:
-    channels, _ = load_channels(args.file, args.rate)
+    channels, facts = load_channels(args.file, args.rate)
     try:
-        imu = kalibr_values(channels, topic=args.topic, rostopic=args.rostopic,
+        imu = kalibr_values(channels, topic=args.topic,
+                            rostopic=args.rostopic or facts.get("rostopic"),
                             combine=args.combine, inflate=args.inflate)
     except KalibrError as exc:
         raise UsageError(f"export-kalibr: {exc}") from None
