@@ -5,7 +5,8 @@
 - ``discrete_model`` (always): the filter-ready model at the sample period
   (:mod:`analysis.discrete`), its bias-instability approximation fitted over the measured tau
   range;
-- with ``full=True`` (the HTML report): ``discrete_check``, ``terms_adev`` and ``model_psd``.
+- with ``full=True`` (the HTML report): ``discrete_check``, ``terms_adev``, ``model_psd`` and,
+  from :func:`complete_document`, the diagnosis ``suggestions`` and the record's facts.
 
 ``discrete_check`` simulates the discrete model for as many samples as the channel has (at most
 ``MAX_CHECK_SAMPLES``), computes its overlapping Allan deviation on the measured tau grid and
@@ -194,16 +195,38 @@ def fill_fit(doc: dict, curve, model=DEFAULT_MODEL) -> None:
     al["z"] = [float(v) if np.isfinite(v) else None for v in z]
 
 
-REPORT_ONLY_KEYS = ("terms_adev", "model_psd", "discrete_check")
+REPORT_ONLY_KEYS = ("terms_adev", "model_psd", "discrete_check", "suggestions")
+
+
+def suggestions(record, key: str, model=DEFAULT_MODEL) -> list[dict]:
+    """The diagnosis of one channel of ``record`` for ``model``: ranked suggestion documents."""
+    from analysis.diagnosis import diagnose
+
+    series = record.series(key)
+    temp = getattr(record, "temperature", None)
+    temperature = None
+    if temp is not None and temp.n_samples >= 2:
+        temperature = (temp.t0_s + np.arange(temp.n_samples) / temp.fs_hz, temp.values)
+    dx = diagnose(series.values, series.fs_hz, list(model),
+                  segment_starts=series.segment_starts, t0_s=series.t0_s,
+                  temperature=temperature, units=series.units)
+    return [s.to_dict() for s in dx.suggestions]
 
 
 def complete_document(doc: dict, record, curves: Mapping[str, object], full: bool = False,
                       seed: int = 0) -> dict:
     """Fit channels that lack a model, add ``discrete_model`` (and, with ``full``, the
-    report's curves and the record's facts) to an ``analyze`` document."""
+    report's curves, the diagnosis and the record's facts) to an ``analyze`` document."""
     for key, ch in doc.get("channels", {}).items():
         fill_fit(ch, curves.get(key))
         extend_channel(ch, full=full, seed=seed)
+        if full and ch.get("model"):
+            try:
+                ch["suggestions"] = suggestions(record, key)
+            except ValueError as exc:  # a record too short for a refit with one more term
+                ch.setdefault("warnings", []).append(f"no diagnosis: {exc}")
+            except ImportError:
+                ch.setdefault("warnings", []).append("no diagnosis: not available in this build")
     if full:
         doc["record"] = record_facts(record)
     return doc

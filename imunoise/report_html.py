@@ -188,6 +188,7 @@ def _channel_section(name: str, ch: Mapping) -> str:
     kind = _kind(name)
     out = [f'<h2 id="ch-{escape(name)}">{escape(name)} <span class="muted">({escape(units)}, '
            f'{_num(ch.get("fs_hz"), 6)} Hz, {ch.get("n_samples", "?")} samples)</span></h2>']
+    out.extend(f'<p class="warn">{escape(str(w))}</p>' for w in ch.get("warnings") or [])
     out.append("<h3>Fitted model</h3>")
     out.append(_coefficient_table(ch, kind))
     out.append(_error_block(ch))
@@ -365,7 +366,7 @@ def _diagnosis_block(ch: Mapping) -> str:
         return ""
     if not sugg:
         return "<h3>Diagnosis</h3><p>No missing effect was found.</p>"
-    before = (ch.get("error") or {}).get("chi2_per_dof")
+    fitted = (ch.get("error") or {}).get("chi2_per_dof")
     head = ("<tr><th>add term</th><th>parameters</th><th>\u03c7\u00b2/dof before \u2192 after"
             "</th><th>significant</th><th>why</th></tr>")
     rows = []
@@ -374,7 +375,7 @@ def _diagnosis_block(ch: Mapping) -> str:
                            for k, v in (s.get("params") or {}).items())
         sig = s.get("significant")
         rows.append(f"<tr><td>{escape(str(s.get('term')))}</td><td>{params}</td>"
-                    f'<td class="num">{_num(before, 3)} \u2192 '
+                    f'<td class="num">{_num(s.get("chi2_per_dof_before", fitted), 3)} \u2192 '
                     f"{_num(s.get('chi2_per_dof_after'), 3)}</td>"
                     f'<td class="{"ok" if sig else "muted"}">{"yes" if sig else "no"}</td>'
                     f"<td>{escape(str(s.get('why', '')))}</td></tr>")
