@@ -40,6 +40,8 @@ LINEAR_TERMS = ("white", "quantization", "bias_instability", "random_walk", "rat
 _LINEAR_PARAM = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
                  "rate_ramp": "R"}
 _Z95 = 1.959963984540054
+_LOSS = "soft_l1"
+_F_SCALE = 3.0
 
 
 class CurveLike(Protocol):
@@ -193,8 +195,9 @@ def _nnls_weighted(design: np.ndarray, avar: np.ndarray, w: np.ndarray
 
 
 def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float,
-                  nu: np.ndarray, duration_s: float, line: tuple[float, float] | None
-                  ) -> list[dict[str, float]]:
+                  nu: np.ndarray, duration_s: float, line: tuple[float, float] | None,
+                  fixed: dict[tuple[int, str], float] | None = None) -> list[dict[str, float]]:
+    fixed = fixed or {}
     w = np.sqrt(nu / 2.0)
     columns: list[np.ndarray] = []
     owners: list[int] = []
@@ -217,7 +220,7 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
     for i, n in enumerate(names):
         if n == "gauss_markov":
             best = None
-            for t in t_grid:
+            for t in ([fixed[(i, "T")]] if (i, "T") in fixed else t_grid):
                 col = ar1_avar_shape(tau * fs, 1.0 / (fs * t))
                 _, r = solve(extra_cols + [col])
                 if best is None or r < best[0]:
@@ -227,7 +230,9 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
             extra_owner.append(i)
             fixed_extra[i] = {"T": float(best[1])}
         elif n == "sinusoid":
-            if line is not None:
+            if (i, "f") in fixed:
+                f0 = fixed[(i, "f")]
+            elif line is not None:
                 f0 = line[0]
             else:
                 best = None
@@ -270,9 +275,11 @@ class _Layout:
     keys: list[tuple[int, str]]
     lo: np.ndarray
     hi: np.ndarray
+    fixed: dict[tuple[int, str], float]
 
 
-def _layout(names: list[str], fs: float, duration_s: float) -> _Layout:
+def _layout(names: list[str], fs: float, duration_s: float,
+            fixed: dict[tuple[int, str], float]) -> _Layout:
     keys: list[tuple[int, str]] = []
     lo: list[float] = []
     hi: list[float] = []
@@ -280,6 +287,8 @@ def _layout(names: list[str], fs: float, duration_s: float) -> _Layout:
         if n == "temperature":
             continue
         for p in get_term(n).params:
+            if (i, p.name) in fixed:
+                continue
             keys.append((i, p.name))
             if p.name == "T":
                 lo.append(math.log(0.2 / fs))
@@ -290,11 +299,13 @@ def _layout(names: list[str], fs: float, duration_s: float) -> _Layout:
             else:
                 lo.append(math.log(1e-30))
                 hi.append(math.log(1e6))
-    return _Layout(names, keys, np.array(lo), np.array(hi))
+    return _Layout(names, keys, np.array(lo), np.array(hi), dict(fixed))
 
 
 def _unpack(layout: _Layout, theta: np.ndarray) -> list[dict[str, float]]:
     params: list[dict[str, float]] = [dict() for _ in layout.names]
+    for (i, name), v in layout.fixed.items():
+        params[i][name] = float(v)
     for (i, name), v in zip(layout.keys, theta, strict=True):
         params[i][name] = float(math.exp(v))
     return params
@@ -354,7 +365,8 @@ def _solve(layout: _Layout, theta0: np.ndarray, y: np.ndarray, tau: np.ndarray,
             return whiten @ (y - np.log(np.maximum(mod, 1e-300)) - bias)
 
         sol = optimize.least_squares(resid, theta, bounds=(layout.lo, layout.hi),
-                                     method="trf", max_nfev=max_nfev)
+                                     method="trf", max_nfev=max_nfev, loss=_LOSS,
+                                     f_scale=_F_SCALE)
         moved = float(np.max(np.abs(sol.x - theta))) if theta.size else 0.0
         theta = sol.x
         if moved < 0.02:
@@ -397,6 +409,7 @@ def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndar
 
 def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
               line: tuple[float, float] | None = None, temperature: TermFit | None = None,
+              fixed: dict[str | int, dict[str, float]] | None = None,
               family_rate: float = 0.10, max_nfev: int = 200) -> FitResult:
     """Fit a sum of noise terms to a measured overlapping Allan curve.
 
@@ -411,6 +424,9 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
         line: ``(f_hz, amplitude)`` of the strongest spectral line, the start of a sinusoid.
         temperature: the fitted temperature coefficient (from :func:`regress_temperature`),
             carried into the result when the model holds ``temperature``.
+        fixed: parameters held at known values, keyed by term name (its first occurrence)
+            or model index, e.g. ``{"gauss_markov": {"T": 100.0}}``; their interval is the
+            value itself.
         family_rate: probability that a correct model reports any failure (sets the |z|
             threshold).
         max_nfev: cap on model evaluations of the least-squares solver.
@@ -429,7 +445,8 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
     keep = np.isfinite(avar) & (avar > 0) & (n_terms > 0)
     tau, m, n_terms, avar = tau[keep], m[keep], n_terms[keep], avar[keep]
     duration = float((n_terms[0] + 2 * m[0] - 1) / fs) if len(m) else 0.0
-    layout = _layout(names, fs, duration)
+    fixed_keys = _fixed_keys(names, fixed or {}, fs)
+    layout = _layout(names, fs, duration, fixed_keys)
     n_free = len(layout.keys)
     if n_free == 0:
         raise TermError("the model has no noise term to fit to the Allan curve")
@@ -444,7 +461,7 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
         start_list = [dict(p or {}) for _, p in spec]
     else:
         nu0 = _default_nu(curve)[keep]
-        start_list = _start_values(names, tau, avar, fs, nu0, duration, line)
+        start_list = _start_values(names, tau, avar, fs, nu0, duration, line, fixed_keys)
         for i, (_, p) in enumerate(spec):
             if p is not None:
                 start_list[i].update(p)
@@ -480,6 +497,8 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
     ci: list[dict[str, tuple[float, float]]] = [dict() for _ in names]
     for (i, k), th, s in zip(layout.keys, theta, sd, strict=True):
         ci[i][k] = (float(math.exp(th - _Z95 * s)), float(math.exp(min(th + _Z95 * s, 700))))
+    for (i, k), v in layout.fixed.items():
+        ci[i][k] = (float(v), float(v))
 
     terms_out: list[TermFit] = []
     for i, n in enumerate(names):
@@ -496,6 +515,33 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
                      term_avar=term_avar, misfit=mf,
                      failures=failures(tau, mf.z, mf.threshold), param_cov=param_cov,
                      free_params=list(layout.keys))
+
+
+def _fixed_keys(names: list[str], fixed: dict[str | int, dict[str, float]], fs: float
+                ) -> dict[tuple[int, str], float]:
+    out: dict[tuple[int, str], float] = {}
+    for key, params in fixed.items():
+        if isinstance(key, int):
+            if not 0 <= key < len(names):
+                raise TermError(f"fixed parameters for model index {key}: no such term")
+            idx = key
+        else:
+            if key not in names:
+                raise TermError(f"fixed parameters given for {key!r}, which is not in the "
+                                f"model ({', '.join(names)})")
+            idx = names.index(key)
+        term = get_term(names[idx])
+        for pname, value in params.items():
+            if pname not in term.param_names:
+                raise TermError(f"{term.name} has no parameter {pname!r}; expected "
+                                f"{', '.join(term.param_names)}")
+            p = next(q for q in term.params if q.name == pname)
+            hi = fs / 2.0 if pname == "f" else p.hi
+            if not (math.isfinite(value) and p.lo < value <= hi):
+                raise TermError(f"{term.name}.{pname} = {value:g} outside its physical range "
+                                f"({p.lo:g}, {hi:g}]")
+            out[(idx, pname)] = float(value)
+    return out
 
 
 def _jacobian(fun: Any, theta: np.ndarray, step: float = 1e-5) -> np.ndarray:
@@ -594,3 +640,72 @@ def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int =
         half = math.inf
     term = TermFit("temperature", {"coef": coef}, {"coef": (coef - half, coef + half)})
     return term, y - coef * tc
+
+
+def parse_model_spec(text: str) -> tuple[list[str], dict[int, dict[str, float]]]:
+    """``"white,gauss_markov:T=100,random_walk"`` -> term names and fixed parameters by model
+    index. A parameter written after a term (``term:P=value[:P2=value]``) is held fixed."""
+    names: list[str] = []
+    fixed: dict[int, dict[str, float]] = {}
+    for item in (s.strip() for s in text.split(",")):
+        if not item:
+            continue
+        name, *assigns = item.split(":")
+        name = name.strip()
+        names.append(name)
+        for a in assigns:
+            key, eq, value = a.partition("=")
+            try:
+                fixed.setdefault(len(names) - 1, {})[key.strip()] = float(value)
+            except ValueError:
+                raise TermError(f"bad fixed parameter {a!r} in {item!r}: use "
+                                f"{name}:PARAM=VALUE") from None
+            if not eq:
+                raise TermError(f"bad fixed parameter {a!r} in {item!r}: use "
+                                f"{name}:PARAM=VALUE")
+    parse_terms(names)
+    return names, fixed
+
+
+def fit_series(values: np.ndarray, fs_hz: float, model: ModelSpec, *,
+               segment_starts: np.ndarray | None = None,
+               temperature: np.ndarray | None = None,
+               fixed: dict[str | int, dict[str, float]] | None = None,
+               ci: float = 0.95, start: Any = None) -> tuple[FitResult, Any]:
+    """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
+    for a sinusoid, temperature regression, then :func:`fit_allan`.
+
+    Args:
+        values: rate samples in SI units, all segments concatenated.
+        fs_hz: sampling rate, Hz.
+        model: term names or ``[(term, params)]``.
+        segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
+        temperature: temperature in degC at each sample (required with ``temperature``).
+        fixed: parameters held at known values (see :func:`fit_allan`).
+        ci: confidence level of the curve's ``ci_low``/``ci_high``.
+        start: starting point of a refit (see :func:`fit_allan`).
+
+    Returns:
+        ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
+        when the model holds ``temperature``.
+    """
+    from analysis.allan import oadev
+
+    spec = normalise_model(model)
+    names = [n for n, _ in spec]
+    x = np.asarray(values, dtype=np.float64)
+    temp_term = None
+    if "temperature" in names:
+        if temperature is None:
+            raise TermError("the temperature term needs a temperature record, and this "
+                            "record has none")
+        temp_term, x = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
+    curve = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
+    line = None
+    if "sinusoid" in names:
+        bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
+        k = int(np.argmax(np.diff(bounds)))
+        line = find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
+    result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed)
+    return result, curve
+

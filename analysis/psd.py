@@ -51,6 +51,7 @@ from scipy.stats import chi2
 _FIR_TAPS = scipy.signal.firwin(47, 0.3, window=("kaiser", 10.0))
 _DECIMATION = 2
 _CHUNK = 1 << 18  # samples processed at once, bounds temporary memory
+_MIN_BATCH = 1 << 16  # small blocks are gathered up to this many samples before processing
 
 
 @dataclass(frozen=True)
@@ -318,12 +319,15 @@ class StreamingPsd:
         self._rho2 = _overlap_rho2(self._window, nperseg // 2)
         self._c2 = _bin_corr2(self._window)
         self._levels: list[_Level] = []
+        self._inbox: list[np.ndarray] = []
+        self._inbox_samples = 0
         self._run = 0
         self._longest_run = 0
         self.n_samples = 0
 
     def new_segment(self) -> None:
         """Declare a gap: the next block does not continue the previous one."""
+        self._flush()
         for lev in self._levels:
             lev.reset_segment()
         self._run = 0
@@ -332,11 +336,29 @@ class StreamingPsd:
         """Add contiguous samples (channel units) that continue the current segment."""
         x = np.asarray(block, dtype=np.float64).ravel()
         _check_finite(x)
-        for a in range(0, len(x), _CHUNK):
-            self._feed(0, x[a:a + _CHUNK])
         self.n_samples += len(x)
         self._run += len(x)
         self._longest_run = max(self._longest_run, self._run)
+        if len(x) >= _MIN_BATCH and not self._inbox:
+            self._process(x)
+            return
+        # Small blocks wait until there are enough to make the per-level work worthwhile;
+        # the result does not depend on how the samples were split.
+        self._inbox.append(x.copy())
+        self._inbox_samples += len(x)
+        if self._inbox_samples >= _MIN_BATCH:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._inbox:
+            x = np.concatenate(self._inbox)
+            self._inbox.clear()
+            self._inbox_samples = 0
+            self._process(x)
+
+    def _process(self, x: np.ndarray) -> None:
+        for a in range(0, len(x), _CHUNK):
+            self._feed(0, x[a:a + _CHUNK])
 
     def _feed(self, j: int, x: np.ndarray) -> None:
         while j < self.max_levels and x.size:
@@ -350,8 +372,8 @@ class StreamingPsd:
 
     def state_size(self) -> int:
         """Number of float64 values held (periodogram sums, partial segments, filter histories)."""
-        return sum(lev.pgram_sum.size + lev.pending.size + lev.fir_history.size
-                   for lev in self._levels)
+        return self._inbox_samples + sum(
+            lev.pgram_sum.size + lev.pending.size + lev.fir_history.size for lev in self._levels)
 
     @property
     def longest_segment_s(self) -> float:
@@ -360,6 +382,7 @@ class StreamingPsd:
 
     def estimate(self, ci: float = 0.95) -> PsdEstimate:
         """The current estimate on a log-spaced axis; raises ValueError before the first segment."""
+        self._flush()
         populated = [j for j, lev in enumerate(self._levels) if lev.n_seg > 0]
         if not populated:
             raise ValueError(f"not enough data for a PSD: need {self.nperseg} contiguous samples")
@@ -389,6 +412,8 @@ class StreamingPsd:
             fg, pg, dg, wg = _log_group(f, psd, dof, df, self._c2, self.points_per_decade)
             name = "welch" if j == 0 else f"decimate{_DECIMATION**j}"
             parts.append((fg, pg, dg, wg, np.full(len(fg), name)))
+        if not parts:
+            raise ValueError("not enough data for a PSD above min_cycles / T")
         f_all, p_all, d_all, w_all, m_all = (np.concatenate(c) for c in zip(*parts, strict=True))
         lo, hi = chi2_interval(p_all, d_all, ci)
         return PsdEstimate(f_hz=f_all, psd=p_all, dof=d_all, ci_low=lo, ci_high=hi, ci=ci,

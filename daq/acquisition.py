@@ -11,6 +11,7 @@ block. Permanent faults, or an outage longer than ``max_outage_s``, end the loop
 from __future__ import annotations
 
 import math
+import re
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -200,15 +201,14 @@ class Acquisition:
         self._update_drift()
 
     def _update_drift(self) -> None:
-        buf = self.driver.streams[0]
-        elapsed_dev = buf.next_index / buf.fs_hz
-        if buf.t_anchor is not None and elapsed_dev > 1.0:
-            elapsed_host = self.clock.wall() - buf.t_anchor
-            self.stats.drift_ppm = (elapsed_host / elapsed_dev - 1.0) * 1e6
+        drift = self.driver.streams[0].drift_ppm()
+        if drift is not None:
+            self.stats.drift_ppm = drift
 
     def _note_fault(self, message: str) -> None:
         self.stats.last_error = message
-        key = message.split(":", 1)[-1].strip().split("(")[0].strip()[:60]
+        reason = message.rsplit(": ", 1)[-1] if ": " in message else message
+        key = re.sub(r"\d+(\.\d+)?", "#", reason.split(" (")[0]).strip()[:60]
         self.stats.faults[key] = self.stats.faults.get(key, 0) + 1
 
     def _fail(self, reason: str) -> None:

@@ -37,7 +37,9 @@ _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _PREFIX = struct.Struct("<BQ")
-_CHUNK_HEAD = struct.Struct("<QQQI")
+_CHUNK_HEAD5 = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, len(compression)
+_MI_HEAD = struct.Struct("<HI")
+_COMPRESSION = {b"": "", b"zstd": "zstd", b"lz4": "lz4"}
 
 
 class McapFormatError(ValueError):
@@ -61,7 +63,7 @@ class ChannelInfo:
     metadata: dict[str, str]
 
 
-@dataclass
+@dataclass(slots=True)
 class ChunkInfo:
     """One Chunk record and the MessageIndex records that follow it.
 
@@ -252,37 +254,50 @@ def scan(buf, size: int | None = None) -> McapLayout:
     pos = 8 + RECORD_PREFIX + n
     layout.data_end = pos
     chunks = layout.chunks
+    channels = layout.channels
     last: ChunkInfo | None = None
     unknown_pending = False
+    prefix = _PREFIX.unpack_from
+    chunk_head = _CHUNK_HEAD5.unpack_from
+    u64 = _U64.unpack_from
+    mi_head = _MI_HEAD.unpack_from
     while True:
         if pos + RECORD_PREFIX > size:
+            layout.data_end = pos
             if pos < size or not layout.complete:
                 layout.warnings.append(
                     f"file ends without a summary after {pos} bytes (crashed or truncated "
                     "recording): read up to the last complete record")
             break
-        op, n = _PREFIX.unpack_from(buf, pos)
+        op, n = prefix(buf, pos)
         body = pos + RECORD_PREFIX
         end = body + n
+        if op == OP_MESSAGE_INDEX and end <= size:  # the most frequent record: keep it short
+            cid, nbytes = mi_head(buf, body)
+            if last is not None and last.mi_end == pos:
+                last.mi[cid] = (body + 6, nbytes // 16)
+                last.mi_end = end
+                if cid not in channels:
+                    unknown_pending = True
+            pos = end
+            continue
+        if unknown_pending:
+            _discover_channels(buf, layout)
+            unknown_pending = False
+        layout.data_end = pos
         if op == 0 or op > OP_MAX or end > size:
             layout.warnings.append(
                 f"file is truncated or damaged at byte {pos} of {size}: read up to the last "
                 "complete record")
             break
         if op == OP_CHUNK:
-            t0, t1, usize, crc = _CHUNK_HEAD.unpack_from(buf, body)
-            comp, p = _string(buf, body + 28)
-            (rlen,) = _U64.unpack_from(buf, p)
-            last = ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, mi_end=end)
+            t0, t1, usize, crc, clen = chunk_head(buf, body)
+            p = body + 32 + clen
+            comp = _COMPRESSION.get(bytes(buf[body + 32:p])) or \
+                bytes(buf[body + 32:p]).decode("utf-8", "replace")
+            (rlen,) = u64(buf, p)
+            last = ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, {}, end)
             chunks.append(last)
-        elif op == OP_MESSAGE_INDEX:
-            (cid,) = _U16.unpack_from(buf, body)
-            (nbytes,) = _U32.unpack_from(buf, body + 2)
-            if last is not None and last.mi_end == pos:
-                last.mi[cid] = (body + 6, nbytes // 16)
-                last.mi_end = end
-                if cid not in layout.channels:
-                    unknown_pending = True
         elif op == OP_SCHEMA:
             s = parse_schema(buf, body)
             layout.schemas.setdefault(s.id, s)
@@ -302,11 +317,7 @@ def scan(buf, size: int | None = None) -> McapLayout:
                                        "end of its data section")
             layout.data_end = pos
             break
-        if unknown_pending and (op != OP_MESSAGE_INDEX):
-            _discover_channels(buf, layout)
-            unknown_pending = False
         pos = end
-        layout.data_end = pos
     if unknown_pending:
         _discover_channels(buf, layout)
     if not layout.complete and chunks and chunks[-1].mi_end >= layout.data_end:

@@ -103,7 +103,7 @@ class SyncedFile:
 class RecorderStats:
     """Counters for the status line; sizes in bytes, times in seconds."""
 
-    samples: int = 0
+    samples: int = 0  # inertial samples (Imu messages)
     messages: int = 0
     files: list[str] = field(default_factory=list)
     file: str = ""
@@ -508,7 +508,8 @@ class McapRecorder:
                                           frame_id=self.frame_id)
             self._add_messages(self._channel(f"{prefix}/temperature", msgs.TEMPERATURE), rec,
                                log_ns)
-        self.stats.samples += n
+        if has_gyro or has_accel:
+            self.stats.samples += n
         self._dirty = True
         if (wall - self.stats.last_flush_wall >= self._flush_wall_s
                 or float(t[-1]) - self._flush_t_sample >= self.flush_s):

@@ -13,6 +13,7 @@ from imunoise.errors import RuntimeFailure, UsageError
 # Sub-command modules under imunoise.commands, in the order --help lists them.
 COMMAND_MODULES: list[str] = [
     "analyze",
+    "fit",
     "record",
     "replay",
     "repair",

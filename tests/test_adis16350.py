@@ -193,3 +193,26 @@ def test_wrong_spi_mode_is_caught_by_the_answer_pattern():
 def test_rate_resolution_reported():
     assert math.isclose(adis.sample_rate_hz(adis.smpl_prd_for_rate(819.2)), 819.2)
     assert len(adis.supported_rates_hz()) == 254
+
+
+def test_model_new_data_flag_pipelining_and_status_clear():
+    clock, sim, emu, drv = _bench_driver()
+    try:
+        drv.open()
+        clock.advance(1 / 102.4)
+        x = adis.read_command("XGYRO_OUT")
+        miso = drv.spi.transfer_frames([x, x, adis.read_command("STATUS"), 0x0000])
+        # Frame 1 answers the command before it; frame 2 carries ND, frame 3 has it cleared.
+        assert miso[1] & adis.FLAG_ND and not miso[2] & adis.FLAG_ND
+        assert adis.data14(miso[1]) == adis.data14(miso[2])
+        assert miso[3] == 0  # STATUS clean
+        sim.supply_v = 5.4  # over-voltage: STATUS bit 1 and EA on the outputs
+        clock.advance(1 / 102.4)
+        miso = drv.spi.transfer_frames([x, adis.read_command("STATUS"),
+                                        adis.read_command("STATUS"), 0x0000])
+        assert miso[1] & adis.FLAG_EA
+        assert adis.decode_status(int(miso[2])) == ["supply above 5.25 V"]
+        assert miso[3] == 0  # cleared by the read
+    finally:
+        drv.close()
+        emu.close()

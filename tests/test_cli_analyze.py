@@ -1,6 +1,5 @@
 """``imunoise analyze`` end to end: the real CLI in a subprocess on generated CSV files."""
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -14,7 +13,6 @@ from imunoise.cli import main
 FS = 100.0
 SIGMA_G = 1e-3  # rad/s per sample -> N = sigma / sqrt(fs) = 1e-4 rad/s/sqrt(Hz)
 SIGMA_A = 0.02  # m/s^2
-HAVE_ALLAN = importlib.util.find_spec("analysis.allan") is not None
 
 
 def _run(*args):
@@ -78,13 +76,15 @@ def test_json_document(imu_csv):
         # white level 2 sigma^2/fs: the top band holds thousands of dof, 3 % is > 5 sd
         top = np.array(psd["f_hz"]) > FS / 16
         assert np.median(p[top]) == pytest.approx(2 * sigma**2 / FS, rel=0.03)
-        if HAVE_ALLAN:
-            adev = np.array(allan["adev"])
-            assert len(adev) >= 8 and allan["ci"] == 0.95
-            assert np.all(np.array(allan["ci_low"]) <= adev)
-            assert np.all(adev <= np.array(allan["ci_high"]))
-            # white noise: ADEV(tau0) = sigma
-            assert adev[0] == pytest.approx(sigma, rel=0.03)
+        adev = np.array(allan["adev"])
+        tau = np.array(allan["tau_s"])
+        assert len(adev) >= 8 and allan["ci"] == 0.95
+        assert len(tau) == len(adev) == len(allan["ci_low"]) == len(allan["ci_high"])
+        np.testing.assert_allclose(tau[:3], [0.01, 0.02, 0.04])  # octave taus
+        assert np.all(np.array(allan["ci_low"]) <= adev)
+        assert np.all(adev <= np.array(allan["ci_high"]))
+        # white noise: ADEV(tau) = sigma / sqrt(m); 60 000 samples, edf ~ 30 000 at tau0
+        np.testing.assert_allclose(adev[:4] * np.sqrt([1, 2, 4, 8]), sigma, rtol=0.03)
 
 
 def test_text_output_and_channel_selection(imu_csv):
@@ -168,3 +168,13 @@ def test_progress_bar_goes_to_stderr_only(capsys):
     results = analyze_record(rec, ["gyro_x"], show_progress=True)
     assert results[0].psd is not None
     assert capsys.readouterr().out == ""
+
+
+def test_progress_displays_do_not_touch_json(imu_csv, capsys, monkeypatch):
+    from imunoise.commands import analyze
+
+    monkeypatch.setattr(analyze, "_PROGRESS_FILE_BYTES", 0)
+    monkeypatch.setattr(analyze, "_PROGRESS_SAMPLES", 0)
+    assert main(["analyze", str(imu_csv), "--json", "--channel", "gyro_x"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert list(doc["channels"]) == ["gyro_x"]

@@ -62,6 +62,13 @@ def test_rate_overrides_inferred_rate_and_jittered_times(tmp_path):
     assert read_csv(p, rate_hz=301.0).channels["gyro_x"].fs_hz == 301.0
 
 
+def test_time_in_milliseconds_is_flagged(tmp_path):
+    p = _write(tmp_path, "t,gyro_x\n0,1\n10,2\n20,3\n30,4\n")
+    rec = read_csv(p)
+    assert rec.channels["gyro_x"].fs_hz == 0.1
+    assert any("0.1 Hz: is 't' in seconds?" in w for w in rec.warnings)
+
+
 def test_gaps_and_backwards_time_become_segments(tmp_path):
     t = np.arange(100) / 10.0
     t[40:] += 5.0  # a 5 s gap before row 40

@@ -53,7 +53,7 @@ def test_simulated_bus_runs_smbus2_marshalling():
     sim = Itg3200Sim(clock, constant((0.0, 0.0, 0.0)))
     adapter = SimulatedI2CAdapter({0x68: sim}, clock=clock)
     bus = adapter.open_bus()
-    assert isinstance(bus, smbus2.SMBus)
+    assert isinstance(bus, smbus2.SMBus) and isinstance(bus, SimulatedSMBus)
     assert bus.read_byte_data(0x68, itg.REG["WHO_AM_I"]) == 0x68
     bus.write_i2c_block_data(0x68, itg.REG["SMPLRT_DIV"], [7, 0x1B])  # auto-increment
     assert bus.read_i2c_block_data(0x68, itg.REG["SMPLRT_DIV"], 2) == [7, 0x1B]
@@ -64,7 +64,6 @@ def test_simulated_bus_runs_smbus2_marshalling():
     with pytest.raises(OSError):
         bus.read_byte_data(0x50, 0)  # nobody at 0x50: NACK
     bus.close()
-    assert not isinstance(SimulatedSMBus, type(None))
 
 
 RATES = [8000, 4000, 2000, 1000, 500, 200, 100, 50, 10, 3.90625]
@@ -119,3 +118,30 @@ def test_temperature_stream():
     temp = rec["/itg3200/temperature"]
     assert len(temp["t"]) == pytest.approx(5, abs=1)
     assert np.allclose(temp["ch"]["temp"], 30.0, atol=1 / 280)
+
+
+def test_model_power_up_state_and_data_ready_rules():
+    clock = VirtualClock()
+    sim = Itg3200Sim(clock, constant((0.0, 0.0, 0.0)))
+    bus = SimulatedI2CAdapter({0x68: sim}, clock=clock).open_bus()
+    assert bus.read_byte_data(0x68, itg.REG["DLPF_FS"]) == 0  # FS_SEL = 0 at power-up
+    assert bus.read_byte_data(0x68, itg.REG["PWR_MGM"]) & 0x07 == itg.CLK_INTERNAL
+    clock.advance(0.05)
+    # New data exists, but INT_STATUS shows only what INT_CFG enables.
+    assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == 0
+    bus.write_byte_data(0x68, itg.REG["INT_CFG"], itg.INT_CFG_RAW_RDY_EN)
+    clock.advance(0.002)
+    assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == itg.INT_RAW_DATA_RDY
+    assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == 0  # cleared by reading it
+    clock.advance(0.002)
+    bus.read_i2c_block_data(0x68, itg.REG["TEMP_OUT_H"], 8)  # a data read does not clear
+    assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == itg.INT_RAW_DATA_RDY
+    bus.write_byte_data(0x68, itg.REG["INT_CFG"],
+                        itg.INT_CFG_RAW_RDY_EN | itg.INT_CFG_ANYRD_2CLEAR)
+    clock.advance(0.002)
+    bus.read_i2c_block_data(0x68, itg.REG["TEMP_OUT_H"], 8)  # now any read clears
+    assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == 0
+    # Burst reads stop in the reserved area after GYRO_ZOUT_L.
+    tail = bus.read_i2c_block_data(0x68, itg.REG["GYRO_ZOUT_L"], 4)
+    assert tail[1:] == [0, 0, 0]
+    bus.close()

@@ -16,7 +16,7 @@ import numpy as np
 from daq.clock import Clock, RealClock
 from daq.drivers.common import PolledSampleClock, StreamBuffer, sign_extend
 from daq.errors import PermanentDeviceError, TransientDeviceError
-from daq.transports.buspirate import BusPirateSPI
+from daq.transports.buspirate import SPI_SPEEDS_HZ, BusPirateSPI, speed_index
 
 DEG = math.pi / 180.0
 G0 = 9.80665
@@ -284,7 +284,7 @@ class Adis16350:
         self._last_fresh_host: float | None = None
         self._phase = PolledSampleClock(self.rate_hz)
         self._opened_at = 0.0
-        self.config: dict[str, str] = {}
+        self.config: dict[str, str] = self._describe()
 
     # -- register access -------------------------------------------------------------------
     def read_registers(self, names: list[str] | tuple[str, ...]) -> dict[str, int]:
@@ -385,11 +385,13 @@ class Adis16350:
         return decode_status(self.read_registers(["STATUS"])["STATUS"])
 
     def _describe(self) -> dict[str, str]:
+        """Configuration for the recording's metadata (device answers filled in by open)."""
         gyro_lsb = GYRO_LSB_DPS[self.range_dps] * DEG
+        sclk = min(sclk_max_hz(self.smpl_prd), 1.0e6)
         return {
             "device": self.name, "model": self.model,
             "transport": f"Bus Pirate binary SPI on {self.spi.port}, mode 3, "
-                         f"{(self.spi.speed_hz or 0) / 1e3:g} kHz",
+                         f"{(self.spi.speed_hz or SPI_SPEEDS_HZ[speed_index(sclk)]) / 1e3:g} kHz",
             "rate_hz": f"{self.rate_hz:.6g}", "smpl_prd": f"0x{self.smpl_prd:04X}",
             "gyro_range_dps": str(self.range_dps), "filter_taps": str(self.taps),
             "sens_avg": f"0x{self.sens_avg:04X}",
@@ -428,7 +430,7 @@ class Adis16350:
         else:
             missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh_host = now
-        self.imu.add(data14(miso[:6]).tolist(), missed=missed)
+        self.imu.add(data14(miso[:6]).tolist(), missed=missed, host_time=self.clock.wall())
         if with_temp:
             t = data12s(miso[6:9]).tolist()
             self.temperature_add(t + [int(data12u(miso[9]))], self.imu.next_index - 1)

@@ -114,9 +114,9 @@ class Adxl345:
         scale = G0 / LSB_PER_G
         self.imu = StreamBuffer(f"{prefix}/imu", ["accel_x", "accel_y", "accel_z"],
                                 self.rate_hz, lambda raw: raw * scale)
-        self.config: dict[str, str] = {}
         self.overruns = 0
         self._last_drain: float | None = None
+        self.config: dict[str, str] = self._describe(None)
 
     @property
     def where(self) -> str:
@@ -145,9 +145,13 @@ class Adxl345:
             raise TransientDeviceError(f"{self.where}: configuration did not stick ({back})")
         self.clock.sleep(TURN_ON_S + 1.0 / self.rate_hz)
         self._last_drain = None
-        self.config = {
+        self.config = self._describe(devid)
+    def _describe(self, devid: int | None) -> dict[str, str]:
+        """Configuration for the recording's metadata (DEVID filled in by open)."""
+        return {
             "device": self.name, "model": self.model, "transport": self.bus.name,
-            "i2c_address": f"0x{a:02X}", "devid": f"0x{devid:02X}",
+            "i2c_address": f"0x{self.address:02X}",
+            "devid": f"0x{devid:02X}" if devid is not None else "",
             "rate_hz": f"{self.rate_hz:.6g}", "bw_rate": f"0x{self.code:02X}",
             "bandwidth_hz": f"{self.rate_hz / 2:.6g}", "range_g": str(self.range_g),
             "data_format": f"0x{self.format:02X}", "full_res": "1",
@@ -177,7 +181,8 @@ class Adxl345:
             missed = max(1, produced - entries)
         self._last_drain = now
         if rows:
-            self.imu.add_many(decode_data(np.asarray(rows)), missed=missed)
+            self.imu.add_many(decode_data(np.asarray(rows)), missed=missed,
+                              host_time=self.clock.wall())
         return len(rows)
 
     def take_blocks(self) -> list:

@@ -45,6 +45,7 @@ class StreamBuffer:
         self.samples = 0
         self.missed = 0
         self.gaps = 0
+        self.last_host_time: float | None = None
 
     def anchor(self, wall_time_s: float) -> None:
         """Set the time of sample index 0 (host epoch seconds), once."""
@@ -55,19 +56,24 @@ class StreamBuffer:
     def next_index(self) -> int:
         return self._last_index + 1
 
-    def add(self, row: Sequence[int], *, missed: int = 0) -> None:
-        """Append one sample that follows ``missed`` lost samples."""
+    def add(self, row: Sequence[int], *, missed: int = 0, host_time: float | None = None
+            ) -> None:
+        """Append one sample that follows ``missed`` lost samples, read at ``host_time``."""
         index = self._last_index + 1 + max(0, int(missed))
         self._idx.append(index)
         self._rows.append(row)
         self._last_index = index
         self.samples += 1
+        if host_time is not None:
+            self.last_host_time = host_time
         if missed > 0:
             self.missed += int(missed)
             self.gaps += 1
 
-    def add_many(self, rows: np.ndarray, *, missed: int = 0) -> None:
-        """Append consecutive samples (a FIFO drain) after ``missed`` lost samples."""
+    def add_many(self, rows: np.ndarray, *, missed: int = 0,
+                 host_time: float | None = None) -> None:
+        """Append consecutive samples (a FIFO drain) after ``missed`` lost samples; the last
+        one was the newest at ``host_time``."""
         n = len(rows)
         if n == 0:
             return
@@ -76,9 +82,24 @@ class StreamBuffer:
         self._rows.extend(np.asarray(rows).tolist())
         self._last_index = start + n - 1
         self.samples += n
+        if host_time is not None:
+            self.last_host_time = host_time
         if missed > 0:
             self.missed += int(missed)
             self.gaps += 1
+
+    def drift_ppm(self) -> float | None:
+        """Host clock rate relative to the device's, in parts per million (None: too early).
+
+        Compares the host time at which the newest sample was read with the time the sample
+        count gives it; the reading latency (under a period) fades as the run grows.
+        """
+        if self.t_anchor is None or self.last_host_time is None or self._last_index < 1:
+            return None
+        device_elapsed = self._last_index / self.fs_hz
+        if device_elapsed < 1.0:
+            return None
+        return ((self.last_host_time - self.t_anchor) / device_elapsed - 1.0) * 1e6
 
     def take(self) -> list[SampleBlock]:
         """Blocks for everything buffered, split at gaps (``gap_before`` = samples missing)."""

@@ -129,7 +129,6 @@ class Itg3200:
                                 lambda raw: raw * lsb)
         self.temperature = StreamBuffer(f"{prefix}/temperature", ["temp"],
                                         self.rate_hz / self.temp_every, temp_c)
-        self.config: dict[str, str] = {}
         self.stale_reads = 0
         self.frozen_reads = 0
         self._last_row: list[int] | None = None
@@ -137,6 +136,7 @@ class Itg3200:
         self._last_fresh: float | None = None
         self._opened_at = 0.0
         self._phase = PolledSampleClock(self.rate_hz)
+        self.config: dict[str, str] = self._describe(None)
 
     @property
     def where(self) -> str:
@@ -171,9 +171,14 @@ class Itg3200:
         self._opened_at = self.clock.now()
         if self._last_fresh is not None:
             self._phase.reconnected()
-        self.config = {
+        self.config = self._describe(who)
+
+    def _describe(self, who: int | None) -> dict[str, str]:
+        """Configuration for the recording's metadata (WHO_AM_I filled in by open)."""
+        return {
             "device": self.name, "model": self.model, "transport": self.bus.name,
-            "i2c_address": f"0x{self.address:02X}", "who_am_i": f"0x{who:02X}",
+            "i2c_address": f"0x{self.address:02X}",
+            "who_am_i": f"0x{who:02X}" if who is not None else "",
             "rate_hz": f"{self.rate_hz:.6g}", "smplrt_div": str(self.div),
             "dlpf_cfg": str(self.dlpf_cfg),
             "dlpf_bandwidth_hz": f"{DLPF_CFG[self.dlpf_cfg][0]:g}",
@@ -209,7 +214,7 @@ class Itg3200:
             missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh = now
         index = self.imu.next_index + missed
-        self.imu.add(row[1:].tolist(), missed=missed)
+        self.imu.add(row[1:].tolist(), missed=missed, host_time=self.clock.wall())
         if index % self.temp_every == 0 or self.temperature.next_index == 0:
             target = index // self.temp_every
             if target >= self.temperature.next_index:

@@ -28,16 +28,21 @@ class Razor:
         self.poll_period_s = itg.poll_period_s
         self.adxl_every = max(1, int(math.floor(adxl.poll_period_s / itg.poll_period_s)))
         self._n = 0
-        self.config: dict[str, str] = {}
+        self.config: dict[str, str] = self._describe()
 
     def open(self) -> None:
         self.itg.open()
         self.adxl.open()
-        self.config = {"device": self.name, "model": self.model,
-                       "rate_hz": self.itg.config["rate_hz"],
-                       "accel_rate_hz": self.adxl.config["rate_hz"]}
-        self.config.update({f"itg3200.{k}": v for k, v in self.itg.config.items()})
-        self.config.update({f"adxl345.{k}": v for k, v in self.adxl.config.items()})
+        self.config = self._describe()
+
+    def _describe(self) -> dict[str, str]:
+        """Both chips' configuration, keys prefixed with the chip name."""
+        config = {"device": self.name, "model": self.model,
+                  "rate_hz": self.itg.config["rate_hz"],
+                  "accel_rate_hz": self.adxl.config["rate_hz"]}
+        config.update({f"itg3200.{k}": v for k, v in self.itg.config.items()})
+        config.update({f"adxl345.{k}": v for k, v in self.adxl.config.items()})
+        return config
 
     def close(self) -> None:
         self.itg.close()

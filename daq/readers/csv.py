@@ -31,6 +31,8 @@ from daq.record import TEMPERATURE_KEY, Record
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
 _DELIMITERS = (",", ";", "\t")
+# Inferred rates outside this range usually mean a time column in ms, us or ns.
+_PLAUSIBLE_RATE_HZ = (0.5, 1e5)
 _ROW_ERROR = re.compile(r"at row (\d+)")
 _NON_SPACE = re.compile(rb"\S")
 _EMPTY_FIELD = re.compile(rb"(?<=[,;\t])(?=[,;\t\r\n])|^(?=[,;\t])|(?<=[,;\t])$", re.MULTILINE)
@@ -211,6 +213,8 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
             fs = float(rate_hz) if rate_hz is not None else estimate_rate(t)
         except ValueError as exc:
             raise ReadError(f"{path}: {exc}") from None
+        if rate_hz is None and not _PLAUSIBLE_RATE_HZ[0] <= fs <= _PLAUSIBLE_RATE_HZ[1]:
+            warnings.append(f"sampling rate from 't' is {fs:.6g} Hz: is 't' in seconds?")
         starts = segment_starts_from_times(t, fs)
         warnings.extend(_describe_gaps(t, starts))
         t0 = float(t[0])

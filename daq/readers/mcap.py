@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import mmap
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from analysis.series import ChannelSeries, estimate_rate, segment_starts_from_times
+from analysis.series import ChannelSeries, segment_starts_from_times
 from daq import mcap_layout as ml
 from daq import ros2_msgs as msgs
 from daq.blocks import SampleBlock
@@ -139,9 +139,9 @@ def _setup_topic(tp: _Topic, blob: np.ndarray, first: int) -> None:
         tp.has_accel = bool(acov[0] != -1.0)
 
 
-def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
-                  ) -> dict[int, dict[str, np.ndarray]]:
-    """Decode the chosen topics of consecutive chunks: {cid: {"t": ..., field: ...}}."""
+def _load_batch(fd: int, batch: list[ml.ChunkInfo]) -> tuple[bytes, np.ndarray, list[int]]:
+    """Read consecutive chunks with their message indexes and decompress them into one buffer:
+    (file region, decompressed records, offset of each chunk in them)."""
     start, stop = batch[0].start, batch[-1].mi_end
     region = os.pread(fd, stop - start, start)
     if len(region) != stop - start:
@@ -155,9 +155,27 @@ def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
         bases.append(base)
         base += len(data)
     blob = np.frombuffer(b"".join(parts) if len(parts) > 1 else bytes(parts[0]), np.uint8)
-    del parts
+    return region, blob, bases
+
+
+Sink = Callable[[_Topic, int], dict[str, np.ndarray]]
+
+
+def _columns(tp: _Topic) -> list[str]:
+    if tp.kind == "temperature":
+        return ["t", "temp"]
+    return ["t"] + (list(GYRO) if tp.has_gyro else []) + (list(ACCEL) if tp.has_accel else [])
+
+
+def _decode_batch(src: McapSource, batch: list[ml.ChunkInfo],
+                  loaded: tuple[bytes, np.ndarray, list[int]], sink: Sink | None = None
+                  ) -> dict[int, dict[str, np.ndarray]]:
+    """Decode the chosen topics of consecutive chunks: {cid: {"t": ..., field: ...}}; with a
+    ``sink``, into the arrays it hands out for (topic, message count)."""
+    region, blob, bases = loaded
+    start = batch[0].start
     region_u8 = np.frombuffer(region, np.uint8)
-    views = {dt: _overlapping(blob, dt) for dt in ("<u8", "<u4", "<i4", "<u2", "<f8")}
+    views = {dt: _overlapping(blob, dt) for dt in (f"V{_HEAD.itemsize}", "V24", "<f8")}
     out: dict[int, dict[str, np.ndarray]] = {}
     for cid, tp in src.topics.items():
         pos_l, cnt_l, base_l, walked = [], [], [], []
@@ -191,7 +209,10 @@ def _decode_batch(fd: int, src: McapSource, batch: list[ml.ChunkInfo]
             raise ml.McapFormatError(f"{tp.topic}: message index points outside its chunk")
         if tp.frame_len < 0:
             _setup_topic(tp, blob, int(rec[0]))
-        out[cid] = _decode_topic(tp, blob, rec, views)
+        dest = sink(tp, rec.size) if sink is not None else {
+            name: np.empty(rec.size, np.int64 if name == "t" else np.float64)
+            for name in _columns(tp)}
+        out[cid] = _decode_topic(tp, blob, rec, views, dest)
     return out
 
 
@@ -204,73 +225,57 @@ def _walk_offsets(records: np.ndarray, cid: int) -> np.ndarray:
     return np.asarray(offs, dtype=np.int64)
 
 
-def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray,
-                  views: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Check and decode the messages of one topic at record offsets ``rec`` in ``blob``."""
+# Record start to the end of the CDR header fields, read in one gather per message.
+_HEAD = np.dtype([("op", "u1"), ("rlen", "<u8"), ("_mcap", "V22"), ("encap", "<u2"),
+                  ("_opts", "V2"), ("sec", "<i4"), ("nanosec", "<u4"), ("frame_len", "<u4")])
+_VEC3 = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+
+
+def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray, views: dict[str, np.ndarray],
+                  dest: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Check and decode the messages of one topic at record offsets ``rec`` in ``blob`` into
+    the arrays ``dest`` (one per column of :func:`_columns`, each of ``len(rec)``).
+
+    Fields are gathered as opaque byte groups (one per message for the record and CDR header,
+    one per vector), then reinterpreted: far fewer gathers than one per scalar."""
     if rec.max() + _PAYLOAD + tp.payload_len > blob.size:
         raise UnsupportedLayout(f"{tp.topic}: message longer than its chunk")
-    if not np.all(blob[rec] == ml.OP_MESSAGE):
+    head = views[f"V{_HEAD.itemsize}"][rec].view(_HEAD)
+    if not np.all(head["op"] == ml.OP_MESSAGE):
         raise ml.McapFormatError(f"{tp.topic}: message index does not point at messages")
-    p = rec + _PAYLOAD
-    if (not np.all(views["<u2"][p] == 0x0100)
-            or not np.all(views["<u4"][p + 12] == tp.frame_len)
-            or not np.all(views["<u8"][rec + 1] == ml.MESSAGE_HEADER + tp.payload_len)):
+    if (not np.all(head["encap"] == 0x0100)
+            or not np.all(head["frame_len"] == tp.frame_len)
+            or not np.all(head["rlen"] == ml.MESSAGE_HEADER + tp.payload_len)):
         raise UnsupportedLayout(
             f"{tp.topic}: messages differ in layout (frame_id length or encoding)")
-    t = views["<i4"][p + 4].astype(np.int64)
+    t = dest["t"]
+    t[:] = head["sec"]
     t *= 1_000_000_000
-    t += views["<u4"][p + 8]
-    body = p + tp.body
-    f8 = views["<f8"]
-    out = {"t": t}
+    t += head["nanosec"]
+    body = rec + (_PAYLOAD + tp.body)
     if tp.kind == "imu":
-        if tp.has_gyro:
-            for i, name in enumerate(GYRO):
-                out[name] = f8[body + (msgs.IMU_GYRO_OFFSET + 8 * i)]
-        if tp.has_accel:
-            for i, name in enumerate(ACCEL):
-                out[name] = f8[body + (msgs.IMU_ACCEL_OFFSET + 8 * i)]
+        v24 = views["V24"]
+        for present, offset, names in ((tp.has_gyro, msgs.IMU_GYRO_OFFSET, GYRO),
+                                       (tp.has_accel, msgs.IMU_ACCEL_OFFSET, ACCEL)):
+            if present:
+                vec = v24[body + offset].view(_VEC3)
+                for axis, name in zip("xyz", names, strict=True):
+                    dest[name][:] = vec[axis]
     else:
-        out["temp"] = f8[body]
-    return out
+        dest["temp"][:] = views["<f8"][body]
+    return dest
 
 
-def iter_decoded(src: McapSource) -> Iterator[dict[int, dict[str, np.ndarray]]]:
+def iter_decoded(src: McapSource, sink: Sink | None = None
+                 ) -> Iterator[dict[int, dict[str, np.ndarray]]]:
     """Decoded batches of the source's topics, in file order."""
     with open(src.path, "rb") as f:
         for batch in _batches(src.layout.chunks):
-            yield _decode_batch(f.fileno(), src, batch)
-
-
-def _channel_names(tp: _Topic) -> list[str]:
-    if tp.kind == "temperature":
-        return ["temp"]
-    return (list(GYRO) if tp.has_gyro else []) + (list(ACCEL) if tp.has_accel else [])
+            yield _decode_batch(src, batch, _load_batch(f.fileno(), batch), sink)
 
 
 def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v for k, v in data.items() if k != "t"}
-
-
-def _rate(t: np.ndarray, metadata: dict[str, str]) -> float:
-    """Sampling rate in Hz from stamps (int64 ns or float s): the median interval locates the
-    gaps, then the longest gap-free run gives the rate (span over intervals), which averages
-    out the jitter and rounding of individual stamps."""
-    rel = seconds(t)[0]
-    try:
-        fs = estimate_rate(rel)
-    except ValueError:
-        fs = float(metadata.get("rate_hz", "nan"))
-        if not np.isfinite(fs) or fs <= 0:
-            raise
-        return fs
-    bounds = np.append(segment_starts_from_times(rel, fs), rel.size)
-    lengths = np.diff(bounds)
-    k = int(np.argmax(lengths))
-    if lengths[k] >= 3:
-        a, b = int(bounds[k]), int(bounds[k + 1]) - 1
-        fs = (b - a) / float(rel[b] - rel[a])
-    return fs
 
 
 def seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
@@ -282,44 +287,73 @@ def seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
     return t - t[0], float(t[0])
 
 
-def make_series(name: str, t: np.ndarray, values: np.ndarray, fs_hz: float,
-                warnings: list[str], units: str,
-                timing: tuple[np.ndarray, float, np.ndarray] | None = None) -> ChannelSeries:
-    """A ChannelSeries from sample times (int64 ns or float s) and values: non-finite samples
-    are dropped (the gap they leave becomes a segment boundary) and gaps in time start new
-    segments. ``timing`` = (relative seconds, t0, segment starts) of ``t``, when already known
-    (shared by the channels of one topic)."""
-    finite = np.isfinite(values)
-    if finite.all() and timing is not None:
-        _rel, t0, starts = timing
-        return ChannelSeries(name=name, units=units, fs_hz=fs_hz,
-                             values=np.ascontiguousarray(values, dtype=np.float64),
-                             segment_starts=starts, t0_s=t0)
-    if not finite.all():
-        bad = int((~finite).sum())
-        warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
-        t, values = t[finite], values[finite]
-    values = np.ascontiguousarray(values, dtype=np.float64)
-    rel, t0 = seconds(t)
-    starts = segment_starts_from_times(rel, fs_hz) if t.size else np.zeros(1, np.int64)
-    return ChannelSeries(name=name, units=units, fs_hz=fs_hz, values=values,
-                         segment_starts=starts, t0_s=t0)
+@dataclass
+class Timing:
+    """Sampling of one topic: rate (Hz), first time (s), gap-free segment starts, notes."""
+
+    fs_hz: float
+    t0_s: float
+    segment_starts: np.ndarray
+    notes: list[str]
 
 
-def time_warnings(name: str, t: np.ndarray, fs_hz: float) -> list[str]:
-    """Human-readable notes about gaps and backward time steps in ``t`` (seconds)."""
-    if t.size < 2:
-        return []
-    dt = np.diff(seconds(t)[0])
+def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = None) -> Timing:
+    """Rate, segments and anomalies of int64 nanosecond stamps, in a few passes.
+
+    The median interval (of a subsample) locates the gaps: an interval that departs from it by
+    more than half a period starts a new segment (missing samples, repeated or backward time).
+    The rate is then taken from the longest gap-free run (span over intervals), which averages
+    out jitter and the rounding of single stamps. With fewer than two increasing stamps the rate
+    comes from the ``rate_hz`` metadata, else ValueError.
+    """
+    n = ns.size
+    t0 = int(ns[0]) * 1e-9 if n else 0.0
+    dt = np.diff(ns)
+    sample = dt[:: max(1, dt.size // 100_000)]
+    sample = sample[sample > 0]
+    if sample.size == 0:
+        fs = float((metadata or {}).get("rate_hz", "nan"))
+        if not np.isfinite(fs) or fs <= 0:
+            raise ValueError("cannot infer a sampling rate: fewer than two increasing time "
+                             "stamps")
+        return Timing(fs, t0, np.zeros(1, np.int64), [])
+    period = float(np.median(sample))
+    breaks = np.flatnonzero(np.abs(dt - period) > 0.5 * period) + 1
+    bounds = np.concatenate(([0], breaks, [n]))
+    lengths = np.diff(bounds)
+    k = int(np.argmax(lengths))
+    if lengths[k] >= 3:
+        first, last = int(bounds[k]), int(bounds[k + 1]) - 1
+        fs = (last - first) / ((int(ns[last]) - int(ns[first])) * 1e-9)
+    else:
+        fs = 1e9 / period
     notes = []
-    back = int((dt <= 0).sum())
+    back = int(np.count_nonzero(dt <= 0))
     if back:
         notes.append(f"{name}: time stamps go backwards or repeat at {back} places "
                      "(treated as segment boundaries)")
-    gaps = int((dt * fs_hz > 1.5).sum())
+    gaps = int(np.count_nonzero(dt > 1.5 * period))
     if gaps:
         notes.append(f"{name}: {gaps} gaps in header.stamp (segments are analysed separately)")
-    return notes
+    return Timing(fs, t0, np.concatenate(([0], breaks)).astype(np.int64), notes)
+
+
+def make_series(name: str, t: np.ndarray, values: np.ndarray, timing: Timing,
+                warnings: list[str], units: str) -> ChannelSeries:
+    """A ChannelSeries from stamps (int64 ns), values and the topic's timing. Non-finite samples
+    are dropped with a warning; the hole they leave becomes a segment boundary."""
+    finite = np.isfinite(values)
+    if finite.all():
+        return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz,
+                             values=np.ascontiguousarray(values, dtype=np.float64),
+                             segment_starts=timing.segment_starts, t0_s=timing.t0_s)
+    bad = int((~finite).sum())
+    warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
+    t, values = t[finite], np.ascontiguousarray(values[finite], dtype=np.float64)
+    rel, t0 = seconds(t)
+    starts = segment_starts_from_times(rel, timing.fs_hz) if t.size else np.zeros(1, np.int64)
+    return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz, values=values,
+                         segment_starts=starts, t0_s=t0)
 
 
 def read_mcap(path: str | Path) -> Record:
@@ -327,36 +361,28 @@ def read_mcap(path: str | Path) -> Record:
     src = open_mcap(path)
     if not src.topics:
         raise ml.McapFormatError("no sensor_msgs/msg/Imu or Temperature channel")
-    counts = {cid: tp.count for cid, tp in src.topics.items()}
     arrays: dict[int, dict[str, np.ndarray]] = {}
-    fill: dict[int, int] = dict.fromkeys(counts, 0)
+    fill: dict[int, int] = dict.fromkeys(src.topics, 0)
 
-    def _ensure(cid: int, cols: dict[str, np.ndarray], need: int) -> None:
-        have = arrays.get(cid)
+    def sink(tp: _Topic, n: int) -> dict[str, np.ndarray]:
+        """Slices of the output arrays, allocated once from the index counts."""
+        have = arrays.get(tp.cid)
+        k = fill[tp.cid]
         if have is None:
-            cap = max(counts[cid], need)
-            arrays[cid] = {k: np.empty(cap, np.int64 if k == "t" else np.float64)
-                           for k in ["t", *cols]}
-            return
+            cap = max(tp.count, n)
+            have = arrays[tp.cid] = {c: np.empty(cap, np.int64 if c == "t" else np.float64)
+                                     for c in _columns(tp)}
         cap = len(have["t"])
-        if need > cap:
-            new = max(need, cap * 2)
-            for k, v in have.items():
-                grown = np.empty(new, v.dtype)
-                grown[:cap] = v
-                have[k] = grown
+        if k + n > cap:  # chunks without message indexes: counts were not known
+            for c, v in have.items():
+                grown = np.empty(max(k + n, 2 * cap), v.dtype)
+                grown[:k] = v[:k]
+                have[c] = grown
+        fill[tp.cid] = k + n
+        return {c: v[k:k + n] for c, v in have.items()}
 
-    for decoded in iter_decoded(src):
-        for cid, data in decoded.items():
-            cols = _split(data)
-            n = len(data["t"])
-            k = fill[cid]
-            _ensure(cid, cols, k + n)
-            dst = arrays[cid]
-            dst["t"][k:k + n] = data["t"]
-            for name, v in cols.items():
-                dst[name][k:k + n] = v
-            fill[cid] = k + n
+    for _decoded in iter_decoded(src, sink):
+        pass
     warnings = list(src.warnings)
     channels: dict[str, ChannelSeries] = {}
     temperature: ChannelSeries | None = None
@@ -369,17 +395,14 @@ def read_mcap(path: str | Path) -> Record:
         n = fill[tp.cid]
         cols = {k: v[:n] for k, v in arrays.pop(tp.cid).items()}
         t = cols.pop("t")
-        rel, t0 = seconds(t)
-        fs = _rate(rel, src.metadata)
-        timing = (rel, t0, segment_starts_from_times(rel, fs))
+        timing = topic_timing(t, tp.topic, src.metadata)
+        warnings.extend(timing.notes)
         label = tp.topic if len(imu_topics) > 1 else ""
-        warnings.extend(time_warnings(label or tp.topic, rel, fs))
         for name, v in cols.items():
             key = f"{label}:{name}" if label else name
-            channels[key] = make_series(key, t, v, fs, warnings,
-                                        "rad/s" if name.startswith("gyro") else "m/s^2",
-                                        timing)
-        del t, cols, rel, timing
+            channels[key] = make_series(key, t, v, timing, warnings,
+                                        "rad/s" if name.startswith("gyro") else "m/s^2")
+        del t, cols
     if temp_topics:
         tp = temp_topics[0]
         n = fill[tp.cid]
@@ -387,8 +410,8 @@ def read_mcap(path: str | Path) -> Record:
         t = cols["t"][:n]
         if len(temp_topics) > 1:
             warnings.append(f"several temperature topics: using {tp.topic}")
-        fs = _rate(t, src.metadata) if n > 1 else 1.0
-        temperature = make_series("temp", t, cols["temp"][:n], fs, warnings, "degC")
+        timing = topic_timing(t, tp.topic, {"rate_hz": "1.0"})
+        temperature = make_series("temp", t, cols["temp"][:n], timing, warnings, "degC")
     meta = dict(src.metadata)
     meta["topics"] = ",".join(tp.topic for tp in src.topics.values())
     return Record(source=str(path), channels=channels, temperature=temperature, metadata=meta,
@@ -430,7 +453,7 @@ def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[Sam
             fs = rates.get(cid)
             if fs is None:
                 try:
-                    fs = _rate(ns, src.metadata)
+                    fs = topic_timing(ns, tp.topic, src.metadata).fs_hz
                 except ValueError:
                     fs = 1.0
                 rates[cid] = fs

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from daq import ros2_msgs as msgs
-from daq.readers.mcap import ACCEL, GYRO, _rate, make_series, time_warnings
+from daq.readers.mcap import ACCEL, GYRO, make_series, topic_timing
 from daq.record import Record
 
 
@@ -62,8 +62,8 @@ def read_rosbag(path: str | Path) -> Record:
     for topic in imu_topics:
         d = per_topic[topic]
         t = np.asarray(d["t"], dtype=np.int64)
-        fs = _rate(t, {})
-        warnings.extend(time_warnings(topic, t, fs))
+        timing = topic_timing(t, topic)
+        warnings.extend(timing.notes)
         label = topic if len(imu_topics) > 1 else ""
         blocks = []
         if d["cov"][0] != -1.0:
@@ -73,13 +73,13 @@ def read_rosbag(path: str | Path) -> Record:
         for names, arr, units in blocks:
             for i, name in enumerate(names):
                 key = f"{label}:{name}" if label else name
-                channels[key] = make_series(key, t, arr[:, i], fs, warnings, units)
+                channels[key] = make_series(key, t, arr[:, i], timing, warnings, units)
     temp_topics = [t for t in per_topic if kinds[t] == "temperature"]
     if temp_topics:
         d = per_topic[temp_topics[0]]
         t = np.asarray(d["t"], dtype=np.int64)
-        fs = _rate(t, {}) if t.size > 1 else 1.0
-        temperature = make_series("temp", t, np.asarray(d["a"], dtype=np.float64), fs,
+        timing = topic_timing(t, temp_topics[0], {"rate_hz": "1.0"})
+        temperature = make_series("temp", t, np.asarray(d["a"], dtype=np.float64), timing,
                                   warnings, "degC")
     if not channels and temperature is None:
         raise RosbagReadError(f"{path.name}: the Imu/Temperature topics hold no messages")

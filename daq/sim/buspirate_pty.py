@@ -80,8 +80,6 @@ class BusPirateEmulator:
         # Fault switches.
         self.mute = False
         self._garbage_pending = 0
-        self.garbage_every_n_frames = 0
-        self._frames_seen = 0
         self._reset_protocol()
         self.frames = 0
 

@@ -38,6 +38,7 @@ class Itg3200Sim(RegisterChip):
         self.temperature = temperature or drifting_temperature()
         self.who_am_i = address & 0x7E
         self.stuck_ready = False
+        self.pll_error_ppm = 0.0  # frequency error of the gyro-referenced clock
         self.samples_made = 0
         self._reset()
 
@@ -59,6 +60,8 @@ class Itg3200Sim(RegisterChip):
         clk = self.regs[itg.REG["PWR_MGM"]] & 0x07
         if clk == itg.CLK_INTERNAL:
             f_int *= 1.0 + INTERNAL_OSC_ERROR
+        else:
+            f_int *= 1.0 + self.pll_error_ppm * 1e-6
         return f_int / (self.regs[itg.REG["SMPLRT_DIV"]] + 1)
 
     def _update(self) -> None:

@@ -14,7 +14,7 @@ from analysis.series import ChannelSeries
 from daq.readers import ReadError, open_record
 from daq.record import ChannelSelectionError, Record, select_channels
 from imunoise.errors import UsageError
-from imunoise.progress import progress_bar
+from imunoise.progress import progress_bar, spinner
 
 if TYPE_CHECKING:  # scipy-backed modules load only when a command runs, not for --help
     from analysis.psd import PsdEstimate
@@ -65,11 +65,8 @@ class ChannelAnalysis:
 
 
 def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
-    try:
-        from analysis.allan import oadev
-    except ImportError:
-        out.warnings.append("Allan deviation not available in this build")
-        return
+    from analysis.allan import oadev
+
     try:
         out.allan = oadev(series.values, series.fs_hz, m="octave",
                           segment_starts=series.segment_starts, ci=JSON_CI)
@@ -125,7 +122,7 @@ def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> 
 
 def _read(path: str, rate_hz: float | None) -> Record:
     big = os.path.isfile(path) and os.path.getsize(path) > _PROGRESS_FILE_BYTES
-    with progress_bar(big) as bar:
+    with spinner(big) as bar:
         bar.add_task(f"reading {path}", total=None)
         try:
             return open_record(path, rate_hz=rate_hz)

@@ -33,16 +33,37 @@ and rotated hourly, named DEVICE_YYYYmmddTHHMMSSZ.mcap (UTC start time). Ctrl-C 
     p.set_defaults(func=run)
 
 
+# Driver configuration keys holding SI scale factors per count, and the channels they apply to.
+_SCALE_KEYS = {
+    "scale_gyro_rad_s_per_lsb": ("gyro_x", "gyro_y", "gyro_z"),
+    "scale_accel_m_s2_per_lsb": ("accel_x", "accel_y", "accel_z"),
+}
+
+
+def scales_from_config(config: dict[str, str]) -> dict[str, tuple[float, float]]:
+    """Per-channel (scale, offset) from a driver configuration, where it states them."""
+    scales: dict[str, tuple[float, float]] = {}
+    for key, channels in _SCALE_KEYS.items():
+        try:
+            scale = float(config[key])
+        except (KeyError, ValueError):
+            continue
+        for ch in channels:
+            scales[ch] = (scale, 0.0)
+    return scales
+
+
 def _status_line(rec, acq, t_start: float) -> str:
     stats = getattr(acq, "stats", None)
     dropped = getattr(stats, "dropped", 0) if stats is not None else 0
     state = getattr(stats, "state", "") if stats is not None else ""
+    samples = getattr(stats, "samples", rec.stats.samples)
     elapsed = max(time.monotonic() - t_start, 1e-9)
-    rate = rec.stats.samples / elapsed
+    rate = samples / elapsed
     size = rec.stats.bytes_written / 1e6
     name = Path(rec.stats.file).name if rec.stats.file else "-"
     hms = time.strftime("%H:%M:%S", time.gmtime(elapsed))
-    return (f"{hms}  {rate:8.1f} Hz  {rec.stats.samples:>10,d} samples  {dropped} dropped  "
+    return (f"{hms}  {rate:8.1f} Hz  {samples:>10,d} samples  {dropped} dropped  "
             f"{state}  {name}  {size:.2f} MB")
 
 
@@ -56,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise RuntimeFailure(f"device drivers are not available ({exc})") from exc
     from daq import ros2_msgs
+    from daq.errors import DeviceError
     from daq.recorder import McapRecorder
 
     try:
@@ -63,11 +85,18 @@ def run(args: argparse.Namespace) -> int:
                           seed=args.seed)
     except (ValueError, KeyError) as exc:
         raise UsageError(f"record: {exc}") from exc
-    except OSError as exc:
+    except (OSError, DeviceError) as exc:
         raise RuntimeFailure(f"record: cannot open {args.device}: {exc}") from exc
     try:
-        rec = McapRecorder(args.out, args.device, config=dict(getattr(acq, "config", {}) or {}),
-                           rate_hz=args.rate, rotate_s=rotate_s)
+        acq.open()  # the configuration (scales, rate) is known once the device is set up
+    except (OSError, DeviceError) as exc:
+        acq.close()
+        raise RuntimeFailure(f"record: cannot open {args.device}: {exc}") from exc
+    config = dict(getattr(acq, "config", {}) or {})
+    try:
+        rec = McapRecorder(args.out, args.device, config=config,
+                           scales=scales_from_config(config),
+                           rate_hz=getattr(acq, "rate_hz", None) or args.rate, rotate_s=rotate_s)
     except OSError as exc:
         acq.close()
         raise RuntimeFailure(f"record: {exc}") from exc
@@ -76,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     last_print = 0.0
     last_state = None
     interrupted = False
+    failure = None
     try:
         for block in acq.blocks(duration):
             rec.write(block)
@@ -95,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
                 last_print = now
     except KeyboardInterrupt:
         interrupted = True
+    except DeviceError as exc:
+        failure = str(exc)
     finally:
         try:
             acq.stop()
@@ -105,6 +137,11 @@ def run(args: argparse.Namespace) -> int:
         print(file=sys.stderr)
     if rec.error:
         raise RuntimeFailure(f"record: {rec.error}")
+    state = str(getattr(getattr(acq, "stats", None), "state", ""))
+    if failure or state.startswith("failed"):
+        kept = ", ".join(rec.stats.files) or "nothing"
+        raise RuntimeFailure(f"record: {args.device}: {failure or state}; recorded data kept "
+                             f"in {kept}")
     files = ", ".join(rec.stats.files) or "no file (no samples)"
     how = "stopped by Ctrl-C" if interrupted else "done"
     print(f"record: {how}: {rec.stats.samples} samples in {files}", file=sys.stderr)

@@ -1,0 +1,166 @@
+"""``imunoise fit``: fit one noise model to a channel and show where it fails.
+
+The model is a comma-separated list of terms (white, quantization, bias_instability,
+random_walk, rate_ramp, gauss_markov, sinusoid, temperature). A parameter written after a term
+is held at that value (SI units): ``--model white,gauss_markov:T=100,random_walk``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+import numpy as np
+
+from daq.readers import ReadError, open_record
+from daq.record import ChannelSelectionError, Record, select_channels
+from imunoise.errors import RuntimeFailure, UsageError
+
+JSON_CI = 0.95
+
+
+def _positive_rate(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad rate {text!r}: give Hz, e.g. 100") from None
+    if not value > 0 or not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"bad rate {text!r}: must be positive")
+    return value
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fit", help="fit one model, show where it fails", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("file", help="input recording (.csv, .mcap or rosbag2 folder)")
+    p.add_argument("--channel", required=True, metavar="SEL",
+                   help="channel to fit, e.g. gyro_x or /imu:gyro_x")
+    p.add_argument("--model", required=True, metavar="TERMS",
+                   help="comma-separated terms, e.g. white,bias_instability,random_walk")
+    p.add_argument("--json", action="store_true", help="print JSON on stdout")
+    p.add_argument("--rate", type=_positive_rate, metavar="HZ",
+                   help="sampling rate in Hz (needed for a CSV without a time column 't')")
+    p.set_defaults(func=run)
+
+
+def temperature_at(record: Record, key: str) -> np.ndarray | None:
+    """The record's temperature (degC) at each sample of channel ``key``, by linear
+    interpolation in time (sample times from each series' start and rate), or None."""
+    temp = record.temperature
+    if temp is None or temp.n_samples == 0:
+        return None
+    series = record.series(key)
+    t_chan = series.t0_s + np.arange(series.n_samples) / series.fs_hz
+    t_temp = temp.t0_s + np.arange(temp.n_samples) / temp.fs_hz
+    return np.interp(t_chan, t_temp, temp.values)
+
+
+def model_json(result: Any, units: str) -> list[dict[str, Any]]:
+    """CONTRACT.md ``model`` entries of a fit."""
+    from imunoise.report_json import number
+
+    del units
+    return [{"term": t.term, "params": {k: number(v) for k, v in t.params.items()},
+             "ci95": {k: [number(a), number(b)] for k, (a, b) in t.ci95.items()}}
+            for t in result.terms]
+
+
+def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
+    """Fit ``model_text`` to channel ``key`` of ``record``: ``(FitResult, AllanCurve)``.
+
+    Raises UsageError for an unknown term, a bad parameter or a record too short to fit."""
+    from analysis.fit import fit_series, parse_model_spec
+    from analysis.terms import TermError
+
+    try:
+        names, fixed = parse_model_spec(model_text)
+    except TermError as exc:
+        raise UsageError(str(exc)) from None
+    series = record.series(key)
+    temperature = temperature_at(record, key) if "temperature" in names else None
+    try:
+        return fit_series(series.values, series.fs_hz, names,
+                          segment_starts=series.segment_starts, temperature=temperature,
+                          fixed=dict(fixed), ci=JSON_CI)
+    except TermError as exc:
+        raise UsageError(str(exc)) from None
+    except ValueError as exc:
+        raise UsageError(f"{key}: {exc}") from None
+    except np.linalg.LinAlgError as exc:
+        raise RuntimeFailure(f"{key}: the fit failed numerically ({exc})") from None
+
+
+def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
+    """The ``fit`` JSON document of one channel."""
+    from imunoise import report_json
+
+    series = record.series(key)
+    model_adev = np.sqrt(result.model_avar(curve.tau_s))
+    z = np.zeros(len(curve.tau_s))
+    z_map = dict(zip(np.round(result.tau_s, 12), result.z, strict=True))
+    z = np.array([z_map.get(round(float(t), 12), np.nan) for t in curve.tau_s])
+    return report_json.channel_json(
+        series, curve, model=model_json(result, series.units), error=result.error_dict(),
+        failures=result.failures, model_adev=model_adev, z=z, channel=key)
+
+
+def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
+    """Readable report: model with intervals, curve against model, failing ranges, error."""
+    from analysis.terms import get_term, param_unit
+
+    u = series.units
+    lines = [f"{key}  [{u}]  fs {series.fs_hz:g} Hz  {series.n_samples:,} samples  "
+             f"{series.duration_s:.1f} s"]
+    lines.append("  model (95 % intervals)")
+    for t in result.terms:
+        term = get_term(t.term)
+        for p in term.params:
+            v = t.params[p.name]
+            lo, hi = t.ci95[p.name]
+            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] "
+                         f"{param_unit(p, u)}")
+    lines.append(f"  error: chi2/dof = {result.chi2_per_dof:.3g}   max |z| = "
+                 f"{result.max_abs_z:.2f}   (flag |z| > {result.misfit.threshold:.2f})")
+    lines.append(f"    {'tau [s]':>10}  {'adev':>11}  {'low':>11}  {'high':>11}  "
+                 f"{'model':>11}  {'z':>6}")
+    model_adev = np.sqrt(result.model_avar(curve.tau_s))
+    z_map = dict(zip(np.round(result.tau_s, 12), result.z, strict=True))
+    for i, tau in enumerate(curve.tau_s):
+        z = z_map.get(round(float(tau), 12), np.nan)
+        flag = "  <" if abs(z) > result.misfit.threshold else ""
+        lines.append(f"    {tau:10.4g}  {curve.dev[i]:11.4g}  {curve.ci_low[i]:11.4g}  "
+                     f"{curve.ci_high[i]:11.4g}  {model_adev[i]:11.4g}  {z:6.2f}{flag}")
+    if result.failures:
+        lines.append("  the model fails at:")
+        for f in result.failures:
+            lo, hi = f["tau_s"]
+            lines.append(f"    tau {lo:.4g} .. {hi:.4g} s: {f['direction']} "
+                         f"(max |z| {f['max_abs_z']:.1f})")
+    else:
+        lines.append("  the model explains the curve at every tau")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        record = open_record(args.file, rate_hz=args.rate)
+    except ReadError as exc:
+        raise UsageError(str(exc)) from None
+    try:
+        keys = select_channels(record, [args.channel])
+    except ChannelSelectionError as exc:
+        raise UsageError(str(exc)) from None
+    key = keys[0]
+    if key == "temp":
+        raise UsageError("fit: choose an IMU channel (gyro_* or accel_*), not the temperature")
+    result, curve = fit_channel(record, key, args.model)
+    if args.json:
+        from imunoise import report_json
+
+        sys.stdout.write(report_json.dumps(fit_json(record, key, result, curve)) + "\n")
+    else:
+        for w in record.warnings:
+            print(f"warning: {w}", file=sys.stderr)
+        print(fit_text(key, record.series(key), result, curve))
+    return 0
