@@ -27,7 +27,8 @@ continuous model, with residuals weighted by the whole model's Allan variance (t
 approximation only has to be good where bias instability matters). The density rises by half a
 state per decade (to at most three) until the largest relative error of the whole model's Allan
 variance on a fine grid over the measured tau range is below ``tolerance`` (default 2 %, i.e.
-about 1 % in deviation), far inside the measurement's confidence band.
+about 1 % in deviation), far inside the measurement's confidence band. A bias instability whose
+share of the model's Allan variance stays below 1e-4 everywhere in the range gets no states.
 The result records the states, the tau range and that error.
 """
 
@@ -41,6 +42,8 @@ from scipy.optimize import nnls
 from scipy.signal import lfilter
 
 TWO_LN2_OVER_PI = 2.0 * np.log(2.0) / np.pi
+# Relative share of the model's Allan variance below which bias instability gets no states.
+NEGLIGIBLE_FLICKER = 1e-4
 
 # Terms whose contribution is a random process with a finite discrete-time state.
 STOCHASTIC_TERMS = ("white", "quantization", "random_walk", "gauss_markov", "bias_instability")
@@ -304,6 +307,13 @@ def _approximate_flicker(dm: DiscreteModel, B: float, tau_range_s, flicker_avar,
     tau = np.logspace(np.log10(lo), np.log10(hi), max(int(np.ceil(16 * decades)) + 1, 8))
     target = (flicker_avar or flat_flicker_avar)(tau, B)
     total = dm.avar(tau) + target  # the continuous model's Allan variance on the grid
+    negligible = float(np.max(target / total))
+    if negligible < NEGLIGIBLE_FLICKER:
+        # Bias instability this far below the other terms needs no state: leaving it out
+        # changes the model's Allan variance by at most ``negligible`` (relative).
+        dm.flicker = FlickerApproximation(B=B, tau_range_s=(lo, hi), states_per_decade=0.0,
+                                          max_rel_avar_error=negligible)
+        return
     t_lo, t_hi = max(lo / 4.0, 1.0 / fs), hi
     best = None
     density = 1.0

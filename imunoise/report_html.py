@@ -206,8 +206,9 @@ def _coefficient_table(ch: Mapping, kind: str) -> str:
     model = ch.get("model") or []
     if not model:
         return '<p class="muted">No model was fitted.</p>'
-    head = ("<tr><th>term</th><th>parameter</th><th>value (SI)</th><th>95 % interval (SI)</th>"
-            "<th>value (conventional)</th><th>95 % interval (conventional)</th></tr>")
+    head = ("<tr><th>term</th><th>parameter</th><th>SI value<br><span class=\"muted\">95 % "
+            "interval</span></th><th>conventional value<br><span class=\"muted\">95 % "
+            "interval</span></th></tr>")
     rows = []
     for t in model:
         params = t.get("params") or {}
@@ -215,16 +216,15 @@ def _coefficient_table(ch: Mapping, kind: str) -> str:
         keys = sorted(params, key=lambda p: _PARAM_ORDER.index(p) if p in _PARAM_ORDER else 99)
         for p in keys:
             v = float(params[p])
-            si = _si_unit(p, kind)
+            si = escape(_si_unit(p, kind))
             conv = _conventional(p, kind)
-            conv_cells = ("<td>\u2013</td><td>\u2013</td>" if conv is None else
-                          f'<td class="num">{_num(v * conv[1])} {escape(conv[0])}</td>'
-                          f'<td class="num">{_interval(ci95.get(p), conv[1])} '
-                          f"{escape(conv[0])}</td>")
+            conv_cell = ("<td>\u2013</td>" if conv is None else
+                         f'<td class="num">{_num(v * conv[1])} {escape(conv[0])}<br>'
+                         f'<span class="muted">{_interval(ci95.get(p), conv[1])}</span></td>')
             rows.append(f"<tr><td>{escape(str(t.get('term')))}</td><td>{escape(p)}</td>"
-                        f'<td class="num">{_num(v)} {escape(si)}</td>'
-                        f'<td class="num">{_interval(ci95.get(p))} {escape(si)}</td>'
-                        f"{conv_cells}</tr>")
+                        f'<td class="num">{_num(v)} {si}<br>'
+                        f'<span class="muted">{_interval(ci95.get(p))}</span></td>'
+                        f"{conv_cell}</tr>")
     return f"<table>{head}{''.join(rows)}</table>"
 
 
@@ -338,7 +338,11 @@ def _discrete_block(ch: Mapping, units: str, kind: str) -> str:
             f'<td class="num">{_num(s["sigma"])}</td></tr>' for i, s in enumerate(markov))
         out.append(f"<table>{head}{body}</table>")
     fl = dm.get("bias_instability_approximation")
-    if fl:
+    if fl and not fl.get("states_per_decade"):
+        out.append(f"<p>Bias instability B = {_num(fl['B'])} {escape(units)} is negligible here "
+                   "(below 10<sup>\u22124</sup> of the model's Allan variance at every \u03c4): "
+                   "it needs no state.</p>")
+    elif fl:
         out.append(f"<p>Bias instability B = {_num(fl['B'])} {escape(units)} has no finite "
                    f"state model: it is approximated by the Markov states above (correlation "
                    f"times log-spaced, {_num(fl['states_per_decade'], 2)} per decade) fitted over "

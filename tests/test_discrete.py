@@ -196,3 +196,11 @@ def test_discrete_model_allan_curve_inside_measured_band():
     # far below (the flicker plateau is what they miss).
     assert inside >= 0.85 * total and agree >= 0.85 * total, (inside, agree, total)
     assert lost_in <= 0.6 * total and single_in <= 0.75 * total, (lost_in, single_in, total)
+
+
+def test_negligible_bias_instability_gets_no_states():
+    # A fit that drives B to ~0 must not produce Markov states of 1e-19 rad/s.
+    dm = discretize([("white", {"N": 3e-4}), ("bias_instability", {"B": 1e-18}),
+                     ("random_walk", {"K": 2e-5})], 100.0, tau_range_s=(0.01, 40.0))
+    assert dm.markov == []
+    assert dm.flicker.states_per_decade == 0.0 and dm.flicker.max_rel_avar_error < 1e-20

@@ -134,7 +134,7 @@ def test_report_content():
     # N = 3e-4 rad/s/sqrt(Hz) = 3e-4 * 180/pi * 60 deg/sqrt(h) = 1.031 deg/sqrt(h)
     assert "3.000\u00d710" in html and "rad/s/sqrt(Hz)" in text
     assert "1.031 deg/sqrt(h)" in text
-    assert "[1.021, 1.042] deg/sqrt(h)" in text
+    assert "1.031 deg/sqrt(h) [1.021, 1.042]" in text
     # B = 4e-5 rad/s = 8.251 deg/h; accel B = 1e-4 m/s^2 = 0.0102 mg
     assert "8.251 deg/h" in text and "0.0102 mg" in text
     # diagnosis: error before and after, escaped explanation
