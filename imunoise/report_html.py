@@ -239,10 +239,14 @@ def _error_block(ch: Mapping) -> str:
     if not fails:
         return text + ('<p class="ok">The measurement stays inside the model\'s band at every '
                        "\u03c4.</p>")
+    def span(lo: float, hi: float) -> str:
+        if lo == hi:
+            return f"\u03c4 = {_num(lo, 3)} s"
+        return f"\u03c4 = {_num(lo, 3)} to {_num(hi, 3)} s"
+
     items = "".join(
-        f"<li>\u03c4 = {_num(f['tau_s'][0], 3)} to {_num(f['tau_s'][1], 3)} s: "
-        f"{escape(str(f.get('direction', '')))}, |z| up to {_num(f.get('max_abs_z'), 3)}</li>"
-        for f in fails)
+        f"<li>{span(*f['tau_s'])}: {escape(str(f.get('direction', '')))}, |z| up to "
+        f"{_num(f.get('max_abs_z'), 3)}</li>" for f in fails)
     return text + f'<p class="bad">Where the model fails:</p><ul>{items}</ul>'
 
 
