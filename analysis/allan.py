@@ -31,6 +31,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from analysis.blas import single_thread_blas
 from analysis.edf import chi2_interval, greenhall_edf, noise_id_lag1_phase
 
 #: Confidence level of a one-sigma interval, as printed by Stable32.
@@ -65,7 +66,7 @@ KINDS: dict[str, KindSpec] = {
 
 # Start indices handled per step of the overlapping kernels: the working set (a few vectors
 # of this length) stays in the L2 cache, which roughly halves the time on long records.
-_CHUNK = 1 << 15
+_CHUNK = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -187,37 +188,56 @@ def phase_from_rate(rate: np.ndarray) -> np.ndarray:
     return u
 
 
-def _oadev_sum(u: np.ndarray, m: int) -> float:
-    """Sum over all i of (u[i+2m] - 2u[i+m] + u[i])^2, in cache-sized chunks."""
-    k = u.size - 2 * m
-    buf = np.empty(min(_CHUNK, max(k, 1)))
+def _oadev_sum(
+    u: np.ndarray,
+    m: int,
+    start: int = 0,
+    stop: int | None = None,
+    u2: np.ndarray | None = None,
+) -> float:
+    """Sum of (u[i+2m] - 2u[i+m] + u[i])^2 over start indices i in [start, stop) (default: all
+    i with i + 2m inside ``u``), in cache-sized chunks. ``u2`` may hold ``2 u`` precomputed
+    (exact), which saves one pass per tau."""
+    k = u.size - 2 * m if stop is None else stop
+    buf = np.empty(min(_CHUNK, max(k - start, 1)))
     total = 0.0
-    for a in range(0, k, _CHUNK):
+    for a in range(start, k, _CHUNK):
         b = min(k, a + _CHUNK)
         v = buf[: b - a]
         np.add(u[a + 2 * m : b + 2 * m], u[a:b], out=v)
-        v -= u[a + m : b + m]
-        v -= u[a + m : b + m]
+        if u2 is None:
+            v -= u[a + m : b + m]
+            v -= u[a + m : b + m]
+        else:
+            v -= u2[a + m : b + m]
         total += float(np.dot(v, v))
     return total
 
 
-def _ohdev_sum(u: np.ndarray, m: int) -> float:
-    """Sum over all i of (u[i+3m] - 3u[i+2m] + 3u[i+m] - u[i])^2, in chunks."""
-    k = u.size - 3 * m
-    buf = np.empty(min(_CHUNK, max(k, 1)))
+def _third_diff(x: np.ndarray, a: int, b: int, m: int, out: np.ndarray, tmp: np.ndarray) -> None:
+    """out = x[i+3m] - 3 x[i+2m] + 3 x[i+m] - x[i] for i in [a, b)."""
+    np.subtract(x[a + 3 * m : b + 3 * m], x[a:b], out=out)
+    np.subtract(x[a + m : b + m], x[a + 2 * m : b + 2 * m], out=tmp)
+    tmp *= 3.0
+    out += tmp
+
+
+def _ohdev_sum(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
+    """Sum of (u[i+3m] - 3u[i+2m] + 3u[i+m] - u[i])^2 over i in [start, stop), in chunks."""
+    k = u.size - 3 * m if stop is None else stop
+    buf = np.empty(min(_CHUNK, max(k - start, 1)))
     tmp = np.empty_like(buf)
     total = 0.0
-    for a in range(0, k, _CHUNK):
+    for a in range(start, k, _CHUNK):
         b = min(k, a + _CHUNK)
         v = buf[: b - a]
-        t = tmp[: b - a]
-        np.subtract(u[a + 3 * m : b + 3 * m], u[a:b], out=v)
-        np.subtract(u[a + m : b + m], u[a + 2 * m : b + 2 * m], out=t)
-        t *= 3.0
-        v += t
+        _third_diff(u, a, b, m, v, tmp[: b - a])
         total += float(np.dot(v, v))
     return total
+
+
+#: Overlapping kernels by kind: ``f(u, m, start, stop)`` -> sum of squared differences.
+OVERLAP_KERNELS = {"oadev": _oadev_sum, "ohdev": _ohdev_sum}
 
 
 def _adev_sum(u: np.ndarray, m: int) -> tuple[float, int]:
@@ -228,25 +248,35 @@ def _adev_sum(u: np.ndarray, m: int) -> tuple[float, int]:
     return float(np.dot(v, v)), int(v.size)
 
 
-def _mdev_sums(u: np.ndarray, ms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Modified Allan sums: the m-sample sums of u come from a long-double running sum so the
-    window differences stay exact to float64 precision on long records."""
-    n = u.size
-    uu = np.empty(n + 1, dtype=np.longdouble)
+def _running_sum_split(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Prefix sums U (U[0] = 0, N + 1 points) of ``u`` as a float64 pair ``hi + lo``, summed in
+    long double: differences of U over m points then keep full float64 precision even when
+    U itself is large."""
+    uu = np.empty(u.size + 1, dtype=np.longdouble)
     uu[0] = 0.0
     np.cumsum(u - u.mean(), dtype=np.longdouble, out=uu[1:])
-    sums = np.zeros(ms.size)
-    counts = np.zeros(ms.size, dtype=np.int64)
-    for j, m in enumerate(ms):
-        m = int(m)
-        k = n - 3 * m + 1
-        if k < 1:
-            continue
-        w = (uu[m:] - uu[:-m]).astype(np.float64)  # sums of m consecutive phase points
-        v = w[2 * m : 2 * m + k] - 2.0 * w[m : m + k] + w[:k]
-        sums[j] = float(np.dot(v, v))
-        counts[j] = k
-    return sums, counts
+    hi = uu.astype(np.float64)
+    lo = (uu - hi).astype(np.float64)
+    return hi, lo
+
+
+def _mdev_sum(hi: np.ndarray, lo: np.ndarray, m: int) -> float:
+    """Modified Allan sum: the second difference of m-point phase sums is the third difference
+    of the prefix sum U at spacing m; summed over its N - 3m + 1 start indices."""
+    k = hi.size - 3 * m
+    buf = np.empty(min(_CHUNK, max(k, 1)))
+    tmp = np.empty_like(buf)
+    low = np.empty_like(buf)
+    total = 0.0
+    for a in range(0, k, _CHUNK):
+        b = min(k, a + _CHUNK)
+        v = buf[: b - a]
+        w = low[: b - a]
+        _third_diff(hi, a, b, m, v, tmp[: b - a])
+        _third_diff(lo, a, b, m, w, tmp[: b - a])
+        v += w
+        total += float(np.dot(v, v))
+    return total
 
 
 def segment_sums(
@@ -263,8 +293,20 @@ def segment_sums(
     spec = KINDS[kind]
     ms = np.asarray(ms, dtype=np.int64)
     n = u.size
+    # Scale by an exact power of two so the numbers are of order one: very small values
+    # (clock phase in seconds) are many times slower in the dot products and risk underflow.
+    peak = float(np.max(np.abs(u))) if n else 0.0
+    if peak > 0.0 and not 2.0**-8 < peak < 2.0**8:
+        e = -int(np.floor(np.log2(peak)))
+        sums, counts = segment_sums(np.ldexp(u, e), ms, kind, workers)
+        return np.ldexp(sums, -2 * e), counts
     if kind == "mdev":
-        return _mdev_sums(u, ms)
+        hi, lo = _running_sum_split(u)
+        counts = np.maximum(n - 3 * ms + 1, 0).astype(np.int64)
+        sums = np.array(
+            [_mdev_sum(hi, lo, int(mm)) if c > 0 else 0.0 for mm, c in zip(ms, counts, strict=True)]
+        )
+        return sums, counts
     if kind == "adev":
         pairs = [_adev_sum(u, int(m)) for m in ms]
         return (
@@ -272,16 +314,25 @@ def segment_sums(
             np.array([p[1] for p in pairs], dtype=np.int64),
         )
     counts = np.maximum(n - spec.span * ms, 0).astype(np.int64)
-    kernel = _oadev_sum if kind == "oadev" else _ohdev_sum
+    if kind == "oadev":
+        u2 = np.ldexp(u, 1)
+
+        def kernel(j: int) -> float:
+            return _oadev_sum(u, int(ms[j]), u2=u2)
+    else:
+
+        def kernel(j: int) -> float:
+            return _ohdev_sum(u, int(ms[j]))
+
     todo = [j for j in range(ms.size) if counts[j] > 0]
     sums = np.zeros(ms.size)
     if workers > 1 and len(todo) > 1:
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            for j, s in zip(todo, pool.map(lambda j: kernel(u, int(ms[j])), todo), strict=True):
+            for j, s in zip(todo, pool.map(kernel, todo), strict=True):
                 sums[j] = s
     else:
         for j in todo:
-            sums[j] = kernel(u, int(ms[j]))
+            sums[j] = kernel(j)
     return sums, counts
 
 
@@ -352,7 +403,7 @@ def allan(
     kind: str = "oadev",
     m: str | int | Sequence[int] | np.ndarray = "octave",
     segment_starts: np.ndarray | Sequence[int] | None = None,
-    ci: float = ONE_SIGMA_CI,
+    ci: float | None = ONE_SIGMA_CI,
     alpha: int | Sequence[int] | np.ndarray | None = None,
     data_type: str = "freq",
     max_m: int | None = None,
@@ -368,7 +419,9 @@ def allan(
         m: a grid name or count for ``tau_grid``, or explicit averaging factors.
         segment_starts: indices where contiguous segments begin (as
             ``analysis.series.ChannelSeries``); each is processed on its own.
-        ci: two-sided confidence level of ``ci_low``/``ci_high``.
+        ci: two-sided confidence level of ``ci_low``/``ci_high``; ``None`` for the deviations
+            only (no noise identification: ``edf``, ``ci_low``, ``ci_high`` and ``ci`` are
+            nan, ``alpha`` is the given one or 0).
         alpha: noise exponent(s) for the edf: ``None`` identifies it per tau (lag-1 ACF on
             the longest segment), an int applies to every tau, an array gives one per tau.
         data_type: ``"freq"`` (rate) or ``"phase"``.
@@ -410,7 +463,6 @@ def allan(
         ms = np.asarray(m, dtype=np.int64).ravel()
         if ms.size and ms.min() < 1:
             raise ValueError("averaging factors must be >= 1")
-    spec = KINDS[kind]
 
     alpha_arr = None
     if alpha is not None:
@@ -418,10 +470,11 @@ def allan(
 
     sums = np.zeros(ms.size)
     counts = np.zeros(ms.size, dtype=np.int64)
-    for u in phases:
-        s, c = segment_sums(u, ms, kind, workers=workers)
-        sums += s
-        counts += c
+    with single_thread_blas():
+        for u in phases:
+            s, c = segment_sums(u, ms, kind, workers=workers)
+            sums += s
+            counts += c
     keep = counts > 0
     ms, sums, counts = ms[keep], sums[keep], counts[keep]
     if alpha_arr is not None:
@@ -429,10 +482,26 @@ def allan(
     var = normalise(sums, counts, ms, kind)
     dev = np.sqrt(var)
 
+    if ci is None:
+        nan = np.full(ms.size, np.nan)
+        return AllanCurve(
+            kind=kind,
+            fs_hz=float(fs_hz),
+            tau_s=ms / float(fs_hz),
+            m=ms,
+            dev=dev,
+            n_terms=counts,
+            edf=nan,
+            alpha=alpha_arr if alpha_arr is not None else np.zeros(ms.size, dtype=np.int64),
+            ci_low=nan.copy(),
+            ci_high=nan.copy(),
+            ci=float("nan"),
+            exact_upto_m=int(ms.max()) if ms.size else 0,
+        )
     if alpha_arr is None:
         if phases:
             u_long = phases[int(np.argmax(seg_points))]
-            alpha_arr = identify_noise(u_long, ms, kind, data_type)
+            alpha_arr = identify_noise(u_long, ms, kind)
         else:
             alpha_arr = np.zeros(0, dtype=np.int64)
     lo, hi = alpha_range(kind)
@@ -455,13 +524,18 @@ def allan(
     )
 
 
-def identify_noise(u: np.ndarray, ms: np.ndarray, kind: str, data_type: str = "freq"):
+def identify_noise(u: np.ndarray, ms: np.ndarray, kind: str) -> np.ndarray:
     """Lag-1 ACF noise exponent per m from one segment's phase ``u`` (rate x samples units).
 
-    Rate data: the m-sample averages are ``diff(u[::m]) / m``. Phase data: ``u[::m]``.
-    Hadamard allows one more differencing than Allan (dmax 3 instead of 2).
+    The series examined at each m is the m-sample averages of the rate,
+    ``diff(u[::m]) / m``, for rate and phase input alike: this reproduces the noise types
+    Stable32 prints for its phase data sets (decimating the phase instead disagrees with
+    them at long tau). Hadamard allows one more differencing than Allan (dmax 3 instead of 2).
     """
-    return noise_id_lag1_phase(u, ms, data_type, dmax=KINDS[kind].d, alpha_range=alpha_range(kind))
+    with single_thread_blas():
+        return noise_id_lag1_phase(
+            u, ms, "freq", dmax=KINDS[kind].d, alpha_range=alpha_range(kind)
+        )
 
 
 def _kind_function(kind: str):
@@ -470,7 +544,7 @@ def _kind_function(kind: str):
         fs_hz: float,
         m: str | int | Sequence[int] | np.ndarray = "octave",
         segment_starts: np.ndarray | Sequence[int] | None = None,
-        ci: float = ONE_SIGMA_CI,
+        ci: float | None = ONE_SIGMA_CI,
         alpha: int | Sequence[int] | np.ndarray | None = None,
         data_type: str = "freq",
         max_m: int | None = None,

@@ -221,8 +221,13 @@ def lag1_acf(x: np.ndarray) -> float:
 
 
 def _detrend(x: np.ndarray, deg: int) -> np.ndarray:
+    """Residual of a least-squares polynomial fit of degree 1 or 2 against the index."""
     t = np.arange(x.size, dtype=np.float64)
-    t = (t - t.mean()) / max(1.0, t.size / 2.0)
+    t -= t.mean()
+    if deg == 1:
+        slope = float(np.dot(t, x - x.mean())) / float(np.dot(t, t))
+        return x - x.mean() - slope * t
+    t /= max(1.0, x.size / 2.0)
     coef = np.polynomial.polynomial.polyfit(t, x, deg)
     return x - np.polynomial.polynomial.polyval(t, coef)
 

@@ -410,7 +410,8 @@ def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndar
 def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
               line: tuple[float, float] | None = None, temperature: TermFit | None = None,
               fixed: dict[str | int, dict[str, float]] | None = None,
-              family_rate: float = 0.10, max_nfev: int = 200) -> FitResult:
+              family_rate: float = 0.10, max_nfev: int = 200,
+              intervals: str = "profile") -> FitResult:
     """Fit a sum of noise terms to a measured overlapping Allan curve.
 
     Args:
@@ -430,6 +431,9 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
         family_rate: probability that a correct model reports any failure (sets the |z|
             threshold).
         max_nfev: cap on model evaluations of the least-squares solver.
+        intervals: ``"profile"`` (profile likelihood: the other parameters re-fitted while
+            one is moved until chi2 rises by 3.84; honest for weakly determined terms, about
+            0.1-0.5 s) or ``"jacobian"`` (linearised, log-parameter space; for quick refits).
 
     Raises:
         TermError: unknown term, or a model with no term to fit.
@@ -495,8 +499,18 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
     param_cov = np.linalg.pinv(jac.T @ jac)
     sd = np.sqrt(np.clip(np.diag(param_cov), 0.0, None))
     ci: list[dict[str, tuple[float, float]]] = [dict() for _ in names]
-    for (i, k), th, s in zip(layout.keys, theta, sd, strict=True):
-        ci[i][k] = (float(math.exp(th - _Z95 * s)), float(math.exp(min(th + _Z95 * s, 700))))
+    if intervals == "profile":
+        full = optimize.least_squares(resid_final, theta, bounds=(layout.lo, layout.hi),
+                                      method="trf", max_nfev=60)
+        base = min(2.0 * float(full.cost), float(np.sum(resid_final(theta) ** 2)))
+    for idx, ((i, k), th, s) in enumerate(zip(layout.keys, theta, sd, strict=True)):
+        if intervals == "profile":
+            lo, hi = _profile_interval(resid_final, theta, idx, layout, s, base)
+        else:
+            lo, hi = th - _Z95 * s, th + _Z95 * s
+        # an amplitude whose interval reaches its lower bound is consistent with zero
+        lo_v = 0.0 if (lo <= layout.lo[idx] + 1e-6 and k not in ("T", "f")) else math.exp(lo)
+        ci[i][k] = (float(lo_v), float(math.exp(min(hi, 700.0))))
     for (i, k), v in layout.fixed.items():
         ci[i][k] = (float(v), float(v))
 
@@ -515,6 +529,62 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
                      term_avar=term_avar, misfit=mf,
                      failures=failures(tau, mf.z, mf.threshold), param_cov=param_cov,
                      free_params=list(layout.keys))
+
+
+_CHI2_95_1DOF = 3.841458820694124
+
+
+def _profile_interval(resid: Any, theta: np.ndarray, idx: int, layout: _Layout, sd: float,
+                      base: float) -> tuple[float, float]:
+    """95 % profile-likelihood interval of log-parameter ``idx`` (whitening held fixed;
+    ``base`` is the minimum of the plain sum of squares)."""
+    others = [j for j in range(theta.size) if j != idx]
+
+    def excess(v: float, guess: np.ndarray) -> tuple[float, np.ndarray]:
+        th = theta.copy()
+        th[idx] = v
+        if not others:
+            return float(np.sum(resid(th) ** 2)) - base, guess
+
+        def sub(x: np.ndarray) -> np.ndarray:
+            th2 = th.copy()
+            th2[others] = x
+            return resid(th2)
+
+        lo_b, hi_b = layout.lo[others], layout.hi[others]
+        x0 = np.clip(guess, lo_b + 1e-9, hi_b - 1e-9)
+        sol = optimize.least_squares(sub, x0, bounds=(lo_b, hi_b), method="trf", max_nfev=40)
+        return 2.0 * float(sol.cost) - base, sol.x
+
+    out = []
+    for direction in (-1.0, 1.0):
+        bound = layout.lo[idx] if direction < 0 else layout.hi[idx]
+        step = max(2.0 * _Z95 * sd, 0.05) if np.isfinite(sd) and sd > 0 else 1.0
+        inside, guess = float(theta[idx]), theta[others]
+        outside = None
+        for _ in range(12):
+            v = float(np.clip(inside + direction * step, min(bound, theta[idx]),
+                              max(bound, theta[idx])))
+            e, g = excess(v, guess)
+            if e > _CHI2_95_1DOF:
+                outside = v
+                break
+            inside, guess = v, g
+            if v == bound:
+                break
+            step *= 2.0
+        if outside is None:
+            out.append(bound)
+            continue
+        for _ in range(5):
+            mid = 0.5 * (inside + outside)
+            e, g = excess(mid, guess)
+            if e > _CHI2_95_1DOF:
+                outside = mid
+            else:
+                inside, guess = mid, g
+        out.append(0.5 * (inside + outside))
+    return out[0], out[1]
 
 
 def _fixed_keys(names: list[str], fixed: dict[str | int, dict[str, float]], fs: float

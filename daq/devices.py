@@ -32,7 +32,7 @@ def valid_devices() -> str:
 def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
                 rate_hz: float | None = None, seed: int | None = None,
                 realtime: bool = True, clock: Clock | None = None,
-                **options: object) -> Acquisition:
+                max_outage_s: float = 30.0, **options: object) -> Acquisition:
     """An :class:`Acquisition` for ``spec`` (see :data:`DEVICES`), not yet opened.
 
     Args:
@@ -44,6 +44,7 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
         realtime: simulators run in real time (False: as fast as the host allows, on a
             virtual clock shared by simulator and acquisition).
         clock: explicit clock (overrides ``realtime``).
+        max_outage_s: how long the device may stay unreachable before the run fails.
         options: driver options (``range_dps``, ``taps``, ``range_g``, ``address``...) and
             simulator options (``gyro``, ``accel``, ``temperature`` sources).
 
@@ -67,8 +68,10 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
             raise ValueError(f"device {base} needs --bus (the I2C bus number, e.g. 1 for "
                              "/dev/i2c-1)")
     builder = _BUILDERS[base]
-    return builder(simulated=simulated, port=port, bus=bus, rate=rate,
-                   seed=0 if seed is None else int(seed), clock=clock, options=dict(options))
+    acq = builder(simulated=simulated, port=port, bus=bus, rate=rate,
+                  seed=0 if seed is None else int(seed), clock=clock, options=dict(options))
+    acq.max_outage_s = float(max_outage_s)
+    return acq
 
 
 def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, seed: int,
@@ -90,7 +93,7 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
         emulator = BusPirateEmulator(sim, seed=seed).start()
         cleanup.append(emulator.close)
         port = emulator.port
-        sim.emulator = emulator  # type: ignore[attr-defined]
+        sim.emulator = emulator
     spi = BusPirateSPI(str(port), timeout_s=float(options.pop("timeout_s", 0.5)))
     driver = Adis16350(spi, rate_hz=rate, clock=clock, **options)
     acq = Acquisition(driver, clock=clock, on_close=cleanup)

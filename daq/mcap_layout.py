@@ -9,6 +9,7 @@ and says so in ``warnings``: everything before that point is usable.
 
 from __future__ import annotations
 
+import mmap
 import struct
 import threading
 from dataclasses import dataclass, field
@@ -39,6 +40,7 @@ _U64 = struct.Struct("<Q")
 _PREFIX = struct.Struct("<BQ")
 _CHUNK_HEAD5 = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, len(compression)
 _MI_HEAD = struct.Struct("<HI")
+_DROP_EVERY = 32 << 20
 _COMPRESSION = {b"": "", b"zstd": "zstd", b"lz4": "lz4"}
 
 
@@ -261,7 +263,15 @@ def scan(buf, size: int | None = None) -> McapLayout:
     chunk_head = _CHUNK_HEAD5.unpack_from
     u64 = _U64.unpack_from
     mi_head = _MI_HEAD.unpack_from
+    # Drop scanned pages of a memory map as we go, so that scanning a large file does not hold
+    # it all in resident memory.
+    drop = getattr(buf, "madvise", None) if hasattr(mmap, "MADV_DONTNEED") else None
+    dropped = 0
     while True:
+        if drop is not None and pos - dropped > _DROP_EVERY:
+            upto = pos - pos % mmap.PAGESIZE
+            drop(mmap.MADV_DONTNEED, dropped, upto - dropped)
+            dropped = upto
         if pos + RECORD_PREFIX > size:
             layout.data_end = pos
             if pos < size or not layout.complete:

@@ -244,10 +244,11 @@ class McapRecorder:
 
     def flush(self) -> None:
         """Write and fsync everything recorded so far (waits for the writer thread)."""
-        if self._queue is not None:
+        if self._queue is not None and self._thread is not None:
             done = threading.Event()
             self._queue.put(("flush", done, 0.0))
-            done.wait()
+            while not done.wait(0.5) and self._thread.is_alive():
+                pass
         else:
             self._guarded(self._flush)
 
@@ -301,6 +302,12 @@ class McapRecorder:
             fn(*args)
         except OSError as exc:
             self._on_write_error(exc)
+        except Exception as exc:  # noqa: BLE001 - a bad block must not lose the file
+            self.error = f"recording stopped: {type(exc).__name__}: {exc}"
+            try:
+                self._finish_file()
+            except Exception:  # noqa: BLE001 - the data already flushed stays readable
+                pass
 
     # ---- files ------------------------------------------------------------------------------
 

@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from analysis.allan import oadev
 from daq.acquisition import Acquisition
 from daq.blocks import SampleBlock
 from daq.clock import RealClock, VirtualClock
@@ -20,7 +21,7 @@ from daq.drivers import adxl345 as ax
 from daq.drivers import itg3200 as itg
 from daq.drivers.common import StreamBuffer
 from daq.sim.signals import white_source
-from tests.daq_helpers import DEG, G0, expected_variance, record, white_level_interval
+from tests.daq_testing import DEG, G0, expected_variance, record, white_level_interval
 
 
 def test_unknown_device_and_missing_port_or_bus():
@@ -71,15 +72,17 @@ class CountingDriver:
 
 def test_pacing_is_by_count_not_accumulated_sleeps():
     clock = VirtualClock(start=1000.0)
-    period = 1 / 30.0  # not exact in binary: accumulated sleeps would drift
+    period = 1 / 3.0  # not exact in binary: accumulated sleeps would drift
     drv = CountingDriver(clock, period)
-    acq = Acquisition(drv, clock=clock, block_s=1.0)
-    n = sum(len(b) for b in acq.blocks(600.0))
+    acq = Acquisition(drv, clock=clock, block_s=60.0)
+    n = sum(len(b) for b in acq.blocks(8 * 3600.0))
     t = np.asarray(drv.times)
-    assert n == len(t) == 18000
+    assert n == len(t) == 86400
     k = np.arange(len(t))
-    assert np.max(np.abs(t - (t[0] + k * period))) < 1e-9  # no drift after 10 minutes
-    assert acq.stats.jitter_s == 0.0 and acq.stats.samples == 18000
+    assert np.max(np.abs(t - (t[0] + k * period))) < 1e-8  # no drift after 8 hours
+    accumulated = t[0] + np.cumsum(np.full(len(t) - 1, period))
+    assert abs(accumulated[-1] - (t[0] + (len(t) - 1) * period)) > 1e-8  # what sums would do
+    assert acq.stats.jitter_s == 0.0 and acq.stats.samples == 86400
 
 
 def test_real_clock_pacing_and_jitter_are_measured():
@@ -163,6 +166,12 @@ def _check_white(x, density, fs, lsb):
     assert lo <= truth <= hi, (est, lo, hi, truth)
     # And the test can fail: a 10 % wrong density is outside the interval.
     assert not (lo <= expected_variance(density * 1.1, fs, lsb) <= hi)
+    # The project's Allan engine agrees: white noise (and the quantization's white part)
+    # gives AVAR(tau) = var / m, inside its 99.9 % interval at every tau checked.
+    curve = oadev(x, fs, m=[1, 8, 64], alpha=0, ci=0.999)
+    expected = np.sqrt(truth / curve.m)
+    assert np.all((curve.ci_low <= expected) & (expected <= curve.ci_high)), (
+        curve.dev, curve.ci_low, curve.ci_high, expected)
 
 
 def test_sixty_seconds_adis_white_noise_level():

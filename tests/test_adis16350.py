@@ -15,7 +15,7 @@ from daq.errors import PermanentDeviceError
 from daq.sim.adis16350 import Adis16350Sim
 from daq.sim.buspirate_pty import BusPirateEmulator
 from daq.transports.buspirate import BusPirateSPI
-from tests.daq_helpers import DEG, G0, constant, record
+from tests.daq_testing import DEG, G0, constant, record
 
 
 def test_gyro_scale_datasheet_example():
@@ -98,6 +98,7 @@ def test_driver_against_simulator(smpl_prd, range_dps):
     assert abs(len(imu["t"]) - n_expected) <= 2
     assert acq.stats.dropped == 0 and acq.stats.gaps == 0
     assert acq.config["smpl_prd"] == f"0x{smpl_prd:04X}"
+    assert acq.config["self_test"] == "passed"
     assert float(acq.config["rate_hz"]) == pytest.approx(rate, rel=1e-5)
     # Configuration landed in the chip's registers, SPI clock within the mode's limit.
     assert sim.words[adis.ADDR["SMPL_PRD"]] == smpl_prd

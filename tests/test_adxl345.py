@@ -13,7 +13,7 @@ from daq.errors import PermanentDeviceError
 from daq.sim.adxl345 import Adxl345Sim
 from daq.sim.fake_i2c import SimulatedI2CAdapter
 from daq.transports.i2c import I2CBus
-from tests.daq_helpers import G0, constant, record
+from tests.daq_testing import G0, constant, record
 
 
 def test_scaling_and_byte_order():

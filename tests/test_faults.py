@@ -9,7 +9,7 @@ import pytest
 from daq.devices import open_device
 from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
 from daq.transports.i2c import I2CBus
-from tests.daq_helpers import G0, constant
+from tests.daq_testing import G0, constant
 
 GYRO = (0.01, 0.02, -0.03)
 ACCEL = (0.0, 0.0, G0)
@@ -78,8 +78,7 @@ def test_bridge_that_stops_answering_for_a_while():
 
 
 def test_dead_bridge_fails_with_a_clear_message():
-    acq = adis()
-    acq.max_outage_s = 1.0
+    acq = adis(max_outage_s=1.0)
     with pytest.raises(AcquisitionFailed, match=r"no answer.*gave up after 1 s") as exc:
         run(acq, 30.0, 1.0, lambda a: setattr(a.simulator.emulator, "mute", True))
     assert acq.simulator.emulator.port in str(exc.value)
@@ -132,6 +131,16 @@ def test_long_i2c_error_burst_reconnects(kind):
     assert_accounted(acq, blocks, 4.0, 100.0)
 
 
+def test_adxl_reconnect_counts_the_samples_missed_while_away():
+    acq = open_device("sim:adxl345", rate_hz=400, realtime=False,
+                      accel=constant((0.0, 0.0, G0)))
+    blocks = run(acq, 4.0, 1.0, lambda a: a.simulator.adapter.nack_burst(12))
+    assert acq.stats.reconnects == 1 and acq.stats.gaps == 1
+    assert acq.stats.dropped > 5
+    # Up to a FIFO's worth of samples is still unread when the run ends.
+    assert_accounted(acq, blocks, 4.0, 400.0, slack=35)
+
+
 def test_itg_stuck_data_ready_reconnects_with_a_reset():
     acq = itg()
     blocks = run(acq, 5.0, 1.0, lambda a: setattr(a.simulator.itg, "stuck_ready", True))
@@ -178,3 +187,13 @@ def test_missing_serial_port_is_named():
     acq = open_device("adis16350", port="/dev/ttyNOPE0")
     with pytest.raises(DeviceError, match="/dev/ttyNOPE0: not found"):
         acq.open()
+
+
+def test_record_command_reports_a_missing_device_in_one_line(tmp_path, capsys):
+    from imunoise.cli import main
+
+    code = main(["record", "--device", "itg3200", "--bus", "97", "--duration", "2",
+                 "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and "I2C bus 97 (/dev/i2c-97): not found" in err[0]

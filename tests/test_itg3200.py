@@ -14,7 +14,7 @@ from daq.errors import PermanentDeviceError
 from daq.sim.fake_i2c import SimulatedI2CAdapter, SimulatedSMBus
 from daq.sim.itg3200 import Itg3200Sim
 from daq.transports.i2c import I2CBus
-from tests.daq_helpers import DEG, constant, record
+from tests.daq_testing import DEG, constant, record
 
 
 def test_scaling_datasheet_values():

@@ -119,3 +119,11 @@ def test_time_going_backwards_starts_a_new_segment_with_warning(tmp_path):
     assert r.channels["gyro_x"].segment_starts.tolist() == [0, 600]
     assert any("backwards" in w for w in r.warnings)
     assert r.channels["gyro_x"].fs_hz == pytest.approx(100.0, rel=1e-6)
+
+
+def test_rate_override_sets_rate_and_judges_gaps_by_it(tmp_path):
+    rec = record_blocks(tmp_path, make_blocks(2, 300, fs=100.0, skip={1: 5}))
+    r = open_record(rec.stats.files[0], rate_hz=102.4)
+    assert r.channels["gyro_x"].fs_hz == 102.4
+    assert r.channels["gyro_x"].segment_starts.tolist() == [0, 300]
+    assert r.metadata["format"] == "mcap"

@@ -110,3 +110,20 @@ def test_threaded_recorder_makes_data_durable_within_a_second(tmp_path):
     assert n == 300, "unflushed data after 1.5 s"
     rec.close()
     assert open_record(rec.stats.files[0]).warnings == []
+
+
+def test_malformed_block_stops_recording_with_message_and_keeps_file(tmp_path):
+    from daq.blocks import SampleBlock
+
+    rec = McapRecorder(tmp_path, "adis16350", fsync=False, rotate_s=None)
+    good = make_blocks(2, 100)
+    rec.write(good[0])
+    rec.write(SampleBlock("/adis16350/imu", np.arange(5.0), {"gyro_x": np.ones(3),
+                                                            "gyro_y": np.ones(5),
+                                                            "gyro_z": np.ones(5)}, 100.0))
+    rec.write(good[1])
+    rec.flush()
+    rec.close()
+    assert rec.error and rec.error.startswith("recording stopped: ValueError")
+    r = open_record(rec.stats.files[0])
+    assert r.channels["gyro_x"].n_samples == 100 and r.warnings == []

@@ -248,6 +248,8 @@ class Adis16350:
         range_dps: gyro range, 300, 150 or 75 deg/s.
         taps: Bartlett FIR taps (power of two, at least 4 at 150 deg/s and 16 at 75 deg/s).
         temp_period_s: how often the three temperatures and the supply are read.
+        self_test: run the internal self-test when first opened (result in ``config``; a
+            failure is recorded, not fatal, so a marginal part can still be characterised).
         clock: time source for pacing waits (shared with a simulator in tests).
     """
 
@@ -256,7 +258,7 @@ class Adis16350:
     stale_timeout_s = 0.5
 
     def __init__(self, spi: BusPirateSPI, *, rate_hz: float = 102.4, range_dps: int = 300,
-                 taps: int | None = None, temp_period_s: float = 1.0,
+                 taps: int | None = None, temp_period_s: float = 1.0, self_test: bool = True,
                  clock: Clock | None = None) -> None:
         self.spi = spi
         self.smpl_prd = smpl_prd_for_rate(rate_hz)
@@ -284,6 +286,8 @@ class Adis16350:
         self._last_fresh_host: float | None = None
         self._phase = PolledSampleClock(self.rate_hz)
         self._opened_at = 0.0
+        self.run_self_test = self_test
+        self.self_test_result = ""
         self.config: dict[str, str] = self._describe()
 
     # -- register access -------------------------------------------------------------------
@@ -314,6 +318,9 @@ class Adis16350:
         if self._last_fresh_host is not None:
             # Reopening after a fault: start the part from a clean state.
             self.reset()
+        elif self.run_self_test:
+            failed = self.self_test()
+            self.self_test_result = "passed" if not failed else "failed: " + "; ".join(failed)
         self.write_register("SMPL_PRD", self.smpl_prd)
         # The datasheet asks for the range (upper byte) before the filter (lower byte).
         self.write_register("SENS_AVG", self.sens_avg, upper_first=True)
@@ -401,6 +408,7 @@ class Adis16350:
             "supply_v": f"{self.supply_v:.3f}" if self.supply_v is not None else "",
             "flash_endurance": str(self.endurance),
             "temperature_rate_hz": f"{self.rate_hz / self.temp_every:.6g}",
+            "self_test": self.self_test_result,
         }
 
     # -- sampling --------------------------------------------------------------------------

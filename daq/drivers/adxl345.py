@@ -116,6 +116,7 @@ class Adxl345:
                                 self.rate_hz, lambda raw: raw * scale)
         self.overruns = 0
         self._last_drain: float | None = None
+        self._reopened = False
         self.config: dict[str, str] = self._describe(None)
 
     @property
@@ -144,7 +145,9 @@ class Adxl345:
         if back != expected:
             raise TransientDeviceError(f"{self.where}: configuration did not stick ({back})")
         self.clock.sleep(TURN_ON_S + 1.0 / self.rate_hz)
-        self._last_drain = None
+        # Reopened after a fault: the FIFO was flushed, so the first drain has to count the
+        # samples made since the last good one from the host clock.
+        self._reopened = self._last_drain is not None
         self.config = self._describe(devid)
     def _describe(self, devid: int | None) -> dict[str, str]:
         """Configuration for the recording's metadata (DEVID filled in by open)."""
@@ -172,7 +175,16 @@ class Adxl345:
         rows = [self.bus.read_block(a, REG["DATAX0"], DATA_BYTES) for _ in range(entries)]
         missed = 0
         if self._last_drain is None:
+            if not rows:
+                return 0
+            # The newest entry is about as old as this read.
             self.imu.anchor(self.clock.wall() - (entries - 1) / self.rate_hz)
+        elif self._reopened:
+            if not rows:
+                return 0
+            produced = int(round((now - self._last_drain) * self.rate_hz))
+            missed = max(0, produced - entries)
+            self._reopened = False
         elif source & INT_OVERRUN:
             # Full FIFO: how many samples came since the last drain is known only from the
             # host clock; at least one was overwritten.

@@ -56,7 +56,8 @@ def build_i2c_acquisition(which: str, *, simulated: bool, bus: int | None, rate:
         rig = SimulatedRig(adapter, itg_sim, adxl_sim)
         bus = 0 if bus is None else bus
     assert bus is not None
-    i2c = I2CBus(bus, retries=retries, clock=clock, opener=opener)
+    i2c = I2CBus(bus, retries=retries, clock=clock, opener=opener,
+                 label=f"simulated I2C bus {bus}" if simulated else None)
     driver: Itg3200 | Adxl345 | Razor
     if which == "itg3200":
         driver = Itg3200(i2c, rate_hz=rate, address=itg_addr, clock=clock, **options)

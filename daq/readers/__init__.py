@@ -36,10 +36,10 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{p}: no such file or directory")
     if p.is_dir():
         if (p / "metadata.yaml").is_file():
-            return _read_bag(p)
+            return _read_bag(p, rate_hz)
         mcaps = sorted(p.glob("*.mcap"))
         if len(mcaps) == 1:
-            return _read_mcap_file(mcaps[0])
+            return _read_mcap_file(mcaps[0], rate_hz)
         raise ReadError(f"{p}: is a folder but not a rosbag2 bag (no metadata.yaml)")
     suffix = p.suffix.lower()
     if suffix == ".csv":
@@ -47,33 +47,33 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
 
         return read_csv(p, rate_hz=rate_hz)
     if suffix == ".mcap":
-        return _read_mcap_file(p)
+        return _read_mcap_file(p, rate_hz)
     raise ReadError(f"{p}: unsupported file type {suffix or '(none)'!r}: expected .csv, .mcap "
                     "or a rosbag2 folder")
 
 
-def _read_bag(path: Path) -> Record:
+def _read_bag(path: Path, rate_hz: float | None = None) -> Record:
     from daq.readers.rosbag import RosbagReadError, read_rosbag
 
     try:
-        return read_rosbag(path)
+        return read_rosbag(path, rate_hz)
     except RosbagReadError as exc:
         raise ReadError(str(exc)) from exc
 
 
-def _read_mcap_file(path: Path) -> Record:
+def _read_mcap_file(path: Path, rate_hz: float | None = None) -> Record:
     from daq.mcap_layout import McapFormatError
     from daq.readers.mcap import UnsupportedLayout, read_mcap
     from daq.readers.rosbag import RosbagReadError, read_rosbag
 
     try:
-        return read_mcap(path)
+        return read_mcap(path, rate_hz)
     except UnsupportedLayout as exc:
         reason = str(exc)
     except (McapFormatError, OSError) as exc:
         raise ReadError(f"{path.name}: {exc}") from exc
     try:
-        record = read_rosbag(path)
+        record = read_rosbag(path, rate_hz)
     except RosbagReadError as exc:
         raise ReadError(f"{path.name}: {reason}; per-message reading failed too ({exc})") from exc
     record.warnings.insert(0, f"read message by message ({reason})")

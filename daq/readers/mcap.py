@@ -297,14 +297,16 @@ class Timing:
     notes: list[str]
 
 
-def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = None) -> Timing:
+def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = None,
+                 rate_hz: float | None = None) -> Timing:
     """Rate, segments and anomalies of int64 nanosecond stamps, in a few passes.
 
     The median interval (of a subsample) locates the gaps: an interval that departs from it by
     more than half a period starts a new segment (missing samples, repeated or backward time).
     The rate is then taken from the longest gap-free run (span over intervals), which averages
     out jitter and the rounding of single stamps. With fewer than two increasing stamps the rate
-    comes from the ``rate_hz`` metadata, else ValueError.
+    comes from the ``rate_hz`` metadata, else ValueError. A given ``rate_hz`` replaces the
+    inferred rate (gaps are then judged against its period).
     """
     n = ns.size
     t0 = int(ns[0]) * 1e-9 if n else 0.0
@@ -317,12 +319,14 @@ def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = No
             raise ValueError("cannot infer a sampling rate: fewer than two increasing time "
                              "stamps")
         return Timing(fs, t0, np.zeros(1, np.int64), [])
-    period = float(np.median(sample))
+    period = 1e9 / rate_hz if rate_hz else float(np.median(sample))
     breaks = np.flatnonzero(np.abs(dt - period) > 0.5 * period) + 1
     bounds = np.concatenate(([0], breaks, [n]))
     lengths = np.diff(bounds)
     k = int(np.argmax(lengths))
-    if lengths[k] >= 3:
+    if rate_hz:
+        fs = float(rate_hz)
+    elif lengths[k] >= 3:
         first, last = int(bounds[k]), int(bounds[k + 1]) - 1
         fs = (last - first) / ((int(ns[last]) - int(ns[first])) * 1e-9)
     else:
@@ -356,8 +360,9 @@ def make_series(name: str, t: np.ndarray, values: np.ndarray, timing: Timing,
                          segment_starts=starts, t0_s=t0)
 
 
-def read_mcap(path: str | Path) -> Record:
-    """Read every Imu and Temperature channel of a ROS 2 MCAP file into a Record."""
+def read_mcap(path: str | Path, rate_hz: float | None = None) -> Record:
+    """Read every Imu and Temperature channel of a ROS 2 MCAP file into a Record
+    (``rate_hz``: nominal rate overriding the one inferred from the stamps)."""
     src = open_mcap(path)
     if not src.topics:
         raise ml.McapFormatError("no sensor_msgs/msg/Imu or Temperature channel")
@@ -395,7 +400,7 @@ def read_mcap(path: str | Path) -> Record:
         n = fill[tp.cid]
         cols = {k: v[:n] for k, v in arrays.pop(tp.cid).items()}
         t = cols.pop("t")
-        timing = topic_timing(t, tp.topic, src.metadata)
+        timing = topic_timing(t, tp.topic, src.metadata, rate_hz)
         warnings.extend(timing.notes)
         label = tp.topic if len(imu_topics) > 1 else ""
         for name, v in cols.items():
@@ -413,6 +418,9 @@ def read_mcap(path: str | Path) -> Record:
         timing = topic_timing(t, tp.topic, {"rate_hz": "1.0"})
         temperature = make_series("temp", t, cols["temp"][:n], timing, warnings, "degC")
     meta = dict(src.metadata)
+    meta["format"] = "mcap"
+    if imu_topics:
+        meta["fs_hz"] = f"{next(iter(channels.values())).fs_hz:.9g}"
     meta["topics"] = ",".join(tp.topic for tp in src.topics.values())
     return Record(source=str(path), channels=channels, temperature=temperature, metadata=meta,
                   warnings=warnings)

@@ -21,7 +21,7 @@ class RosbagReadError(ValueError):
     """rosbags could not read the input."""
 
 
-def read_rosbag(path: str | Path) -> Record:
+def read_rosbag(path: str | Path, rate_hz: float | None = None) -> Record:
     """Read the Imu and Temperature topics of a rosbag2 folder or a complete MCAP file."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -62,7 +62,7 @@ def read_rosbag(path: str | Path) -> Record:
     for topic in imu_topics:
         d = per_topic[topic]
         t = np.asarray(d["t"], dtype=np.int64)
-        timing = topic_timing(t, topic)
+        timing = topic_timing(t, topic, rate_hz=rate_hz)
         warnings.extend(timing.notes)
         label = topic if len(imu_topics) > 1 else ""
         blocks = []
@@ -83,6 +83,7 @@ def read_rosbag(path: str | Path) -> Record:
                                   warnings, "degC")
     if not channels and temperature is None:
         raise RosbagReadError(f"{path.name}: the Imu/Temperature topics hold no messages")
-    meta = {"reader": "rosbags", "topics": ",".join(per_topic)}
+    meta = {"format": "rosbag2" if path.is_dir() else "mcap", "reader": "rosbags",
+            "topics": ",".join(per_topic)}
     return Record(source=str(path), channels=channels, temperature=temperature, metadata=meta,
                   warnings=warnings)

@@ -52,6 +52,7 @@ class Adis16350Sim:
         self.stuck_data = False
         self.self_test_fails = False
         self.undefined_writes = 0  # writes to byte 0x3F (e.g. a 0xFFFF dummy frame)
+        self.emulator: object | None = None  # the bridge it sits behind, when there is one
         self.frames = 0
         self.words = {r.addr: 0 for r in reg.REGISTERS.values()}
         self.words[reg.ADDR["SMPL_PRD"]] = reg.SMPL_PRD_DEFAULT

@@ -26,6 +26,7 @@ I2C_ERRNO_TEXT: dict[int, str] = {
     errno.ETIMEDOUT: "bus timeout",
     errno.EAGAIN: "arbitration lost",
     errno.EBUSY: "bus busy",
+    errno.ENODEV: "adapter gone",
 }
 
 
@@ -42,12 +43,15 @@ class I2CBus:
         backoff_s: wait before the first retry; doubled for each further one.
         clock: time source for the backoff waits.
         opener: makes the smbus2 bus object (simulators inject theirs here).
+        label: how messages name the bus (default ``I2C bus N (/dev/i2c-N)``).
     """
 
     def __init__(self, bus: int | str, *, retries: int = 3, backoff_s: float = 0.001,
                  clock: Clock | None = None,
-                 opener: Callable[[int | str], smbus2.SMBus] | None = None) -> None:
+                 opener: Callable[[int | str], smbus2.SMBus] | None = None,
+                 label: str | None = None) -> None:
         self.bus = bus
+        self.label = label
         self.retries = retries
         self.backoff_s = backoff_s
         self.clock = clock or RealClock()
@@ -58,7 +62,7 @@ class I2CBus:
 
     @property
     def name(self) -> str:
-        return f"I2C bus {self.bus} ({_bus_path(self.bus)})"
+        return self.label or f"I2C bus {self.bus} ({_bus_path(self.bus)})"
 
     def open(self) -> None:
         if self._smbus is not None:

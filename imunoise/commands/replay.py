@@ -42,9 +42,10 @@ def _consumers(summary):
     consumers = [summary]
     try:
         from analysis.rolling import RollingAnalyzer
-    except ImportError:
+
+        analyzer = RollingAnalyzer()
+    except (ImportError, TypeError):  # not available, or needs set-up replay cannot give
         return consumers
-    analyzer = RollingAnalyzer()
     consumers.append(analyzer.update)
     return consumers
 

@@ -1,4 +1,4 @@
-"""Shared helpers for the device tests: constant sources and record collection."""
+"""Shared pieces of the device tests: constant sources, record collection, noise levels."""
 
 from __future__ import annotations
 

@@ -1,0 +1,215 @@
+"""The Allan engine against every Stable32 ADEV/OADEV/MDEV/OHDEV table in ../shared/data/stable32.
+
+Stable32 prints five significant digits, so a correct engine matches to within half a unit
+of the last digit (<= 5e-5 relative); 1e-4 is asserted. Confidence bounds are compared at the
+noise type printed in the table ("same noise type").
+"""
+
+from __future__ import annotations
+
+import gzip
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from analysis.allan import allan, identify_noise, phase_from_rate
+from analysis.edf import LAG1_MIN_POINTS
+
+DATA = Path("../shared/data/stable32")
+
+pytestmark = pytest.mark.skipif(
+    not DATA.is_dir(), reason="reference data ../shared/data/stable32 not present"
+)
+
+# data set -> (file, data type, sampling rate in Hz)
+SETS = {
+    "phasedat": ("phasedat/PHASE.DAT", "phase", 1.0),
+    "ocxo": ("ocxo/ocxo_frequency.txt", "freq", 1.0),
+    "pink": ("pink_frequency/pink_frequency.txt", "freq", 1.0 / 42.0),
+    "cs5071a": ("Cs5071A/5071A_phase.txt.gz", "phase", 1.0),
+    "tic": ("Keysight53230A_ti_noise_floor/tic_phase.txt", "phase", 1.0),
+    "gps": ("gps/gps_1pps_phase_data.txt.gz", "phase", 1.0),
+}
+
+# (data set, kind, table file)
+TABLES = [
+    ("phasedat", "adev", "phasedat/phase_dat_adev.txt"),
+    ("phasedat", "adev", "phasedat/phase_dat_adev_octave.txt"),
+    ("phasedat", "oadev", "phasedat/phase_dat_oadev.txt"),
+    ("phasedat", "oadev", "phasedat/phase_dat_oadev_octave.txt"),
+    ("phasedat", "mdev", "phasedat/phase_dat_mdev.txt"),
+    ("phasedat", "mdev", "phasedat/phase_dat_mdev_octave.txt"),
+    ("phasedat", "ohdev", "phasedat/phase_dat_ohdev.txt"),
+    ("phasedat", "ohdev", "phasedat/phase_dat_ohdev_octave.txt"),
+    ("ocxo", "adev", "ocxo/stable32_adev_alltau.txt"),
+    ("ocxo", "oadev", "ocxo/stable32_oadev_alltau.txt"),
+    ("ocxo", "mdev", "ocxo/stable32_mdev_alltau.txt"),
+    ("ocxo", "ohdev", "ocxo/stable32_ohdev_alltau.txt"),
+    ("pink", "adev", "pink_frequency/adev.txt"),
+    ("pink", "oadev", "pink_frequency/oadev.txt"),
+    ("pink", "oadev", "pink_frequency/s32_oadev_octave.txt"),
+    ("pink", "mdev", "pink_frequency/mdev.txt"),
+    ("pink", "ohdev", "pink_frequency/ohdev.txt"),
+    ("cs5071a", "adev", "Cs5071A/adev_all.txt"),
+    ("cs5071a", "adev", "Cs5071A/adev_decade.txt"),
+    ("cs5071a", "oadev", "Cs5071A/oadev_all.txt"),
+    ("cs5071a", "oadev", "Cs5071A/oadev_decade.txt"),
+    ("cs5071a", "mdev", "Cs5071A/mdev_all.txt"),
+    ("cs5071a", "mdev", "Cs5071A/mdev_decade.txt"),
+    ("cs5071a", "ohdev", "Cs5071A/ohdev_all.txt"),
+    ("cs5071a", "ohdev", "Cs5071A/ohdev_decade.txt"),
+    ("tic", "adev", "Keysight53230A_ti_noise_floor/tic_adev.txt"),
+    ("tic", "oadev", "Keysight53230A_ti_noise_floor/tic_oadev.txt"),
+    ("tic", "mdev", "Keysight53230A_ti_noise_floor/tic_mdev.txt"),
+    ("tic", "ohdev", "Keysight53230A_ti_noise_floor/tic_ohdev.txt"),
+    ("gps", "adev", "gps/stable32_ADEV_decade.txt"),
+    ("gps", "oadev", "gps/stable32_OADEV_octave.txt"),
+    ("gps", "mdev", "gps/stable32_MDEV_octave.txt"),
+    ("gps", "ohdev", "gps/stable32_OHDEV_octave.txt"),
+]
+
+# The ocxo octave tables were computed by Stable32 from a different file of the same
+# recording ("ocxo_frequency.001", frequency divided by 1e7, so values near 1.0 with the
+# fluctuation in the 11th digit); they lost precision there. Their OADEV at m = 1 differs
+# from the ADEV at m = 1 of the full-precision tables by 5e-4 although the two estimators are
+# identical at m = 1 (checked below). They are compared at 2e-3, the size of that loss.
+OCXO_OCTAVE = [
+    ("ocxo", "adev", "ocxo/adev_octave.txt"),
+    ("ocxo", "oadev", "ocxo/oadev_octave.txt"),
+    ("ocxo", "mdev", "ocxo/mdev_octave.txt"),
+    ("ocxo", "ohdev", "ocxo/ohdev_octave.txt"),
+]
+OCXO_OCTAVE_TOL = 2e-3
+
+DEV_TOL = 1e-4
+# Stable32 bounds carry 5 digits and use chi-square quantiles of its own; 1e-3 is asserted
+# (the requirement is 1e-2).
+CI_TOL = 1e-3
+
+
+@cache
+def load_set(name: str) -> np.ndarray:
+    path, _, _ = SETS[name]
+    p = DATA / path
+    opener = gzip.open if p.suffix == ".gz" else open
+    with opener(p, "rt") as fh:
+        values = [
+            float(line.split()[0])
+            for line in fh
+            if line.strip() and not line.lstrip().startswith(("#", "%"))
+        ]
+    data = np.array(values)
+    if name == "ocxo":
+        data = (data - 1e7) / 1e7  # Hz -> fractional frequency
+    return data
+
+
+@cache
+def read_table(path: str) -> np.ndarray:
+    """Rows of ``AF Tau # Alpha MinSigma Sigma MaxSigma`` (commented-out rows skipped)."""
+    rows = []
+    for line in (DATA / path).read_text().splitlines():
+        parts = line.split()
+        if line.startswith("#") or len(parts) != 7:
+            continue
+        rows.append([float(v) for v in parts])
+    return np.array(rows)
+
+
+@cache
+def curve_for(name: str, kind: str, path: str):
+    tab = read_table(path)
+    _, data_type, fs = SETS[name]
+    return allan(
+        load_set(name),
+        fs,
+        kind,
+        m=tab[:, 0].astype(np.int64),
+        alpha=tab[:, 3].astype(np.int64),
+        data_type=data_type,
+    )
+
+
+def _ids(tables):
+    return [p.rsplit("/", 1)[-1] for _, _, p in tables]
+
+
+@pytest.mark.parametrize(("name", "kind", "path"), TABLES, ids=_ids(TABLES))
+def test_deviation_and_counts_match_stable32(name, kind, path):
+    tab = read_table(path)
+    curve = curve_for(name, kind, path)
+    np.testing.assert_array_equal(curve.m, tab[:, 0].astype(np.int64))
+    np.testing.assert_array_equal(curve.n_terms, tab[:, 2].astype(np.int64))
+    # s32_oadev_octave.txt was made with tau0 = 1 s instead of 42 s: compare tau / m
+    tau0 = tab[0, 1] / tab[0, 0]
+    np.testing.assert_allclose(tab[:, 1], tab[:, 0] * tau0, rtol=1e-4)
+    if path != "pink_frequency/s32_oadev_octave.txt":
+        np.testing.assert_allclose(curve.tau_s, tab[:, 1], rtol=1e-4)
+    np.testing.assert_allclose(curve.dev, tab[:, 5], rtol=DEV_TOL, atol=0)
+
+
+CI_TABLES = [t for t in TABLES if "octave" in t[2] or "decade" in t[2]]
+CI_TABLES += [t for t in TABLES if t[0] == "tic" and t[1] != "adev"]
+
+
+@pytest.mark.parametrize(("name", "kind", "path"), CI_TABLES, ids=_ids(CI_TABLES))
+def test_confidence_bounds_match_stable32(name, kind, path):
+    tab = read_table(path)
+    assert np.all(tab[:, 4] > 0), "table carries no confidence bounds"
+    curve = curve_for(name, kind, path)
+    np.testing.assert_allclose(curve.ci_low, tab[:, 4], rtol=CI_TOL, atol=0)
+    np.testing.assert_allclose(curve.ci_high, tab[:, 6], rtol=CI_TOL, atol=0)
+    assert curve.ci == 0.683
+
+
+@pytest.mark.parametrize(("name", "kind", "path"), OCXO_OCTAVE, ids=_ids(OCXO_OCTAVE))
+def test_ocxo_octave_tables_within_their_precision(name, kind, path):
+    tab = read_table(path)
+    curve = curve_for(name, kind, path)
+    np.testing.assert_array_equal(curve.n_terms, tab[:, 2].astype(np.int64))
+    np.testing.assert_allclose(curve.dev, tab[:, 5], rtol=OCXO_OCTAVE_TOL, atol=0)
+    np.testing.assert_allclose(curve.ci_low, tab[:, 4], rtol=OCXO_OCTAVE_TOL + CI_TOL)
+    np.testing.assert_allclose(curve.ci_high, tab[:, 6], rtol=OCXO_OCTAVE_TOL + CI_TOL)
+
+
+def test_ocxo_octave_tables_are_inconsistent_with_the_full_precision_ones():
+    oadev_1 = read_table("ocxo/oadev_octave.txt")[0, 5]
+    adev_1 = read_table("ocxo/stable32_adev_alltau.txt")[0, 5]
+    assert read_table("ocxo/oadev_octave.txt")[0, 0] == 1
+    assert abs(oadev_1 / adev_1 - 1) > 4e-4
+
+
+def test_own_noise_identification_agrees_with_stable32():
+    """Lag-1 ACF noise ID (no alpha given) against the Alpha column, at taus with at least
+    30 averages (Stable32 switches to other methods below that)."""
+    agree = total = 0
+    for name, kind, path in TABLES + OCXO_OCTAVE:
+        tab = read_table(path)
+        data = load_set(name)
+        _, data_type, fs = SETS[name]
+        if data_type == "freq":
+            u = phase_from_rate(data)
+        else:
+            u = (data - data[0]) * fs
+        ms = tab[:, 0].astype(np.int64)
+        usable = (u.size - 1) // ms >= LAG1_MIN_POINTS
+        alpha = identify_noise(u, ms[usable], kind)
+        agree += int(np.sum(alpha == tab[usable, 3]))
+        total += int(np.sum(usable))
+    assert total > 2000
+    # measured: 2594 of 2632 (98.6 %); the misses sit where rho is near a rounding edge
+    assert agree / total >= 0.98
+
+
+def test_batch_uses_identified_alpha_when_none_given():
+    name, kind, path = "gps", "oadev", "gps/stable32_OADEV_octave.txt"
+    tab = read_table(path)
+    _, data_type, fs = SETS[name]
+    curve = allan(load_set(name), fs, kind, m=tab[:, 0].astype(np.int64), data_type=data_type)
+    usable = (load_set(name).size - 1) // curve.m >= LAG1_MIN_POINTS
+    assert np.mean(curve.alpha[usable] == tab[usable, 3]) >= 0.8
+    # where the identified alpha agrees, so do the bounds
+    same = curve.alpha == tab[:, 3]
+    np.testing.assert_allclose(curve.ci_low[same], tab[same, 4], rtol=CI_TOL)

@@ -1,0 +1,209 @@
+"""The composite fit: estimate covariance, parameter recovery, misfit, CLI contract."""
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+
+from analysis.allan import oadev
+from analysis.fit import find_line, fit_allan, parse_model_spec, regress_temperature
+from analysis.misfit import avar_covariance, failure_threshold
+from analysis.noise_stream import NoiseStream
+from analysis.terms import TermError
+from imunoise.cli import main
+from tests._avar_batch import Curve, oavar_rows
+
+FS = 100.0
+WBR = [("white", {"N": 1e-3}), ("bias_instability", {"B": 2e-4}), ("random_walk", {"K": 2e-5})]
+
+
+def test_test_helper_curve_equals_the_allan_engine():
+    x = NoiseStream(WBR, FS, 3).take(20000)
+    ref = oadev(x, FS, m="octave")
+    mine = Curve(x, FS)
+    np.testing.assert_array_equal(mine.m, ref.m)
+    np.testing.assert_allclose(mine.dev, ref.dev, rtol=1e-9)
+    np.testing.assert_array_equal(mine.n_terms, ref.n_terms)
+
+
+@pytest.mark.parametrize("model", [
+    [("white", {"N": 1e-3}), ("bias_instability", {"B": 3e-4}), ("random_walk", {"K": 3e-4})],
+    [("white", {"N": 1e-3}), ("random_walk", {"K": 1e-3}), ("rate_ramp", {"R": 1e-3})],
+    [("quantization", {"Q": 1e-4}), ("gauss_markov", {"sigma": 3e-3, "T": 1.0}),
+     ("sinusoid", {"A": 3e-3, "f": 2.3})],
+])
+def test_estimate_covariance_matches_monte_carlo(model):
+    seeds, n = 300, 8192
+    m = 2 ** np.arange(0, 12)
+    av = oavar_rows(np.stack([NoiseStream(model, FS, s).take(n) for s in range(seeds)]), m)
+    emp = np.cov(av.T)
+    cov = avar_covariance(model, FS, m, n - 2 * m + 1)
+    # sampling spread of an empirical standard deviation: sqrt((kurtosis - 1)/(4 S))
+    centred = av - av.mean(axis=0)
+    kurt = np.mean(centred**4, axis=0) / np.mean(centred**2, axis=0) ** 2
+    se = np.sqrt((kurt - 1) / (4 * seeds))
+    ratio = np.sqrt(np.diag(cov) / np.diag(emp))
+    # the covariance model is an approximation good to about 10 %; beyond that, sampling
+    assert np.all(np.abs(ratio - 1) < 0.10 + 3.5 * se), (ratio, se)
+    sd_e, sd_m = np.sqrt(np.diag(emp)), np.sqrt(np.diag(cov))
+    corr_e = np.diag(emp / np.outer(sd_e, sd_e), 1)
+    corr_m = np.diag(cov / np.outer(sd_m, sd_m), 1)
+    # standard error of a correlation coefficient (1 - r^2)/sqrt(S)
+    tol = 0.10 + 3.5 * (1 - corr_e**2) / math.sqrt(seeds)
+    assert np.all(np.abs(corr_m - corr_e) < tol), (corr_m, corr_e)
+
+
+def test_fit_recovers_known_model_within_its_intervals():
+    x = NoiseStream(WBR, FS, 11).take(1 << 18)
+    res = fit_allan(oadev(x, FS, m="octave"), "white,bias_instability,random_walk")
+    for term, (name, truth) in zip(res.terms, WBR, strict=True):
+        assert term.term == name
+        for k, v in truth.items():
+            lo, hi = term.ci95[k]
+            assert lo <= v <= hi, (name, k, v, lo, hi)
+    assert res.terms[0].params["N"] == pytest.approx(1e-3, rel=0.01)
+    assert res.failures == []
+    assert res.chi2_per_dof < 2.5
+    # model_avar and the per-term curves add up
+    tau = np.array([0.1, 10.0, 300.0])
+    parts = res.term_avar_at(tau)
+    np.testing.assert_allclose(sum(parts.values()), res.model_avar(tau), rtol=1e-12)
+
+
+def test_refit_from_previous_result_is_cheap_and_agrees():
+    x = NoiseStream(WBR, FS, 5).take(1 << 17)
+    curve = Curve(x, FS)
+    first = fit_allan(curve, "white,bias_instability,random_walk")
+    t = time.perf_counter()
+    again = fit_allan(curve, "white,bias_instability,random_walk", start=first,
+                      intervals="jacobian")
+    elapsed = time.perf_counter() - t
+    for a, b in zip(first.terms, again.terms, strict=True):
+        for k in a.params:
+            assert b.params[k] == pytest.approx(a.params[k], rel=0.02)
+    assert elapsed < 0.5
+
+
+def test_missing_term_is_flagged_and_adding_it_lowers_the_error():
+    model = [("white", {"N": 1e-3}), ("random_walk", {"K": 1e-4})]
+    curve = Curve(NoiseStream(model, FS, 2).take(1 << 17), FS)
+    poor = fit_allan(curve, "white")
+    good = fit_allan(curve, "white,random_walk")
+    assert poor.chi2_per_dof > 10
+    assert poor.failures and poor.failures[-1]["direction"] == "measured above model"
+    lo, hi = poor.failures[-1]["tau_s"]
+    assert hi == pytest.approx(curve.tau_s[-1])
+    assert poor.failures[-1]["max_abs_z"] > poor.misfit.threshold
+    assert good.failures == [] and good.chi2_per_dof < 2.0
+    assert good.chi2_per_dof < poor.chi2_per_dof / 5
+
+
+def test_fixed_parameters_and_bad_models():
+    names, fixed = parse_model_spec("white, gauss_markov:T=5, random_walk")
+    assert names == ["white", "gauss_markov", "random_walk"] and fixed == {1: {"T": 5.0}}
+    model = [("white", {"N": 1e-3}), ("gauss_markov", {"sigma": 2e-3, "T": 5.0})]
+    curve = Curve(NoiseStream(model, FS, 4).take(1 << 16), FS)
+    res = fit_allan(curve, ["white", "gauss_markov"], fixed={"gauss_markov": {"T": 5.0}})
+    assert res.terms[1].params["T"] == 5.0 and res.terms[1].ci95["T"] == (5.0, 5.0)
+    lo, hi = res.terms[1].ci95["sigma"]
+    assert lo <= 2e-3 <= hi
+    with pytest.raises(TermError, match="unknown term.*pink"):
+        fit_allan(curve, "white,pink")
+    with pytest.raises(TermError, match=r"gauss_markov\.T = -1"):
+        fit_allan(curve, ["white", "gauss_markov"], fixed={"gauss_markov": {"T": -1.0}})
+    with pytest.raises(TermError, match="no parameter 'Q'"):
+        fit_allan(curve, ["white"], fixed={"white": {"Q": 1.0}})
+    with pytest.raises(TermError, match="PARAM=VALUE"):
+        parse_model_spec("white:N")
+    short = Curve(NoiseStream(model, FS, 4).take(40), FS)
+    with pytest.raises(ValueError, match="too few"):
+        fit_allan(short, "white,bias_instability,random_walk,gauss_markov")
+
+
+def test_failure_threshold_controls_the_family_rate():
+    # with independent taus, P(any |z| > t) = 10 %
+    t = failure_threshold(17)
+    p_any = 1 - (1 - 2 * (1 - 0.5 * (1 + math.erf(t / math.sqrt(2))))) ** 17
+    assert p_any == pytest.approx(0.10, rel=1e-6)
+
+
+def test_find_line_and_temperature_regression():
+    x = NoiseStream([("white", {"N": 1e-3}), ("sinusoid", {"A": 3e-3, "f": 7.25})], FS,
+                    8).take(1 << 17)
+    f, a = find_line(x, FS)
+    assert f == pytest.approx(7.25, abs=FS / 32768)
+    assert a == pytest.approx(3e-3, rel=0.05)
+    assert find_line(NoiseStream([("white", {"N": 1e-3})], FS, 8).take(1 << 17), FS) is None
+    rng = np.random.default_rng(1)
+    t = np.arange(1 << 17) / FS
+    temp = 25 + 5 * np.sin(2 * np.pi * t / 200.0) + 0.01 * rng.standard_normal(t.size)
+    model = [("white", {"N": 1e-3}), ("temperature", {"coef": 2e-4})]
+    y = NoiseStream(model, FS, 9).take(1 << 17, temperature=temp)
+    term, corrected = regress_temperature(y, temp)
+    lo, hi = term.ci95["coef"]
+    assert lo <= 2e-4 <= hi and hi - lo < 1e-4
+    assert np.std(corrected) < np.std(y)
+
+
+def _write_csv(path, x, extra=None):
+    t = np.arange(len(x)) / FS
+    cols = [t, x] + ([extra] if extra is not None else [])
+    head = "t,gyro_x" + (",temp" if extra is not None else "")
+    np.savetxt(path, np.column_stack(cols), delimiter=",", header=head, comments="", fmt="%.10g")
+
+
+def test_cli_fit_json_follows_the_contract(tmp_path, capsys):
+    model = [("white", {"N": 1e-3}), ("random_walk", {"K": 5e-5})]
+    path = tmp_path / "still.csv"
+    _write_csv(path, NoiseStream(model, FS, 21).take(60000))
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "white,random_walk",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    for key in ("channel", "units", "fs_hz", "n_samples", "duration_s", "model", "error",
+                "failures", "allan"):
+        assert key in doc
+    assert doc["channel"] == "gyro_x" and doc["units"] == "rad/s" and doc["n_samples"] == 60000
+    assert [m["term"] for m in doc["model"]] == ["white", "random_walk"]
+    assert set(doc["model"][0]["params"]) == {"N"} and len(doc["model"][0]["ci95"]["N"]) == 2
+    assert set(doc["error"]) >= {"chi2_per_dof", "max_abs_z"}
+    allan = doc["allan"]
+    n = len(allan["tau_s"])
+    assert n > 5 and all(len(allan[k]) == n for k in ("adev", "ci_low", "ci_high",
+                                                      "model_adev", "z"))
+    lo, hi = doc["model"][0]["ci95"]["N"]
+    assert lo <= 1e-3 <= hi
+
+
+def test_cli_fit_text_and_errors(tmp_path, capsys):
+    model = [("white", {"N": 1e-3}), ("random_walk", {"K": 3e-4})]
+    path = tmp_path / "still.csv"
+    _write_csv(path, NoiseStream(model, FS, 22).take(60000))
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "white"]) == 0
+    out = capsys.readouterr().out
+    assert "the model fails at" in out and "measured above model" in out
+    assert "chi2/dof" in out
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "white,flicker"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "flicker" in err[0] and "valid terms" in err[0]
+    assert main(["fit", str(path), "--channel", "gyro_q", "--model", "white"]) == 2
+    assert "gyro_q" in capsys.readouterr().err
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "temperature"]) == 2
+    assert "temperature" in capsys.readouterr().err
+
+
+def test_cli_fit_with_temperature(tmp_path, capsys):
+    n = 60000
+    temp = 30 + 3 * np.sin(np.arange(n) / FS / 100.0)
+    model = [("white", {"N": 1e-3}), ("temperature", {"coef": 5e-4})]
+    path = tmp_path / "warm.csv"
+    _write_csv(path, NoiseStream(model, FS, 23).take(n, temperature=temp), extra=temp)
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "white,temperature",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    coef = doc["model"][1]
+    assert coef["term"] == "temperature"
+    lo, hi = coef["ci95"]["coef"]
+    assert lo <= 5e-4 <= hi
+    assert doc["failures"] == []
