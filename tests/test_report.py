@@ -295,3 +295,16 @@ def test_analyze_report_end_to_end(recordings, kind, tmp_path, capsys):
         assert "1 gaps in header.stamp" in text  # the reader's warning is shown
     # temperature 30 +- 2 degC over the record
     assert "28 to 32 \u00b0C (spread 4 \u00b0C)" in text
+
+
+def test_analyze_report_bad_output_path_is_one_line_exit_2(recordings, tmp_path, capsys):
+    from imunoise.cli import main
+
+    missing = tmp_path / "no" / "such" / "r.html"
+    assert main(["analyze", str(recordings["csv"]), "--report", str(missing)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not exist" in err[0]
+    assert main(["analyze", str(recordings["csv"]), "--report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a folder" in err[0]
+    assert list(tmp_path.iterdir()) == []
