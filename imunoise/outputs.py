@@ -71,7 +71,7 @@ def discrete_check(dm: DiscreteModel, doc: Mapping, seed: int = 0) -> dict | Non
     if m.size == 0:
         return None
     y = simulate(dm, n, seed)
-    curve = oadev(y, fs, m=m, alpha=0)  # only the deviation is used: skip noise identification
+    curve = oadev(y, fs, m=m, ci=None)  # only the deviation is used: no intervals
     sim_tau = np.asarray(curve.tau_s, dtype=np.float64)
     sim_dev = np.asarray(curve.dev, dtype=np.float64)
     # agreement at the measured taus that the simulation also has
