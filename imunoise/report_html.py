@@ -373,21 +373,35 @@ def _diagnosis_block(ch: Mapping) -> str:
     if sugg is None:
         return ""
     if not sugg:
-        return "<h3>Diagnosis</h3><p>No missing effect was found.</p>"
+        return "<h3>Diagnosis</h3><p>No candidate term could be tried.</p>"
     fitted = (ch.get("error") or {}).get("chi2_per_dof")
     head = ("<tr><th>add term</th><th>parameters</th><th>\u03c7\u00b2/dof before \u2192 after"
             "</th><th>significant</th><th>why</th></tr>")
-    rows = []
-    for s in sugg:
+
+    def row(s: Mapping) -> str:
         params = ", ".join(f"{escape(k)} = {_num(v, 3)}"
                            for k, v in (s.get("params") or {}).items())
         sig = s.get("significant")
-        rows.append(f"<tr><td>{escape(str(s.get('term')))}</td><td>{params}</td>"
-                    f'<td class="num">{_num(s.get("chi2_per_dof_before", fitted), 3)} \u2192 '
-                    f"{_num(s.get('chi2_per_dof_after'), 3)}</td>"
-                    f'<td class="{"ok" if sig else "muted"}">{"yes" if sig else "no"}</td>'
-                    f"<td>{escape(str(s.get('why', '')))}</td></tr>")
-    return f"<h3>Diagnosis</h3><table>{head}{''.join(rows)}</table>"
+        return (f"<tr><td>{escape(str(s.get('term')))}</td><td>{params}</td>"
+                f'<td class="num">{_num(s.get("chi2_per_dof_before", fitted), 3)} \u2192 '
+                f"{_num(s.get('chi2_per_dof_after'), 3)}</td>"
+                f'<td class="{"ok" if sig else "muted"}">{"yes" if sig else "no"}</td>'
+                f"<td>{escape(str(s.get('why', '')))}</td></tr>")
+
+    significant = [s for s in sugg if s.get("significant")]
+    others = [s for s in sugg if not s.get("significant")]
+    out = ["<h3>Diagnosis</h3>"]
+    if significant:
+        out.append("<p>The model misses these effects (best first):</p>")
+        out.append(f"<table>{head}{''.join(row(s) for s in significant)}</table>")
+    else:
+        out.append('<p class="ok">No missing effect is significant: the model explains the '
+                   "measurement.</p>")
+    if others:
+        out.append(f"<details><summary>{len(others)} other candidate term(s) tried, not "
+                   f"significant</summary><table>{head}{''.join(row(s) for s in others)}"
+                   "</table></details>")
+    return "\n".join(out)
 
 
 def _method_section() -> str:

@@ -88,7 +88,10 @@ def _channel_doc(name: str, units: str, fs: float = 100.0) -> dict:
         "suggestions": [{"term": "sinusoid", "params": {"A": 2e-4, "f": 2.7},
                          "chi2_per_dof_after": 1.05, "significant": True,
                          "why": "Allan deviation oscillates near tau = 0.16 s & the PSD has a "
-                                "line at 2.7 Hz: add a sinusoid <vibration>"}],
+                                "line at 2.7 Hz: add a sinusoid <vibration>"},
+                        {"term": "rate_ramp", "params": {"R": 1e-10}, "chi2_per_dof_after": 3.6,
+                         "chi2_per_dof_before": 3.7, "significant": False,
+                         "why": "slow drift"}],
     }
 
 
@@ -138,7 +141,8 @@ def test_report_content():
     # B = 4e-5 rad/s = 8.251 deg/h; accel B = 1e-4 m/s^2 = 0.0102 mg
     assert "8.251 deg/h" in text and "0.0102 mg" in text
     # diagnosis: error before and after, escaped explanation
-    assert "3.7 \u2192 1.05" in text
+    assert "3.7 \u2192 1.05" in text and "The model misses these effects" in text
+    assert "1 other candidate term(s) tried, not significant" in text and "slow drift" in text
     assert "&lt;vibration&gt;" in html and "<vibration>" not in html
     # failing range and discrete model
     assert "0.16 to 0.64 s" in text and "measured above model" in text
