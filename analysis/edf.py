@@ -299,6 +299,34 @@ def noise_id_lag1(
     return noise_id_lag1_phase(u, m, data_type, dmax, alpha_range)
 
 
+def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
+    """Lag-1 autocorrelation of ``z = diff(v)`` after removing its least-squares line.
+
+    Equal to ``lag1_acf(_detrend(diff(v), 1))`` but computed from five reductions (sums,
+    dot products) instead of building the detrended series: it is the inner loop of the
+    noise identification on long records.
+    """
+    z = np.diff(v)
+    n = z.size
+    a = float(v[-1] - v[0]) / n  # mean of z
+    # sum(k z_k) by parts, then about the centred index t_k = k - (n - 1) / 2
+    skz = n * float(v[-1]) - float(np.sum(v[1:]))
+    t_last = (n - 1) / 2.0
+    st = n * (n * n - 1) / 12.0  # sum of t_k^2
+    tw = skz - t_last * (a * n)  # sum(t_k z_k) = sum(t_k w_k), w = z - a
+    b = tw / st
+    w0 = float(z[0]) - a
+    wl = float(z[-1]) - a
+    sum_e2 = float(np.dot(z, z)) - n * a * a - b * b * st
+    if sum_e2 <= 0.0:
+        return 0.0
+    p = float(np.dot(z[:-1], z[1:]))
+    sw1 = p - a * (2.0 * a * n - float(z[0]) - float(z[-1])) + (n - 1) * a * a
+    cross = (tw + t_last * w0 + w0) + (tw - t_last * wl - wl)
+    stt = st - t_last * t_last - t_last
+    return (sw1 - b * cross + b * b * stt) / sum_e2
+
+
 def noise_id_lag1_phase(
     u: np.ndarray,
     m: np.ndarray,
@@ -313,10 +341,18 @@ def noise_id_lag1_phase(
     last = None
     for idx in np.argsort(m, kind="stable"):
         mi = int(m[idx])
-        z = u[::mi]
+        res = None
         if data_type == "freq":
-            z = np.diff(z) / mi
-        res = noise_id_lag1_series(z, data_type, dmax)
+            v = u[::mi]
+            if v.size - 1 >= LAG1_MIN_POINTS:
+                r1 = lag1_acf_detrended_from_phase(v)
+                rho = r1 / (1.0 + r1) if r1 != -1.0 else -0.5
+                if rho < 0.25 or dmax == 0:
+                    res = (int(-round(2.0 * rho)), -2.0 * rho)
+                else:
+                    res = noise_id_lag1_series(np.diff(v), "freq", dmax)
+        else:
+            res = noise_id_lag1_series(u[::mi], data_type, dmax)
         if res is not None:
             last = res[0]
         out[idx] = last if last is not None else 0

@@ -352,6 +352,8 @@ class McapRecorder:
         self._file_t0_sample = None
         self._writer.add_metadata(METADATA_NAME, self._metadata(block))
         self._file.sync(self.fsync)
+        if self.fsync:
+            _fsync_dir(self.out_dir)  # the new name must survive a power cut too
         self.stats.files.append(str(path))
         self.stats.file = str(path)
 
@@ -549,6 +551,14 @@ class McapRecorder:
         self._sequence[cid] += 1
         self.stats.events += 1
         self._dirty = True
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _size(path: str) -> int:

@@ -153,3 +153,15 @@ def test_full_tmpfs_disk_with_threaded_recorder(tmp_path):
         assert rec.stats.samples - n <= 1000  # at most the block that did not fit
     finally:
         subprocess.run(["umount", str(disk)], check=False)
+
+
+def test_no_room_for_the_reserve_is_refused_up_front(tmp_path):
+    disk = tmp_path / "tiny"
+    if not _mount_tmpfs(disk, "256k"):
+        pytest.skip("mounting a tmpfs needs root")
+    try:
+        with pytest.raises(OSError, match="cannot write to .*tiny"):
+            McapRecorder(disk, "adis16350")
+        assert list(disk.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)

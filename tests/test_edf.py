@@ -120,3 +120,17 @@ def test_lag1_too_few_points_carries_the_last_identified_alpha():
     assert noise_id_lag1_series(y[: LAG1_MIN_POINTS - 1]) is None
     # nothing identifiable at all: white rate noise is assumed
     np.testing.assert_array_equal(noise_id_lag1(y[:20], np.array([1, 2])), [0, 0])
+
+
+@pytest.mark.parametrize("n", [31, 1000, 200_000])
+def test_fast_detrended_acf_equals_the_explicit_one(n):
+    from analysis.edf import _detrend, lag1_acf, lag1_acf_detrended_from_phase
+
+    rng = np.random.default_rng(n)
+    for z in (
+        rng.standard_normal(n) + 0.3,
+        np.cumsum(rng.standard_normal(n)) * 0.1 + 5e-3 * np.arange(n),
+    ):
+        v = np.concatenate(([0.0], np.cumsum(z))) + 7.0
+        want = lag1_acf(_detrend(np.diff(v), 1))
+        assert lag1_acf_detrended_from_phase(v) == pytest.approx(want, rel=1e-9, abs=1e-12)

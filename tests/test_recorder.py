@@ -127,3 +127,16 @@ def test_malformed_block_stops_recording_with_message_and_keeps_file(tmp_path):
     assert rec.error and rec.error.startswith("recording stopped: ValueError")
     r = open_record(rec.stats.files[0])
     assert r.channels["gyro_x"].n_samples == 100 and r.warnings == []
+
+
+def test_two_chip_board_records_one_topic_per_stream(tmp_path):
+    gyro = make_blocks(2, 100, stream="/razor/itg3200/imu", accel=False, seed=1)
+    accel = make_blocks(2, 100, stream="/razor/adxl345/imu", gyro=False, seed=2)
+    rec = record_blocks(tmp_path, [gyro[0], accel[0], gyro[1], accel[1]])
+    r = open_record(rec.stats.files[0])
+    assert sorted(r.channels) == sorted(
+        [f"/razor/itg3200/imu:gyro_{a}" for a in "xyz"]
+        + [f"/razor/adxl345/imu:accel_{a}" for a in "xyz"])
+    assert np.array_equal(r.channels["/razor/adxl345/imu:accel_y"].values,
+                          np.concatenate([b.channels["accel_y"] for b in accel]))
+    assert rec.stats.samples == 400

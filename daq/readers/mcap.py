@@ -19,6 +19,7 @@ from __future__ import annotations
 import mmap
 import os
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -225,9 +226,11 @@ def _walk_offsets(records: np.ndarray, cid: int) -> np.ndarray:
     return np.asarray(offs, dtype=np.int64)
 
 
-# Record start to the end of the CDR header fields, read in one gather per message.
+# Record start to the end of the CDR header fields, read in one gather per message. (Padded to
+# 48 bytes: numpy's gather of odd-sized opaque items is 20 times slower.)
 _HEAD = np.dtype([("op", "u1"), ("rlen", "<u8"), ("_mcap", "V22"), ("encap", "<u2"),
-                  ("_opts", "V2"), ("sec", "<i4"), ("nanosec", "<u4"), ("frame_len", "<u4")])
+                  ("_opts", "V2"), ("sec", "<i4"), ("nanosec", "<u4"), ("frame_len", "<u4"),
+                  ("_pad", "V1")])
 _VEC3 = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 
 
@@ -268,10 +271,21 @@ def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray, views: dict[str
 
 def iter_decoded(src: McapSource, sink: Sink | None = None
                  ) -> Iterator[dict[int, dict[str, np.ndarray]]]:
-    """Decoded batches of the source's topics, in file order."""
-    with open(src.path, "rb") as f:
-        for batch in _batches(src.layout.chunks):
-            yield _decode_batch(src, batch, _load_batch(f.fileno(), batch), sink)
+    """Decoded batches of the source's topics, in file order. The next batch is read and
+    decompressed on a second thread (zstd and pread release the GIL) while this one is
+    decoded; at most two batches are in memory."""
+    batches = list(_batches(src.layout.chunks))
+    if not batches:
+        return
+    with open(src.path, "rb") as f, ThreadPoolExecutor(max_workers=1) as pool:
+        fd = f.fileno()
+        pending = pool.submit(_load_batch, fd, batches[0])
+        for i, batch in enumerate(batches):
+            loaded = pending.result()
+            if i + 1 < len(batches):
+                pending = pool.submit(_load_batch, fd, batches[i + 1])
+            yield _decode_batch(src, batch, loaded, sink)
+            del loaded
 
 
 def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

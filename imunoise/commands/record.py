@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
                            rate_hz=getattr(acq, "rate_hz", None) or args.rate, rotate_s=rotate_s)
     except OSError as exc:
         acq.close()
-        raise RuntimeFailure(f"record: {exc}") from exc
+        raise RuntimeFailure(f"record: {exc.strerror or exc}") from exc
     tty = sys.stderr.isatty()
     t_start = time.monotonic()
     last_print = 0.0
