@@ -69,7 +69,7 @@ def _num(v: float | None, digits: int = 4) -> str:
     if v == 0:
         return "0"
     if 1e-3 <= abs(v) < 1e5:
-        return f"{v:.{digits}g}"
+        return f"{v:.{max(digits, int(math.log10(abs(v))) + 1)}g}"
     mant, exp = f"{v:.{digits - 1}e}".split("e")
     return f"{mant}\u00d710<sup>{int(exp)}</sup>"
 
