@@ -81,6 +81,7 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
 
     cleanup: list[Callable[[], None]] = []
     sim = None
+    emulator = None
     if simulated:
         from daq.sim.adis16350 import Adis16350Sim
         from daq.sim.buspirate_pty import BusPirateEmulator
@@ -94,7 +95,8 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
         cleanup.append(emulator.close)
         port = emulator.port
         sim.emulator = emulator
-    spi = BusPirateSPI(str(port), timeout_s=float(options.pop("timeout_s", 0.5)))
+    spi = BusPirateSPI(str(port), timeout_s=float(options.pop("timeout_s", 0.5)),
+                       opener=emulator.serial_opener(clock) if emulator else None)
     driver = Adis16350(spi, rate_hz=rate, clock=clock, **options)
     acq = Acquisition(driver, clock=clock, on_close=cleanup)
     acq.simulator = sim

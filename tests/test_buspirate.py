@@ -54,7 +54,7 @@ class EchoSlave:
 def bridge():
     slave = EchoSlave()
     emu = BusPirateEmulator(slave).start()
-    spi = BusPirateSPI(emu.port, timeout_s=0.2)
+    spi = BusPirateSPI(emu.port, timeout_s=0.2, opener=emu.serial_opener())
     yield emu, slave, spi
     spi.close()
     emu.close()
