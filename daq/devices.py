@@ -84,14 +84,15 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
     emulator = None
     if simulated:
         from daq.sim.adis16350 import Adis16350Sim
-        from daq.sim.buspirate_pty import BusPirateEmulator
+        from daq.sim.buspirate_pty import BusPirateEmulator, ChipClock
         from daq.sim.signals import default_sources
 
         fs = sample_rate_hz(smpl_prd_for_rate(rate))
         gyro, accel = default_sources("adis16350", fs, seed)
-        sim = Adis16350Sim(clock, options.pop("gyro", gyro), options.pop("accel", accel),
+        chip_clock = ChipClock(clock)
+        sim = Adis16350Sim(chip_clock, options.pop("gyro", gyro), options.pop("accel", accel),
                            options.pop("temperature", None), source_rate_hz=fs)
-        emulator = BusPirateEmulator(sim, seed=seed).start()
+        emulator = BusPirateEmulator(sim, seed=seed, chip_clock=chip_clock).start()
         cleanup.append(emulator.close)
         port = emulator.port
         sim.emulator = emulator

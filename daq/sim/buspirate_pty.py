@@ -74,16 +74,42 @@ def _mode_from_config(byte: int) -> int:
     raise AssertionError("unreachable")
 
 
+class ChipClock:
+    """The clock a chip behind the emulated bridge reads: while the emulator acts on the
+    host's bytes, the time the host sent them.
+
+    A USB bridge clocks the bytes out about a millisecond after the host sends them; the
+    emulator thread on a busy host may get to them much later, which the chip must not see
+    (it would latch a later sample than the host asked for).
+    """
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self._pinned: float | None = None
+
+    def now(self) -> float:
+        pinned = self._pinned
+        return self.clock.now() if pinned is None else pinned
+
+    def pin(self, t: float | None) -> None:
+        self._pinned = t
+
+
 class BusPirateEmulator:
     """Bus Pirate v3 binary SPI protocol on a pty whose path is :attr:`port`.
 
     Args:
         slave: the chip on the SPI bus, or None for an empty bus (MISO reads 0xFF).
         seed: seed for the garbage fault's random bytes.
+        chip_clock: the chip's clock, pinned to the host's time of sending while the
+            emulator acts on the host's bytes (with ports from :meth:`serial_opener`).
     """
 
-    def __init__(self, slave: SpiSlave | None, *, seed: int = 0) -> None:
+    def __init__(self, slave: SpiSlave | None, *, seed: int = 0,
+                 chip_clock: ChipClock | None = None) -> None:
         self.slave = slave
+        self.chip_clock = chip_clock
+        self._host_write_time: float | None = None
         self._dir = tempfile.mkdtemp(prefix="imunoise-bp-")
         self.port = os.path.join(self._dir, "ttyBP0")
         self._rng = np.random.default_rng(seed)
@@ -171,6 +197,11 @@ class BusPirateEmulator:
             return EmulatedBridgePort(self, port, baudrate, timeout_s, clock)
         return opener
 
+    def host_writing(self, t: float | None) -> None:
+        """The host is about to send bytes at time ``t`` (of the chip clock's source)."""
+        with self._link:
+            self._host_write_time = t
+
     def host_wrote(self, generation: int, n: int) -> None:
         with self._link:
             if generation == self.generation:
@@ -254,7 +285,13 @@ class BusPirateEmulator:
             with self._lock:
                 if not self.mute:
                     self._buf += data
-                    reply = self._process()
+                    if self.chip_clock is not None:
+                        self.chip_clock.pin(self._host_write_time)
+                    try:
+                        reply = self._process()
+                    finally:
+                        if self.chip_clock is not None:
+                            self.chip_clock.pin(None)
                     if reply and self._garbage_pending:
                         reply = self._rng.integers(0, 256, self._garbage_pending,
                                                    dtype=np.uint8).tobytes() + reply
@@ -411,6 +448,8 @@ class EmulatedBridgePort(serial.Serial):
         self._reset_input_buffer()  # pyserial's own flush in open() is skipped below
 
     def write(self, data: bytes) -> int | None:
+        clock = self._bridge_clock
+        self._bridge.host_writing(clock.now() if clock is not None else None)
         n = super().write(data)
         self._bridge.host_wrote(self._generation, len(data) if n is None else n)
         return n
