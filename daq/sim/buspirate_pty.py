@@ -274,16 +274,17 @@ class BusPirateEmulator:
                 continue
             if not ready:
                 continue
-            try:
-                data = os.read(master, 4096)
-            except OSError:
-                self._stop.wait(0.005)
-                continue
-            if not data:
-                continue
             reply = b""
             with self._lock:
-                if not self.mute:
+                # A replug may have reused the fd number: read only from the pty selected on,
+                # and never while unplug closes it.
+                if self.generation != generation:
+                    continue
+                try:
+                    data = os.read(master, 4096)
+                except OSError:
+                    data = None
+                if data and not self.mute:
                     self._buf += data
                     if self.chip_clock is not None:
                         self.chip_clock.pin(self._host_write_time)
@@ -296,15 +297,19 @@ class BusPirateEmulator:
                         reply = self._rng.integers(0, 256, self._garbage_pending,
                                                    dtype=np.uint8).tobytes() + reply
                         self._garbage_pending = 0
+            if data is None:
+                self._stop.wait(0.005)
+                continue
+            if not data:
+                continue
             if reply:
-                self._write_all(master, reply)
+                self._write_all(master, reply, generation)
             with self._link:
                 if self.generation == generation:
                     self._taken += len(data)
-                    self._replied += len(reply)
                 self._link.notify_all()
 
-    def _write_all(self, fd: int, data: bytes) -> None:
+    def _write_all(self, fd: int, data: bytes, generation: int) -> None:
         view = memoryview(data)
         while view:
             try:
@@ -315,6 +320,10 @@ class BusPirateEmulator:
             except OSError:
                 return
             view = view[n:]
+            with self._link:  # counted as it goes: a long reply may wait for the host to read
+                if self.generation == generation:
+                    self._replied += n
+                self._link.notify_all()
 
     def _process(self) -> bytes:
         out = bytearray()
