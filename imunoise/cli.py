@@ -20,6 +20,7 @@ COMMAND_MODULES: list[str] = [
     "serve",
     "replay",
     "repair",
+    "export_kalibr",
 ]
 
 
