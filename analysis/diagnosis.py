@@ -115,7 +115,9 @@ def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
     drop = before.misfit.chi2 - after.misfit.chi2
     if not np.isfinite(drop) or drop <= 0:
         return 0.0
-    return float(stats.chi2.logsf(drop, k))
+    logp = float(stats.chi2.logsf(drop, k))
+    # Far in the tail scipy returns -inf; the tail's leading term keeps the ranking meaningful.
+    return logp if np.isfinite(logp) else -0.5 * drop
 
 
 def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
