@@ -15,6 +15,7 @@ COMMAND_MODULES: list[str] = [
     "analyze",
     "fit",
     "record",
+    "serve",
     "replay",
     "repair",
 ]
