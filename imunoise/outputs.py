@@ -41,14 +41,13 @@ def discrete_for_channel(doc: Mapping) -> DiscreteModel | None:
         return None
     tau = np.asarray((doc.get("allan") or {}).get("tau_s") or [], dtype=np.float64)
     tau_range = (float(tau.min()), float(tau.max())) if tau.size >= 2 else None
-    flicker = None
-    try:
-        from analysis.terms import get_term
+    from analysis.terms import get_term
 
-        bi = get_term("bias_instability")
-        flicker = lambda t, B: bi.avar(t, float(fs), B=B)  # noqa: E731
-    except (ImportError, KeyError):
-        pass
+    bias_instability = get_term("bias_instability")
+
+    def flicker(t: np.ndarray, B: float) -> np.ndarray:
+        return bias_instability.avar(t, float(fs), B=B)
+
     return discretize(model, float(fs), str(doc.get("units", "")), tau_range_s=tau_range,
                       flicker_avar=flicker)
 
@@ -135,7 +134,7 @@ def extend_channel(doc: dict, full: bool = False, seed: int = 0) -> dict:
     return doc
 
 
-def record_facts(record, channels: Mapping[str, Mapping] | None = None) -> dict:
+def record_facts(record) -> dict:
     """The record's facts for the report: device, rate, duration, gaps, drops, temperature."""
     md = dict(getattr(record, "metadata", {}) or {})
     series = list((getattr(record, "channels", {}) or {}).values())
