@@ -140,23 +140,33 @@ def _setup_topic(tp: _Topic, blob: np.ndarray, first: int) -> None:
         tp.has_accel = bool(acov[0] != -1.0)
 
 
-def _load_batch(fd: int, batch: list[ml.ChunkInfo]) -> tuple[bytes, np.ndarray, list[int]]:
+def _load_batch(fd: int, batch: list[ml.ChunkInfo], scratch: np.ndarray | None = None
+                ) -> tuple[bytes, np.ndarray, list[int]]:
     """Read consecutive chunks with their message indexes and decompress them into one buffer:
-    (file region, decompressed records, offset of each chunk in them)."""
+    (file region, decompressed records, offset of each chunk in them).
+
+    The records go into ``scratch`` (uint8) when it is large enough: reusing one buffer per
+    batch avoids mapping fresh memory for every batch, which costs more than decompressing."""
     start, stop = batch[0].start, batch[-1].mi_end
     region = os.pread(fd, stop - start, start)
     if len(region) != stop - start:
         raise ml.McapFormatError("file shrank while being read")
-    parts, bases, base = [], [], 0
+    need = sum(c.uncompressed_size for c in batch)
+    out = scratch if scratch is not None and scratch.size >= need else np.empty(need, np.uint8)
+    bases, base = [], 0
     for c in batch:
         a = c.data_offset - start
         data = ml.decompress(c.compression, memoryview(region)[a:a + c.data_length],
                              c.uncompressed_size)
-        parts.append(data)
+        n = len(data)
+        if base + n > out.size:  # a chunk longer than its header says: keep all of it
+            grown = np.empty(max(2 * out.size, base + n), np.uint8)
+            grown[:base] = out[:base]
+            out = grown
+        out[base:base + n] = np.frombuffer(data, np.uint8)
         bases.append(base)
-        base += len(data)
-    blob = np.frombuffer(b"".join(parts) if len(parts) > 1 else bytes(parts[0]), np.uint8)
-    return region, blob, bases
+        base += n
+    return region, out[:base], bases
 
 
 Sink = Callable[[_Topic, int], dict[str, np.ndarray]]
@@ -277,13 +287,17 @@ def iter_decoded(src: McapSource, sink: Sink | None = None
     batches = list(_batches(src.layout.chunks))
     if not batches:
         return
+    size = max(sum(c.uncompressed_size for c in b) for b in batches)
+    # Two buffers in turn: the next batch is decompressed into one while this one is decoded
+    # from the other (decoding copies everything it keeps).
+    scratch = [np.empty(size, np.uint8), np.empty(size, np.uint8)]
     with open(src.path, "rb") as f, ThreadPoolExecutor(max_workers=1) as pool:
         fd = f.fileno()
-        pending = pool.submit(_load_batch, fd, batches[0])
+        pending = pool.submit(_load_batch, fd, batches[0], scratch[0])
         for i, batch in enumerate(batches):
             loaded = pending.result()
             if i + 1 < len(batches):
-                pending = pool.submit(_load_batch, fd, batches[i + 1])
+                pending = pool.submit(_load_batch, fd, batches[i + 1], scratch[(i + 1) % 2])
             yield _decode_batch(src, batch, loaded, sink)
             del loaded
 
