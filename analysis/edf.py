@@ -327,6 +327,23 @@ def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
     return (sw1 - b * cross + b * b * stt) / sum_e2
 
 
+def _lag1_differenced(z: np.ndarray, dmax: int) -> tuple[int, float]:
+    """``noise_id_lag1_series(z, "freq", dmax)`` for a series whose detrended lag-1 ACF is
+    already known to give ``rho >= 0.25``: it goes straight to the differences. Differencing
+    turns the removed line into a constant, which the ACF's mean removal takes out, so the
+    detrending is skipped; the series is worked on in place (``z`` is consumed)."""
+    d = 0
+    while True:
+        z = np.diff(z)
+        d += 1
+        z -= z.mean()
+        den = float(np.dot(z, z))
+        r1 = float(np.dot(z[:-1], z[1:])) / den if den != 0.0 else 0.0
+        rho = r1 / (1.0 + r1) if r1 != -1.0 else -0.5
+        if rho < 0.25 or d >= dmax or z.size < 3:
+            return int(-round(2.0 * rho) - 2 * d), -2.0 * (rho + d)
+
+
 def noise_id_lag1_phase(
     u: np.ndarray,
     m: np.ndarray,
@@ -350,7 +367,7 @@ def noise_id_lag1_phase(
                 if rho < 0.25 or dmax == 0:
                     res = (int(-round(2.0 * rho)), -2.0 * rho)
                 else:
-                    res = noise_id_lag1_series(np.diff(v), "freq", dmax)
+                    res = _lag1_differenced(np.diff(v), dmax)
         else:
             res = noise_id_lag1_series(u[::mi], data_type, dmax)
         if res is not None:

@@ -97,8 +97,10 @@ def open_mcap(path: str | Path) -> McapSource:
     src = McapSource(path, layout, topics, metadata, list(layout.warnings))
     if layout.unchunked_messages:
         raise UnsupportedLayout("messages outside chunks")
-    for t in topics.values():
-        t.count = sum(c.mi.get(t.cid, (0, 0))[1] for c in layout.chunks)
+    for c in layout.chunks:
+        for cid, (_pos, n) in c.mi.items():
+            if cid in topics:
+                topics[cid].count += n
     return src
 
 
@@ -348,7 +350,8 @@ def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = No
                              "stamps")
         return Timing(fs, t0, np.zeros(1, np.int64), [])
     period = 1e9 / rate_hz if rate_hz else float(np.median(sample))
-    breaks = np.flatnonzero(np.abs(dt - period) > 0.5 * period) + 1
+    # |dt - period| > period / 2, without float temporaries the size of the record
+    breaks = np.flatnonzero((dt < 0.5 * period) | (dt > 1.5 * period)) + 1
     bounds = np.concatenate(([0], breaks, [n]))
     lengths = np.diff(bounds)
     k = int(np.argmax(lengths))
