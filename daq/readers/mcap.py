@@ -153,8 +153,18 @@ def _load_batch(fd: int, batch: list[ml.ChunkInfo], scratch: np.ndarray | None =
     region = os.pread(fd, stop - start, start)
     if len(region) != stop - start:
         raise ml.McapFormatError("file shrank while being read")
-    need = sum(c.uncompressed_size for c in batch)
+    sizes = [c.uncompressed_size for c in batch]
+    need = sum(sizes)
     out = scratch if scratch is not None and scratch.size >= need else np.empty(need, np.uint8)
+    if len(batch) > 1 and all(c.compression == "zstd" for c in batch) and min(sizes) > 0:
+        view = memoryview(region)
+        frames = [view[c.data_offset - start:c.data_offset - start + c.data_length]
+                  for c in batch]
+        parts = ml.decompress_zstd_frames(frames, sizes)
+        if parts is not None:
+            np.concatenate([np.frombuffer(p, np.uint8) for p in parts], out=out[:need])
+            bases = np.concatenate(([0], np.cumsum(sizes[:-1]))).tolist()
+            return region, out[:need], bases
     bases, base = [], 0
     for c in batch:
         a = c.data_offset - start
@@ -281,25 +291,51 @@ def _decode_topic(tp: _Topic, blob: np.ndarray, rec: np.ndarray, views: dict[str
     return dest
 
 
+READ_AHEAD: bool | None = None
+"""Read and decompress the next batch on a second thread while this one is decoded: True,
+False, or None to decide per read (only when a core is idle, see :func:`read_ahead`)."""
+
+
+def read_ahead() -> bool:
+    """Whether :func:`iter_decoded` reads ahead on a second thread. By default only when the
+    one-minute load average leaves a core idle: on a busy machine the second thread gets no
+    core of its own, and handing batches over between threads then costs more CPU and wall
+    time than it saves (measured on the replay benchmark)."""
+    if READ_AHEAD is not None:
+        return READ_AHEAD
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return cores > 1
+    return cores > 1 and load <= cores - 1
+
+
 def iter_decoded(src: McapSource, sink: Sink | None = None
                  ) -> Iterator[dict[int, dict[str, np.ndarray]]]:
-    """Decoded batches of the source's topics, in file order. The next batch is read and
-    decompressed on a second thread (zstd and pread release the GIL) while this one is
-    decoded; at most two batches are in memory."""
+    """Decoded batches of the source's topics, in file order. With :func:`read_ahead`, the
+    next batch is read and decompressed on a second thread (zstd and pread release the GIL)
+    while this one is decoded; at most two batches are in memory."""
     batches = list(_batches(src.layout.chunks))
     if not batches:
         return
     size = max(sum(c.uncompressed_size for c in b) for b in batches)
+    if not read_ahead():
+        scratch = np.empty(size, np.uint8)
+        with open(src.path, "rb") as f:
+            for batch in batches:
+                yield _decode_batch(src, batch, _load_batch(f.fileno(), batch, scratch), sink)
+        return
     # Two buffers in turn: the next batch is decompressed into one while this one is decoded
     # from the other (decoding copies everything it keeps).
-    scratch = [np.empty(size, np.uint8), np.empty(size, np.uint8)]
+    buffers = [np.empty(size, np.uint8), np.empty(size, np.uint8)]
     with open(src.path, "rb") as f, ThreadPoolExecutor(max_workers=1) as pool:
         fd = f.fileno()
-        pending = pool.submit(_load_batch, fd, batches[0], scratch[0])
+        pending = pool.submit(_load_batch, fd, batches[0], buffers[0])
         for i, batch in enumerate(batches):
             loaded = pending.result()
             if i + 1 < len(batches):
-                pending = pool.submit(_load_batch, fd, batches[i + 1], scratch[(i + 1) % 2])
+                pending = pool.submit(_load_batch, fd, batches[i + 1], buffers[(i + 1) % 2])
             yield _decode_batch(src, batch, loaded, sink)
             del loaded
 
