@@ -33,14 +33,15 @@ from typing import Any, Protocol
 import numpy as np
 from scipy import ndimage, optimize, signal, special
 
-from analysis.misfit import Misfit, avar_covariance, failures, misfit
-from analysis.terms import TermError, ar1_avar_shape, get_term, parse_terms
+from analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
+from analysis.terms import TERMS, TermError, ar1_avar_shape, get_term, parse_terms
 
 LINEAR_TERMS = ("white", "quantization", "bias_instability", "random_walk", "rate_ramp")
 _LINEAR_PARAM = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
                  "rate_ramp": "R"}
 _Z95 = 1.959963984540054
 _LOSS = "soft_l1"
+_MAX_SHORT_TRIM = 4
 _F_SCALE = 3.0
 
 
@@ -99,6 +100,8 @@ class FitResult:
     failures: list[dict]
     param_cov: np.ndarray
     free_params: list[tuple[int, str]] = field(default_factory=list)
+    used: np.ndarray | None = None
+    """Taus the parameters rest on (failing shortest taus are set aside)."""
 
     @property
     def params(self) -> list[tuple[str, dict[str, float]]]:
@@ -320,7 +323,7 @@ def _avar_of(layout: _Layout, params: list[dict[str, float]], tau: np.ndarray, f
              ) -> np.ndarray:
     total = np.zeros_like(tau)
     for n, p in _model_terms(layout, params):
-        total += get_term(n).avar(tau, fs, **p)
+        total += TERMS[n].avar_fn(tau, fs, **p)  # parameters already validated
     return total
 
 
@@ -454,9 +457,11 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
     n_free = len(layout.keys)
     if n_free == 0:
         raise TermError("the model has no noise term to fit to the Allan curve")
+    if len(tau) == 0 and len(curve.tau_s):
+        raise ValueError("the Allan deviation is zero at every tau: the channel is constant")
     if len(tau) <= n_free:
         raise ValueError(f"the Allan curve has {len(tau)} usable taus, too few for "
-                         f"{n_free} free parameters: record longer data")
+                         f"{n_free} free parameters: record longer")
 
     if start is not None:
         start_params = start.params if isinstance(start, FitResult) else list(start)
@@ -484,16 +489,35 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
     assert best is not None
     theta = best[1]
 
+    # A sensor's anti-aliasing and decimation filters make the shortest taus fall below any
+    # sum of the terms. When the shortest taus fail, set them aside one at a time and refit,
+    # so they are reported as failures without dragging the parameters of the rest.
+    used = np.ones(len(tau), dtype=bool)
+    threshold = failure_threshold(len(tau), family_rate)
+    for first in range(min(_MAX_SHORT_TRIM, len(tau))):
+        if len(tau) - first - 1 < n_free + 3:
+            break
+        params = _unpack(layout, theta)
+        avar_fit = _avar_of(layout, params, tau, fs)
+        cov = avar_covariance(_model_terms(layout, params), fs, m[used], n_terms[used])
+        z_used = misfit(avar[used], avar_fit[used], cov, n_free, family_rate).z
+        if abs(z_used[0]) <= threshold:
+            break
+        used[first] = False
+        theta = _solve(layout, theta, y[used], tau[used], m[used], n_terms[used], fs,
+                       max_nfev)
+
     params = _unpack(layout, theta)
     model_final = _model_terms(layout, params)
     avar_fit = _avar_of(layout, params, tau, fs)
     cov = avar_covariance(model_final, fs, m, n_terms)
     mf = misfit(avar, avar_fit, cov, n_free, family_rate)
-    whiten, bias, _ = _log_weights(model_final, fs, m, n_terms, avar_fit)
+    whiten, bias, _ = _log_weights(model_final, fs, m[used], n_terms[used], avar_fit[used])
+    y_used, tau_used = y[used], tau[used]
 
     def resid_final(th: np.ndarray) -> np.ndarray:
-        mod = _avar_of(layout, _unpack(layout, th), tau, fs)
-        return whiten @ (y - np.log(np.maximum(mod, 1e-300)) - bias)
+        mod = _avar_of(layout, _unpack(layout, th), tau_used, fs)
+        return whiten @ (y_used - np.log(np.maximum(mod, 1e-300)) - bias)
 
     jac = _jacobian(resid_final, theta)
     param_cov = np.linalg.pinv(jac.T @ jac)
@@ -528,7 +552,7 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
                      n_terms=n_terms.astype(np.int64), avar_measured=avar, avar_fit=avar_fit,
                      term_avar=term_avar, misfit=mf,
                      failures=failures(tau, mf.z, mf.threshold), param_cov=param_cov,
-                     free_params=list(layout.keys))
+                     free_params=list(layout.keys), used=used)
 
 
 _CHI2_95_1DOF = 3.841458820694124

@@ -39,7 +39,7 @@ Model = Sequence[tuple[str, dict[str, float]]]
 
 _GAUSSIAN_TERMS = ("white", "quantization", "bias_instability", "random_walk", "gauss_markov")
 _SIN4 = (3.0 / 8.0, -0.5, 1.0 / 8.0)  # sin^4 x = 3/8 - cos(2x)/2 + cos(4x)/8
-_POINTS_PER_DECADE = 160
+_POINTS_PER_DECADE = 100
 Z_CLIP = 12.0
 
 
@@ -107,10 +107,9 @@ def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarr
     # where both filters oscillate within a bin, the two factors of equal or double m are
     # not independent: average their product exactly (for larger ratios the cross terms of
     # the Fourier series oscillate fast and average out, so the product of averages holds)
+    index = {float(v): k for k, v in enumerate(m)}
     for i in range(n):
-        for j in range(i, n):
-            if m[j] not in (m[i], 2.0 * m[i]) and m[i] not in (2.0 * m[j],):
-                continue
+        for j in {i, index.get(2.0 * float(m[i]), i)}:
             both = fast[i] & fast[j]
             if not np.any(both):
                 continue

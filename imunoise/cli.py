@@ -14,9 +14,13 @@ from imunoise.errors import RuntimeFailure, UsageError
 COMMAND_MODULES: list[str] = [
     "analyze",
     "fit",
+    "diagnose",
+    "reproduce",
     "record",
+    "serve",
     "replay",
     "repair",
+    "export_kalibr",
 ]
 
 

@@ -61,7 +61,9 @@ def test_json_document(imu_csv):
             assert k in ch, (key, k)
         assert ch["channel"] == key and ch["fs_hz"] == FS and ch["n_samples"] == 60_000
         assert ch["duration_s"] == pytest.approx(600.0) and ch["n_segments"] == 2
-        assert ch["model"] == [] and ch["error"] is None and ch["failures"] == []
+        assert [m["term"] for m in ch["model"]] == ["white", "bias_instability",
+                                                    "random_walk"]
+        assert ch["error"]["chi2_per_dof"] > 0 and isinstance(ch["failures"], list)
         assert ch["units"] == ("rad/s" if key.startswith("gyro") else "m/s^2")
         allan = ch["allan"]
         for k in ("tau_s", "adev", "ci_low", "ci_high", "model_adev", "z"):

@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     p.add_argument("--rate", type=_positive_rate, metavar="HZ",
                    help="sampling rate in Hz (needed for a CSV without a time column 't')")
+    p.add_argument("--report", metavar="OUT.html",
+                   help="also write a self-contained HTML report (plots, coefficients, "
+                        "discrete-time model, diagnosis) to OUT.html")
     p.set_defaults(func=run)
 
 
@@ -58,7 +61,24 @@ class ChannelAnalysis:
     series: ChannelSeries
     allan: Any | None = None  # analysis.allan.AllanCurve
     psd: PsdEstimate | None = None
+    fit: Any | None = None  # analysis.fit.FitResult of DEFAULT_MODEL
     warnings: list[str] = field(default_factory=list)
+
+
+DEFAULT_MODEL = "white,bias_instability,random_walk"
+"""The model ``analyze`` fits to every channel."""
+
+
+def _fit(out: ChannelAnalysis) -> None:
+    from analysis.fit import fit_allan
+    from analysis.terms import TermError
+
+    if out.allan is None:
+        return
+    try:
+        out.fit = fit_allan(out.allan, DEFAULT_MODEL)
+    except (TermError, ValueError, np.linalg.LinAlgError) as exc:
+        out.warnings.append(f"no model fit: {exc}")
 
 
 def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
@@ -97,6 +117,7 @@ def analyze_record(record: Record, keys: list[str], show_progress: bool | None =
             out = ChannelAnalysis(key=key, series=series)
             bar.update(task, description=f"{key}: Allan deviation")
             _allan(series, out)
+            _fit(out)
             bar.advance(task)
             bar.update(task, description=f"{key}: PSD")
             _psd(series, out)
@@ -108,10 +129,12 @@ def analyze_record(record: Record, keys: list[str], show_progress: bool | None =
 def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> dict[str, Any]:
     """The ``analyze`` JSON document of analysed channels."""
     from imunoise import report_json
+    from imunoise.commands.fit import fit_fields
 
     channels = {
         r.key: report_json.channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
-                                        warnings=r.warnings, channel=r.key)
+                                        warnings=r.warnings, channel=r.key,
+                                        **(fit_fields(r.fit, r.allan) if r.fit else {}))
         for r in results
     }
     return report_json.analyze_json(path, channels, record.warnings)
@@ -133,12 +156,26 @@ def run(args: argparse.Namespace) -> int:
         keys = select_channels(record, args.channel)
     except ChannelSelectionError as exc:
         raise UsageError(str(exc)) from None
-    results = analyze_record(record, keys)
-    if args.json:
-        from imunoise import report_json
+    if args.report:
+        from imunoise.files import check_output_folder
 
-        sys.stdout.write(report_json.dumps(analysis_json(args.file, record, results)) + "\n")
+        check_output_folder(args.report)
+    results = analyze_record(record, keys)
+    if args.json or args.report:
+        from imunoise import outputs, report_json
+
+        doc = outputs.complete_document(analysis_json(args.file, record, results), record,
+                                        full=bool(args.report))
+        if args.report:
+            from imunoise.files import write_text_atomically
+            from imunoise.report_html import render_report
+
+            write_text_atomically(args.report, render_report(doc))
+            print(f"wrote {args.report}", file=sys.stderr)
+    if args.json:
+        sys.stdout.write(report_json.dumps(outputs.without_report_extras(doc)) + "\n")
     else:
+        from imunoise.commands.fit import fit_summary
         from imunoise.report_text import channel_text
 
         for w in record.warnings:
@@ -147,4 +184,6 @@ def run(args: argparse.Namespace) -> int:
         for r in results:
             print()
             print(channel_text(r.key, r.series, r.allan, r.psd, r.warnings))
+            if r.fit is not None:
+                print(fit_summary(r.fit, r.series.units))
     return 0

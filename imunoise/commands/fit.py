@@ -56,11 +56,10 @@ def temperature_at(record: Record, key: str) -> np.ndarray | None:
     return np.interp(t_chan, t_temp, temp.values)
 
 
-def model_json(result: Any, units: str) -> list[dict[str, Any]]:
-    """CONTRACT.md ``model`` entries of a fit."""
+def model_json(result: Any) -> list[dict[str, Any]]:
+    """CONTRACT.md ``model`` entries of a fit (parameters in the channel's SI units)."""
     from imunoise.report_json import number
 
-    del units
     return [{"term": t.term, "params": {k: number(v) for k, v in t.params.items()},
              "ci95": {k: [number(a), number(b)] for k, (a, b) in t.ci95.items()}}
             for t in result.terms]
@@ -91,18 +90,51 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
         raise RuntimeFailure(f"{key}: the fit failed numerically ({exc})") from None
 
 
+def _z_on_curve(result: Any, curve: Any) -> np.ndarray:
+    """The fit's z at each tau of the curve (NaN where the fit had no estimate)."""
+    z_map = dict(zip(np.round(result.tau_s, 12), result.z, strict=True))
+    return np.array([z_map.get(round(float(t), 12), np.nan) for t in curve.tau_s])
+
+
+def fit_fields(result: Any, curve: Any) -> dict[str, Any]:
+    """The fit's part of a channel document: model, error, failures, model_adev, z."""
+    return {"model": model_json(result), "error": result.error_dict(),
+            "failures": result.failures,
+            "model_adev": np.sqrt(result.model_avar(curve.tau_s)),
+            "z": _z_on_curve(result, curve)}
+
+
 def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
     """The ``fit`` JSON document of one channel."""
     from imunoise import report_json
 
-    series = record.series(key)
-    model_adev = np.sqrt(result.model_avar(curve.tau_s))
-    z = np.zeros(len(curve.tau_s))
-    z_map = dict(zip(np.round(result.tau_s, 12), result.z, strict=True))
-    z = np.array([z_map.get(round(float(t), 12), np.nan) for t in curve.tau_s])
-    return report_json.channel_json(
-        series, curve, model=model_json(result, series.units), error=result.error_dict(),
-        failures=result.failures, model_adev=model_adev, z=z, channel=key)
+    return report_json.channel_json(record.series(key), curve, channel=key,
+                                    **fit_fields(result, curve))
+
+
+def fit_summary(result: Any, units: str) -> str:
+    """The fitted model with its intervals, the error and the failing tau ranges."""
+    from analysis.terms import get_term, param_unit
+
+    lines = ["  model (95 % intervals)"]
+    for t in result.terms:
+        term = get_term(t.term)
+        for p in term.params:
+            v = t.params[p.name]
+            lo, hi = t.ci95[p.name]
+            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] "
+                         f"{param_unit(p, units)}")
+    lines.append(f"  error: chi2/dof = {result.chi2_per_dof:.3g}   max |z| = "
+                 f"{result.max_abs_z:.2f}   (flag |z| > {result.misfit.threshold:.2f})")
+    if result.failures:
+        lines.append("  the model fails at:")
+        for f in result.failures:
+            lo, hi = f["tau_s"]
+            lines.append(f"    tau {lo:.4g} .. {hi:.4g} s: {f['direction']} "
+                         f"(max |z| {f['max_abs_z']:.1f})")
+    else:
+        lines.append("  the model explains the curve at every tau")
+    return "\n".join(lines)
 
 
 def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
@@ -125,9 +157,9 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
     lines.append(f"    {'tau [s]':>10}  {'adev':>11}  {'low':>11}  {'high':>11}  "
                  f"{'model':>11}  {'z':>6}")
     model_adev = np.sqrt(result.model_avar(curve.tau_s))
-    z_map = dict(zip(np.round(result.tau_s, 12), result.z, strict=True))
+    z_all = _z_on_curve(result, curve)
     for i, tau in enumerate(curve.tau_s):
-        z = z_map.get(round(float(tau), 12), np.nan)
+        z = z_all[i]
         flag = "  <" if abs(z) > result.misfit.threshold else ""
         lines.append(f"    {tau:10.4g}  {curve.dev[i]:11.4g}  {curve.ci_low[i]:11.4g}  "
                      f"{curve.ci_high[i]:11.4g}  {model_adev[i]:11.4g}  {z:6.2f}{flag}")

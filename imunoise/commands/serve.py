@@ -1,0 +1,207 @@
+"""``imunoise serve``: acquire (or replay), record and analyse live; API and dashboard over HTTP.
+
+Acquisition runs in its own thread and never waits on the analysis or on HTTP; refits run at a
+bounded cadence on another thread. Ctrl-C stops acquisition, finishes the file being written and
+exits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from imunoise.errors import RuntimeFailure, UsageError
+
+TOKEN_ENV = "IMUNOISE_TOKEN"
+DEVICES = ("adis16350", "itg3200", "adxl345", "razor", "sim:adis16350", "sim:razor")
+SERIAL_DEVICES = ("adis16350",)
+I2C_DEVICES = ("itg3200", "adxl345", "razor")
+_LOOPBACK_NAMES = {"localhost"}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="live analyzer + API + dashboard", description=__doc__)
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--device", metavar="DEV",
+                     help=f"device to acquire ({', '.join(DEVICES)}); default sim:adis16350")
+    src.add_argument("--replay", metavar="FILE", help="feed a recording instead of a device")
+    p.add_argument("--serial", dest="serial_port", metavar="P",
+                   help="serial port of the SPI bridge (ADIS16350), e.g. /dev/ttyUSB0")
+    p.add_argument("--bus", type=int, metavar="N", help="I2C bus number (ITG-3200, ADXL345)")
+    p.add_argument("--rate", type=float, metavar="HZ", help="sampling rate in Hz")
+    p.add_argument("--seed", type=int, help="simulator random seed")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1; any other needs a token)")
+    p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
+    p.add_argument("--out", metavar="DIR", help="record MCAP files here (default: no recording)")
+    p.add_argument("--token", help=f"token required by changing requests (or ${TOKEN_ENV})")
+    p.add_argument("--model", default="white,bias_instability,random_walk", metavar="TERMS",
+                   help="initial model (comma-separated terms)")
+    p.add_argument("--refit-interval", type=float, default=2.0, metavar="S",
+                   help="least time between refits, s (default 2)")
+    p.set_defaults(func=run)
+
+
+def is_loopback(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and ``localhost``."""
+    if host in _LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_security(host: str, token: str | None) -> None:
+    """Binding beyond loopback requires a token (changes then require it)."""
+    if not is_loopback(host) and not token:
+        raise UsageError(f"serve: binding {host} exposes the API beyond this machine; give "
+                         f"--token T or set {TOKEN_ENV}")
+
+
+def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
+    """The block source, its description for /health, and whether it is a live device."""
+    if args.replay:
+        path = Path(args.replay)
+        if not path.exists():
+            raise UsageError(f"serve: no such file: {path}")
+        from daq.readers import ReadError
+        from daq.replay import open_blocks
+
+        try:
+            blocks, total = open_blocks(path)
+        except ReadError as exc:
+            raise UsageError(f"serve: {exc}") from None
+        return blocks, {"spec": f"replay:{path.name}", "samples_in_file": total}, False
+    spec = args.device or "sim:adis16350"
+    if spec not in DEVICES:
+        raise UsageError(f"serve: unknown device {spec!r}; valid: {', '.join(DEVICES)}")
+    from daq.devices import open_device
+    from daq.errors import DeviceError
+
+    kwargs: dict[str, Any] = {}
+    base = spec.removeprefix("sim:")
+    wanted = (("port", args.serial_port if base in SERIAL_DEVICES else None),
+              ("bus", args.bus if base in I2C_DEVICES else None),
+              ("rate_hz", args.rate), ("seed", args.seed))
+    for key, value in wanted:
+        if value is not None:
+            kwargs[key] = value
+    try:
+        acq = open_device(spec, **kwargs)
+    except ValueError as exc:
+        raise UsageError(f"serve: {str(exc).replace('--port', '--serial')}") from None
+    try:
+        acq.open()  # fail now, with the reason, rather than in the acquisition thread
+    except (DeviceError, OSError) as exc:
+        acq.close()
+        raise RuntimeFailure(f"serve: cannot open {spec}: {exc}") from None
+    info: dict[str, Any] = {"spec": spec, **{k: v for k, v in kwargs.items() if k != "seed"}}
+    info["config"] = {str(k): str(v) for k, v in (getattr(acq, "config", {}) or {}).items()}
+    return acq, info, True
+
+
+class RecorderSink:
+    """Feeds the MCAP recorder and records device state changes as status events."""
+
+    def __init__(self, recorder: Any, acquisition: Any) -> None:
+        self.recorder = recorder
+        self.acquisition = acquisition
+        self._state: str | None = None
+
+    def write(self, block: Any) -> None:
+        self.recorder.write(block)
+        state = str(getattr(getattr(self.acquisition, "stats", None), "state", ""))
+        if self._state is not None and state != self._state:
+            from daq import ros2_msgs
+
+            level = ros2_msgs.OK if state in ("running", "ok") else ros2_msgs.WARN
+            self.recorder.event(level, f"device state: {state}",
+                                {"event": "state", "state": state},
+                                t=float(block.t[-1]) if len(block) else None)
+        self._state = state
+
+    def close(self) -> None:
+        self.recorder.close()
+
+
+def open_recorder(out: str, device: str, config: dict[str, str] | None,
+                  rate_hz: float | None) -> Any:
+    from daq.recorder import McapRecorder
+
+    try:
+        return McapRecorder(out, device, config=config, rate_hz=rate_hz)
+    except OSError as exc:
+        raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from analysis.rolling import RollingAnalyzer, check_terms
+    from imunoise.live import LiveService
+    from web.app import LOOPBACK_HOSTS, create_app
+
+    token = args.token or os.environ.get(TOKEN_ENV) or None
+    check_security(args.host, token)
+    if not 0 < args.port < 65536:
+        raise UsageError(f"serve: bad port {args.port}")
+    model = [t.strip() for t in args.model.split(",") if t.strip()]
+    try:
+        check_terms(model)
+    except ValueError as exc:
+        raise UsageError(f"serve: {exc}") from None
+    if args.refit_interval <= 0:
+        raise UsageError("serve: --refit-interval must be positive")
+
+    source, info, realtime = open_source(args)
+    sinks = []
+    recorder = None
+    if args.out and realtime:
+        try:
+            recorder = open_recorder(args.out, info["spec"], info.get("config"), args.rate)
+        except RuntimeFailure:
+            source.close()
+            raise
+        sinks.append(RecorderSink(recorder, source))
+    service = LiveService(
+        source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval), sinks=sinks,
+        device=info, realtime=realtime,
+        current_file=(lambda: recorder.stats.file or None) if recorder else None)
+    app = create_app(service, token=token,
+                     allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
+                            timeout_graceful_shutdown=2, lifespan="on")
+    server = uvicorn.Server(config)
+    service.start()
+    url_host = f"[{args.host}]" if ":" in args.host else args.host
+    print(f"imunoise: serving {info['spec']} on http://{url_host}:{args.port}/ "
+          f"(API docs at /docs); Ctrl-C stops", file=sys.stderr, flush=True)
+    stopping = threading.Event()
+
+    def _terminate(signum: int, frame: object) -> None:  # SIGTERM from docker stop
+        stopping.set()
+        server.should_exit = True
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
+    try:
+        server.run()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        service.stop()
+        if recorder is not None and getattr(recorder, "error", None):
+            print(f"imunoise: recording: {recorder.error}", file=sys.stderr)
+        files = getattr(getattr(recorder, "stats", None), "files", None)
+        if files:
+            print(f"imunoise: recorded {', '.join(map(str, files))}", file=sys.stderr)
+    if not server.started:
+        raise RuntimeFailure(f"serve: could not listen on {args.host}:{args.port}")
+    return 0

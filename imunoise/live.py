@@ -1,0 +1,260 @@
+"""The live service behind ``imunoise serve``: acquisition, recording and rolling analysis.
+
+Three roles, two threads:
+
+- the *acquisition thread* pulls blocks from the source (a device, a simulator or a replayed
+  file) and hands each one to the recorder and to a queue for the analyzer. It never waits on
+  analysis or HTTP: for a live device the queue is large and ``put_nowait`` is used, so a stalled
+  analyzer costs analysis coverage (counted in ``health()``) but never a recorded sample;
+- the *analysis thread* drains the queue into a :class:`analysis.rolling.RollingAnalyzer` and refits
+  at the analyzers' own bounded cadence;
+- HTTP handlers only read published results (and change a model, which refits that channel).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable
+from typing import Any, Protocol
+
+from analysis.rolling import BlockLike, RollingAnalyzer
+
+
+class Sink(Protocol):
+    """A consumer of blocks that must not block the acquisition thread (e.g. the recorder)."""
+
+    def write(self, block: BlockLike) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def _as_dict(obj: Any) -> dict[str, Any]:
+    if obj is None:
+        return {}
+    if isinstance(obj, dict):
+        return dict(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
+    return {k: v for k, v in vars(obj).items() if not k.startswith("_")}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, str | int | float | bool) or value is None:
+        return value
+    if hasattr(value, "item"):
+        return value.item()
+    return str(value)
+
+
+class LiveService:
+    """Acquisition + recording + rolling analysis, with a thread-safe view for the API.
+
+    Args:
+        source: a ``daq.acquisition.Acquisition`` (its ``blocks()`` are iterated) or any
+            iterable of sample blocks (a file reader, a generator). Its ``stats`` (a dict,
+            dataclass or object), if any, are reported in ``health()``; its ``stop()`` and
+            ``close()``, if any, are called on shutdown.
+        analyzers: the rolling analyzers (a fresh :class:`RollingAnalyzer` by default).
+        sinks: block consumers called on the acquisition thread, e.g. the recorder. Each
+            ``write`` must return quickly (queue the work).
+        device: description of the source for ``health()`` (spec, port, rate ...).
+        realtime: True for a live device: never block the acquisition thread on a full
+            analysis queue. False for a replayed file: apply back-pressure instead.
+        queue_blocks: capacity of the analysis queue in blocks.
+        current_file: callable returning the path of the file being written, if any.
+    """
+
+    def __init__(self, source: Iterable[BlockLike], analyzers: RollingAnalyzer | None = None,
+                 sinks: Iterable[Sink] = (), device: dict[str, Any] | None = None,
+                 realtime: bool = True, queue_blocks: int = 20000,
+                 current_file: Callable[[], str | None] | None = None) -> None:
+        self.source = source
+        self.analyzers = analyzers if analyzers is not None else RollingAnalyzer()
+        self.sinks = list(sinks)
+        self.device = dict(device or {})
+        self.realtime = realtime
+        self._current_file = current_file
+        self._queue: queue.Queue[BlockLike | None] = queue.Queue(maxsize=queue_blocks)
+        self._stop = threading.Event()
+        self._acq_done = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._lock = threading.Lock()
+        self.samples_received = 0
+        self.blocks_received = 0
+        self.samples_analysed = 0
+        self.samples_not_analysed = 0
+        self.sink_errors = 0
+        self.gaps_seen = 0
+        self.error: str | None = None
+        self.started_at = time.time()
+        self._last_block_t: float | None = None
+        self._events = 0
+
+    # --- life cycle ----------------------------------------------------------------------
+    def start(self) -> LiveService:
+        """Start the acquisition and analysis threads."""
+        self.started_at = time.time()
+        for target, name in ((self._acquire, "imunoise-acquisition"),
+                             (self._analyse, "imunoise-analysis")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop acquiring, finish analysing what was queued, close the sinks and the source."""
+        self._stop.set()
+        stopper = getattr(self.source, "stop", None)
+        if callable(stopper):
+            try:
+                stopper()
+            except Exception:  # noqa: BLE001 - shutdown must go on
+                pass
+        for t in self._threads:
+            t.join(timeout)
+        for sink in self.sinks:
+            try:
+                sink.close()
+            except Exception as exc:  # noqa: BLE001
+                self.error = f"closing {type(sink).__name__}: {exc}"
+        closer = getattr(self.source, "close", None)
+        if callable(closer):
+            try:
+                closer()
+            except Exception:  # noqa: BLE001
+                pass
+
+    @property
+    def running(self) -> bool:
+        return not self._acq_done.is_set() and bool(self._threads)
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until the source is exhausted (a replayed file) or stopped."""
+        return self._acq_done.wait(timeout)
+
+    # --- threads -------------------------------------------------------------------------
+    def _acquire(self) -> None:
+        try:
+            blocks = getattr(self.source, "blocks", None)
+            for block in (blocks() if callable(blocks) else self.source):
+                n = len(block.t) if hasattr(block, "t") else \
+                    len(next(iter(block.channels.values()), ()))
+                for sink in self.sinks:
+                    try:
+                        sink.write(block)
+                    except Exception as exc:  # noqa: BLE001 - keep acquiring, report it
+                        self.sink_errors += 1
+                        self.error = f"{type(sink).__name__}: {exc}"
+                with self._lock:
+                    self.samples_received += n
+                    self.blocks_received += 1
+                    if getattr(block, "gap_before", 0) != 0 and self.blocks_received > 1:
+                        self.gaps_seen += 1
+                    self._last_block_t = time.time()
+                if self.realtime:
+                    try:
+                        self._queue.put_nowait(block)
+                    except queue.Full:
+                        with self._lock:
+                            self.samples_not_analysed += n
+                else:
+                    while not self._stop.is_set():
+                        try:
+                            self._queue.put(block, timeout=0.2)
+                            break
+                        except queue.Full:
+                            continue
+                if self._stop.is_set():
+                    break
+        except Exception as exc:  # noqa: BLE001 - the service stays up and reports it
+            self.error = f"acquisition stopped: {type(exc).__name__}: {exc}"
+        finally:
+            self._acq_done.set()
+            self._queue.put(None)
+
+    def _analyse(self) -> None:
+        while True:
+            try:
+                block = self._queue.get(timeout=0.25)
+            except queue.Empty:
+                block = False
+            batch = [] if block is False else [block]
+            while True:  # drain what is there, then refit once
+                try:
+                    batch.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            done = False
+            for b in batch:
+                if b is None:
+                    done = True
+                    continue
+                try:
+                    self.analyzers.update(b)
+                except Exception as exc:  # noqa: BLE001 - bad block: report, keep going
+                    self.error = f"analysis: {type(exc).__name__}: {exc}"
+                n = len(b.t) if hasattr(b, "t") else 0
+                with self._lock:
+                    self.samples_analysed += n
+            try:
+                self.analyzers.refresh(force=done)
+            except Exception as exc:  # noqa: BLE001
+                self.error = f"refit: {type(exc).__name__}: {exc}"
+            if done:
+                return
+
+    # --- views ---------------------------------------------------------------------------
+    def current_file(self) -> str | None:
+        if self._current_file is None:
+            return None
+        try:
+            path = self._current_file()
+        except Exception:  # noqa: BLE001
+            return None
+        return str(path) if path else None
+
+    def source_stats(self) -> dict[str, Any]:
+        return _jsonable(_as_dict(getattr(self.source, "stats", None)))
+
+    def health(self) -> dict[str, Any]:
+        """Liveness, device state, counts of samples received/dropped, the file being written."""
+        stats = self.source_stats()
+        with self._lock:
+            last = self._last_block_t
+            counts = {
+                "received": self.samples_received,
+                "analysed": self.samples_analysed,
+                "not_analysed": self.samples_not_analysed,
+                "dropped": int(stats.get("dropped", 0) or 0),
+            }
+            gaps = max(self.gaps_seen, int(stats.get("gaps", 0) or 0))
+        state = stats.get("state") or stats.get("device_state")
+        if state is None:
+            state = "streaming" if self.running else ("finished" if self._acq_done.is_set()
+                                                      else "starting")
+        now = time.time()
+        return {
+            "status": "ok" if self.error is None else "degraded",
+            "uptime_s": now - self.started_at,
+            "acquiring": self.running,
+            "device": dict(self.device, state=str(state), stats=stats),
+            "samples": counts,
+            "gaps": gaps,
+            "last_block_age_s": (now - last) if last else None,
+            "recording": {"file": self.current_file(), "sink_errors": self.sink_errors},
+            "channels": self.analyzers.channels,
+            "error": self.error,
+        }
+
+    @property
+    def revision(self) -> int:
+        """Changes whenever anything the dashboard shows may have changed."""
+        with self._lock:
+            return self.analyzers.revision * 1_000_003 + self.blocks_received // 50 + self.gaps_seen

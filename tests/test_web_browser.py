@@ -1,0 +1,140 @@
+"""The dashboard in real headless Debian Chromium, driven by Playwright."""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+from pathlib import Path
+
+import pytest
+
+from imunoise.live import LiveService
+from tests.live_helpers import SyntheticImu, running_server
+from web.app import create_app
+
+try:
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+except ImportError:  # pragma: no cover - playwright is in the test extra
+    PlaywrightTimeout = TimeoutError
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+pytestmark = pytest.mark.skipif(
+    not Path(CHROMIUM).exists() and shutil.which("chromium") is None,
+    reason="Debian chromium is not installed (apt-get install -y chromium)")
+
+
+@pytest.fixture(scope="module")
+def url():
+    svc = LiveService(SyntheticImu(block=1000, n_blocks=300), realtime=False).start()
+    assert svc.wait(60)
+    svc.stop()
+    with running_server(create_app(svc)) as base:
+        yield base
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM if Path(CHROMIUM).exists()
+                              else shutil.which("chromium"), args=ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture()
+def page(browser):
+    page = browser.new_page(viewport={"width": 1400, "height": 1600})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.errors = errors
+    yield page
+    page.close()
+
+
+@contextlib.contextmanager
+def screenshot_on_failure(page, tmp_path: Path, name: str):
+    """Re-raise a failed check or wait with the path of a screenshot of the page."""
+    try:
+        yield
+    except (AssertionError, PlaywrightTimeout) as exc:
+        shot = tmp_path / f"{name}.png"
+        try:
+            page.screenshot(path=str(shot), full_page=True, timeout=5000)
+            where = f"screenshot: {shot}"
+        except PlaywrightTimeout:
+            where = "no screenshot: the page is unresponsive"
+        raise AssertionError(f"{exc} ({where})") from exc
+
+
+def test_dashboard_loads_and_plots_render_with_data(page, url, tmp_path) -> None:
+    with screenshot_on_failure(page, tmp_path, "dashboard"):
+        _check_dashboard(page, url)
+
+
+def _check_dashboard(page, url: str) -> None:
+    page.goto(url + "/")
+    page.wait_for_function("Number(document.body.dataset.renders || 0) >= 1", timeout=15000)
+    for plot_id, least in (("allan-plot", 12), ("z-plot", 12), ("psd-plot", 100),
+                           ("history-plot", 1)):
+        el = page.locator(f"#{plot_id}")
+        assert el.locator("canvas").count() == 1, f"{plot_id} has no canvas"
+        assert int(el.get_attribute("data-points") or 0) >= least, f"{plot_id} is empty"
+    # The default model misses gyro_x's sinusoid: the z strip marks failures.
+    assert int(page.locator("#z-plot").get_attribute("data-failures")) > 0
+    rows = page.locator("#coefficients tbody tr")
+    assert rows.count() == 3
+    assert "deg/sqrt(h)" in rows.first.inner_text()
+    assert page.locator("button.add-term").count() >= 3
+    assert "samples" in page.locator("#status").inner_text()
+    assert page.errors == [], f"console errors {page.errors}"
+
+
+def test_clicking_add_changes_the_model_and_the_error_falls(page, url, tmp_path) -> None:
+    with screenshot_on_failure(page, tmp_path, "add-term"):
+        _check_add(page, url)
+
+
+def _check_add(page, url: str) -> None:
+    page.goto(url + "/?channel=gyro_x")
+    page.wait_for_function("Number(document.body.dataset.renders || 0) >= 1", timeout=15000)
+    before = float(page.locator("#error-value").get_attribute("data-value"))
+    renders = int(page.evaluate("document.body.dataset.renders"))
+    page.locator("button.add-term[data-term='sinusoid']").click()
+    page.wait_for_function(f"Number(document.body.dataset.renders) > {renders}", timeout=15000)
+    page.wait_for_function(
+        f"Number(document.getElementById('error-value').dataset.value) < {before}",
+        timeout=15000)
+    after = float(page.locator("#error-value").get_attribute("data-value"))
+    assert after < before / 10, f"error {before} -> {after}"
+    assert page.locator("#model-terms .term", has_text="sinusoid").count() == 1
+    assert page.locator("button.add-term[data-term='sinusoid']").count() == 0
+    assert "→" in page.locator("#action-msg").inner_text()
+    history = page.locator("#history li").all_inner_texts()
+    assert history[0].startswith("rev 1") and "sinusoid" in history[0]
+    assert page.errors == [], f"console errors {page.errors}"
+
+
+def test_a_young_record_with_short_tau_range_renders_without_errors(browser, tmp_path) -> None:
+    """Less than two decades of tau and no PSD yet: the log axes must still draw."""
+    svc = LiveService(SyntheticImu(fs_hz=102.4, block=100, n_blocks=6), realtime=False).start()
+    assert svc.wait(30)
+    svc.stop()
+    page = browser.new_page(viewport={"width": 1200, "height": 1400})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    with running_server(create_app(svc)) as base, \
+            screenshot_on_failure(page, tmp_path, "young-record"):
+        page.goto(base + "/?channel=gyro_y")
+        page.wait_for_function("Number(document.body.dataset.renders || 0) >= 1", timeout=15000)
+        assert int(page.locator("#allan-plot").get_attribute("data-points")) == 7
+        page.wait_for_timeout(300)  # let the plots draw
+        assert page.evaluate("1 + 1") == 2  # the page is responsive, not stuck drawing
+        assert "waiting for data" in page.locator("#suggestions").inner_text()
+        assert errors == [], errors
+    page.close()

@@ -1,0 +1,155 @@
+"""Request and response models of the HTTP API (they define the OpenAPI schema at ``/docs``).
+
+All values are in SI units of the channel unless a field says otherwise; ``conventional``
+blocks repeat a value in the unit engineers quote (deg/h, deg/sqrt(h), mg, m/s/sqrt(h)).
+Numbers that are not finite are sent as ``null``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class Error(BaseModel):
+    chi2_per_dof: float | None = Field(
+        None, description="misfit normalised by the estimates' uncertainty (~1 when it fits)")
+    max_abs_z: float | None = Field(None, description="largest |z| residual on the Allan curve")
+
+
+class Failure(BaseModel):
+    tau_s: list[float] = Field(description="[low, high] averaging times in s")
+    max_abs_z: float
+    direction: str
+
+
+class ConventionalValue(BaseModel):
+    value: float
+    units: str
+    ci95: list[float] | None = None
+
+
+class Term(BaseModel):
+    term: str
+    params: dict[str, float] = Field(description="parameters in SI units")
+    ci95: dict[str, list[float]] = Field(default_factory=dict, description="95 % intervals")
+    units: dict[str, str] = Field(default_factory=dict, description="SI units per parameter")
+    conventional: dict[str, ConventionalValue] = Field(default_factory=dict)
+
+
+class ChannelCoefficients(BaseModel):
+    channel: str
+    units: str
+    fs_hz: float
+    n_samples: int = Field(description="samples seen")
+    duration_s: float = Field(description="record length analysed, gaps excluded, s")
+    segments: int
+    model_revision: int
+    model: list[Term]
+    error: Error | None
+    failures: list[Failure]
+
+
+class Coefficients(BaseModel):
+    channels: dict[str, ChannelCoefficients]
+    samples_seen: int
+    record_length_s: float = Field(description="longest channel's analysed length, s")
+
+
+class AllanCurve(BaseModel):
+    channel: str
+    units: str
+    tau_s: list[float | None]
+    adev: list[float | None]
+    ci_low: list[float | None] = Field(description="95 % band of the Allan deviation")
+    ci_high: list[float | None]
+    model: list[str]
+    model_adev: list[float | None] | None
+    terms: dict[str, list[float | None]] = Field(description="each term's Allan deviation")
+    z: list[float | None] | None = Field(description="standardised residual at each tau")
+    failures: list[Failure]
+    error: Error | None
+
+
+class PsdCurve(BaseModel):
+    channel: str
+    units: str
+    f_hz: list[float | None]
+    psd: list[float | None] = Field(description="one-sided PSD")
+    ci_low: list[float | None]
+    ci_high: list[float | None]
+    dof: list[float | None]
+    model_psd: list[float | None] | None
+
+
+class Suggestion(BaseModel):
+    term: str
+    params: dict[str, float]
+    chi2_per_dof_after: float
+    significant: bool
+    why: str
+
+
+class Diagnosis(BaseModel):
+    channel: str
+    model: list[str]
+    note: str = Field("", description="why there are no suggestions yet, if so")
+    model_revision: int
+    error: Error | None
+    suggestions: list[Suggestion]
+
+
+class HistoryPoint(BaseModel):
+    revision: int
+    model: list[str]
+    chi2_per_dof: float
+    time_s: float = Field(description="UNIX time, s")
+    n_samples: int
+
+
+class ModelState(BaseModel):
+    channel: str
+    model: list[str]
+    model_revision: int
+    valid_terms: list[str]
+    error: Error | None
+    history: list[HistoryPoint]
+
+
+class ModelChangeRequest(BaseModel):
+    """Add or remove one term, or replace the whole model (exactly one of the three)."""
+
+    model_config = ConfigDict(extra="forbid")
+    channel: str
+    add: str | None = None
+    remove: str | None = None
+    terms: list[str] | None = None
+
+    @model_validator(mode="after")
+    def _one_action(self) -> ModelChangeRequest:
+        given = [k for k in ("add", "remove", "terms") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of 'add', 'remove' or 'terms'")
+        return self
+
+
+class ModelChange(BaseModel):
+    channel: str
+    model: list[str]
+    model_revision: int
+    error_before: Error
+    error_after: Error
+
+
+class Health(BaseModel):
+    status: str
+    uptime_s: float
+    acquiring: bool
+    device: dict[str, Any]
+    samples: dict[str, int] = Field(description="received, analysed, not_analysed, dropped")
+    gaps: int
+    last_block_age_s: float | None
+    recording: dict[str, Any]
+    channels: list[str]
+    error: str | None

@@ -1,0 +1,222 @@
+// imunoise dashboard: reads the HTTP API, redraws on server-sent "update" events.
+"use strict";
+
+const params = new URLSearchParams(location.search);
+const token = params.get("token");
+const state = { channel: params.get("channel"), plots: {}, busy: false, pending: false,
+                lastRefresh: 0, renders: 0 };
+const COLORS = ["#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22",
+                "#ff7f0e"];
+const $ = (id) => document.getElementById(id);
+
+function fmt(v, digits = 3) {
+  if (v === null || v === undefined || !isFinite(v)) return "–";
+  if (v === 0) return "0";
+  const a = Math.abs(v);
+  return (a >= 1e4 || a < 1e-3) ? v.toExponential(digits - 1) : v.toPrecision(digits);
+}
+
+async function getJSON(path) {
+  const r = await fetch(path, { cache: "no-store" });
+  if (!r.ok) throw new Error(`${path}: ${r.status} ${(await r.json()).detail || ""}`);
+  return r.json();
+}
+
+function plot(id, opts, data) {
+  const el = $(id);
+  if (state.plots[id]) state.plots[id].destroy();
+  el.textContent = "";
+  opts.width = Math.max(el.clientWidth || 400, 300);
+  opts.height = opts.height || 300;
+  state.plots[id] = new uPlot(opts, data, el);
+  el.dataset.points = String(data[0].length);
+}
+
+// Log scales span whole decades around the finite positive data (uPlot's automatic log range
+// misbehaves on spans of less than about two decades).
+function decades(u, min, max) {
+  if (!(min > 0) || !(max > 0)) return [1e-12, 1];
+  let lo = Math.floor(Math.log10(min));
+  let hi = Math.ceil(Math.log10(max));
+  if (hi <= lo) hi = lo + 1;
+  return [10 ** lo, 10 ** hi];
+}
+const LOG = { distr: 3, range: decades };
+
+function logAxis(label) {
+  return { label, values: (u, vals) => vals.map((v) => fmt(v, 2)) };
+}
+
+function drawAllan(a) {
+  $("allan-units").textContent = `(${a.units})`;
+  const series = [{ label: "tau (s)" },
+    { label: "measured", stroke: "#1f77b4", width: 2, points: { show: true, size: 5 } },
+    { label: "95 % high", stroke: "#1f77b455", width: 1 },
+    { label: "95 % low", stroke: "#1f77b455", width: 1 }];
+  const data = [a.tau_s, a.adev, a.ci_high, a.ci_low];
+  if (a.model_adev) {
+    series.push({ label: "model", stroke: "#000", width: 2 });
+    data.push(a.model_adev);
+    Object.entries(a.terms).forEach(([name, ys], i) => {
+      series.push({ label: name, stroke: COLORS[i % COLORS.length], width: 1, dash: [6, 4] });
+      data.push(ys.map((v) => (v > 0 ? v : null)));
+    });
+  }
+  plot("allan-plot", {
+    scales: { x: LOG, y: LOG },
+    series, bands: [{ series: [2, 3], fill: "#1f77b422" }],
+    axes: [logAxis("averaging time tau (s)"), logAxis(`Allan deviation (${a.units})`)],
+  }, data);
+
+  const z = a.z || a.tau_s.map(() => null);
+  const bad = z.map((v) => (v !== null && Math.abs(v) > 3 ? v : null));
+  plot("z-plot", {
+    height: 140,
+    scales: { x: LOG },
+    series: [{ label: "tau (s)" },
+      { label: "z", stroke: "#1f77b4", paths: () => null, points: { show: true, size: 6 } },
+      { label: "failure", stroke: "#d00", fill: "#d00", paths: () => null,
+        points: { show: true, size: 9, fill: "#d00" } },
+      { label: "+3", stroke: "#999", dash: [4, 4] }, { label: "−3", stroke: "#999", dash: [4, 4] }],
+    axes: [logAxis("tau (s)"), { label: "z" }],
+  }, [a.tau_s, z, bad, a.tau_s.map(() => 3), a.tau_s.map(() => -3)]);
+  $("z-plot").dataset.failures = String(bad.filter((v) => v !== null).length);
+  $("failures").innerHTML = a.failures.map((f) =>
+    `<li>${f.direction} for tau ${fmt(f.tau_s[0])}–${fmt(f.tau_s[1])} s (max |z| ${fmt(f.max_abs_z)})</li>`
+  ).join("");
+}
+
+function drawPsd(p) {
+  $("psd-units").textContent = `(${p.units})`;
+  if (!p.f_hz.length) { $("psd-plot").textContent = "waiting for a full PSD segment…"; return; }
+  const series = [{ label: "f (Hz)" }, { label: "PSD", stroke: "#1f77b4", width: 1 },
+    { label: "95 % high", stroke: "#1f77b433" }, { label: "95 % low", stroke: "#1f77b433" }];
+  const pos = (ys) => ys.map((v) => (v > 0 ? v : null));
+  const data = [p.f_hz, pos(p.psd), pos(p.ci_high), pos(p.ci_low)];
+  if (p.model_psd) {
+    series.push({ label: "model", stroke: "#000", width: 2 });
+    data.push(p.model_psd.map((v) => (v > 0 ? v : null)));
+  }
+  plot("psd-plot", { scales: { x: LOG, y: LOG }, series,
+    bands: [{ series: [2, 3], fill: "#1f77b422" }],
+    axes: [logAxis("frequency (Hz)"), logAxis(p.units)] }, data);
+}
+
+function drawCoefficients(c) {
+  const rows = [];
+  for (const t of c.model) {
+    for (const [name, value] of Object.entries(t.params)) {
+      const ci = t.ci95[name];
+      const conv = (t.conventional || {})[name];
+      rows.push(`<tr data-term="${t.term}"><td>${t.term}</td><td>${name}</td>
+        <td>${fmt(value)}</td><td>${ci ? `${fmt(ci[0])} … ${fmt(ci[1])}` : ""}</td>
+        <td>${(t.units || {})[name] || ""}</td><td>${conv ? fmt(conv.value) : ""}</td>
+        <td>${conv && conv.ci95 ? `${fmt(conv.ci95[0])} … ${fmt(conv.ci95[1])}` : ""}</td>
+        <td>${conv ? conv.units : ""}</td></tr>`);
+    }
+  }
+  document.querySelector("#coefficients tbody").innerHTML = rows.join("");
+  $("record-info").textContent = `${c.n_samples.toLocaleString()} samples, ` +
+    `${fmt(c.duration_s, 4)} s analysed in ${c.segments} segment(s) at ${fmt(c.fs_hz)} Hz`;
+}
+
+function drawModel(m) {
+  $("error-value").textContent = m.error ? fmt(m.error.chi2_per_dof) : "–";
+  $("error-value").dataset.value = m.error ? String(m.error.chi2_per_dof) : "";
+  $("error-maxz").textContent = m.error ? `(max |z| ${fmt(m.error.max_abs_z)})` : "";
+  $("model-terms").innerHTML = m.model.map((t) =>
+    `<span class="term">${t} <button class="remove-term" data-term="${t}" title="remove">×</button></span>`
+  ).join("");
+  const h = m.history;
+  $("history").innerHTML = h.slice(-12).reverse().map((p) =>
+    `<li>rev ${p.revision}: χ²/dof ${fmt(p.chi2_per_dof)} [${p.model.join(", ")}]</li>`).join("");
+  if (h.length) {
+    plot("history-plot", { height: 150, scales: { y: LOG },
+      series: [{ label: "time" }, { label: "χ²/dof", stroke: "#d62728", width: 2,
+        points: { show: true } }],
+      axes: [{}, logAxis("χ²/dof")] },
+    [h.map((p) => p.time_s), h.map((p) => Math.max(p.chi2_per_dof, 1e-3))]);
+  }
+}
+
+function drawDiagnosis(d) {
+  const items = d.suggestions.map((s) => {
+    const ps = Object.entries(s.params).map(([k, v]) => `${k} = ${fmt(v)}`).join(", ");
+    return `<li><button class="add-term" data-term="${s.term}">Add ${s.term}</button>
+      <span class="${s.significant ? "sig" : ""}">${s.significant ? "significant" : "not significant"}</span>:
+      χ²/dof after ${fmt(s.chi2_per_dof_after)} (${ps})<span class="why">${s.why}</span></li>`;
+  });
+  const note = document.createElement("li");
+  note.textContent = d.note || "no candidate terms left";
+  $("suggestions").innerHTML = items.join("");
+  if (!items.length) $("suggestions").appendChild(note);
+}
+
+async function refresh() {
+  if (state.busy) { state.pending = true; return; }
+  state.busy = true;
+  try {
+    const ch = await getJSON("/channels");
+    const sel = $("channel");
+    if (sel.options.length !== ch.channels.length) {
+      sel.innerHTML = ch.channels.map((c) => `<option>${c}</option>`).join("");
+    }
+    if (!ch.channels.length) return;
+    if (!state.channel || !ch.channels.includes(state.channel)) state.channel = ch.channels[0];
+    sel.value = state.channel;
+    const q = `?channel=${encodeURIComponent(state.channel)}`;
+    const [a, p, c, m, d] = await Promise.all([getJSON(`/allan${q}`), getJSON(`/psd${q}`),
+      getJSON("/coefficients"), getJSON(`/model${q}`), getJSON(`/diagnosis${q}`)]);
+    drawAllan(a); drawPsd(p); drawCoefficients(c.channels[state.channel]); drawModel(m);
+    drawDiagnosis(d);
+    state.renders += 1;
+    document.body.dataset.renders = String(state.renders);
+  } catch (e) {
+    $("action-msg").textContent = String(e);
+  } finally {
+    state.busy = false;
+    state.lastRefresh = Date.now();
+    if (state.pending) { state.pending = false; setTimeout(refresh, 300); }
+  }
+}
+
+async function changeModel(body) {
+  const headers = { "Content-Type": "application/json" };
+  if (token) headers["X-Imunoise-Token"] = token;
+  const r = await fetch("/model", { method: "POST", headers,
+    body: JSON.stringify({ channel: state.channel, ...body }) });
+  const j = await r.json();
+  if (!r.ok) { $("action-msg").textContent = `refused: ${j.detail}`; return; }
+  $("action-msg").textContent = `model ${j.model.join(" + ")}: χ²/dof ` +
+    `${fmt(j.error_before.chi2_per_dof)} → ${fmt(j.error_after.chi2_per_dof)}`;
+  await refresh();
+}
+
+document.addEventListener("click", (ev) => {
+  const b = ev.target.closest("button");
+  if (!b) return;
+  if (b.classList.contains("add-term")) changeModel({ add: b.dataset.term });
+  if (b.classList.contains("remove-term")) changeModel({ remove: b.dataset.term });
+});
+$("channel").addEventListener("change", (ev) => { state.channel = ev.target.value; refresh(); });
+
+function status(h) {
+  const s = $("status");
+  s.textContent = `${h.state} · ${Number(h.samples.received).toLocaleString()} samples · ` +
+    `dropped ${h.samples.dropped} · ${h.file ? `writing ${h.file.split("/").pop()}` : "not recording"}`;
+  s.classList.toggle("bad", h.status !== "ok" || h.samples.dropped > 0);
+}
+
+function connect() {
+  const es = new EventSource("/events");
+  es.addEventListener("update", (ev) => {
+    const h = JSON.parse(ev.data);
+    status(h);
+    if (Date.now() - state.lastRefresh > 1000) refresh();
+  });
+  es.onerror = () => { $("status").textContent = "disconnected: retrying…";
+    $("status").classList.add("bad"); };
+}
+
+refresh();
+connect();
