@@ -292,6 +292,10 @@ def test_analyze_report_end_to_end(recordings, kind, tmp_path, capsys):
     # A correct model agrees at about 95 % of taus (two independent estimates compared on
     # their combined interval); neighbouring taus are correlated, so allow a wide margin.
     assert total >= 6 * 8 and inside >= 0.8 * total, (inside, total)
+    # the diagnosis of the default model for every channel, with chi2/dof before and after
+    assert html.count("<h3>Diagnosis</h3>") == 6
+    assert len(re.findall(r"\d \u2192 \d", text)) >= 6
+    assert "no diagnosis" not in text
     assert re.search(r"samples\s*40000\b", text)
     assert re.search(rf"gaps\s*{1 if kind == 'mcap' else 0}\b", text)
     if kind == "mcap":
