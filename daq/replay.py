@@ -74,30 +74,39 @@ def _pieces(block: SampleBlock, n: int) -> Iterator[SampleBlock]:
                           gap_before=block.gap_before if a == 0 else 0)
 
 
+def paced(blocks: Iterator[SampleBlock], speed: float | None = 1.0,
+          sleep: Callable[[float], None] = time.sleep,
+          clock: Callable[[], float] = time.monotonic) -> Iterator[SampleBlock]:
+    """The blocks, each released when the sample clock says: ``speed`` times real time, in
+    pieces of ``PACE_S`` seconds of samples; unpaced when ``speed`` is None or not positive."""
+    speed_x = float(speed) if speed is not None and speed > 0 else None
+    t_start: float | None = None
+    wall_start = clock()
+    for block in blocks:
+        if not len(block):
+            continue
+        if speed_x is None:
+            yield block
+            continue
+        for piece in _pieces(block, max(1, int(block.fs_hz * PACE_S * speed_x))):
+            if t_start is None:
+                t_start = float(piece.t[0])
+            wait = wall_start + (float(piece.t[-1]) - t_start) / speed_x - clock()
+            if wait > 0:
+                sleep(wait)
+            yield piece
+
+
 def replay(blocks: Iterator[SampleBlock], consumer: Callable[[SampleBlock], None],
            speed: float | None = 1.0, progress: Callable[[SampleBlock], None] | None = None,
            sleep: Callable[[float], None] = time.sleep,
            clock: Callable[[], float] = time.monotonic) -> None:
     """Hand every block to ``consumer``; ``speed`` times real time, or as fast as possible
     when ``speed`` is None or not positive."""
-    paced = speed is not None and speed > 0
-    t_start: float | None = None
-    wall_start = clock()
-    for block in blocks:
-        if not len(block):
-            continue
-        pieces = _pieces(block, max(1, int(block.fs_hz * PACE_S * speed))) if paced else [block]
-        for piece in pieces:
-            if paced:
-                if t_start is None:
-                    t_start = float(piece.t[0])
-                due = wall_start + (float(piece.t[-1]) - t_start) / speed
-                wait = due - clock()
-                if wait > 0:
-                    sleep(wait)
-            consumer(piece)
-            if progress is not None:
-                progress(piece)
+    for piece in paced(blocks, speed, sleep=sleep, clock=clock):
+        consumer(piece)
+        if progress is not None:
+            progress(piece)
 
 
 @dataclass
