@@ -10,7 +10,6 @@ dashboard of ``imunoise serve``) until Ctrl-C.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 
@@ -114,12 +113,21 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"replay: {args.file}: {exc}") from exc
     rows = summary.rows()
     if args.json:
-        print(json.dumps({"file": args.file, "channels": rows}))
+        from imunoise.report_json import dumps, number
+
+        for r in rows:
+            r["white_noise_density"] = number(r["white_noise_density"])
+        print(dumps({"file": args.file, "channels": rows}))
         return 0
     print(f"{'channel':32s} {'samples':>10s} {'duration':>10s} {'gaps':>5s}  white noise")
     for r in rows:
         n = r["white_noise_density"]
         unit = r["units"]
+        if not math.isfinite(n):
+            conv = "n/a (fewer than two samples in a row)"
+            print(f"{r['channel']:32s} {r['samples']:>10d} {r['duration_s']:>9.1f}s "
+                  f"{r['gaps']:>5d}  {conv}")
+            continue
         if unit == "rad/s":
             conv = f"{n * 180 / math.pi * 60:.4g} deg/sqrt(h)"
         elif unit == "m/s^2":
