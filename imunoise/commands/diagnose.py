@@ -97,6 +97,7 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
 
 
 def run(args: argparse.Namespace) -> int:
+    parse_model(args.model)  # a misspelt term fails before a long read
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose")
     diag = diagnose_channel(record, key, args.model)
     if args.json:

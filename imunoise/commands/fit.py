@@ -121,6 +121,7 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    parse_model(args.model)  # a misspelt term fails before a long read
     record, key = open_imu_channel(args.file, args.rate, args.channel, "fit")
     result, curve = fit_channel(record, key, args.model)
     if args.json:
