@@ -52,6 +52,7 @@ def _make_inputs(d: Path) -> dict[str, Path]:
     tb = t.copy()
     tb[3000:] -= 5.0
     p["backwards_csv"] = _write_csv(d / "backwards.csv", "t,gyro_x", [tb, gyro[0]])
+    p["short_csv"] = _write_csv(d / "short.csv", "t,gyro_x", [t[:12], gyro[0, :12]])
     p["all_nan_csv"] = _write_csv(d / "all_nan.csv", "t,gyro_x", [t, np.full(N, np.nan)])
     p["no_channels_csv"] = _write_csv(d / "other.csv", "t,speed,rpm", [t, gyro[0], gyro[1]])
     (d / "empty.csv").write_text("")
@@ -105,6 +106,8 @@ RUNS: dict[str, Run] = {
         ["analyze", "{two_topics}", "--json", "--channel", "/a/imu:gyro_x", "--channel",
          "/b/imu:accel_z"], 0, json_schema="analyze",
         check="channels /a/imu:gyro_x /b/imu:accel_z"),
+    "analyze json too short to fit": Run(["analyze", "{short_csv}", "--json"], 0,
+                                         check="unfitted gyro_x"),
     "replay json": Run(["replay", "{nan_csv}", "--speed", "max", "--json"], 0,
                        check="replay keeps every sample"),
     # bad usage and bad input: exit 2, one line naming the problem, nothing written
@@ -345,8 +348,20 @@ def _check_replay(doc: dict, args: list[str]) -> None:
     assert all(math.isfinite(r["white_noise_density"]) for r in rows.values())
 
 
+def _check_unfitted(doc: dict, args: list[str]) -> None:
+    """Without a fit the shapes stay: an error object of nulls, arrays parallel to tau_s."""
+    ch = doc["channels"][args[0]]
+    assert ch["model"] == [] and ch["failures"] == []
+    assert ch["error"] == {"chi2_per_dof": None, "max_abs_z": None}
+    allan = ch["allan"]
+    assert len(allan["tau_s"]) >= 1
+    assert allan["model_adev"] == allan["z"] == [None] * len(allan["tau_s"])
+    assert any("no model fit" in w for w in ch["warnings"])
+
+
 CHECKS = {"channel": _check_channel, "warning": _check_warning, "best": _check_best_first,
-          "channels": _check_channels, "all": _check_all_six, "replay": _check_replay}
+          "channels": _check_channels, "all": _check_all_six, "replay": _check_replay,
+          "unfitted": _check_unfitted}
 
 
 # ---------------------------------------------------------------------------------- --help
