@@ -446,3 +446,27 @@ def test_replay_serve_paces_the_file_behind_the_api(inputs):
             _, err = proc.communicate()
     assert proc.returncode == 0, err
     assert "Traceback" not in err
+
+
+def test_os_errors_are_one_line_runtime_failures(monkeypatch, capsys):
+    """An OSError no command caught (disk full ...) is exit 1 with one line, no traceback."""
+    from imunoise.cli import main
+    from imunoise.commands import reproduce
+
+    def full_disk(args):
+        raise OSError(28, "No space left on device", "/data/night.mcap")
+
+    monkeypatch.setattr(reproduce, "run", full_disk)
+    assert main(["reproduce", "petkov2010"]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["imunoise: No space left on device: /data/night.mcap"]
+
+
+def test_closed_stdout_is_not_a_traceback(inputs):
+    """``imunoise ... | head`` closing the pipe early ends the command without a traceback."""
+    proc = subprocess.Popen([sys.executable, "-m", "imunoise", "replay", str(inputs["mcap"]),
+                             "--speed", "max"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 1
+    assert err == "", err
