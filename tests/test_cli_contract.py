@@ -406,12 +406,11 @@ def test_help_runs_in_a_subprocess():
 def test_replay_serve_paces_the_file_behind_the_api(inputs):
     """``replay FILE --serve --speed X``: the API comes up and the samples arrive on the
     sample clock (X times real time), not all at once; Ctrl-C ends it with exit 0."""
-    import signal
     import time
 
     import httpx
 
-    from tests.live_helpers import free_port
+    from tests.live_helpers import free_port, interrupt
 
     port, speed = free_port(), 4.0
     proc = subprocess.Popen([sys.executable, "-m", "imunoise", "replay", str(inputs["mcap"]),
@@ -438,12 +437,7 @@ def test_replay_serve_paces_the_file_behind_the_api(inputs):
         rate = (n2 - n1) / (t2 - t1)  # both topics: 2 x 100 Hz x speed
         assert 0.3 * 2 * FS * speed < rate < 2.5 * 2 * FS * speed, rate
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            _, err = proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
+        err = interrupt(proc)
     assert proc.returncode == 0, err
     assert "Traceback" not in err
 
