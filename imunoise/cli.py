@@ -26,7 +26,16 @@ COMMAND_MODULES: list[str] = [
 
 
 class _Parser(argparse.ArgumentParser):
-    """ArgumentParser whose usage errors are one line on stderr and exit code 2."""
+    """ArgumentParser whose usage errors are one line on stderr and exit code 2.
+
+    Command descriptions are the modules' docstrings; their reStructuredText literal marks
+    are dropped for the terminal.
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        if kwargs.get("description"):
+            kwargs["description"] = kwargs["description"].replace("``", "")
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(f"{self.prog}: {message}")
