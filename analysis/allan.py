@@ -240,23 +240,23 @@ def _ohdev_sum(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -
 
 
 def _oadev_sum_any(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
-    """``_oadev_sum``, by the compiled kernel when ``allan_kernels.enabled()``."""
+    """``_oadev_sum``, by the compiled kernel when ``allan_kernels.enabled("oadev")``."""
     k = u.size - 2 * m if stop is None else stop
-    if allan_kernels.enabled():
+    if allan_kernels.enabled("oadev"):
         return allan_kernels.oadev_sum(u, m, start, k) if k > start else 0.0
     return _oadev_sum(u, m, start, k)
 
 
 def _ohdev_sum_any(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
-    """``_ohdev_sum``, by the compiled kernel when ``allan_kernels.enabled()``."""
+    """``_ohdev_sum``, by the compiled kernel when ``allan_kernels.enabled("ohdev")``."""
     k = u.size - 3 * m if stop is None else stop
-    if allan_kernels.enabled():
+    if allan_kernels.enabled("ohdev"):
         return allan_kernels.ohdev_sum(u, m, start, k) if k > start else 0.0
     return _ohdev_sum(u, m, start, k)
 
 
 #: Overlapping kernels by kind: ``f(u, m, start, stop)`` -> sum of squared differences
-#: (compiled or numpy, as ``allan_kernels.enabled()`` says).
+#: (compiled or numpy, as ``allan_kernels.enabled(kind)`` says).
 OVERLAP_KERNELS = {"oadev": _oadev_sum_any, "ohdev": _ohdev_sum_any}
 
 
@@ -320,7 +320,7 @@ def segment_sums(
         e = -int(np.floor(np.log2(peak)))
         sums, counts = segment_sums(np.ldexp(u, e), ms, kind, workers)
         return np.ldexp(sums, -2 * e), counts
-    compiled = allan_kernels.enabled()
+    compiled = allan_kernels.enabled(kind)
     if kind == "mdev":
         hi, lo = _running_sum_split(u)
         counts = np.maximum(n - 3 * ms + 1, 0).astype(np.int64)

@@ -9,9 +9,10 @@ share one sweep over the phase (``groups``), so long records are read from memor
 times. ``fastmath`` stays off: no reassociation or contraction beyond what is written here;
 every loop is elementwise, so the compiler still emits SIMD code.
 
-``enabled()`` says whether the compiled kernels are in use: numba must import, the kernels
-must compile (``cache=True`` keeps the machine code on disk, so only the first run after
-an install pays the compile time), and the switch must be on. ``set_enabled(False)`` or the
+``enabled(kind)`` says whether the compiled kernels of a kind are in use: numba must import,
+the kernels must compile (on first use, per kind; ``cache=True`` keeps the machine code on
+disk, so only the first run after an install pays the compile time, some seconds per kind),
+and the switch must be on. ``set_enabled(False)`` or the
 environment variable ``IMUNOISE_ALLAN_KERNEL=numpy`` selects the numpy path instead.
 """
 
@@ -30,19 +31,24 @@ _CHUNK = 16 * _BLOCK
 #: Most averaging factors summed in one sweep.
 GROUP_MAX = 16
 
-_state: dict[str, object] = {
+#: Kinds with compiled kernels (``adev`` needs none: it reads only every m-th point).
+KERNEL_KINDS = ("oadev", "ohdev", "mdev")
+
+# switch; per kind: compiled (absent: not tried yet), why not, and first-use time in s
+_state: dict = {
     "switch": os.environ.get("IMUNOISE_ALLAN_KERNEL", "").strip().lower() != "numpy",
-    "compiled": None,  # None: not tried yet; True/False after the first attempt
-    "error": "",
-    "compile_s": 0.0,
+    "compiled": {},
+    "error": {},
+    "compile_s": {},
 }
 
 try:  # numba is a declared dependency; the numpy path covers an environment without it
     from numba import njit
+
+    _NUMBA_ERROR = ""
 except Exception as exc:  # pragma: no cover - exercised only without numba
     njit = None
-    _state["compiled"] = False
-    _state["error"] = f"numba unavailable: {exc}"
+    _NUMBA_ERROR = f"numba unavailable: {exc}"
 
 
 def _identity(fn):
@@ -101,8 +107,8 @@ def _sq3_block(y0, y1, y2, y3, buf) -> float:
 
 
 @_jit
-def _sums_grouped(u: np.ndarray, ms: np.ndarray, stops: np.ndarray, start: int, order: int):
-    """Sums of squared differences of order 2 (oadev) or 3 (ohdev) for several m in one sweep.
+def _sweep2(u: np.ndarray, ms: np.ndarray, stops: np.ndarray, start: int) -> np.ndarray:
+    """Second-difference sums for several m in one sweep over ``u``.
 
     The start indices are visited in chunks of ``_CHUNK``; within a chunk every m of the group
     is summed before moving on, so the phase read for the first m is still in the cache for
@@ -110,29 +116,36 @@ def _sums_grouped(u: np.ndarray, ms: np.ndarray, stops: np.ndarray, start: int, 
     boundaries are those of a single-m sweep from ``start``, so the result does not depend on
     the grouping.
     """
-    g = ms.size
-    total = np.zeros(g)
-    comp = np.zeros(g)
+    total = np.zeros(ms.size)
+    comp = np.zeros(ms.size)
     buf = np.empty(_BLOCK)
-    kmax = start
-    for t in range(g):
-        kmax = max(kmax, stops[t])
-    for c0 in range(start, kmax, _CHUNK):
-        for t in range(g):
-            c1 = min(c0 + _CHUNK, stops[t])
+    for c0 in range(start, max(start, stops.max()), _CHUNK):
+        for t in range(ms.size):
             m = ms[t]
+            c1 = min(c0 + _CHUNK, stops[t])
             for a in range(c0, c1, _BLOCK):
                 e = min(c1, a + _BLOCK)
-                if order == 2:
-                    s = _sq2_block(u[a:e], u[a + m : e + m], u[a + 2 * m : e + 2 * m], buf)
-                else:
-                    s = _sq3_block(
-                        u[a:e],
-                        u[a + m : e + m],
-                        u[a + 2 * m : e + 2 * m],
-                        u[a + 3 * m : e + 3 * m],
-                        buf,
-                    )
+                s = _sq2_block(u[a:e], u[a + m : e + m], u[a + 2 * m : e + 2 * m], buf)
+                total[t], comp[t] = _add_compensated(total[t], comp[t], s)
+    return total + comp
+
+
+@_jit
+def _sweep3(u: np.ndarray, ms: np.ndarray, stops: np.ndarray, start: int) -> np.ndarray:
+    """Third-difference sums for several m in one sweep over ``u`` (as ``_sweep2``)."""
+    total = np.zeros(ms.size)
+    comp = np.zeros(ms.size)
+    buf = np.empty(_BLOCK)
+    for c0 in range(start, max(start, stops.max()), _CHUNK):
+        for t in range(ms.size):
+            m = ms[t]
+            c1 = min(c0 + _CHUNK, stops[t])
+            for a in range(c0, c1, _BLOCK):
+                e = min(c1, a + _BLOCK)
+                y0 = u[a:e]
+                y1 = u[a + m : e + m]
+                y2 = u[a + 2 * m : e + 2 * m]
+                s = _sq3_block(y0, y1, y2, u[a + 3 * m : e + 3 * m], buf)
                 total[t], comp[t] = _add_compensated(total[t], comp[t], s)
     return total + comp
 
@@ -141,13 +154,13 @@ def _sums_grouped(u: np.ndarray, ms: np.ndarray, stops: np.ndarray, start: int, 
 def oadev_sums(u: np.ndarray, ms: np.ndarray, stops: np.ndarray) -> np.ndarray:
     """For each m in ``ms`` (int64), the sum over i in [0, stops[j]) of
     (u[i+2m] - 2u[i+m] + u[i])^2, in one sweep over ``u`` (units of u squared)."""
-    return _sums_grouped(u, ms, stops, 0, 2)
+    return _sweep2(u, ms, stops, 0)
 
 
 @_jit
 def ohdev_sums(u: np.ndarray, ms: np.ndarray, stops: np.ndarray) -> np.ndarray:
     """As ``oadev_sums`` for (u[i+3m] - 3u[i+2m] + 3u[i+m] - u[i])^2."""
-    return _sums_grouped(u, ms, stops, 0, 3)
+    return _sweep3(u, ms, stops, 0)
 
 
 @_jit
@@ -155,7 +168,7 @@ def oadev_sum(u: np.ndarray, m: int, start: int, stop: int) -> float:
     """Sum over i in [start, stop) of (u[i+2m] - 2u[i+m] + u[i])^2 (units of u squared)."""
     ms = np.full(1, m, dtype=np.int64)
     stops = np.full(1, stop, dtype=np.int64)
-    return _sums_grouped(u, ms, stops, start, 2)[0]
+    return _sweep2(u, ms, stops, start)[0]
 
 
 @_jit
@@ -163,7 +176,7 @@ def ohdev_sum(u: np.ndarray, m: int, start: int, stop: int) -> float:
     """Sum over i in [start, stop) of (u[i+3m] - 3u[i+2m] + 3u[i+m] - u[i])^2."""
     ms = np.full(1, m, dtype=np.int64)
     stops = np.full(1, stop, dtype=np.int64)
-    return _sums_grouped(u, ms, stops, start, 3)[0]
+    return _sweep3(u, ms, stops, start)[0]
 
 
 @_jit
@@ -218,32 +231,42 @@ def groups(ms: np.ndarray, stops: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def _compile() -> None:
-    """Compile (or load from the on-disk cache) every kernel once; record the time taken."""
+def _warm_up(kind: str) -> None:
+    u = np.linspace(0.0, 1.0, 64)
+    ms = np.array([1, 3], dtype=np.int64)
+    if kind == "oadev":
+        oadev_sum(u, 3, 0, u.size - 6)
+        oadev_sums(u, ms, u.size - 2 * ms)
+    elif kind == "ohdev":
+        ohdev_sum(u, 3, 0, u.size - 9)
+        ohdev_sums(u, ms, u.size - 3 * ms)
+    else:
+        mdev_sum(u, u, 3)
+
+
+def _compile(kind: str) -> None:
+    """Compile (or load from the on-disk cache) the kernels of one kind; record the time."""
     t0 = time.perf_counter()
     try:
-        u = np.linspace(0.0, 1.0, 64)
-        oadev_sum(u, 3, 0, u.size - 6)
-        ohdev_sum(u, 3, 0, u.size - 9)
-        ms = np.array([1, 3], dtype=np.int64)
-        oadev_sums(u, ms, u.size - 2 * ms)
-        ohdev_sums(u, ms, u.size - 3 * ms)
-        mdev_sum(u, u, 3)
+        _warm_up(kind)
     except Exception as exc:  # any numba/LLVM failure: fall back to numpy, say why
-        _state["compiled"] = False
-        _state["error"] = f"compiled Allan kernels failed: {type(exc).__name__}: {exc}"
+        _state["compiled"][kind] = False
+        _state["error"][kind] = f"compiled {kind} kernels failed: {type(exc).__name__}: {exc}"
     else:
-        _state["compiled"] = True
-    _state["compile_s"] = time.perf_counter() - t0
+        _state["compiled"][kind] = True
+    _state["compile_s"][kind] = time.perf_counter() - t0
 
 
-def enabled() -> bool:
-    """True when the compiled kernels are switched on and work (compiles on first call)."""
-    if not _state["switch"]:
+def enabled(kind: str = "oadev") -> bool:
+    """True when the compiled kernels of ``kind`` (``"oadev"``, ``"ohdev"`` or ``"mdev"``) are
+    switched on and work; the first call compiles them (or loads them from the cache)."""
+    if not _state["switch"] or kind not in KERNEL_KINDS:
         return False
-    if _state["compiled"] is None:
-        _compile()
-    return bool(_state["compiled"])
+    if _NUMBA_ERROR:
+        return False
+    if kind not in _state["compiled"]:
+        _compile(kind)
+    return bool(_state["compiled"][kind])
 
 
 def set_enabled(flag: bool) -> bool:
@@ -253,8 +276,9 @@ def set_enabled(flag: bool) -> bool:
     return previous
 
 
-def status() -> dict[str, object]:
+def status(kind: str = "oadev") -> dict[str, object]:
     """``enabled``, ``error`` (why not, if not) and ``compile_s`` (first-use compile or cache
-    load time, s) of the compiled kernels."""
-    on = enabled()
-    return {"enabled": on, "error": _state["error"], "compile_s": float(_state["compile_s"])}
+    load time, s) of the compiled kernels of ``kind``."""
+    on = enabled(kind)
+    error = _NUMBA_ERROR or _state["error"].get(kind, "")
+    return {"enabled": on, "error": error, "compile_s": float(_state["compile_s"].get(kind, 0.0))}

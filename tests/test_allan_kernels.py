@@ -24,11 +24,13 @@ def restore_switch():
     allan_kernels.set_enabled(previous)
 
 
-def test_compiled_kernels_are_in_use_here():
+@pytest.mark.parametrize("kind", ["oadev", "ohdev", "mdev"])
+def test_compiled_kernels_are_in_use_here(kind):
     # numba is a runtime dependency: on this environment the compiled path must be the one run
-    state = allan_kernels.status()
+    state = allan_kernels.status(kind)
     assert state["enabled"], state["error"]
-    assert state["compile_s"] >= 0.0
+    assert state["compile_s"] > 0.0
+    assert not allan_kernels.enabled("adev")  # no kernel of its own
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 8, 9, 17, 1023, 1024, 1025, 3001])
@@ -101,10 +103,11 @@ def test_compile_failure_falls_back_to_numpy(monkeypatch, restore_switch):
     rng = np.random.default_rng(11)
     y = rng.standard_normal(5000)
     reference = allan(y, 10.0, "oadev", m="octave", ci=None)
-    monkeypatch.setitem(allan_kernels._state, "compiled", None)
-    monkeypatch.setitem(allan_kernels._state, "error", "")
-    monkeypatch.setattr(allan_kernels, "oadev_sum", broken)
-    state = allan_kernels.status()
+    monkeypatch.setitem(allan_kernels._state, "compiled", {})
+    monkeypatch.setitem(allan_kernels._state, "error", {})
+    monkeypatch.setitem(allan_kernels._state, "compile_s", {})
+    monkeypatch.setattr(allan_kernels, "oadev_sums", broken)
+    state = allan_kernels.status("oadev")
     assert not state["enabled"]
     assert "RuntimeError: no code generator" in state["error"]
     fallback = allan(y, 10.0, "oadev", m="octave", ci=None)
