@@ -3,17 +3,18 @@
 Each kernel reads the phase once per averaging factor m: the squared differences of a block
 of ``_BLOCK`` start indices go to a small buffer that stays in the L1 cache, are summed
 pairwise there, and each block total is added to a Neumaier-compensated running sum. The
-error is then that of a pairwise sum of 1,024 terms (a few ulp), whatever the record length,
-and the result agrees with the numpy path to about 1e-14 relative. Nearby averaging factors
-share one sweep over the phase (``groups``), so long records are read from memory fewer
-times. ``fastmath`` stays off: no reassociation or contraction beyond what is written here;
-every loop is elementwise, so the compiler still emits SIMD code.
+error is then that of a pairwise sum of 1,024 terms (at most about ten roundings), whatever
+the record length, and the result agrees with the numpy path to about 1e-15 relative.
+Nearby averaging factors share one sweep over the phase (``groups``), so long records are
+read from memory fewer times. ``fastmath`` stays off: no reassociation or contraction
+beyond what is written here; every loop is elementwise, so the compiler still emits SIMD
+code.
 
 ``enabled(kind)`` says whether the compiled kernels of a kind are in use: numba must import,
 the kernels must compile (on first use, per kind; ``cache=True`` keeps the machine code on
 disk, so only the first run after an install pays the compile time, some seconds per kind),
-and the switch must be on. ``set_enabled(False)`` or the
-environment variable ``IMUNOISE_ALLAN_KERNEL=numpy`` selects the numpy path instead.
+and the switch must be on. ``set_enabled(False)`` or the environment variable
+``IMUNOISE_ALLAN_KERNEL=numpy`` selects the numpy path instead.
 """
 
 from __future__ import annotations
