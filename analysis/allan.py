@@ -31,6 +31,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from analysis import allan_kernels
 from analysis.blas import single_thread_blas
 from analysis.edf import chi2_interval, greenhall_edf, noise_id_lag1_phase
 
@@ -238,8 +239,25 @@ def _ohdev_sum(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -
     return total
 
 
-#: Overlapping kernels by kind: ``f(u, m, start, stop)`` -> sum of squared differences.
-OVERLAP_KERNELS = {"oadev": _oadev_sum, "ohdev": _ohdev_sum}
+def _oadev_sum_any(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
+    """``_oadev_sum``, by the compiled kernel when ``allan_kernels.enabled("oadev")``."""
+    k = u.size - 2 * m if stop is None else stop
+    if allan_kernels.enabled("oadev"):
+        return allan_kernels.oadev_sum(u, m, start, k) if k > start else 0.0
+    return _oadev_sum(u, m, start, k)
+
+
+def _ohdev_sum_any(u: np.ndarray, m: int, start: int = 0, stop: int | None = None) -> float:
+    """``_ohdev_sum``, by the compiled kernel when ``allan_kernels.enabled("ohdev")``."""
+    k = u.size - 3 * m if stop is None else stop
+    if allan_kernels.enabled("ohdev"):
+        return allan_kernels.ohdev_sum(u, m, start, k) if k > start else 0.0
+    return _ohdev_sum(u, m, start, k)
+
+
+#: Overlapping kernels by kind: ``f(u, m, start, stop)`` -> sum of squared differences
+#: (compiled or numpy, as ``allan_kernels.enabled(kind)`` says).
+OVERLAP_KERNELS = {"oadev": _oadev_sum_any, "ohdev": _ohdev_sum_any}
 
 
 def _adev_sum(u: np.ndarray, m: int) -> tuple[float, int]:
@@ -290,7 +308,7 @@ def segment_sums(
         u: phase of the segment (rate x samples units), N points.
         ms: averaging factors.
         kind: one of ``KINDS``.
-        workers: threads sharing the taus (numpy releases the GIL in the kernels).
+        workers: threads sharing the taus (numpy and the compiled kernels release the GIL).
     """
     spec = KINDS[kind]
     ms = np.asarray(ms, dtype=np.int64)
@@ -302,11 +320,13 @@ def segment_sums(
         e = -int(np.floor(np.log2(peak)))
         sums, counts = segment_sums(np.ldexp(u, e), ms, kind, workers)
         return np.ldexp(sums, -2 * e), counts
+    compiled = allan_kernels.enabled(kind)
     if kind == "mdev":
         hi, lo = _running_sum_split(u)
         counts = np.maximum(n - 3 * ms + 1, 0).astype(np.int64)
+        mdev_kernel = allan_kernels.mdev_sum if compiled else _mdev_sum
         sums = np.array(
-            [_mdev_sum(hi, lo, int(mm)) if c > 0 else 0.0 for mm, c in zip(ms, counts, strict=True)]
+            [mdev_kernel(hi, lo, int(k)) if c > 0 else 0.0 for k, c in zip(ms, counts, strict=True)]
         )
         return sums, counts
     if kind == "adev":
@@ -316,6 +336,8 @@ def segment_sums(
             np.array([p[1] for p in pairs], dtype=np.int64),
         )
     counts = np.maximum(n - spec.span * ms, 0).astype(np.int64)
+    if compiled:
+        return _compiled_sums(u, ms, counts, kind, workers), counts
     if kind == "oadev":
         u2 = np.ldexp(u, 1)
 
@@ -336,6 +358,27 @@ def segment_sums(
         for j in todo:
             sums[j] = kernel(j)
     return sums, counts
+
+
+def _compiled_sums(
+    u: np.ndarray, ms: np.ndarray, counts: np.ndarray, kind: str, workers: int
+) -> np.ndarray:
+    """Overlapping sums by the compiled kernels, nearby m sharing one sweep over ``u``."""
+    sweep = allan_kernels.oadev_sums if kind == "oadev" else allan_kernels.ohdev_sums
+    groups = allan_kernels.groups(ms, counts)
+    sums = np.zeros(ms.size)
+
+    def run(idx: np.ndarray) -> np.ndarray:
+        return sweep(u, np.ascontiguousarray(ms[idx]), np.ascontiguousarray(counts[idx]))
+
+    if workers > 1 and len(groups) > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for idx, s in zip(groups, pool.map(run, groups), strict=True):
+                sums[idx] = s
+    else:
+        for idx in groups:
+            sums[idx] = run(idx)
+    return sums
 
 
 def normalise(sums: np.ndarray, counts: np.ndarray, ms: np.ndarray, kind: str) -> np.ndarray:

@@ -1,0 +1,123 @@
+"""The compiled Allan kernels against the numpy path and against direct sums, and the switch."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from analysis import allan_kernels
+from analysis.allan import allan
+from analysis.streaming_allan import StreamingAllan
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def restore_switch():
+    previous = allan_kernels.set_enabled(True)
+    yield
+    allan_kernels.set_enabled(previous)
+
+
+@pytest.mark.parametrize("kind", ["oadev", "ohdev", "mdev"])
+def test_compiled_kernels_are_in_use_here(kind):
+    # numba is a runtime dependency: on this environment the compiled path must be the one run
+    state = allan_kernels.status(kind)
+    assert state["enabled"], state["error"]
+    assert state["compile_s"] > 0.0
+    assert not allan_kernels.enabled("adev")  # no kernel of its own
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 8, 9, 17, 1023, 1024, 1025, 3001])
+def test_kernels_equal_direct_sums_at_every_length(n):
+    rng = np.random.default_rng(n)
+    u = np.cumsum(rng.standard_normal(n + 40))
+    for m in (1, 2, 3, 5, 13):
+        k2 = u.size - 2 * m
+        d2 = u[2 * m :] - 2 * u[m:-m] + u[: k2]
+        assert allan_kernels.oadev_sum(u, m, 0, k2) == pytest.approx(float(d2 @ d2), rel=1e-13)
+        # a sub-range, as the streaming estimator asks for
+        a, b = 3, max(3, k2 - 4)
+        ref = float(d2[a:b] @ d2[a:b])
+        assert allan_kernels.oadev_sum(u, m, a, b) == pytest.approx(ref, rel=1e-13, abs=0.0)
+        k3 = u.size - 3 * m
+        d3 = u[3 * m :] - 3 * u[2 * m : 2 * m + k3] + 3 * u[m : m + k3] - u[:k3]
+        assert allan_kernels.ohdev_sum(u, m, 0, k3) == pytest.approx(float(d3 @ d3), rel=1e-13)
+        lo = rng.standard_normal(u.size) * 1e-17
+        hi_d3 = u[3 * m :] - 3 * u[2 * m : 2 * m + k3] + 3 * u[m : m + k3] - u[:k3]
+        lo_d3 = lo[3 * m :] - 3 * lo[2 * m : 2 * m + k3] + 3 * lo[m : m + k3] - lo[:k3]
+        ref = float((hi_d3 + lo_d3) @ (hi_d3 + lo_d3))
+        assert allan_kernels.mdev_sum(u, lo, m) == pytest.approx(ref, rel=1e-13)
+
+
+def test_empty_range_sums_to_zero():
+    u = np.arange(10.0)
+    assert allan_kernels.oadev_sum(u, 2, 5, 5) == 0.0
+    assert allan_kernels.ohdev_sum(u, 2, 4, 3) == 0.0
+    assert allan_kernels.mdev_sum(u, u, 4) == 0.0
+
+
+@pytest.mark.parametrize("kind", ["oadev", "adev", "mdev", "ohdev"])
+def test_compiled_and_numpy_paths_agree(kind, restore_switch):
+    # random walk plus white noise on a bias, two segments, clock-like tiny units (scaled
+    # by a power of two inside) and ordinary ones
+    rng = np.random.default_rng(7)
+    n = 200_003
+    y = 2e-2 + 1e-3 * rng.standard_normal(n) + 1e-6 * np.cumsum(rng.standard_normal(n))
+    for scale in (1.0, 1e-9):
+        args = dict(m="all", max_m=40, segment_starts=[0, 70_001], ci=None)
+        allan_kernels.set_enabled(True)
+        fast = allan(y * scale, 100.0, kind, **args)
+        fast_long = allan(y * scale, 100.0, kind, m=30, ci=None)
+        allan_kernels.set_enabled(False)
+        slow = allan(y * scale, 100.0, kind, **args)
+        slow_long = allan(y * scale, 100.0, kind, m=30, ci=None)
+        np.testing.assert_array_equal(fast.n_terms, slow.n_terms)
+        np.testing.assert_allclose(fast.dev, slow.dev, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(fast_long.dev, slow_long.dev, rtol=1e-12, atol=0)
+
+
+def test_streaming_uses_either_path_alike(restore_switch):
+    rng = np.random.default_rng(3)
+    y = 1e-3 * rng.standard_normal(60_000) + 5e-3
+    curves = []
+    for flag in (True, False):
+        allan_kernels.set_enabled(flag)
+        sa = StreamingAllan(100.0, kinds=("oadev", "ohdev"), m0=64, history_points=4096)
+        for a in range(0, y.size, 777):
+            sa.update(y[a : a + 777])
+        curves.append((sa.curve("oadev", ci=0.683), sa.curve("ohdev", ci=0.683)))
+    for fast, slow in zip(*curves, strict=True):
+        np.testing.assert_allclose(fast.dev, slow.dev, rtol=1e-12, atol=0)
+
+
+def test_compile_failure_falls_back_to_numpy(monkeypatch, restore_switch):
+    def broken(*_args):
+        raise RuntimeError("no code generator")
+
+    rng = np.random.default_rng(11)
+    y = rng.standard_normal(5000)
+    reference = allan(y, 10.0, "oadev", m="octave", ci=None)
+    monkeypatch.setitem(allan_kernels._state, "compiled", {})
+    monkeypatch.setitem(allan_kernels._state, "error", {})
+    monkeypatch.setitem(allan_kernels._state, "compile_s", {})
+    monkeypatch.setattr(allan_kernels, "oadev_sums", broken)
+    state = allan_kernels.status("oadev")
+    assert not state["enabled"]
+    assert "RuntimeError: no code generator" in state["error"]
+    fallback = allan(y, 10.0, "oadev", m="octave", ci=None)
+    np.testing.assert_allclose(fallback.dev, reference.dev, rtol=1e-12, atol=0)
+
+
+def test_environment_variable_selects_numpy():
+    env = dict(os.environ, IMUNOISE_ALLAN_KERNEL="numpy")
+    code = "from analysis import allan_kernels as k; print(k.status()['enabled'])"
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == "False"
