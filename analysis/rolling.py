@@ -522,11 +522,15 @@ class ChannelAnalyzer:
         self._fit_wall = time.time()
         model = [t.term for t in fit.terms]
         last = self._history[-1] if self._history else None
+        point = ErrorPoint(self._model_revision, model, float(fit.chi2_per_dof), time.time(),
+                           self._fit_n)
         if last is None or last.revision != self._model_revision or \
                 time.time() - last.time_s >= self.history_interval_s:
-            self._history.append(ErrorPoint(self._model_revision, model,
-                                            float(fit.chi2_per_dof), time.time(),
-                                            self._fit_n))
+            self._history.append(point)
+        elif len(self._history) >= 2 and self._history[-2].revision == last.revision:
+            self._history[-1] = point  # within one interval: the latest fit stands for it
+        else:
+            self._history.append(point)  # the first entry of a revision stays as it was
         self.revision += 1
 
     def diagnose(self, now: float | None = None) -> bool:

@@ -57,9 +57,12 @@ function drawAllan(a) {
   if (a.model_adev) {
     series.push({ label: "model", stroke: "#000", width: 2 });
     data.push(a.model_adev);
+    // A term the data do not need sits near zero: draw only where it is within two decades
+    // of the measurement, so the log axis keeps to the data.
+    const floor = 1e-2 * Math.min(...a.adev.filter((v) => v > 0));
     Object.entries(a.terms).forEach(([name, ys], i) => {
       series.push({ label: name, stroke: COLORS[i % COLORS.length], width: 1, dash: [6, 4] });
-      data.push(ys.map((v) => (v > 0 ? v : null)));
+      data.push(ys.map((v) => (v > floor ? v : null)));
     });
   }
   plot("allan-plot", {
