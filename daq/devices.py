@@ -81,20 +81,23 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
 
     cleanup: list[Callable[[], None]] = []
     sim = None
+    emulator = None
     if simulated:
         from daq.sim.adis16350 import Adis16350Sim
-        from daq.sim.buspirate_pty import BusPirateEmulator
+        from daq.sim.buspirate_pty import BusPirateEmulator, ChipClock
         from daq.sim.signals import default_sources
 
         fs = sample_rate_hz(smpl_prd_for_rate(rate))
         gyro, accel = default_sources("adis16350", fs, seed)
-        sim = Adis16350Sim(clock, options.pop("gyro", gyro), options.pop("accel", accel),
+        chip_clock = ChipClock(clock)
+        sim = Adis16350Sim(chip_clock, options.pop("gyro", gyro), options.pop("accel", accel),
                            options.pop("temperature", None), source_rate_hz=fs)
-        emulator = BusPirateEmulator(sim, seed=seed).start()
+        emulator = BusPirateEmulator(sim, seed=seed, chip_clock=chip_clock).start()
         cleanup.append(emulator.close)
         port = emulator.port
         sim.emulator = emulator
-    spi = BusPirateSPI(str(port), timeout_s=float(options.pop("timeout_s", 0.5)))
+    spi = BusPirateSPI(str(port), timeout_s=float(options.pop("timeout_s", 0.5)),
+                       opener=emulator.serial_opener(clock) if emulator else None)
     driver = Adis16350(spi, rate_hz=rate, clock=clock, **options)
     acq = Acquisition(driver, clock=clock, on_close=cleanup)
     acq.simulator = sim

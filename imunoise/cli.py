@@ -18,6 +18,7 @@ COMMAND_MODULES: list[str] = [
     "serve",
     "replay",
     "repair",
+    "export_kalibr",
 ]
 
 

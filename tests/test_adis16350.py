@@ -144,7 +144,8 @@ def _bench_driver(sim_kwargs=None, slave_present=True):
     sim = Adis16350Sim(clock, constant(GYRO), constant(ACCEL), source_rate_hz=819.2,
                        **(sim_kwargs or {}))
     emu = BusPirateEmulator(sim if slave_present else None).start()
-    drv = adis.Adis16350(BusPirateSPI(emu.port, timeout_s=0.2), rate_hz=102.4, clock=clock)
+    spi = BusPirateSPI(emu.port, timeout_s=0.2, opener=emu.serial_opener(clock))
+    drv = adis.Adis16350(spi, rate_hz=102.4, clock=clock)
     return clock, sim, emu, drv
 
 

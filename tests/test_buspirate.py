@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import serial
 
+from daq.clock import VirtualClock
 from daq.errors import PermanentDeviceError, TransientDeviceError
 from daq.sim.buspirate_pty import BusPirateEmulator
 from daq.transports.buspirate import (
@@ -54,7 +55,7 @@ class EchoSlave:
 def bridge():
     slave = EchoSlave()
     emu = BusPirateEmulator(slave).start()
-    spi = BusPirateSPI(emu.port, timeout_s=0.2)
+    spi = BusPirateSPI(emu.port, timeout_s=0.2, opener=emu.serial_opener())
     yield emu, slave, spi
     spi.close()
     emu.close()
@@ -164,3 +165,50 @@ def test_empty_bus_reads_ones(bridge):
     emu.slave = None
     spi.open()
     assert spi.transfer_frames([0x0200, 0x0000]).tolist() == [0xFFFF, 0xFFFF]
+
+
+class SlowSlave(EchoSlave):
+    """An echo slave whose first exchange stalls, as an emulator thread starved of CPU would."""
+
+    def __init__(self, stall_s: float) -> None:
+        super().__init__()
+        self.stall_s = stall_s
+
+    def exchange(self, mosi: int, *, mode: int, speed_hz: float) -> int:
+        if self.stall_s:
+            time.sleep(self.stall_s)
+            self.stall_s = 0.0
+        return super().exchange(mosi, mode=mode, speed_hz=speed_hz)
+
+
+def test_a_stalled_emulator_is_not_taken_for_a_silent_bridge():
+    with BusPirateEmulator(SlowSlave(0.3)) as emu:
+        spi = BusPirateSPI(emu.port, timeout_s=0.1, opener=emu.serial_opener())
+        spi.open()
+        assert spi.transfer_frames([0xCAFE, 0]).tolist() == [0x1234, 0xCAFE]
+        spi.close()
+    # The same stall through a plain pyserial port is a timeout: what the emulated port's
+    # accounting saves the simulated runs from on a busy host.
+    with BusPirateEmulator(SlowSlave(0.3)) as emu:
+        spi = BusPirateSPI(emu.port, timeout_s=5.0)
+        spi.open()
+        spi._ser.timeout = 0.1
+        with pytest.raises(TransientDeviceError, match="no answer"):
+            spi.transfer_frames([0xCAFE, 0])
+        spi.close()
+
+
+def test_silence_costs_the_timeout_on_the_simulation_clock():
+    clock = VirtualClock(start=5.0)
+    with BusPirateEmulator(EchoSlave()) as emu:
+        spi = BusPirateSPI(emu.port, timeout_s=0.25, opener=emu.serial_opener(clock))
+        spi.open()
+        assert clock.now() == 5.0  # a bridge that answers costs no simulated time
+        emu.mute = True
+        with pytest.raises(TransientDeviceError, match=r"got 0 of 10 bytes in 0.25 s"):
+            spi.transfer_frames([1, 2])
+        assert clock.now() == pytest.approx(5.25, abs=1e-12)
+        emu.mute = False
+        spi.open()  # leftovers of the silent exchange do not confuse the next session
+        assert spi.transfer_frames([0x0BAD, 0]).tolist()[1] == 0x0BAD
+        spi.close()

@@ -4,9 +4,13 @@ loop with a clear message."""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 
 from daq.devices import open_device
+from daq.drivers.common import PolledSampleClock
 from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
 from daq.transports.i2c import I2CBus
 from tests.daq_testing import G0, constant
@@ -197,3 +201,35 @@ def test_record_command_reports_a_missing_device_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1
     assert len(err) == 1 and "I2C bus 97 (/dev/i2c-97): not found" in err[0]
+
+
+@pytest.mark.parametrize("offset", [0.1, 0.3, 0.5, 0.7, 0.9])
+def test_reconnect_to_a_reset_device_adopts_its_new_sampling_phase(offset):
+    """Polling a device that restarted on a new phase: the samples lost while away are
+    counted once, and no spurious gap follows while the phase estimate settles."""
+    fs = 100.0
+    period = 1.0 / (1.02 * fs)  # the drivers poll 2 % faster than the part samples
+    phase = PolledSampleClock(fs)
+    next_index = 0
+    missed_log = []
+
+    def poll_from(t_start, t_stop, device_t0):
+        nonlocal next_index
+        seen = None
+        for t in t_start + period * np.arange(int((t_stop - t_start) / period)):
+            newest = math.floor((t - device_t0) * fs)
+            if newest < 0 or newest == seen:
+                phase.stale(t, next_index - 1)
+                continue
+            seen = newest
+            missed = phase.fresh(t, next_index)
+            missed_log.append(missed)
+            next_index += missed + 1
+
+    poll_from(0.0, 1.0, device_t0=0.0021)
+    phase.reconnected()
+    poll_from(1.05, 3.0, device_t0=1.29 + offset / fs)  # reset: 290 ms, then a new phase
+    gaps = [m for m in missed_log if m > 0]
+    assert len(gaps) == 1
+    # Away from the last sample read before the fault to the first one after it.
+    assert gaps[0] == pytest.approx((1.29 + offset / fs - 1.0) * fs, abs=1.5)

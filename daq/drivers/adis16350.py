@@ -417,8 +417,10 @@ class Adis16350:
         with_temp = self.imu.next_index % self.temp_every == 0
         names = IMU_REGISTERS + (TEMP_REGISTERS if with_temp else ())
         words = [read_command(n) for n in names] + [read_command("ENDURANCE")]
-        miso = self.spi.transfer_frames(words)[1:].astype(np.int64)
+        # The registers are read a bridge latency after the request goes out, while the reply
+        # may reach a busy host much later: the request time places the sample best.
         now = self.clock.now()
+        miso = self.spi.transfer_frames(words)[1:].astype(np.int64)
         if not miso[0] & FLAG_ND:
             self.stale_reads += 1
             self._phase.stale(now, self.imu.next_index - 1)

@@ -165,6 +165,7 @@ class PolledSampleClock:
 
     def fresh(self, t: float, next_index: int) -> int:
         """A poll at ``t`` found a new sample; how many were lost before it."""
+        restarted = self._resyncing
         self._resyncing = False
         self._last_fresh = t
         if self.anchor is None:
@@ -174,6 +175,10 @@ class PolledSampleClock:
         if newest < next_index:
             self.anchor = t - (next_index + 0.5) / self.fs_hz
             return 0
+        if restarted:
+            # The old phase counts the samples lost while away; a reset device samples on a
+            # new phase, which the following stale polls can only fine-tune from here.
+            self.anchor = t - (newest + 0.5) / self.fs_hz
         return newest - next_index
 
 

@@ -4,6 +4,14 @@ The real driver opens the pty's path with the real pyserial and speaks the real 
 behind the emulated bridge sits a register-level SPI chip model (:class:`SpiSlave`). Faults
 can be switched on at any time: garbage bytes on the line, a bridge that stops answering, and
 unplug/replug of the tty (the path disappears and comes back, as a USB adapter would).
+
+The emulator runs in a thread, so on a busy host it may get the CPU only long after the
+driver's bytes arrive. :meth:`BusPirateEmulator.serial_opener` therefore hands the driver a
+pyserial port (:class:`EmulatedBridgePort`) whose reply timeouts run on the simulation's clock:
+a read waits for as long as the emulator still has bytes to process or to deliver, and times
+out (sleeping ``timeout_s`` on the shared clock) only once the bridge has read everything sent
+to it and said all it will. A fault then costs the same, and is counted the same, however
+loaded the host is.
 """
 
 from __future__ import annotations
@@ -12,11 +20,15 @@ import os
 import select
 import tempfile
 import threading
+import time
 import tty
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
+import serial
 
+from daq.clock import Clock
 from daq.transports.buspirate import (
     ACK,
     BBIO_ENTER_SPI,
@@ -39,6 +51,9 @@ from daq.transports.buspirate import (
 POWER_ON_SPEED_INDEX = 1
 POWER_ON_MODE = 0
 ZEROS_TO_ENTER_BINARY = 20
+# Longest a read of an emulated port waits for a busy emulator thread (s, wall clock); only a
+# hung emulator ever uses it up.
+WALL_PATIENCE_S = 10.0
 
 
 class SpiSlave(Protocol):
@@ -59,20 +74,47 @@ def _mode_from_config(byte: int) -> int:
     raise AssertionError("unreachable")
 
 
+class ChipClock:
+    """The clock a chip behind the emulated bridge reads: while the emulator acts on the
+    host's bytes, the time the host sent them.
+
+    A USB bridge clocks the bytes out about a millisecond after the host sends them; the
+    emulator thread on a busy host may get to them much later, which the chip must not see
+    (it would latch a later sample than the host asked for).
+    """
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self._pinned: float | None = None
+
+    def now(self) -> float:
+        pinned = self._pinned
+        return self.clock.now() if pinned is None else pinned
+
+    def pin(self, t: float | None) -> None:
+        self._pinned = t
+
+
 class BusPirateEmulator:
     """Bus Pirate v3 binary SPI protocol on a pty whose path is :attr:`port`.
 
     Args:
         slave: the chip on the SPI bus, or None for an empty bus (MISO reads 0xFF).
         seed: seed for the garbage fault's random bytes.
+        chip_clock: the chip's clock, pinned to the host's time of sending while the
+            emulator acts on the host's bytes (with ports from :meth:`serial_opener`).
     """
 
-    def __init__(self, slave: SpiSlave | None, *, seed: int = 0) -> None:
+    def __init__(self, slave: SpiSlave | None, *, seed: int = 0,
+                 chip_clock: ChipClock | None = None) -> None:
         self.slave = slave
+        self.chip_clock = chip_clock
+        self._host_write_time: float | None = None
         self._dir = tempfile.mkdtemp(prefix="imunoise-bp-")
         self.port = os.path.join(self._dir, "ttyBP0")
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
+        self._link = threading.Condition(self._lock)
         self._stop = threading.Event()
         self._master: int | None = None
         self._slave_fd: int | None = None
@@ -82,6 +124,12 @@ class BusPirateEmulator:
         self._garbage_pending = 0
         self._reset_protocol()
         self.frames = 0
+        # Byte accounting of the current pty (see EmulatedBridgePort).
+        self.generation = 0
+        self._host_sent = 0  # bytes the host wrote
+        self._taken = 0  # of those, bytes the emulator has read and acted on
+        self._replied = 0  # bytes the emulator wrote back
+        self._host_got = 0  # of those, bytes the host has read or discarded
 
     # -- lifecycle -------------------------------------------------------------------------
     def start(self) -> BusPirateEmulator:
@@ -117,6 +165,7 @@ class BusPirateEmulator:
         with self._lock:
             self._master, self._slave_fd = master, slave_fd
             self._reset_protocol()
+            self._new_generation()
         tmp = self.port + ".new"
         os.symlink(os.ttyname(slave_fd), tmp)
         os.replace(tmp, self.port)
@@ -125,12 +174,65 @@ class BusPirateEmulator:
         with self._lock:
             fds = (self._master, self._slave_fd)
             self._master = self._slave_fd = None
+            self._new_generation()
         for fd in fds:
             if fd is not None:
                 try:
                     os.close(fd)
                 except OSError:
                     pass
+
+    # -- byte accounting for EmulatedBridgePort -----------------------------------------------
+    def _new_generation(self) -> None:
+        """A pty was created or removed (lock held): earlier accounting no longer applies."""
+        self.generation += 1
+        self._host_sent = self._taken = self._replied = self._host_got = 0
+        self._link.notify_all()
+
+    def serial_opener(self, clock: Clock | None = None
+                      ) -> Callable[[str, int, float], serial.Serial]:
+        """A port opener for :class:`~daq.transports.buspirate.BusPirateSPI` whose reply
+        timeouts pass on ``clock`` (the host clock when None)."""
+        def opener(port: str, baudrate: int, timeout_s: float) -> serial.Serial:
+            return EmulatedBridgePort(self, port, baudrate, timeout_s, clock)
+        return opener
+
+    def host_writing(self, t: float | None) -> None:
+        """The host is about to send bytes at time ``t`` (of the chip clock's source)."""
+        with self._link:
+            self._host_write_time = t
+
+    def host_wrote(self, generation: int, n: int) -> None:
+        with self._link:
+            if generation == self.generation:
+                self._host_sent += n
+            self._link.notify_all()
+
+    def host_took(self, generation: int, n: int) -> None:
+        with self._link:
+            if generation == self.generation:
+                self._host_got += n
+
+    def await_output(self, generation: int, deadline: float) -> tuple[int, bool] | None:
+        """Wait until the bridge has bytes for the host or has acted on all it was sent.
+
+        Returns (bytes sent to the host and not yet taken, whether the bridge has acted on
+        everything), or None when the pty of ``generation`` is gone.
+        """
+        def state() -> tuple[int, bool] | None:
+            if generation != self.generation or self._master is None:
+                return None
+            return self._replied - self._host_got, self._taken >= self._host_sent
+
+        with self._link:
+            while True:
+                st = state()
+                if st is None or st[0] > 0 or st[1]:
+                    return st
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return st
+                self._link.wait(left)
 
     # -- faults ----------------------------------------------------------------------------
     def unplug(self) -> None:
@@ -162,7 +264,7 @@ class BusPirateEmulator:
     def _run(self) -> None:
         while not self._stop.is_set():
             with self._lock:
-                master = self._master
+                master, generation = self._master, self.generation
             if master is None:
                 self._stop.wait(0.01)
                 continue
@@ -172,24 +274,42 @@ class BusPirateEmulator:
                 continue
             if not ready:
                 continue
-            try:
-                data = os.read(master, 4096)
-            except OSError:
+            reply = b""
+            with self._lock:
+                # A replug may have reused the fd number: read only from the pty selected on,
+                # and never while unplug closes it.
+                if self.generation != generation:
+                    continue
+                try:
+                    data = os.read(master, 4096)
+                except OSError:
+                    data = None
+                if data and not self.mute:
+                    self._buf += data
+                    if self.chip_clock is not None:
+                        self.chip_clock.pin(self._host_write_time)
+                    try:
+                        reply = self._process()
+                    finally:
+                        if self.chip_clock is not None:
+                            self.chip_clock.pin(None)
+                    if reply and self._garbage_pending:
+                        reply = self._rng.integers(0, 256, self._garbage_pending,
+                                                   dtype=np.uint8).tobytes() + reply
+                        self._garbage_pending = 0
+            if data is None:
                 self._stop.wait(0.005)
                 continue
-            if self.mute or not data:
+            if not data:
                 continue
-            with self._lock:
-                self._buf += data
-                reply = self._process()
-                if reply and self._garbage_pending:
-                    reply = self._rng.integers(0, 256, self._garbage_pending,
-                                               dtype=np.uint8).tobytes() + reply
-                    self._garbage_pending = 0
             if reply:
-                self._write_all(master, reply)
+                self._write_all(master, reply, generation)
+            with self._link:
+                if self.generation == generation:
+                    self._taken += len(data)
+                self._link.notify_all()
 
-    def _write_all(self, fd: int, data: bytes) -> None:
+    def _write_all(self, fd: int, data: bytes, generation: int) -> None:
         view = memoryview(data)
         while view:
             try:
@@ -200,6 +320,10 @@ class BusPirateEmulator:
             except OSError:
                 return
             view = view[n:]
+            with self._link:  # counted as it goes: a long reply may wait for the host to read
+                if self.generation == generation:
+                    self._replied += n
+                self._link.notify_all()
 
     def _process(self) -> bytes:
         out = bytearray()
@@ -306,3 +430,79 @@ class BusPirateEmulator:
         if self.slave is None:
             return 0xFF
         return self.slave.exchange(mosi, mode=self._mode, speed_hz=speed) & 0xFF
+
+
+class EmulatedBridgePort(serial.Serial):
+    """A real pyserial port on the emulator's pty whose timeouts follow the emulated bridge.
+
+    Reads and writes go through pyserial unchanged; what differs is when a read gives up.
+    It waits (up to :data:`WALL_PATIENCE_S` of wall time) while the emulator still has bytes
+    to read or replies on their way, and returns short only when the bridge has acted on
+    everything and has no more to say, after sleeping ``timeout_s`` on ``clock``: the time
+    the host would have waited for a silent bridge. Flushing the input likewise waits for the
+    bridge to finish, as a real flush after a quiet line would.
+    """
+
+    def __init__(self, emulator: BusPirateEmulator, port: str, baudrate: int,
+                 timeout_s: float, clock: Clock | None) -> None:
+        self._bridge = emulator
+        self._bridge_timeout_s = float(timeout_s)
+        self._bridge_clock = clock
+        self._generation = emulator.generation
+        super().__init__(port, baudrate, timeout=WALL_PATIENCE_S, write_timeout=WALL_PATIENCE_S)
+
+    def open(self) -> None:
+        self._generation = self._bridge.generation
+        super().open()
+        self._reset_input_buffer()  # pyserial's own flush in open() is skipped below
+
+    def write(self, data: bytes) -> int | None:
+        clock = self._bridge_clock
+        self._bridge.host_writing(clock.now() if clock is not None else None)
+        n = super().write(data)
+        self._bridge.host_wrote(self._generation, len(data) if n is None else n)
+        return n
+
+    def read(self, size: int = 1) -> bytes:
+        out = bytearray()
+        deadline = time.monotonic() + WALL_PATIENCE_S
+        while len(out) < size:
+            st = self._bridge.await_output(self._generation, deadline)
+            if st is None:  # unplugged: let pyserial meet the dead tty
+                out += super().read(size - len(out))
+                break
+            pending, _ = st
+            if pending == 0:
+                self._silence()
+                break
+            chunk = super().read(min(pending, size - len(out)))
+            self._bridge.host_took(self._generation, len(chunk))
+            out += chunk
+            if not chunk:
+                break
+        return bytes(out)
+
+    def _reset_input_buffer(self) -> None:
+        if not self.is_open:
+            return
+        deadline = time.monotonic() + WALL_PATIENCE_S
+        while True:
+            st = self._bridge.await_output(self._generation, deadline)
+            if st is None:
+                super()._reset_input_buffer()
+                return
+            pending, done = st
+            if pending == 0 and (done or time.monotonic() >= deadline):
+                return
+            if pending:
+                chunk = super().read(pending)
+                self._bridge.host_took(self._generation, len(chunk))
+                if not chunk:
+                    return
+
+    def _silence(self) -> None:
+        """The host waits out its timeout for a bridge that has nothing to say."""
+        if self._bridge_clock is not None:
+            self._bridge_clock.sleep(self._bridge_timeout_s)
+        else:
+            time.sleep(self._bridge_timeout_s)

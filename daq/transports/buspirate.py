@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import errno
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import serial
@@ -46,6 +46,17 @@ SPI_MODE_BITS: dict[int, tuple[int, int]] = {0: (0, 1), 1: (0, 0), 2: (1, 1), 3:
 
 FRAME_BYTES = 5  # CS low, bulk(2), hi, lo, CS high
 FRAMES_PER_WRITE = 200
+# Most bytes read while looking for a mode signature (20 echoed BBIO1s plus leftovers of an
+# earlier session) before the bridge counts as talking garbage.
+SIGNATURE_SEARCH_LIMIT = 4096
+
+SerialOpener = Callable[[str, int, float], serial.Serial]
+"""Opens a port: ``opener(port, baudrate, timeout_s)`` -> an open :class:`serial.Serial`."""
+
+
+def open_serial(port: str, baudrate: int, timeout_s: float) -> serial.Serial:
+    """The port as a plain pyserial :class:`serial.Serial` with read and write timeouts."""
+    return serial.Serial(port, baudrate, timeout=timeout_s, write_timeout=timeout_s)
 
 
 def config_byte(mode: int, push_pull: bool = True) -> int:
@@ -91,16 +102,20 @@ class BusPirateSPI:
     Args:
         port: serial device, e.g. ``/dev/ttyUSB0``.
         baudrate: host link speed (the Bus Pirate v3 binary modes use 115200 8N1).
-        timeout_s: how long to wait for a reply before declaring "no answer".
+        timeout_s: how long to wait for a reply before declaring "no answer" (s). The
+            default suits a Bus Pirate on USB, whose replies take milliseconds.
         power: switch on the Bus Pirate's own supplies (leave off when the sensor has its own).
+        opener: opens the port (default :func:`open_serial`); simulators pass one whose
+            timeouts follow the emulated bridge instead of the host's scheduler.
     """
 
     def __init__(self, port: str, *, baudrate: int = 115200, timeout_s: float = 0.5,
-                 power: bool = False) -> None:
+                 power: bool = False, opener: SerialOpener | None = None) -> None:
         self.port = port
         self.baudrate = baudrate
         self.timeout_s = timeout_s
         self.power = power
+        self._opener = opener or open_serial
         self.speed_hz: float | None = None
         self.mode: int | None = None
         self._ser: serial.Serial | None = None
@@ -112,12 +127,18 @@ class BusPirateSPI:
         """Open the port, enter binary SPI mode, set CS high and outputs to a safe state."""
         self.close()
         try:
-            self._ser = serial.Serial(self.port, self.baudrate, timeout=self.timeout_s,
-                                      write_timeout=self.timeout_s)
+            self._ser = self._opener(self.port, self.baudrate, self.timeout_s)
         except serial.SerialException as exc:
             raise self._open_error(exc) from exc
         self._enter_binary()
-        self._command(BBIO_ENTER_SPI, expect=SPI_SIGNATURE, what="enter SPI mode")
+        # Everything the bridge says before SPI1 answers bytes sent earlier (the echoes of the
+        # extra zeros), so finding the signature leaves the reply stream in step.
+        self._write(bytes([BBIO_ENTER_SPI]))
+        got = self._read_until(SPI_SIGNATURE)
+        if not got.endswith(SPI_SIGNATURE):
+            self._resync()
+            raise TransientDeviceError(f"Bus Pirate on {self.port}: enter SPI mode: expected "
+                                       f"{SPI_SIGNATURE!r}, got {bytes(got[-16:])!r}")
         periph = SPI_PERIPHERALS | (int(self.power) << 3) | 0x01
         self._command(periph, what="set peripherals")
         self._command(SPI_CS_HIGH, what="raise CS")
@@ -137,34 +158,22 @@ class BusPirateSPI:
         return TransientDeviceError(f"serial port {self.port}: cannot open ({text})")
 
     def _enter_binary(self) -> None:
-        """Send 0x00 until the bridge answers ``BBIO1``.
+        """Send twenty 0x00 and wait for ``BBIO1``.
 
-        One zero suffices when the bridge is already in a binary mode; from the user terminal
-        it takes twenty, so the remaining nineteen follow in one write if the first goes
-        unanswered.
+        From the user terminal it takes twenty zeros; a bridge already in a binary mode answers
+        each of them with ``BBIO1``. The extra echoes are skipped by :meth:`open`, which looks
+        for the SPI signature, so no timing decides what belongs to which command.
         """
-        ser = self._require()
-        got = bytearray()
-        for burst, wait in ((1, 0.03), (ENTER_ATTEMPTS - 1, self.timeout_s)):
-            self._write(bytes([BBIO_RESET]) * burst)
-            deadline = time.monotonic() + wait
-            while time.monotonic() < deadline and BBIO_SIGNATURE not in got:
-                chunk = self._read_some(ser)
-                got += chunk
-                if not chunk:
-                    time.sleep(0.001)
-            if BBIO_SIGNATURE in got:
-                break
-        else:
-            if got:
-                raise TransientDeviceError(f"Bus Pirate on {self.port}: garbage instead of "
-                                           f"BBIO1 ({bytes(got[-16:])!r})")
-            raise TransientDeviceError(f"Bus Pirate on {self.port}: no answer to binary-mode "
-                                       "entry (wrong port or bridge hung)")
-        # Let the echoes of any extra zeros arrive, drop them, then confirm one signature.
-        time.sleep(0.005)
-        self._drain(ser)
-        self._command(BBIO_RESET, expect=BBIO_SIGNATURE, what="enter binary mode")
+        self._drain(self._require())
+        self._write(bytes([BBIO_RESET]) * ENTER_ATTEMPTS)
+        got = self._read_until(BBIO_SIGNATURE)
+        if got.endswith(BBIO_SIGNATURE):
+            return
+        if got:
+            raise TransientDeviceError(f"Bus Pirate on {self.port}: garbage instead of "
+                                       f"BBIO1 ({bytes(got[-16:])!r})")
+        raise TransientDeviceError(f"Bus Pirate on {self.port}: no answer to binary-mode "
+                                   "entry (wrong port or bridge hung)")
 
     def configure(self, speed_max_hz: float, mode: int = 3) -> None:
         """Set SPI clock (fastest at or below ``speed_max_hz``) and SPI ``mode``."""
@@ -237,13 +246,6 @@ class BusPirateSPI:
             raise TransientDeviceError(f"serial port {self.port}: lost ({exc})") from exc
         self.bytes_out += len(data)
 
-    def _read_some(self, ser: serial.Serial) -> bytes:
-        try:
-            n = ser.in_waiting
-            return ser.read(n) if n else b""
-        except (serial.SerialException, OSError) as exc:
-            raise TransientDeviceError(f"serial port {self.port}: lost ({exc})") from exc
-
     def _read_exact(self, n: int, *, what: str) -> bytes:
         ser = self._require()
         try:
@@ -255,6 +257,22 @@ class BusPirateSPI:
             raise TransientDeviceError(f"Bus Pirate on {self.port}: no answer ({what}: got "
                                        f"{len(data)} of {n} bytes in {self.timeout_s:g} s)")
         return data
+
+    def _read_until(self, marker: bytes) -> bytearray:
+        """Bytes up to and including ``marker``; fewer (without it) after a silence of
+        ``timeout_s`` or :data:`SIGNATURE_SEARCH_LIMIT` bytes."""
+        ser = self._require()
+        got = bytearray()
+        while not got.endswith(marker) and len(got) < SIGNATURE_SEARCH_LIMIT:
+            try:
+                chunk = ser.read(1)
+            except (serial.SerialException, OSError) as exc:
+                raise TransientDeviceError(f"serial port {self.port}: lost ({exc})") from exc
+            if not chunk:
+                break
+            got += chunk
+        self.bytes_in += len(got)
+        return got
 
     def _drain(self, ser: serial.Serial) -> None:
         try:

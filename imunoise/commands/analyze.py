@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     p.add_argument("--rate", type=_positive_rate, metavar="HZ",
                    help="sampling rate in Hz (needed for a CSV without a time column 't')")
+    p.add_argument("--report", metavar="OUT.html",
+                   help="also write a self-contained HTML report (plots, coefficients, "
+                        "discrete-time model, diagnosis) to OUT.html")
     p.set_defaults(func=run)
 
 
@@ -153,11 +156,25 @@ def run(args: argparse.Namespace) -> int:
         keys = select_channels(record, args.channel)
     except ChannelSelectionError as exc:
         raise UsageError(str(exc)) from None
-    results = analyze_record(record, keys)
-    if args.json:
-        from imunoise import report_json
+    if args.report:
+        from imunoise.files import check_output_folder
 
-        sys.stdout.write(report_json.dumps(analysis_json(args.file, record, results)) + "\n")
+        check_output_folder(args.report)
+    results = analyze_record(record, keys)
+    if args.json or args.report:
+        from imunoise import outputs, report_json
+
+        doc = outputs.complete_document(analysis_json(args.file, record, results), record,
+                                        {r.key: r.allan for r in results},
+                                        full=bool(args.report))
+        if args.report:
+            from imunoise.files import write_text_atomically
+            from imunoise.report_html import render_report
+
+            write_text_atomically(args.report, render_report(doc))
+            print(f"wrote {args.report}", file=sys.stderr)
+    if args.json:
+        sys.stdout.write(report_json.dumps(outputs.without_report_extras(doc)) + "\n")
     else:
         from imunoise.commands.fit import fit_summary
         from imunoise.report_text import channel_text

@@ -1,0 +1,378 @@
+"""Filter-ready discrete-time noise models at the sample period, and their simulator.
+
+A fitted continuous model (CONTRACT.md terms, SI parameters) becomes, at the sample period
+``dt = 1/fs``, the set of difference equations a Kalman filter designer needs:
+
+=================  ==============================================  ============================
+term               discrete model (k = sample index)               exact Allan variance, m = tau fs
+=================  ==============================================  ============================
+white N            v_k ~ N(0, sigma_d^2), sigma_d = N sqrt(fs)     sigma_d^2 / m  (= N^2/tau)
+quantization Q     (e_k - e_{k-1}) / dt, e_k ~ N(0, Q^2)           3 Q^2 / tau^2
+random_walk K      b_{k+1} = b_k + w_k, w_k ~ N(0, K^2 dt)         K^2 dt (2 m^2 + 1) / (6 m)
+gauss_markov s, T  x_{k+1} = a_d x_k + w_k, a_d = exp(-dt/T),      AR(1) closed form, see
+                   w_k ~ N(0, s^2 (1 - a_d^2))                     :func:`markov_avar`
+bias_instability   sum of a few gauss_markov states (see below)   their sum
+rate_ramp R        deterministic R t                               R^2 tau^2 / 2
+sinusoid A, f      deterministic A sin(2 pi f t + phi)             A^2 sin^4(pi f tau) /
+                                                                   (m sin(pi f dt))^2
+temperature coef   deterministic coef (temp - mean)                not simulated without a record
+=================  ==============================================  ============================
+
+Bias instability (flicker, Allan variance flat at (2 ln2/pi) B^2) has no finite-state model.
+It is replaced by a small sum of first-order Markov states whose correlation times are
+log-spaced from a quarter of the shortest measured averaging time (but not below the sample
+period) to the longest, at one per decade to start. Their stationary variances are fitted by
+non-negative least squares so the Allan variance of the whole discrete model matches the
+continuous model, with residuals weighted by the whole model's Allan variance (the
+approximation only has to be good where bias instability matters). The density rises by half a
+state per decade (to at most three) until the largest relative error of the whole model's Allan
+variance on a fine grid over the measured tau range is below ``tolerance`` (default 2 %, i.e.
+about 1 % in deviation), far inside the measurement's confidence band. A bias instability whose
+share of the model's Allan variance stays below 1e-4 everywhere in the range gets no states.
+The result records the states, the tau range and that error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import nnls
+from scipy.signal import lfilter
+
+TWO_LN2_OVER_PI = 2.0 * np.log(2.0) / np.pi
+# Relative share of the model's Allan variance below which bias instability gets no states.
+NEGLIGIBLE_FLICKER = 1e-4
+
+# Terms whose contribution is a random process with a finite discrete-time state.
+STOCHASTIC_TERMS = ("white", "quantization", "random_walk", "gauss_markov", "bias_instability")
+DETERMINISTIC_TERMS = ("rate_ramp", "sinusoid", "temperature")
+
+
+def markov_avar(tau_s: np.ndarray, fs_hz: float, sigma: float, T_s: float) -> np.ndarray:
+    """Exact overlapping Allan variance of a sampled first-order Markov (AR(1)) sequence.
+
+    ``x_{k+1} = a x_k + w_k`` with ``a = exp(-1/(fs T))`` and stationary standard deviation
+    ``sigma`` (channel units). For averages of ``m = tau fs`` samples::
+
+        AVAR = sigma^2 / m^2 * [ m + 2a(m(1-a) - (1-a^m))/(1-a)^2 - a(1-a^m)^2/(1-a)^2 ]
+
+    (variance of one m-average minus the covariance of two adjacent ones). ``tau_s`` in s,
+    result in units^2.
+    """
+    m = np.asarray(tau_s, dtype=np.float64) * fs_hz
+    x = 1.0 / (fs_hz * T_s)
+    a = np.exp(-x)
+    one_minus_a = -np.expm1(-x)
+    one_minus_am = -np.expm1(-m * x)
+    inner = m + (2.0 * a * (m * one_minus_a - one_minus_am) - a * one_minus_am**2) / one_minus_a**2
+    # For m x << 1 the bracket cancels to O(m^3 x) and loses about 1/(m x)^2 of its digits. There
+    # use its Taylor series in x: sum_k c_k exp(-k x) with lag weights c_k whose first moments are
+    # sum c_k k = -m (2 m^2 + 1)/3 and sum c_k k^2 = -m^4 (relative error about 0.35 (m x)^2).
+    small = m * x < 1e-4
+    inner = np.where(small, x * m * (2.0 * m**2 + 1.0) / 3.0 - 0.5 * (m**2 * x) ** 2, inner)
+    return sigma**2 * np.maximum(inner, 0.0) / m**2
+
+
+def random_walk_avar(tau_s: np.ndarray, fs_hz: float, K: float) -> np.ndarray:
+    """Exact Allan variance of a sampled random walk with step ``K sqrt(dt)`` (units^2)."""
+    m = np.asarray(tau_s, dtype=np.float64) * fs_hz
+    return K**2 / fs_hz * (2.0 * m**2 + 1.0) / (6.0 * m)
+
+
+def white_avar(tau_s: np.ndarray, N: float) -> np.ndarray:
+    """Allan variance of sampled white noise of density ``N`` (exact for integer m)."""
+    return N**2 / np.asarray(tau_s, dtype=np.float64)
+
+
+def quantization_avar(tau_s: np.ndarray, Q: float) -> np.ndarray:
+    """Allan variance of the differenced white angle error of std ``Q`` (exact)."""
+    return 3.0 * Q**2 / np.asarray(tau_s, dtype=np.float64) ** 2
+
+
+def flat_flicker_avar(tau_s: np.ndarray, B: float) -> np.ndarray:
+    """The bias-instability plateau (2 ln2/pi) B^2 on ``tau_s`` (units^2)."""
+    return np.full(np.shape(tau_s), TWO_LN2_OVER_PI * B**2, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class MarkovState:
+    """One first-order Markov state ``x_{k+1} = a_d x_k + w_k`` at the sample period.
+
+    Attributes:
+        term: the continuous term it comes from (``gauss_markov`` or ``bias_instability``).
+        T_s: correlation time in s.
+        sigma: stationary standard deviation (channel units).
+        a_d: ``exp(-dt/T)``.
+        driving_sigma: standard deviation of ``w_k``, ``sigma sqrt(1 - a_d^2)`` (channel units).
+    """
+
+    term: str
+    T_s: float
+    sigma: float
+    a_d: float
+    driving_sigma: float
+
+
+@dataclass(frozen=True)
+class FlickerApproximation:
+    """How the bias-instability term was replaced by Markov states.
+
+    Attributes:
+        B: the continuous bias instability (channel units).
+        tau_range_s: averaging-time range over which the approximation is fitted.
+        states_per_decade: density of correlation times used.
+        max_rel_avar_error: largest |approx - model| / model of the whole model's Allan
+            variance on the fit grid (dimensionless).
+    """
+
+    B: float
+    tau_range_s: tuple[float, float]
+    states_per_decade: float
+    max_rel_avar_error: float
+
+
+@dataclass
+class DiscreteModel:
+    """Discrete-time noise model of one channel at the sample period.
+
+    The measured sample is ``y_k = v_k + (e_k - e_{k-1})/dt + b_k + sum_j x_{j,k} + d(t_k)``:
+    white measurement noise ``v``, quantization ``e``, random-walk bias ``b``, Markov states
+    ``x_j`` and deterministic parts ``d``.
+
+    Attributes:
+        fs_hz: sample rate (Hz); ``dt_s = 1/fs_hz``.
+        units: SI units of the channel (e.g. ``rad/s``).
+        white_sigma: std of ``v_k`` (units), ``N sqrt(fs)``.
+        quantization_sigma: std of the angle error ``e_k`` (units * s), i.e. ``Q``.
+        random_walk_step: std of the bias step per sample (units), ``K sqrt(dt)``.
+        markov: Markov states (gauss_markov terms and the bias-instability approximation).
+        ramp_rate: deterministic rate ramp ``R`` (units/s).
+        sinusoids: ``(A, f_hz)`` pairs (units, Hz).
+        temperature_coef: units per degC (not simulated without a temperature record).
+        flicker: how bias instability was approximated, when present.
+    """
+
+    fs_hz: float
+    units: str = ""
+    white_sigma: float = 0.0
+    quantization_sigma: float = 0.0
+    random_walk_step: float = 0.0
+    markov: list[MarkovState] = field(default_factory=list)
+    ramp_rate: float = 0.0
+    sinusoids: list[tuple[float, float]] = field(default_factory=list)
+    temperature_coef: float = 0.0
+    flicker: FlickerApproximation | None = None
+
+    @property
+    def dt_s(self) -> float:
+        return 1.0 / self.fs_hz
+
+    def avar(self, tau_s: np.ndarray) -> np.ndarray:
+        """Exact Allan variance of this discrete model at ``tau_s`` (s), units^2.
+
+        Sum over independent parts; the temperature term is omitted (it depends on the record).
+        """
+        tau = np.asarray(tau_s, dtype=np.float64)
+        fs = self.fs_hz
+        out = white_avar(tau, self.white_sigma / np.sqrt(fs))
+        out = out + quantization_avar(tau, self.quantization_sigma)
+        out = out + random_walk_avar(tau, fs, self.random_walk_step * np.sqrt(fs))
+        for st in self.markov:
+            out = out + markov_avar(tau, fs, st.sigma, st.T_s)
+        out = out + self.ramp_rate**2 * tau**2 / 2.0
+        for amp, f in self.sinusoids:
+            m = tau * fs
+            out = out + amp**2 * np.sin(np.pi * f * tau) ** 4 / (m * np.sin(np.pi * f / fs)) ** 2
+        return out
+
+    def to_dict(self) -> dict:
+        """JSON-ready description (the ``discrete_model`` key of ``analyze --json``)."""
+        d: dict = {
+            "fs_hz": self.fs_hz,
+            "dt_s": self.dt_s,
+            "units": self.units,
+            "white_sigma": self.white_sigma,
+            "quantization_sigma": self.quantization_sigma,
+            "random_walk_step": self.random_walk_step,
+            "markov": [
+                {"term": s.term, "T_s": s.T_s, "sigma": s.sigma, "a_d": s.a_d,
+                 "driving_sigma": s.driving_sigma}
+                for s in self.markov
+            ],
+            "ramp_rate": self.ramp_rate,
+            "sinusoids": [{"A": a, "f_hz": f} for a, f in self.sinusoids],
+            "temperature_coef": self.temperature_coef,
+            "bias_instability_approximation": None,
+        }
+        if self.flicker is not None:
+            fl = self.flicker
+            d["bias_instability_approximation"] = {
+                "B": fl.B, "tau_range_s": list(fl.tau_range_s),
+                "states_per_decade": fl.states_per_decade,
+                "max_rel_avar_error": fl.max_rel_avar_error,
+            }
+        return d
+
+
+def _normalise(model) -> list[tuple[str, dict[str, float]]]:
+    """Accept ``[(term, params)]`` or contract JSON ``[{"term": ..., "params": {...}}]``."""
+    out = []
+    for item in model:
+        if isinstance(item, Mapping):
+            out.append((str(item["term"]), {k: float(v) for k, v in item["params"].items()}))
+        else:
+            term, params = item
+            out.append((str(term), {k: float(v) for k, v in dict(params).items()}))
+    return out
+
+
+def _markov_state(term: str, sigma: float, T_s: float, fs_hz: float) -> MarkovState:
+    x = 1.0 / (fs_hz * T_s)
+    a = float(np.exp(-x))
+    return MarkovState(term=term, T_s=float(T_s), sigma=float(sigma), a_d=a,
+                       driving_sigma=float(sigma * np.sqrt(-np.expm1(-2.0 * x))))
+
+
+def discretize(
+    model,
+    fs_hz: float,
+    units: str = "",
+    tau_range_s: tuple[float, float] | None = None,
+    flicker_avar: Callable[[np.ndarray, float], np.ndarray] | None = None,
+    tolerance: float = 0.02,
+    max_states_per_decade: float = 3.0,
+) -> DiscreteModel:
+    """Discrete-time model at ``dt = 1/fs_hz`` of a fitted continuous model.
+
+    Args:
+        model: ``[(term, params)]`` or contract JSON ``[{"term", "params"}]``, SI parameters.
+        fs_hz: sample rate in Hz.
+        units: channel units, carried along for display.
+        tau_range_s: measured averaging-time range (s) over which the bias-instability
+            approximation must hold; default ``(1/fs, 3600 s)``.
+        flicker_avar: Allan variance of the bias-instability term as ``f(tau_s, B)``; default
+            the plateau (2 ln2/pi) B^2.
+        tolerance: largest relative error of the whole model's Allan variance allowed for the
+            bias-instability approximation.
+        max_states_per_decade: cap on the density of Markov states.
+
+    Raises:
+        ValueError: unknown term, non-positive rate or empty tau range.
+    """
+    if not fs_hz > 0:
+        raise ValueError(f"sample rate must be positive, got {fs_hz}")
+    terms = _normalise(model)
+    dm = DiscreteModel(fs_hz=float(fs_hz), units=units)
+    white_n = 0.0
+    bias_b = 0.0
+    for term, p in terms:
+        if term == "white":
+            white_n = np.hypot(white_n, p["N"])
+        elif term == "quantization":
+            dm.quantization_sigma = float(np.hypot(dm.quantization_sigma, p["Q"]))
+        elif term == "random_walk":
+            k_total = np.hypot(dm.random_walk_step * np.sqrt(fs_hz), p["K"])
+            dm.random_walk_step = float(k_total / np.sqrt(fs_hz))
+        elif term == "gauss_markov":
+            dm.markov.append(_markov_state(term, p["sigma"], p["T"], fs_hz))
+        elif term == "bias_instability":
+            bias_b = float(np.hypot(bias_b, p["B"]))
+        elif term == "rate_ramp":
+            dm.ramp_rate += p["R"]
+        elif term == "sinusoid":
+            dm.sinusoids.append((p["A"], p["f"]))
+        elif term == "temperature":
+            dm.temperature_coef += p["coef"]
+        else:
+            raise ValueError(f"unknown term {term!r}: valid are "
+                             f"{', '.join(STOCHASTIC_TERMS + DETERMINISTIC_TERMS)}")
+    dm.white_sigma = float(white_n * np.sqrt(fs_hz))
+    if bias_b > 0:
+        _approximate_flicker(dm, bias_b, tau_range_s, flicker_avar, tolerance,
+                             max_states_per_decade)
+    return dm
+
+
+def _approximate_flicker(dm: DiscreteModel, B: float, tau_range_s, flicker_avar, tolerance: float,
+                         max_density: float) -> None:
+    fs = dm.fs_hz
+    lo, hi = tau_range_s if tau_range_s is not None else (1.0 / fs, 3600.0)
+    lo = max(float(lo), 1.0 / fs)
+    hi = float(hi)
+    if not hi > lo:
+        raise ValueError(f"empty tau range for the bias-instability approximation: {lo}..{hi} s")
+    decades = np.log10(hi / lo)
+    tau = np.logspace(np.log10(lo), np.log10(hi), max(int(np.ceil(16 * decades)) + 1, 8))
+    target = (flicker_avar or flat_flicker_avar)(tau, B)
+    total = dm.avar(tau) + target  # the continuous model's Allan variance on the grid
+    negligible = float(np.max(target / total))
+    if negligible < NEGLIGIBLE_FLICKER:
+        # Bias instability this far below the other terms needs no state: leaving it out
+        # changes the model's Allan variance by at most ``negligible`` (relative).
+        dm.flicker = FlickerApproximation(B=B, tau_range_s=(lo, hi), states_per_decade=0.0,
+                                          max_rel_avar_error=negligible)
+        return
+    t_lo, t_hi = max(lo / 4.0, 1.0 / fs), hi
+    best = None
+    density = 1.0
+    while True:
+        n = max(2, int(np.ceil(np.log10(t_hi / t_lo) * density)) + 1)
+        T = np.logspace(np.log10(t_lo), np.log10(t_hi), n)
+        design = np.column_stack([markov_avar(tau, fs, 1.0, t) for t in T]) / total[:, None]
+        var, _ = nnls(design, target / total)
+        err = float(np.max(np.abs(design @ var - target / total)))
+        if best is None or err < best[0]:
+            best = (err, T, var, density)
+        if err <= tolerance or density >= max_density:
+            break
+        density += 0.5
+    err, T, var, density = best
+    for t, v in zip(T, var, strict=True):
+        if v > 0:
+            dm.markov.append(_markov_state("bias_instability", float(np.sqrt(v)), float(t), fs))
+    dm.flicker = FlickerApproximation(B=B, tau_range_s=(lo, hi), states_per_decade=density,
+                                      max_rel_avar_error=err)
+
+
+def simulate(dm: DiscreteModel, n: int, seed: int | np.random.Generator | None = None,
+             temperature: np.ndarray | None = None) -> np.ndarray:
+    """``n`` samples (channel units) of the discrete model, vectorised.
+
+    Markov states start from their stationary distribution, the random walk from zero, the
+    sinusoids at a random phase. ``temperature`` (degC, length ``n``) drives the temperature
+    term when given; otherwise that term is left out.
+    """
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    n = int(n)
+    y = np.zeros(n)
+    if n == 0:
+        return y
+    t = np.arange(n) / dm.fs_hz
+    if dm.white_sigma > 0:
+        y += dm.white_sigma * rng.standard_normal(n)
+    if dm.quantization_sigma > 0:
+        e = dm.quantization_sigma * rng.standard_normal(n + 1)
+        y += np.diff(e) * dm.fs_hz
+    if dm.random_walk_step > 0:
+        y += np.cumsum(dm.random_walk_step * rng.standard_normal(n))
+    for st in dm.markov:
+        w = st.driving_sigma * rng.standard_normal(n)
+        w[0] = st.sigma * rng.standard_normal()
+        y += lfilter([1.0], [1.0, -st.a_d], w)
+    if dm.ramp_rate:
+        y += dm.ramp_rate * t
+    for amp, f in dm.sinusoids:
+        y += amp * np.sin(2.0 * np.pi * f * t + rng.uniform(0.0, 2.0 * np.pi))
+    if temperature is not None and dm.temperature_coef:
+        temp = np.asarray(temperature, dtype=np.float64)
+        if temp.shape != (n,):
+            raise ValueError(f"temperature must have {n} samples, got {temp.shape}")
+        y += dm.temperature_coef * (temp - temp.mean())
+    return y
+
+
+def model_terms(model) -> Sequence[str]:
+    """Term names of a model in either accepted form."""
+    return [t for t, _ in _normalise(model)]

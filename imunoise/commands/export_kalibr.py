@@ -1,0 +1,116 @@
+"""``imunoise export-kalibr``: a Kalibr ``imu.yaml`` from a recording's fitted noise models.
+
+FILE is a recording (.csv, .mcap, rosbag2 folder), analysed with the default model
+(white + bias_instability + random_walk) on every gyro and accelerometer axis, or the JSON
+written by ``imunoise analyze --json`` (no recomputation).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+from imunoise.errors import UsageError
+from imunoise.files import write_text_atomically
+from imunoise.kalibr import COMBINE, KalibrError, kalibr_values, render_yaml
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export-kalibr", help="Kalibr-style imu.yaml", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("file", help="recording (.csv, .mcap, rosbag2 folder) or analyze --json output")
+    p.add_argument("-o", "--output", default="imu.yaml", metavar="OUT",
+                   help="where to write the YAML (default imu.yaml; '-' for stdout)")
+    p.add_argument("--inflate", type=_factor, default=1.0, metavar="X",
+                   help="multiply all four values by X (stated in the file), default 1")
+    p.add_argument("--combine", choices=COMBINE, default="max",
+                   help="how the three axes become one value (default max: conservative)")
+    p.add_argument("--topic", default=None, metavar="TOPIC",
+                   help="IMU topic to use when the file has several")
+    p.add_argument("--rostopic", default=None, metavar="NAME",
+                   help="value of rostopic in the YAML (default: the recording's IMU topic, "
+                        "else /imu0)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+                   help="sample rate of a CSV without a time column")
+    p.set_defaults(func=run)
+
+
+def _factor(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number: {text!r}")
+    return v
+
+
+def load_channels(path: str, rate_hz: float | None = None) -> tuple[dict, dict]:
+    """Fitted channels and facts (``file``, ``rostopic``) from a recording or analyze JSON."""
+    p = Path(path)
+    if not p.exists():
+        raise UsageError(f"{path}: no such file or folder")
+    if p.suffix.lower() == ".json":
+        try:
+            doc = json.loads(p.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise UsageError(f"{path}: not an analyze JSON document ({exc})") from None
+        if not isinstance(doc, dict) or not isinstance(doc.get("channels"), dict):
+            raise UsageError(f"{path}: not an analyze JSON document (no 'channels' object)")
+        return doc["channels"], {"file": path, "rostopic": None}
+    return fitted_channels(path, rate_hz)
+
+
+def imu_topic(metadata: dict[str, str]) -> str | None:
+    """The one IMU topic a reader listed in ``metadata["topics"]``, if there is exactly one."""
+    topics = [t for t in metadata.get("topics", "").split(",") if t.strip()]
+    imu = [t.strip() for t in topics if not t.strip().lower().endswith(("temperature", "temp"))]
+    return imu[0] if len(imu) == 1 else None
+
+
+def fitted_channels(path: str, rate_hz: float | None = None) -> tuple[dict[str, dict], dict]:
+    """Every inertial channel of a recording with the default model fitted (fit documents),
+    and ``{"file", "rostopic"}`` facts of the recording."""
+    from analysis.allan import oadev
+    from daq.readers import ReadError, open_record
+    from imunoise.outputs import fill_fit
+    from imunoise.report_json import channel_json
+
+    try:
+        record = open_record(path, rate_hz=rate_hz)
+    except ReadError as exc:
+        raise UsageError(str(exc)) from None
+    channels: dict[str, dict] = {}
+    for key, series in record.channels.items():
+        if series.units not in ("rad/s", "m/s^2"):
+            continue
+        try:
+            curve = oadev(series.values, series.fs_hz, m="octave",
+                          segment_starts=series.segment_starts, ci=0.95)
+        except ValueError as exc:
+            raise UsageError(f"{path}: {key}: no Allan deviation ({exc})") from None
+        doc = channel_json(series, curve, channel=key)
+        fill_fit(doc, curve)
+        channels[key] = doc
+    return channels, {"file": path, "rostopic": imu_topic(record.metadata)}
+
+
+def run(args: argparse.Namespace) -> int:
+    channels, facts = load_channels(args.file, args.rate)
+    try:
+        imu = kalibr_values(channels, topic=args.topic,
+                            rostopic=args.rostopic or facts.get("rostopic"),
+                            combine=args.combine, inflate=args.inflate)
+    except KalibrError as exc:
+        raise UsageError(f"export-kalibr: {exc}") from None
+    text = render_yaml(imu, source=os.path.basename(str(args.file).rstrip("/")))
+    if args.output == "-":
+        sys.stdout.write(text)
+        return 0
+    write_text_atomically(args.output, text)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
