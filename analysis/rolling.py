@@ -280,6 +280,7 @@ class ChannelAnalyzer:
         self._last_diag_t = -math.inf
         self._history: deque[ErrorPoint] = deque(maxlen=history_len)
         self.stats = JobStats()
+        self.last_job_t = -math.inf  # when the scheduler last ran a job of this channel
         self.revision = 0  # bumps whenever published results change
 
     # --- feeding (acquisition-side, cheap) -------------------------------------------------
@@ -603,6 +604,7 @@ class ChannelAnalyzer:
 
     def run(self, kind: str, now: float | None = None) -> bool:
         """Run one job of :meth:`due`'s kinds."""
+        self.last_job_t = time.monotonic() if now is None else now
         if kind == "diagnose":
             return self.diagnose(now)
         return self.refit(full=(kind == "full"), now=now)
@@ -816,10 +818,11 @@ class RollingAnalyzer:
         now = time.monotonic()
         if now < self._next_job_t:
             return False
-        due = [(d, a) for a in analyzers if (d := a.due(now)) is not None]
+        # channels in turn: the one whose last job is oldest, then its most overdue job
+        due = [(a.last_job_t, d, a) for a in analyzers if (d := a.due(now)) is not None]
         if not due:
             return False
-        (_, kind), a = min(due, key=lambda x: x[0])
+        _, (_, kind), a = min(due, key=lambda x: (x[0], x[1]))
         t0, w0 = time.thread_time(), time.monotonic()
         changed = a.run(kind, now)
         cpu, wall = time.thread_time() - t0, time.monotonic() - w0
