@@ -360,15 +360,15 @@ class ChannelAnalyzer:
                 old_fit = self._fit
                 if new == self._model:
                     return self._change_reply(before)
-            curve = self.curve()
+                curve, n = self.curve(), self.n_samples
             fit, intervals = None, QUICK_INTERVALS
             if self._enough(curve, new):
-                fit = self._fit_new_model(curve, new, old_fit)
+                fit, intervals = self._fit_new_model(curve, n, new, old_fit)
             with self._lock:
                 self._model = new
                 self._model_revision += 1
                 if fit is not None:
-                    self._publish(fit, curve, intervals, time.monotonic())
+                    self._publish(fit, curve, intervals, time.monotonic(), n)
                 self.revision += 1
                 return self._change_reply(before)
 
@@ -403,12 +403,14 @@ class ChannelAnalyzer:
             longest = self._recent.longest_segment()
         return find_line(longest, self.fs_hz)
 
-    def _cached(self, model: Sequence[str], intervals: str) -> FitResult | None:
-        """A fit of ``model`` on exactly the current data (same samples), if one was made."""
+    def _cached(self, model: Sequence[str], intervals: str, n: int
+                ) -> tuple[FitResult, str] | None:
+        """A fit of ``model`` on exactly the current data (same samples), if one was made,
+        with its kind of intervals (a profile fit serves a request for linearised ones)."""
         for kind in (FULL_INTERVALS, intervals):
-            hit = self._cache.get((tuple(model), self.n_samples, kind))
+            hit = self._cache.get((tuple(model), n, kind))
             if hit is not None:
-                return hit
+                return hit, kind
         return None
 
     def _remember(self, fit: FitResult, model: Sequence[str], n: int, intervals: str) -> None:
@@ -416,14 +418,13 @@ class ChannelAnalyzer:
         while len(self._cache) > 16:
             self._cache.popitem(last=False)
 
-    def _fit_new_model(self, curve: AllanCurve, model: list[str],
-                       previous: FitResult | None) -> FitResult:
+    def _fit_new_model(self, curve: AllanCurve, n: int, model: list[str],
+                       previous: FitResult | None) -> tuple[FitResult, str]:
         """Fit a changed model: the cold start of ``imunoise fit`` and a warm start from the
         previous model (with a suggestion's or the spectral line's values for a new term);
         the one with the smaller misfit wins (a nested model must not fit worse)."""
         with self._lock:
-            hit = self._cached(model, QUICK_INTERVALS)
-            n = self.n_samples
+            hit = self._cached(model, QUICK_INTERVALS, n)
         if hit is not None:
             return hit
         line = self._line(model)
@@ -451,7 +452,7 @@ class ChannelAnalyzer:
         self.stats.fits += 1
         with self._lock:
             self._remember(best, model, n, QUICK_INTERVALS)
-        return best
+        return best, QUICK_INTERVALS
 
     def _hint(self, term: str, line: tuple[float, float] | None) -> dict[str, float] | None:
         with self._lock:
@@ -478,14 +479,15 @@ class ChannelAnalyzer:
                     [t.term for t in self._fit.terms] == model else None
                 n = self.n_samples
                 intervals = FULL_INTERVALS if full else QUICK_INTERVALS
-                hit = self._cached(model, intervals)
+                hit = self._cached(model, intervals, n)
                 self._last_fit_t = now
                 if full:
                     self._last_full_t = now
+                # the curve of exactly these n samples (HTTP threads refit too)
+                curve = self._curve if hit is not None and self._fit_n == n else self.curve()
             if hit is not None:
-                fit, curve = hit, self._curve if self._fit_n == n else self.curve()
+                fit, intervals = hit
             else:
-                curve = self.curve()
                 if not self._enough(curve, model):
                     return False
                 line = self._line(model) if (full or previous is None) else None
@@ -552,9 +554,11 @@ class ChannelAnalyzer:
                                          units=self.units)
         except (ValueError, np.linalg.LinAlgError) as exc:
             with self._lock:
-                self._diag_note = f"waiting for data: {exc}"
-                self._diag_n = n
-                self.revision += 1
+                if revision == self._model_revision:
+                    self._suggestions, self._findings = [], []
+                    self._diag_note = f"waiting for data: {exc}"
+                    self._diag_revision, self._diag_n = revision, n
+                    self.revision += 1
             return False
         self.stats.last_diagnosis_cpu_s = time.thread_time() - t0
         self.stats.diagnoses += 1
