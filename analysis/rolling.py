@@ -24,10 +24,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import multiprocessing as mp
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -165,6 +168,109 @@ def _ordered(terms: Iterable[str]) -> list[str]:
     return [t for t in VALID_TERMS if t in chosen]
 
 
+# --- jobs: plain functions of plain data, so they can run in a worker process ----------------
+
+def _job_fit(curve: AllanCurve, model: list[str], start: Any, line_samples: np.ndarray | None,
+             intervals: str) -> FitResult:
+    """``fit_allan`` cold (``start`` None, a sinusoid starting from the strongest line of
+    ``line_samples``) or warm."""
+    line = find_line(line_samples, curve.fs_hz) if line_samples is not None else None
+    if start is None:
+        return fit_allan(curve, model, line=line, intervals=intervals)
+    return fit_allan(curve, model, start=start, intervals=intervals)
+
+
+def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
+                       hints: dict[str, dict[str, float]],
+                       line_samples: np.ndarray | None) -> FitResult:
+    """A changed model: the cold start of ``imunoise fit`` and a warm start from the previous
+    model's parameters (``start``; a new term from ``hints`` or the spectral line); the one
+    with the smaller misfit wins (a nested model must not fit worse)."""
+    line = find_line(line_samples, curve.fs_hz) if line_samples is not None else None
+    best = fit_allan(curve, model, line=line, intervals=QUICK_INTERVALS)
+    if start is None:
+        return best
+    start = list(start)
+    have = {t for t, _ in start}
+    for term in model:
+        if term in have:
+            continue
+        if term in hints:
+            start.append((term, hints[term]))
+        elif term == "sinusoid" and line is not None and line[1] > 0:
+            start.append((term, {"A": line[1], "f": line[0]}))
+    try:
+        warm = fit_allan(curve, model, start=start, line=line, intervals=QUICK_INTERVALS)
+    except (ValueError, np.linalg.LinAlgError):
+        return best
+    return warm if warm.misfit.chi2 < best.misfit.chi2 else best
+
+
+def _job_diagnose(values: np.ndarray, fs_hz: float, model: list[str], starts: np.ndarray,
+                  units: str) -> tuple[list[dict], list[dict]]:
+    """``analysis.diagnosis.diagnose``: suggestions and the significant findings that are not
+    a term (outliers, gaps, a changing noise level), as JSON-ready dicts."""
+    assert _diagnosis is not None
+    result = _diagnosis.diagnose(values, fs_hz, model, segment_starts=starts, units=units)
+    findings = [f.to_dict() for f in result.findings if f.significant and f.term is None]
+    return ([s.to_dict() for s in result.suggestions],
+            [{k: f[k] for k in ("kind", "p_value", "why", "range")} for f in findings])
+
+
+def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """``fn(*args)`` and the CPU seconds of the thread that ran it."""
+    t0 = time.thread_time()
+    out = fn(*args)
+    return out, time.thread_time() - t0
+
+
+class Runner(Protocol):
+    """Runs a job function, returns ``(result, CPU seconds)``."""
+
+    def __call__(self, fn: Callable[..., Any], *args: Any) -> tuple[Any, float]: ...
+
+
+def run_inline(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """Run a job in the calling thread."""
+    return _timed(fn, *args)
+
+
+class WorkerProcess:
+    """Runs jobs in one worker process, so a fit never holds the interpreter lock that the
+    acquisition thread needs. A worker that dies is replaced (the job is retried once).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pool: ProcessPoolExecutor | None = None
+
+    def _executor(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                # spawn, not fork: the parent runs threads (acquisition, HTTP) holding locks
+                self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+            return self._pool
+
+    def __call__(self, fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+        for attempt in (0, 1):
+            pool = self._executor()
+            try:
+                return pool.submit(_timed, fn, *args).result()
+            except BrokenProcessPool:
+                with self._lock:
+                    if self._pool is pool:
+                        self._pool = None
+                if attempt:
+                    raise
+        raise AssertionError("unreachable")
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
 class RecentSamples:
     """The most recent ``capacity`` samples with their gap-free segment starts (bounded)."""
 
@@ -236,13 +342,16 @@ class ChannelAnalyzer:
         recent_samples: samples kept for the diagnosis's evidence and a sinusoid's starting
             line (bounded; 2^18 samples is 44 min at 100 Hz, 2 MB).
         m0: largest averaging factor of the Allan curve computed on every start index.
+        runner: runs the fits and the diagnosis (:func:`run_inline`, or a
+            :class:`WorkerProcess` to keep them off the interpreter lock).
     """
 
     def __init__(self, channel: str, fs_hz: float, units: str | None = None,
                  model: Sequence[str] = DEFAULT_MODEL, refit_interval_s: float = 2.0,
                  full_refit_interval_s: float = 60.0, diagnosis_interval_s: float = 60.0,
                  history_interval_s: float = 10.0, history_len: int = 2000,
-                 nperseg: int = 256, recent_samples: int = 1 << 18, m0: int = 4096) -> None:
+                 nperseg: int = 256, recent_samples: int = 1 << 18, m0: int = 4096,
+                 runner: Runner = run_inline) -> None:
         check_terms(model)
         self.channel = channel
         self.fs_hz = float(fs_hz)
@@ -281,6 +390,8 @@ class ChannelAnalyzer:
         self._history: deque[ErrorPoint] = deque(maxlen=history_len)
         self.stats = JobStats()
         self.last_job_t = -math.inf  # when the scheduler last ran a job of this channel
+        self.runner = runner
+        self.job_cpu_s = 0.0  # CPU seconds of this channel's jobs, wherever they ran
         self.revision = 0  # bumps whenever published results change
 
     # --- feeding (acquisition-side, cheap) -------------------------------------------------
@@ -396,12 +507,18 @@ class ChannelAnalyzer:
         n_free = sum(len(get_term(t).params) for t in model)
         return int(np.count_nonzero(curve.dev > 0)) > n_free
 
-    def _line(self, model: Sequence[str]) -> tuple[float, float] | None:
+    def _line_samples(self, model: Sequence[str]) -> np.ndarray | None:
+        """The longest recent gap-free stretch, where a sinusoid's line is looked for."""
         if "sinusoid" not in model:
             return None
         with self._lock:
-            longest = self._recent.longest_segment()
-        return find_line(longest, self.fs_hz)
+            return self._recent.longest_segment()
+
+    def _run(self, fn: Callable[..., Any], *args: Any) -> Any:
+        out, cpu = self.runner(fn, *args)
+        with self._lock:
+            self.job_cpu_s += cpu
+        return out, cpu
 
     def _cached(self, model: Sequence[str], intervals: str, n: int
                 ) -> tuple[FitResult, str] | None:
@@ -420,49 +537,36 @@ class ChannelAnalyzer:
 
     def _fit_new_model(self, curve: AllanCurve, n: int, model: list[str],
                        previous: FitResult | None) -> tuple[FitResult, str]:
-        """Fit a changed model: the cold start of ``imunoise fit`` and a warm start from the
-        previous model (with a suggestion's or the spectral line's values for a new term);
-        the one with the smaller misfit wins (a nested model must not fit worse)."""
+        """Fit a changed model (:func:`_job_fit_new_model`), or reuse a fit of the same model
+        on the same samples."""
         with self._lock:
             hit = self._cached(model, QUICK_INTERVALS, n)
         if hit is not None:
             return hit
-        line = self._line(model)
-        t0 = time.thread_time()
-        try:
-            best = fit_allan(curve, model, line=line, intervals=QUICK_INTERVALS)
-        except (ValueError, TermError, np.linalg.LinAlgError) as exc:
-            raise ValueError(f"{self.channel}: cannot fit {'+'.join(model)}: {exc}") from None
+        start = None
+        hints: dict[str, dict[str, float]] = {}
         if previous is not None:
             start = [(t, p) for t, p in previous.params if t in model]
-            have = {t for t, _ in start}
-            for term in model:
-                if term in have:
-                    continue
-                hint = self._hint(term, line)
-                if hint:
-                    start.append((term, hint))
-            try:
-                warm = fit_allan(curve, model, start=start, line=line, intervals=QUICK_INTERVALS)
-                if warm.misfit.chi2 < best.misfit.chi2:
-                    best = warm
-            except (ValueError, np.linalg.LinAlgError):
-                pass
-        self.stats.last_fit_cpu_s = time.thread_time() - t0
+            hints = {t: h for t in model if (h := self._hint(t)) is not None}
+        try:
+            best, cpu = self._run(_job_fit_new_model, curve, model, start, hints,
+                                  self._line_samples(model))
+        except (ValueError, TermError, np.linalg.LinAlgError) as exc:
+            raise ValueError(f"{self.channel}: cannot fit {'+'.join(model)}: {exc}") from None
+        self.stats.last_fit_cpu_s = cpu
         self.stats.fits += 1
         with self._lock:
             self._remember(best, model, n, QUICK_INTERVALS)
         return best, QUICK_INTERVALS
 
-    def _hint(self, term: str, line: tuple[float, float] | None) -> dict[str, float] | None:
+    def _hint(self, term: str) -> dict[str, float] | None:
+        """The diagnosis's parameters for ``term``, the start of a warm refit that adds it."""
         with self._lock:
             for s in self._suggestions:
-                if s.get("term") == term and all(
+                if s.get("term") == term and s.get("params") and all(
                         v is not None and math.isfinite(v) and v > 0
-                        for v in s.get("params", {}).values()) and s.get("params"):
+                        for v in s["params"].values()):
                     return dict(s["params"])
-        if term == "sinusoid" and line is not None and line[1] > 0:
-            return {"A": line[1], "f": line[0]}
         return None
 
     def refit(self, full: bool = False, now: float | None = None) -> bool:
@@ -490,17 +594,15 @@ class ChannelAnalyzer:
             else:
                 if not self._enough(curve, model):
                     return False
-                line = self._line(model) if (full or previous is None) else None
-                t0, w0 = time.thread_time(), time.monotonic()
+                cold = full or previous is None
+                w0 = time.monotonic()
                 try:
-                    if full or previous is None:
-                        fit = fit_allan(curve, model, line=line, intervals=intervals)
-                    else:
-                        fit = fit_allan(curve, model, start=_lifted(previous.params, curve),
-                                        intervals=intervals)
+                    fit, cpu = self._run(
+                        _job_fit, curve, model,
+                        None if cold else _lifted(previous.params, curve),
+                        self._line_samples(model) if cold else None, intervals)
                 except (ValueError, TermError, np.linalg.LinAlgError):
                     return False
-                cpu = time.thread_time() - t0
                 self.stats.last_fit_wall_s = time.monotonic() - w0
                 if full:
                     self.stats.full_fits += 1
@@ -548,10 +650,9 @@ class ChannelAnalyzer:
             n = self.n_samples
         if _diagnosis is None:
             return False
-        t0 = time.thread_time()
         try:
-            result = _diagnosis.diagnose(values, self.fs_hz, model, segment_starts=starts,
-                                         units=self.units)
+            (suggestions, findings), cpu = self._run(_job_diagnose, values, self.fs_hz, model,
+                                                     starts, self.units)
         except (ValueError, np.linalg.LinAlgError) as exc:
             with self._lock:
                 if revision == self._model_revision:
@@ -560,17 +661,13 @@ class ChannelAnalyzer:
                     self._diag_revision, self._diag_n = revision, n
                     self.revision += 1
             return False
-        self.stats.last_diagnosis_cpu_s = time.thread_time() - t0
+        self.stats.last_diagnosis_cpu_s = cpu
         self.stats.diagnoses += 1
-        suggestions = [s.to_dict() for s in result.suggestions]
-        findings = [f.to_dict() for f in result.findings
-                    if f.significant and f.term is None]
         with self._lock:
             if revision != self._model_revision:
                 return False
             self._suggestions = suggestions
-            self._findings = [{k: f[k] for k in ("kind", "p_value", "why", "range")}
-                              for f in findings]
+            self._findings = findings
             self._diag_revision = revision
             self._diag_n = n
             covered = values.size / self.fs_hz
@@ -752,14 +849,20 @@ class RollingAnalyzer:
         cpu_budget: fraction of one core the fits and diagnoses may use on average; after a
             job of ``c`` CPU seconds the next starts no sooner than ``c / cpu_budget`` after
             it began.
+        workers: ``"inline"`` (jobs run in the calling thread) or ``"process"`` (in one
+            worker process, off the interpreter lock of the acquisition; call :meth:`close`).
         **analyzer_kwargs: passed to each :class:`ChannelAnalyzer`.
     """
 
     def __init__(self, model: Sequence[str] = DEFAULT_MODEL, cpu_budget: float = 0.3,
-                 **analyzer_kwargs: Any) -> None:
+                 workers: str = "inline", **analyzer_kwargs: Any) -> None:
         check_terms(model)
         if not 0 < cpu_budget <= 1:
             raise ValueError(f"cpu_budget must be in (0, 1], got {cpu_budget}")
+        if workers not in ("inline", "process"):
+            raise ValueError(f"workers must be 'inline' or 'process', got {workers!r}")
+        self._worker = WorkerProcess() if workers == "process" else None
+        analyzer_kwargs.setdefault("runner", self._worker or run_inline)
         self._model = list(model)
         self._kwargs = analyzer_kwargs
         self.cpu_budget = cpu_budget
@@ -827,9 +930,11 @@ class RollingAnalyzer:
         if not due:
             return False
         _, (_, kind), a = min(due, key=lambda x: (x[0], x[1]))
-        t0, w0 = time.thread_time(), time.monotonic()
+        t0, w0, j0 = time.thread_time(), time.monotonic(), a.job_cpu_s
         changed = a.run(kind, now)
-        cpu, wall = time.thread_time() - t0, time.monotonic() - w0
+        wall = time.monotonic() - w0
+        # this thread's CPU (curve, bookkeeping) plus the job's, wherever it ran
+        cpu = time.thread_time() - t0 + (a.job_cpu_s - j0 if self._worker else 0.0)
         with self._lock:
             self._next_job_t = w0 + cpu / self.cpu_budget
             self._job_cpu += cpu
@@ -860,6 +965,11 @@ class RollingAnalyzer:
             "median_cpu_s": {k: float(np.median(v)) for k, v in per_kind.items()},
             "refit_period_s": period,
         }
+
+    def close(self) -> None:
+        """Stop the worker process, if any."""
+        if self._worker is not None:
+            self._worker.close()
 
     @property
     def revision(self) -> int:

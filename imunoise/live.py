@@ -119,6 +119,9 @@ class LiveService:
                 pass
         for t in self._threads:
             t.join(timeout)
+        closer = getattr(self.analyzers, "close", None)
+        if callable(closer):
+            closer()
         for sink in self.sinks:
             try:
                 sink.close()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import time
 
 import numpy as np
@@ -294,3 +296,26 @@ def test_a_stuck_sensor_gives_no_curve_and_no_fit_rather_than_zeros() -> None:
     a = rs.get("gyro_x")
     assert a.allan()["tau_s"] == [] and a.coefficients()["error"] is None
     assert a.diagnosis()["suggestions"] == []
+
+
+def test_worker_process_gives_the_inline_numbers_and_its_cpu_is_counted() -> None:
+    t = np.arange(60_000) / FS
+    y = _white_rw(t.size, 8) + 0.01 * np.sin(2 * np.pi * 2.7 * t)
+    block = SampleBlock(stream="/imu", t=t, fs_hz=FS, channels={"gyro_x": y})
+    inline, worker = RollingAnalyzer(), RollingAnalyzer(workers="process")
+    try:
+        for rs in (inline, worker):
+            rs.update(block)
+            assert rs.refresh()  # the first job: a full fit
+            rs.get("gyro_x").add_term("sinusoid")
+        a, b = inline.get("gyro_x").coefficients(), worker.get("gyro_x").coefficients()
+        assert a["model"] == b["model"] and a["error"] == b["error"]
+        assert worker.get("gyro_x").job_cpu_s > 0
+        assert worker.stats()["cpu_s_total"] >= worker._jobs[0][3] > 0.01
+        for proc in list(worker._worker._pool._processes.values()):
+            os.kill(proc.pid, signal.SIGKILL)  # a dead worker is replaced
+            proc.join(10)
+        assert worker.get("gyro_x").refit(full=True)
+        assert worker.get("gyro_x").coefficients()["intervals"] == "profile"
+    finally:
+        worker.close()

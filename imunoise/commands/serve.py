@@ -177,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
         sinks.append(RecorderSink(recorder, source))
     service = LiveService(
         source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval,
-                                cpu_budget=args.analysis_cpu), sinks=sinks,
+                                cpu_budget=args.analysis_cpu, workers="process"), sinks=sinks,
         device=info, realtime=realtime,
         current_file=(lambda: recorder.stats.file or None) if recorder else None)
     app = create_app(service, token=token,
