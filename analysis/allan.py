@@ -184,7 +184,9 @@ def phase_from_rate(rate: np.ndarray) -> np.ndarray:
     u = np.empty(rate.size + 1, dtype=np.float64)
     u[0] = 0.0
     if rate.size:
-        np.cumsum(rate - rate.mean(), out=u[1:])
+        # in place in the output: no temporary the size of the record
+        np.subtract(rate, rate.mean(), out=u[1:])
+        np.cumsum(u[1:], out=u[1:])
     return u
 
 
@@ -295,7 +297,7 @@ def segment_sums(
     n = u.size
     # Scale by an exact power of two so the numbers are of order one: very small values
     # (clock phase in seconds) are many times slower in the dot products and risk underflow.
-    peak = float(np.max(np.abs(u))) if n else 0.0
+    peak = max(float(u.max()), -float(u.min())) if n else 0.0  # max |u| without a copy
     if peak > 0.0 and not 2.0**-8 < peak < 2.0**8:
         e = -int(np.floor(np.log2(peak)))
         sums, counts = segment_sums(np.ldexp(u, e), ms, kind, workers)

@@ -299,6 +299,31 @@ def noise_id_lag1(
     return noise_id_lag1_phase(u, m, data_type, dmax, alpha_range)
 
 
+_DIFF_CHUNK = 1 << 16  # differences formed at once: stays in cache, no record-sized copy
+
+
+def _diff_products(v: np.ndarray) -> tuple[float, float]:
+    """``(z.z, z[:-1].z[1:])`` of ``z = diff(v)``, forming ``z`` a cache-sized piece at a
+    time (``v`` may be a strided view)."""
+    n = v.size - 1
+    if n <= _DIFF_CHUNK:
+        z = np.diff(v)
+        return float(np.dot(z, z)), float(np.dot(z[:-1], z[1:]))
+    buf = np.empty(_DIFF_CHUNK)
+    zz = p = 0.0
+    last = None
+    for a in range(0, n, _DIFF_CHUNK):
+        b = min(n, a + _DIFF_CHUNK)
+        z = buf[:b - a]
+        np.subtract(v[a + 1:b + 1], v[a:b], out=z)
+        zz += float(np.dot(z, z))
+        p += float(np.dot(z[:-1], z[1:]))
+        if last is not None:
+            p += last * float(z[0])
+        last = float(z[-1])
+    return zz, p
+
+
 def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
     """Lag-1 autocorrelation of ``z = diff(v)`` after removing its least-squares line.
 
@@ -306,8 +331,9 @@ def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
     dot products) instead of building the detrended series: it is the inner loop of the
     noise identification on long records.
     """
-    z = np.diff(v)
-    n = z.size
+    n = v.size - 1
+    zz, p = _diff_products(v)
+    z0, zl = float(v[1] - v[0]), float(v[-1] - v[-2])
     a = float(v[-1] - v[0]) / n  # mean of z
     # sum(k z_k) by parts, then about the centred index t_k = k - (n - 1) / 2
     skz = n * float(v[-1]) - float(np.sum(v[1:]))
@@ -315,16 +341,32 @@ def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
     st = n * (n * n - 1) / 12.0  # sum of t_k^2
     tw = skz - t_last * (a * n)  # sum(t_k z_k) = sum(t_k w_k), w = z - a
     b = tw / st
-    w0 = float(z[0]) - a
-    wl = float(z[-1]) - a
-    sum_e2 = float(np.dot(z, z)) - n * a * a - b * b * st
+    w0 = z0 - a
+    wl = zl - a
+    sum_e2 = zz - n * a * a - b * b * st
     if sum_e2 <= 0.0:
         return 0.0
-    p = float(np.dot(z[:-1], z[1:]))
-    sw1 = p - a * (2.0 * a * n - float(z[0]) - float(z[-1])) + (n - 1) * a * a
+    sw1 = p - a * (2.0 * a * n - z0 - zl) + (n - 1) * a * a
     cross = (tw + t_last * w0 + w0) + (tw - t_last * wl - wl)
     stt = st - t_last * t_last - t_last
     return (sw1 - b * cross + b * b * stt) / sum_e2
+
+
+def _lag1_differenced(z: np.ndarray, dmax: int) -> tuple[int, float]:
+    """``noise_id_lag1_series(z, "freq", dmax)`` for a series whose detrended lag-1 ACF is
+    already known to give ``rho >= 0.25``: it goes straight to the differences. Differencing
+    turns the removed line into a constant, which the ACF's mean removal takes out, so the
+    detrending is skipped; the series is worked on in place (``z`` is consumed)."""
+    d = 0
+    while True:
+        z = np.diff(z)
+        d += 1
+        z -= z.mean()
+        den = float(np.dot(z, z))
+        r1 = float(np.dot(z[:-1], z[1:])) / den if den != 0.0 else 0.0
+        rho = r1 / (1.0 + r1) if r1 != -1.0 else -0.5
+        if rho < 0.25 or d >= dmax or z.size < 3:
+            return int(-round(2.0 * rho) - 2 * d), -2.0 * (rho + d)
 
 
 def noise_id_lag1_phase(
@@ -350,7 +392,7 @@ def noise_id_lag1_phase(
                 if rho < 0.25 or dmax == 0:
                     res = (int(-round(2.0 * rho)), -2.0 * rho)
                 else:
-                    res = noise_id_lag1_series(np.diff(v), "freq", dmax)
+                    res = _lag1_differenced(np.diff(v), dmax)
         else:
             res = noise_id_lag1_series(u[::mi], data_type, dmax)
         if res is not None:

@@ -457,9 +457,11 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
     n_free = len(layout.keys)
     if n_free == 0:
         raise TermError("the model has no noise term to fit to the Allan curve")
+    if len(tau) == 0 and len(curve.tau_s):
+        raise ValueError("the Allan deviation is zero at every tau: the channel is constant")
     if len(tau) <= n_free:
         raise ValueError(f"the Allan curve has {len(tau)} usable taus, too few for "
-                         f"{n_free} free parameters: record longer data")
+                         f"{n_free} free parameters: record longer")
 
     if start is not None:
         start_params = start.params if isinstance(start, FitResult) else list(start)

@@ -171,20 +171,36 @@ def iter_records(buf, start: int, end: int):
 _ZSTD = threading.local()
 
 
+def _zstd_context() -> zstandard.ZstdDecompressor:
+    dctx = getattr(_ZSTD, "dctx", None)
+    if dctx is None:  # a decompression context is costly to create: one per thread
+        dctx = _ZSTD.dctx = zstandard.ZstdDecompressor()
+    return dctx
+
+
 def decompress(compression: str, data, uncompressed_size: int) -> bytes | memoryview:
     """Decompress one chunk's records (``""``, ``"zstd"`` or ``"lz4"``)."""
     if compression == "":
         return data
     if compression == "zstd":
-        dctx = getattr(_ZSTD, "dctx", None)
-        if dctx is None:  # a decompression context is costly to create: one per thread
-            dctx = _ZSTD.dctx = zstandard.ZstdDecompressor()
-        return dctx.decompress(data, max_output_size=uncompressed_size)
+        return _zstd_context().decompress(data, max_output_size=uncompressed_size)
     if compression == "lz4":
         import lz4.frame
 
         return lz4.frame.decompress(bytes(data))
     raise McapFormatError(f"unsupported chunk compression {compression!r}")
+
+
+def decompress_zstd_frames(frames: list, sizes: list[int]):
+    """Decompress several zstd chunks of declared uncompressed ``sizes`` in one call, which
+    releases the interpreter lock once for all of them rather than once per chunk. Returns a
+    sequence of buffers, or None when a frame is damaged or its size differs from the declared
+    one (decompress the chunks one by one to find out)."""
+    try:
+        return _zstd_context().multi_decompress_to_buffer(
+            frames, decompressed_sizes=struct.pack(f"<{len(sizes)}Q", *sizes), threads=1)
+    except zstandard.ZstdError:
+        return None
 
 
 def chunk_records(buf, chunk: ChunkInfo) -> bytes | memoryview:

@@ -14,6 +14,8 @@ from imunoise.errors import RuntimeFailure, UsageError
 COMMAND_MODULES: list[str] = [
     "analyze",
     "fit",
+    "diagnose",
+    "reproduce",
     "record",
     "serve",
     "replay",

@@ -25,7 +25,7 @@ import numpy as np
 from analysis.discrete import DiscreteModel, discretize, simulate
 
 MAX_CHECK_SAMPLES = 1 << 23  # 8.4 M samples: 67 MB per array, about two seconds to simulate
-DEFAULT_MODEL = ("white", "bias_instability", "random_walk")
+DEFAULT_MODEL = ("white", "bias_instability", "random_walk")  # as imunoise analyze fits
 
 
 def _model_tuples(doc: Mapping) -> list[tuple[str, dict[str, float]]]:
@@ -41,14 +41,13 @@ def discrete_for_channel(doc: Mapping) -> DiscreteModel | None:
         return None
     tau = np.asarray((doc.get("allan") or {}).get("tau_s") or [], dtype=np.float64)
     tau_range = (float(tau.min()), float(tau.max())) if tau.size >= 2 else None
-    flicker = None
-    try:
-        from analysis.terms import get_term
+    from analysis.terms import get_term
 
-        bi = get_term("bias_instability")
-        flicker = lambda t, B: bi.avar(t, float(fs), B=B)  # noqa: E731
-    except (ImportError, KeyError):
-        pass
+    bias_instability = get_term("bias_instability")
+
+    def flicker(t: np.ndarray, B: float) -> np.ndarray:
+        return bias_instability.avar(t, float(fs), B=B)
+
     return discretize(model, float(fs), str(doc.get("units", "")), tau_range_s=tau_range,
                       flicker_avar=flicker)
 
@@ -135,7 +134,7 @@ def extend_channel(doc: dict, full: bool = False, seed: int = 0) -> dict:
     return doc
 
 
-def record_facts(record, channels: Mapping[str, Mapping] | None = None) -> dict:
+def record_facts(record) -> dict:
     """The record's facts for the report: device, rate, duration, gaps, drops, temperature."""
     md = dict(getattr(record, "metadata", {}) or {})
     series = list((getattr(record, "channels", {}) or {}).values())
@@ -165,36 +164,6 @@ def record_facts(record, channels: Mapping[str, Mapping] | None = None) -> dict:
     return facts
 
 
-def fill_fit(doc: dict, curve, model=DEFAULT_MODEL) -> None:
-    """Fit ``model`` to a channel whose document has no model yet (CONTRACT.md fit keys).
-
-    ``curve`` is the channel's :class:`analysis.allan.AllanCurve`. On a curve too short for
-    the model the document keeps an empty model and gains a warning.
-    """
-    if doc.get("model") or curve is None or doc.get("units") not in ("rad/s", "m/s^2"):
-        return
-    from analysis.fit import fit_allan
-    from analysis.terms import TermError
-
-    try:
-        fit = fit_allan(curve, list(model))
-    except (ValueError, TermError) as exc:
-        doc.setdefault("warnings", []).append(f"no model fitted: {exc}")
-        return
-    doc["model"] = [t.to_dict() for t in fit.terms]
-    doc["error"] = fit.error_dict()
-    doc["failures"] = [dict(f) for f in fit.failures]
-    al = doc.setdefault("allan", {})
-    tau = np.asarray(al.get("tau_s") or [], dtype=np.float64)
-    model_adev = np.sqrt(fit.model_avar(tau)) if tau.size else np.array([])
-    z = np.full(tau.size, np.nan)
-    pos = np.searchsorted(tau, fit.tau_s)
-    ok = (pos < tau.size) & np.isclose(tau[np.minimum(pos, max(tau.size - 1, 0))], fit.tau_s)
-    z[pos[ok]] = np.asarray(fit.z)[ok]
-    al["model_adev"] = [float(v) if np.isfinite(v) else None for v in model_adev]
-    al["z"] = [float(v) if np.isfinite(v) else None for v in z]
-
-
 REPORT_ONLY_KEYS = ("terms_adev", "model_psd", "discrete_check", "suggestions")
 
 
@@ -213,12 +182,10 @@ def suggestions(record, key: str, model=DEFAULT_MODEL) -> list[dict]:
     return [s.to_dict() for s in dx.suggestions]
 
 
-def complete_document(doc: dict, record, curves: Mapping[str, object], full: bool = False,
-                      seed: int = 0) -> dict:
-    """Fit channels that lack a model, add ``discrete_model`` (and, with ``full``, the
-    report's curves, the diagnosis and the record's facts) to an ``analyze`` document."""
+def complete_document(doc: dict, record, full: bool = False, seed: int = 0) -> dict:
+    """Add ``discrete_model`` (and, with ``full``, the report's curves, the diagnosis and the
+    record's facts) to a fitted ``analyze`` document."""
     for key, ch in doc.get("channels", {}).items():
-        fill_fit(ch, curves.get(key))
         extend_channel(ch, full=full, seed=seed)
         if full and ch.get("model"):
             try:

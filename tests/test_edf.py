@@ -134,3 +134,26 @@ def test_fast_detrended_acf_equals_the_explicit_one(n):
         v = np.concatenate(([0.0], np.cumsum(z))) + 7.0
         want = lag1_acf(_detrend(np.diff(v), 1))
         assert lag1_acf_detrended_from_phase(v) == pytest.approx(want, rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize(("alpha", "dmax"), [(-2, 2), (-3, 3), (-4, 3), (-1, 2)])
+def test_differenced_path_matches_the_explicit_series(alpha, dmax):
+    """Noise steep enough to need differencing: the phase-based identification (which skips
+    the detrending before differencing) gives the explicit series' alpha at every m."""
+    from analysis.edf import _lag1_differenced, noise_id_lag1_phase
+
+    y = _power_law(alpha, 1 << 15, 20 - alpha)
+    y += 1e-3 * np.arange(y.size) / y.size  # a trend, which the detrending would remove
+    u = np.concatenate(([0.0], np.cumsum(y - y.mean())))
+    ms = np.array([1, 2, 5, 16, 50, 200, 1000])
+    want = []
+    for m in ms:
+        res = noise_id_lag1_series(np.diff(u[::m]) / m, "freq", dmax)
+        want.append(res[0] if res is not None else want[-1])
+    got = noise_id_lag1_phase(u, ms, "freq", dmax=dmax, alpha_range=(-10, 10))
+    np.testing.assert_array_equal(got, want)
+    assert np.any(got <= -2)  # the differenced path was taken
+    res = _lag1_differenced(np.diff(u), dmax)
+    ref = noise_id_lag1_series(np.diff(u), "freq", dmax)
+    assert res[0] == ref[0]
+    assert res[1] == pytest.approx(ref[1], rel=1e-9, abs=1e-12)

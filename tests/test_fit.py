@@ -191,6 +191,14 @@ def test_cli_fit_text_and_errors(tmp_path, capsys):
     assert "gyro_q" in capsys.readouterr().err
     assert main(["fit", str(path), "--channel", "gyro_x", "--model", "temperature"]) == 2
     assert "temperature" in capsys.readouterr().err
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model",
+                 "white,gauss_markov:T=-5"]) == 2
+    assert "gauss_markov.T = -5" in capsys.readouterr().err
+    flat = tmp_path / "flat.csv"
+    _write_csv(flat, np.full(1000, 0.5))
+    assert main(["fit", str(flat), "--channel", "gyro_x", "--model", "white"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "constant" in err[0]
 
 
 def test_cli_fit_with_temperature(tmp_path, capsys):

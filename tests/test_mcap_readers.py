@@ -127,3 +127,54 @@ def test_rate_override_sets_rate_and_judges_gaps_by_it(tmp_path):
     assert r.channels["gyro_x"].fs_hz == 102.4
     assert r.channels["gyro_x"].segment_starts.tolist() == [0, 300]
     assert r.metadata["format"] == "mcap"
+
+
+def _same_record(a, b):
+    assert a.channels.keys() == b.channels.keys()
+    for k in a.channels:
+        assert np.array_equal(a.channels[k].values, b.channels[k].values), k
+        assert np.array_equal(a.channels[k].segment_starts, b.channels[k].segment_starts), k
+    assert np.array_equal(a.temperature.values, b.temperature.values)
+
+
+@pytest.mark.parametrize("ahead", [True, False])
+def test_read_ahead_and_batch_decompression_change_nothing(tmp_path, monkeypatch, ahead):
+    rec = record_blocks(tmp_path, make_blocks(40, 100, skip={7: 3}))
+    path = rec.stats.files[0]
+    monkeypatch.setattr(bulk, "BATCH_BYTES", 60_000)  # several chunks per batch, many batches
+    monkeypatch.setattr(bulk, "READ_AHEAD", ahead)
+    assert bulk.read_ahead() is ahead
+    fast = read_mcap(path)
+    # reference: every chunk decompressed on its own
+    monkeypatch.setattr(bulk.ml, "decompress_zstd_frames", lambda frames, sizes: None)
+    _same_record(fast, read_mcap(path))
+    assert fast.channels["gyro_x"].n_samples == 40 * 100
+    assert fast.channels["gyro_x"].segment_starts.tolist() == [0, 700]
+
+
+def test_chunk_with_wrong_declared_size_is_still_read_whole(tmp_path, monkeypatch):
+    """A chunk header that understates its uncompressed size fails the batched zstd call;
+    the chunks are then decompressed one by one and every message is kept."""
+    rec = record_blocks(tmp_path, make_blocks(12, 100))
+    path = rec.stats.files[0]
+    monkeypatch.setattr(bulk, "BATCH_BYTES", 1 << 20)  # one batch holds every chunk
+    want = read_mcap(path)
+    src = bulk.open_mcap(path)
+    chunk = src.layout.chunks[-1]
+    data = bytearray(open(path, "rb").read())
+    at = chunk.start + 9 + 16  # record prefix, start and end times -> uncompressed_size
+    declared = int.from_bytes(data[at:at + 8], "little")
+    assert declared == chunk.uncompressed_size
+    data[at:at + 8] = (declared - 64).to_bytes(8, "little")
+    bad = tmp_path / "understated.mcap"
+    bad.write_bytes(bytes(data))
+    results = []
+    batched = bulk.ml.decompress_zstd_frames
+
+    def spy(frames, sizes):
+        results.append(batched(frames, sizes))
+        return results[-1]
+
+    monkeypatch.setattr(bulk.ml, "decompress_zstd_frames", spy)
+    _same_record(want, read_mcap(bad))
+    assert results and results[-1] is None  # the one-by-one path read the last batch

@@ -165,7 +165,6 @@ def run(args: argparse.Namespace) -> int:
         from imunoise import outputs, report_json
 
         doc = outputs.complete_document(analysis_json(args.file, record, results), record,
-                                        {r.key: r.allan for r in results},
                                         full=bool(args.report))
         if args.report:
             from imunoise.files import write_text_atomically

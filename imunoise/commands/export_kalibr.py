@@ -73,30 +73,18 @@ def imu_topic(metadata: dict[str, str]) -> str | None:
 
 
 def fitted_channels(path: str, rate_hz: float | None = None) -> tuple[dict[str, dict], dict]:
-    """Every inertial channel of a recording with the default model fitted (fit documents),
-    and ``{"file", "rostopic"}`` facts of the recording."""
-    from analysis.allan import oadev
+    """Every inertial channel of a recording analysed as ``imunoise analyze`` does (default
+    model fitted), and ``{"file", "rostopic"}`` facts of the recording."""
     from daq.readers import ReadError, open_record
-    from imunoise.outputs import fill_fit
-    from imunoise.report_json import channel_json
+    from imunoise.commands.analyze import analysis_json, analyze_record
 
     try:
         record = open_record(path, rate_hz=rate_hz)
     except ReadError as exc:
         raise UsageError(str(exc)) from None
-    channels: dict[str, dict] = {}
-    for key, series in record.channels.items():
-        if series.units not in ("rad/s", "m/s^2"):
-            continue
-        try:
-            curve = oadev(series.values, series.fs_hz, m="octave",
-                          segment_starts=series.segment_starts, ci=0.95)
-        except ValueError as exc:
-            raise UsageError(f"{path}: {key}: no Allan deviation ({exc})") from None
-        doc = channel_json(series, curve, channel=key)
-        fill_fit(doc, curve)
-        channels[key] = doc
-    return channels, {"file": path, "rostopic": imu_topic(record.metadata)}
+    keys = [k for k, s in record.channels.items() if s.units in ("rad/s", "m/s^2")]
+    doc = analysis_json(path, record, analyze_record(record, keys))
+    return doc["channels"], {"file": path, "rostopic": imu_topic(record.metadata)}
 
 
 def run(args: argparse.Namespace) -> int:

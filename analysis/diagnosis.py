@@ -1,0 +1,308 @@
+"""Diagnosis: which physical effect is the model missing?
+
+Given a channel and a model, the model is fitted to the overlapping Allan curve; then every
+term of the vocabulary that the model lacks is added in turn and the model refitted. The
+misfit of the fit (``chi2``: the whitened, correlation-aware sum of squared standardised
+residuals of :mod:`analysis.misfit`) falls when the term is right. Under the hypothesis that
+the term is absent, the fall is approximately chi-square distributed with as many degrees of
+freedom as the term has parameters (a likelihood-ratio test on the decorrelated misfit).
+
+Evidence the Allan curve cannot give (:mod:`analysis.evidence`) joins in: a spectral line
+supports ``sinusoid``, correlation with the temperature record supports ``temperature``, a
+steady slope supports ``rate_ramp``. Each candidate's p-value is the smaller of its sources'
+(Bonferroni over the sources) and the candidates are ranked by it; a candidate is
+``significant`` when its p-value, Bonferroni-corrected for the number of candidates, is below
+``alpha``. The ranking follows the p-values (kept in log form, as strong effects give values
+far below the floating-point range). So on data the model fully explains, nothing is
+flagged with probability at least ``1 - alpha``. Outliers, gaps, a changing noise level and
+the shortest taus a sensor's filter pulls below the model are reported alongside: they are
+not noise terms to add, but they are why a model can look wrong.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from analysis import evidence
+from analysis.evidence.finding import Finding, family_p
+from analysis.fit import FitResult, find_line, fit_allan, fit_series
+from analysis.terms import TERM_NAMES, get_term
+
+DEFAULT_ALPHA = 0.05
+"""Family-wise probability that a correctly specified model gets any significant suggestion."""
+
+
+
+@dataclass
+class Suggestion:
+    """One candidate term, refitted.
+
+    Attributes:
+        term: the term added to the model.
+        params: its parameters in the refitted model (SI units).
+        ci95: their 95 % intervals (linearised in log-parameter space: every candidate is
+            refitted, so the refits stay quick).
+        chi2_per_dof_before: misfit of the given model.
+        chi2_per_dof_after: misfit with the term added (``nan`` when the refit failed).
+        p_value: probability of evidence this strong were the term absent, Bonferroni-corrected
+            for the number of candidates (and of evidence sources).
+        log_p: natural log of ``p_value`` (keeps its order where ``p_value`` underflows).
+        significant: ``p_value < alpha``.
+        why: plain-words explanation: the effect, where it shows, the expected improvement.
+        evidence: the evidence findings that support it (kinds).
+        fit: the refitted model (not serialised).
+    """
+
+    term: str
+    params: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+    chi2_per_dof_before: float
+    chi2_per_dof_after: float
+    p_value: float
+    log_p: float
+    significant: bool
+    why: str
+    evidence: list[str] = field(default_factory=list)
+    fit: FitResult | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """CONTRACT.md ``suggestions`` entry (plus ``p_value``, ``ci95``, ``evidence``)."""
+        def num(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {"term": self.term, "params": {k: num(v) for k, v in self.params.items()},
+                "ci95": {k: [num(a), num(b)] for k, (a, b) in self.ci95.items()},
+                "chi2_per_dof_before": num(self.chi2_per_dof_before),
+                "chi2_per_dof_after": num(self.chi2_per_dof_after),
+                "significant": bool(self.significant), "p_value": num(self.p_value),
+                "log10_p": num(self.log_p / np.log(10.0)),
+                "why": self.why, "evidence": list(self.evidence)}
+
+
+@dataclass
+class Diagnosis:
+    """The given model's fit, the ranked suggestions and every evidence finding."""
+
+    fit: FitResult
+    curve: Any
+    suggestions: list[Suggestion]
+    findings: list[Finding]
+    alpha: float
+
+
+def _times(n: int, fs_hz: float, t0_s: float) -> np.ndarray:
+    return t0_s + np.arange(n) / fs_hz
+
+
+def _z_range(before: FitResult, after: FitResult) -> tuple[float, float] | None:
+    """Tau range where adding the term improved the standardised residuals most."""
+    zb = dict(zip(np.round(before.tau_s, 12), before.z, strict=True))
+    gain = np.array([zb.get(round(float(t), 12), 0.0) ** 2 - z**2
+                     for t, z in zip(after.tau_s, after.z, strict=True)])
+    if gain.size == 0 or gain.max() <= 1.0:
+        return None
+    sel = after.tau_s[gain > max(1.0, 0.25 * gain.max())]
+    return float(sel.min()), float(sel.max())
+
+
+def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
+    """Natural log of the p-value of the chi2 drop from ``before`` to ``after`` with ``k``
+    added parameters (log form: strong effects give p-values below the float range)."""
+    drop = before.misfit.chi2 - after.misfit.chi2
+    if not np.isfinite(drop) or drop <= 0:
+        return 0.0
+    logp = float(stats.chi2.logsf(drop, k))
+    # Far in the tail scipy returns -inf; the tail's leading term keeps the ranking meaningful.
+    return logp if np.isfinite(logp) else -0.5 * drop
+
+
+def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
+    """The shortest taus the fit set aside because they lie below every sum of terms (a
+    filter's signature), or None."""
+    used = getattr(fit, "used", None)
+    if used is None or bool(np.all(used)):
+        return None
+    aside = ~np.asarray(used, dtype=bool)
+    z = np.asarray(fit.z)[aside]
+    tau = np.asarray(fit.tau_s)[aside]
+    if not bool(np.all(z < 0)):
+        return None  # measured above the model there: a missing term, which the refits test
+    zmax = float(np.max(np.abs(z)))
+    p = family_p(float(2.0 * stats.norm.sf(zmax)), int(np.size(fit.z)))
+    why = (f"The Allan deviation at tau = {tau.min():.3g} .. {tau.max():.3g} s lies "
+           f"below every sum of noise terms (|z| up to "
+           f"{zmax:.1f}): the sensor's anti-aliasing or decimation filter averages the white "
+           f"noise over a few samples. No noise term describes a filter; these taus are left "
+           f"out of the parameter estimates but still count in chi2/dof.")
+    return Finding("sensor_filter", None, zmax, "max |z|", p, alpha, {},
+                   {"tau_s": [float(tau.min()), float(tau.max())]}, why,
+                   {"taus_set_aside": [float(t) for t in tau]})
+
+
+def _in_band(fit: FitResult, line_finding: Finding) -> bool:
+    """Whether the refitted sinusoid's frequency lies in the band the line search covered."""
+    f = next(t.params["f"] for t in fit.terms if t.term == "sinusoid")
+    lo, hi = line_finding.details.get("f_searched_hz", (np.inf, -np.inf))
+    return bool(lo <= f <= hi)
+
+
+def _logp(p: float) -> float:
+    return float(np.log(max(p, 1e-300)))
+
+
+def _why(term: str, rng: tuple[float, float] | None, before: float, after: float,
+         findings: list[Finding]) -> str:
+    t = get_term(term)
+    parts = [f"{t.effect[0].upper()}{t.effect[1:]}: {t.explanation}"]
+    if rng is not None:
+        lo, hi = rng
+        where = f"tau = {lo:.3g} s" if np.isclose(lo, hi) else f"tau = {lo:.3g} .. {hi:.3g} s"
+        parts.append(f"The measured Allan deviation departs from the model near {where}.")
+    parts += [f.why for f in findings if f.significant]
+    if np.isfinite(after):
+        parts.append(f"Adding it brings chi2/dof from {before:.3g} to {after:.3g}.")
+    return " ".join(parts)
+
+
+def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
+             segment_starts: np.ndarray | None = None, t0_s: float = 0.0,
+             temperature: tuple[np.ndarray, np.ndarray] | None = None,
+             units: str = "rad/s", alpha: float = DEFAULT_ALPHA,
+             fixed: dict | None = None) -> Diagnosis:
+    """Fit ``model`` to a rate series and rank the terms it is missing.
+
+    Args:
+        values: rate samples (SI units), all gap-free segments concatenated.
+        fs_hz: sampling rate in Hz.
+        model: term names (``"white,random_walk"`` or a list).
+        segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
+        t0_s: time of the first sample, seconds (same base as the temperature times).
+        temperature: ``(times_s, degC)`` of the temperature record, any rate.
+        units: units of ``values`` (for explanations).
+        alpha: family-wise significance level over all candidates.
+        fixed: parameters held fixed in the given model (see :func:`analysis.fit.fit_allan`).
+
+    Returns:
+        A :class:`Diagnosis` with suggestions best first.
+    """
+    x = np.asarray(values, dtype=np.float64)
+    starts = (np.asarray(segment_starts, dtype=np.int64) if segment_starts is not None
+              else np.zeros(1, dtype=np.int64))
+    names = model.split(",") if isinstance(model, str) else list(model)
+    names = [n.strip() for n in names if n.strip()]
+    t_rate = _times(x.size, fs_hz, t0_s)
+    temp_at = None
+    if temperature is not None:
+        temp_at = np.interp(t_rate, np.asarray(temperature[0], float),
+                            np.asarray(temperature[1], float))
+    base, curve = fit_series(x, fs_hz, names, segment_starts=starts,
+                             temperature=temp_at if "temperature" in names else None,
+                             fixed=fixed)
+    segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
+                                                   strict=True)) if s.size]
+
+    # Evidence. Each runs at the family level; the per-candidate Bonferroni comes below.
+    findings: list[Finding] = []
+    outl = evidence.outliers(segments, fs_hz, alpha=alpha, units=units)
+    findings.append(outl)
+    findings.append(evidence.gaps(starts, x.size, fs_hz))
+    findings.append(evidence.noise_level_windows(
+        segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
+        units=units))
+    filt = _sensor_filter(base, alpha)
+    if filt is not None:
+        findings.append(filt)
+    by_term: dict[str, Finding] = {}
+    if "sinusoid" not in names:
+        try:
+            by_term["sinusoid"] = evidence.spectral_lines(segments, fs_hz, alpha=alpha,
+                                                          units=units)
+        except ValueError:
+            pass
+    if "rate_ramp" not in names:
+        by_term["rate_ramp"] = evidence.drift(t_rate, x, alpha=alpha, units=units)
+    if temperature is not None and "temperature" not in names:
+        by_term["temperature"] = evidence.temperature_correlation(
+            t_rate, x, temperature[0], temperature[1], alpha=alpha, units=units)
+    findings.extend(by_term.values())
+
+    candidates = [t for t in TERM_NAMES if t not in names
+                  and (t != "temperature" or temperature is not None)]
+    suggestions: list[Suggestion] = []
+    before = base.chi2_per_dof
+    for term in candidates:
+        k = len(get_term(term).params)
+        fix: dict = {}
+        try:
+            if term == "temperature":
+                after, _ = fit_series(x, fs_hz, names + [term], segment_starts=starts,
+                                      temperature=temp_at, fixed=fixed)
+            else:
+                line, fix = None, dict(fixed or {})
+                f_ev = by_term.get("sinusoid")
+                if term == "sinusoid" and f_ev is not None and f_ev.significant:
+                    # The PSD pins the frequency far better than the Allan curve can.
+                    line = (f_ev.params["f"], f_ev.params["A"])
+                    fix[len(names)] = {"f": f_ev.params["f"]}
+                elif term == "sinusoid":
+                    line = find_line(max(segments, key=len), fs_hz, min_snr=3.0)
+                after = fit_allan(curve, names + [term], line=line, fixed=fix,
+                                  intervals="jacobian")
+                if after.misfit.chi2 > base.misfit.chi2:
+                    # A nested model cannot fit worse: the cold start found a poorer optimum,
+                    # so start again from the given model's fit with the new term small.
+                    warm = fit_allan(curve, names + [term], start=base, line=line, fixed=fix,
+                                     intervals="jacobian")
+                    if warm.misfit.chi2 < after.misfit.chi2:
+                        after = warm
+        except (ValueError, np.linalg.LinAlgError):
+            after = None
+        fix_used = fix.get(len(names), {}) if after is not None and term != "temperature" \
+            else {}
+        sources: list[float] = []
+        if after is not None and term != "temperature" and after.chi2_per_dof < before:
+            # A term that leaves the misfit per degree of freedom no better is no suggestion,
+            # even if the raw chi2 fell (it does whenever the given model is wrong anyway).
+            sources.append(_lr_logp(base, after, k))
+        ev = by_term.get(term)
+        if ev is not None:
+            sources.append(_logp(ev.p_value))
+        if term == "sinusoid" and ev is not None and not ev.significant and after is not None \
+                and _in_band(after, ev):
+            # A sinusoid big enough to bend the Allan curve is a line in the spectrum; with no
+            # line where the refit put it, the Allan improvement is some other bump.
+            sources = [_logp(ev.p_value)]
+        # Bonferroni over the sources and over the candidates, in log form.
+        logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(len(candidates))) \
+            if sources else 0.0
+        p_adj = float(np.exp(logp))
+        params: dict[str, float] = {}
+        ci: dict[str, tuple[float, float]] = {}
+        chi_after = float("nan")
+        if after is not None:
+            tf = next(t for t in after.terms if t.term == term)
+            params, ci = dict(tf.params), dict(tf.ci95)
+            if ev is not None and ev.significant:
+                # Parameters the evidence pinned (held fixed in the refit) take its interval.
+                ci.update({key: (lo, hi) for key, (lo, hi) in ev.details.get("ci95", {}).items()
+                           if key in fix_used})
+            chi_after = after.chi2_per_dof
+        elif ev is not None:
+            params = dict(ev.params)
+        rng = _z_range(base, after) if after is not None and term != "temperature" else None
+        supporting = [ev] if ev is not None else []
+        suggestions.append(Suggestion(
+            term=term, params=params, ci95=ci, chi2_per_dof_before=before,
+            chi2_per_dof_after=chi_after, p_value=p_adj, log_p=logp,
+            significant=logp < np.log(alpha),
+            why=_why(term, rng, before, chi_after, supporting),
+            evidence=[f.kind for f in supporting if f.significant], fit=after))
+    # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
+    # parameters, so a two-parameter Markov term does not win merely by being flexible.
+    suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
+    return Diagnosis(fit=base, curve=curve, suggestions=suggestions, findings=findings,
+                     alpha=alpha)
