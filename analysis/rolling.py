@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from analysis.allan import AllanCurve
+from analysis.diagnosis import diagnose
 from analysis.fit import FitResult, find_line, fit_allan
 from analysis.psd import StreamingPsd
 from analysis.series import channel_units
@@ -44,12 +45,6 @@ from analysis.streaming_allan import StreamingAllan
 from analysis.terms import TERM_NAMES, TermError, get_term
 from analysis.units import param_units as _param_units
 
-try:  # the diagnosis engine ships separately from the fit
-    from analysis import diagnosis as _diagnosis
-except ImportError:  # pragma: no cover - depends on the build
-    _diagnosis = None
-
-DIAGNOSIS_AVAILABLE = _diagnosis is not None
 DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
 # ``temperature`` needs the whole temperature record regressed out of the rate series first,
 # which a bounded-memory stream does not keep.
@@ -210,8 +205,7 @@ def _job_diagnose(values: np.ndarray, fs_hz: float, model: list[str], starts: np
                   units: str) -> tuple[list[dict], list[dict]]:
     """``analysis.diagnosis.diagnose``: suggestions and the significant findings that are not
     a term (outliers, gaps, a changing noise level), as JSON-ready dicts."""
-    assert _diagnosis is not None
-    result = _diagnosis.diagnose(values, fs_hz, model, segment_starts=starts, units=units)
+    result = diagnose(values, fs_hz, model, segment_starts=starts, units=units)
     findings = [f.to_dict() for f in result.findings if f.significant and f.term is None]
     return ([s.to_dict() for s in result.suggestions],
             [{k: f[k] for k in ("kind", "p_value", "why", "range")} for f in findings])
@@ -648,8 +642,6 @@ class ChannelAnalyzer:
             revision = self._model_revision
             values, starts = self._recent.series()
             n = self.n_samples
-        if _diagnosis is None:
-            return False
         try:
             (suggestions, findings), cpu = self._run(_job_diagnose, values, self.fs_hz, model,
                                                      starts, self.units)
@@ -689,7 +681,7 @@ class ChannelAnalyzer:
                 jobs.append((self._last_fit_t + self.refit_interval_s, "fit"))
                 if n > self._full_n:
                     jobs.append((self._last_full_t + self.full_refit_interval_s, "full"))
-            if _diagnosis is not None and self._fit is not None and \
+            if self._fit is not None and \
                     (self._diag_revision != self._model_revision or n > self._diag_n):
                 wait = 0.0 if self._diag_revision != self._model_revision else \
                     self.diagnosis_interval_s
@@ -808,16 +800,11 @@ class ChannelAnalyzer:
         """The latest diagnosis of the current model, best first (``note`` says why it is
         empty or what it rests on)."""
         with self._lock:
-            if _diagnosis is None:
-                note = ("diagnosis pending: this build has no diagnosis engine "
-                        "(analysis.diagnosis); add terms from the model editor")
-                suggestions: list[dict] = []
-            elif self._fit is None:
+            suggestions: list[dict] = []
+            if self._fit is None:
                 note = "waiting for data: no fit yet"
-                suggestions = []
             elif self._diag_revision != self._model_revision:
                 note = "waiting for the diagnosis of the current model"
-                suggestions = []
             else:
                 note = self._diag_note
                 suggestions = [dict(s) for s in self._suggestions
@@ -825,7 +812,6 @@ class ChannelAnalyzer:
                 if not suggestions and not note:
                     note = "every term is already in the model"
             return {"channel": self.channel, "model": list(self._model), "note": note,
-                    "available": _diagnosis is not None,
                     "model_revision": self._model_revision, "error": _error(self._fit)
                     if self._fit is not None else None,
                     "suggestions": suggestions, "findings": list(self._findings)}
@@ -919,7 +905,7 @@ class RollingAnalyzer:
             changed = False
             for a in analyzers:
                 changed |= a.refit(full=True)
-                if DIAGNOSIS_AVAILABLE and a.fitted:
+                if a.fitted:
                     changed |= a.diagnose()
             return changed
         now = time.monotonic()

@@ -13,7 +13,6 @@ import pytest
 from analysis.allan import oadev
 from analysis.fit import fit_allan, fit_series
 from analysis.rolling import (
-    DIAGNOSIS_AVAILABLE,
     ChannelAnalyzer,
     RecentSamples,
     RollingAnalyzer,
@@ -200,17 +199,13 @@ def test_adding_a_missing_sinusoid_lowers_the_error_and_removing_it_restores_it(
     assert removed["error_after"]["chi2_per_dof"] == before  # same model, same samples
 
 
-def test_diagnosis_uses_the_diagnosis_engine_or_says_it_is_pending() -> None:
+def test_diagnosis_finds_the_missing_sinusoid_and_adding_it_gives_its_error() -> None:
     t = np.arange(120_000) / FS
     y = _white_rw(t.size, 6) + 0.01 * np.sin(2 * np.pi * 2.7 * t)
     rs = RollingAnalyzer()
     rs.update(SampleBlock(stream="/imu", t=t, fs_hz=FS, channels={"gyro_x": y}))
     rs.refresh(force=True)
     d = rs.get("gyro_x").diagnosis()
-    assert d["available"] is DIAGNOSIS_AVAILABLE
-    if not DIAGNOSIS_AVAILABLE:
-        assert d["suggestions"] == [] and d["note"].startswith("diagnosis pending")
-        return
     top = d["suggestions"][0]
     assert top["term"] == "sinusoid" and top["significant"]
     assert top["params"]["f"] == pytest.approx(2.7, rel=0.01)

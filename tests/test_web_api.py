@@ -9,7 +9,6 @@ import httpx
 import pytest
 
 from analysis.fit import fit_allan
-from analysis.rolling import DIAGNOSIS_AVAILABLE
 from imunoise.cli import main
 from imunoise.live import LiveService
 from tests.live_helpers import SINE_A, SINE_F, SyntheticImu, running_server
@@ -91,13 +90,12 @@ def test_psd_shows_the_line_and_the_model(client) -> None:
 
 def test_diagnosis_then_add_the_suggestion_and_error_falls(client) -> None:
     d = client.get("/diagnosis", params={"channel": "gyro_x"}).json()
-    if DIAGNOSIS_AVAILABLE:
-        top = d["suggestions"][0]
-        assert top["term"] == "sinusoid" and top["significant"]
-        assert top["params"]["A"] == pytest.approx(SINE_A, rel=0.1)
-    else:
-        assert d["available"] is False and d["suggestions"] == []
-        assert d["note"].startswith("diagnosis pending")
+    top = d["suggestions"][0]
+    assert top["term"] == "sinusoid" and top["significant"]
+    assert top["params"]["A"] == pytest.approx(SINE_A, rel=0.1)
+    # gyro_y is white noise and random walk: the default model leaves nothing significant
+    dy = client.get("/diagnosis", params={"channel": "gyro_y"}).json()
+    assert dy["suggestions"] and not [s for s in dy["suggestions"] if s["significant"]]
     m0 = client.get("/model", params={"channel": "gyro_x"}).json()
     assert "sinusoid" in m0["valid_terms"] and "temperature" not in m0["valid_terms"]
     r = client.post("/model", json={"channel": "gyro_x", "add": "sinusoid"})

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 
-from analysis.rolling import DIAGNOSIS_AVAILABLE
 from imunoise.live import LiveService
 from tests.live_helpers import SyntheticImu, running_server
 from web.app import create_app
@@ -107,14 +106,9 @@ def _check_add(page, url: str) -> None:
     page.wait_for_function("Number(document.body.dataset.renders || 0) >= 1", timeout=15000)
     before = float(page.locator("#error-value").get_attribute("data-value"))
     renders = int(page.evaluate("document.body.dataset.renders"))
-    # With the diagnosis engine, Add on its top suggestion; without, the model editor's.
-    if DIAGNOSIS_AVAILABLE:
-        top = page.locator("#suggestions button.add-term").first
-        assert top.get_attribute("data-term") == "sinusoid"
-        top.click()
-    else:
-        assert "diagnosis pending" in page.locator("#suggestions").inner_text()
-        page.locator("#model-editor button.add-any[data-term='sinusoid']").click()
+    top = page.locator("#suggestions button.add-term").first  # the diagnosis's best
+    assert top.get_attribute("data-term") == "sinusoid"
+    top.click()
     page.wait_for_function(f"Number(document.body.dataset.renders) > {renders}", timeout=15000)
     page.wait_for_function(
         f"Number(document.getElementById('error-value').dataset.value) < {before}",
@@ -126,6 +120,16 @@ def _check_add(page, url: str) -> None:
     assert "→" in page.locator("#action-msg").inner_text()
     history = page.locator("#history li").all_inner_texts()
     assert history[0].startswith("rev 1") and "sinusoid" in history[0]
+    # Any term can be added from the model editor, and removed with its x.
+    page.locator("#model-editor button.add-any[data-term='rate_ramp']").click()
+    page.wait_for_function("document.querySelector(\"#model-terms button[data-term="
+                           "'rate_ramp']\") !== null", timeout=15000)
+    assert page.locator("#model-editor button.add-any[data-term='rate_ramp']").count() == 0
+    page.locator("#model-terms button.remove-term[data-term='rate_ramp']").click()
+    page.wait_for_function("document.querySelector(\"#model-terms button[data-term="
+                           "'rate_ramp']\") === null", timeout=15000)
+    assert float(page.locator("#error-value").get_attribute("data-value")) == \
+        pytest.approx(after, rel=1e-9)  # back to the same model on the same samples
     assert page.errors == [], f"console errors {page.errors}"
 
 
@@ -145,10 +149,8 @@ def test_a_young_record_with_short_tau_range_renders_without_errors(browser, tmp
         assert int(page.locator("#allan-plot").get_attribute("data-points")) == 8
         page.wait_for_timeout(300)  # let the plots draw
         assert page.evaluate("1 + 1") == 2  # the page is responsive, not stuck drawing
-        if DIAGNOSIS_AVAILABLE:  # the model is right: nothing is significant
-            page.wait_for_selector("#suggestions button.add-term", timeout=15000)
-            assert page.locator("#suggestions .sig").count() == 0
-        else:
-            assert "pending" in page.locator("#suggestions").inner_text()
+        # the model is right: suggestions, none significant
+        page.wait_for_selector("#suggestions button.add-term", timeout=15000)
+        assert page.locator("#suggestions .sig").count() == 0
         assert errors == [], errors
     page.close()

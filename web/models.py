@@ -112,7 +112,6 @@ class Diagnosis(BaseModel):
     channel: str
     model: list[str]
     note: str = Field("", description="why there are no suggestions yet, if so")
-    available: bool = Field(True, description="whether this build has the diagnosis engine")
     model_revision: int
     error: Error | None
     suggestions: list[Suggestion]
