@@ -231,12 +231,15 @@ def run_inline(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
 
 class WorkerProcess:
     """Runs jobs in one worker process, so a fit never holds the interpreter lock that the
-    acquisition thread needs. A worker that dies is replaced (the job is retried once).
+    acquisition thread needs. A worker that dies is replaced and the job retried once; if
+    the replacement dies too (e.g. a main module that cannot be imported twice), jobs run in
+    the calling thread from then on (``fallback`` says why).
     """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._pool: ProcessPoolExecutor | None = None
+        self.fallback: str | None = None
 
     def _executor(self) -> ProcessPoolExecutor:
         with self._lock:
@@ -246,17 +249,20 @@ class WorkerProcess:
             return self._pool
 
     def __call__(self, fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
-        for attempt in (0, 1):
+        for _ in (0, 1):
+            if self.fallback is not None:
+                break
             pool = self._executor()
             try:
                 return pool.submit(_timed, fn, *args).result()
-            except BrokenProcessPool:
+            except BrokenProcessPool as exc:
                 with self._lock:
                     if self._pool is pool:
                         self._pool = None
-                if attempt:
-                    raise
-        raise AssertionError("unreachable")
+                last = exc
+        else:
+            self.fallback = f"the worker process died twice ({last}); fits run in-process"
+        return _timed(fn, *args)
 
     def close(self) -> None:
         with self._lock:
@@ -944,6 +950,8 @@ class RollingAnalyzer:
         if len(fits) >= 2 and analyzers:
             period = (fits[-1] - fits[0]) / (len(fits) - 1) * len(analyzers)
         return {
+            "workers": "inline" if self._worker is None else
+            ("process" if self._worker.fallback is None else "inline (worker failed)"),
             "cpu_budget": self.cpu_budget,
             "cpu_s_total": total_cpu,
             "cpu_fraction_last_minute": sum(j[3] for j in recent) / 60.0,
