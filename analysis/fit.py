@@ -523,12 +523,21 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
     param_cov = np.linalg.pinv(jac.T @ jac)
     sd = np.sqrt(np.clip(np.diag(param_cov), 0.0, None))
     ci: list[dict[str, tuple[float, float]]] = [dict() for _ in names]
-    if intervals == "profile":
+    # A linearised interval is only honest for a parameter the curve determines well. For an
+    # amplitude near zero the Jacobian column vanishes (the pseudo-inverse then reports a zero
+    # width) or the log-scale interval runs to its bound; such parameters get the profile
+    # interval even in the quick mode; so does one whose log-scale standard error exceeds 0.5
+    # (a 95 % factor of 2.7 either way), where the linearisation no longer holds.
+    col_norm = np.linalg.norm(jac, axis=0)
+    weak = ((col_norm <= 1e-6 * max(float(col_norm.max(initial=0.0)), 1e-300))
+            | ~np.isfinite(sd) | (sd > 0.5) | (theta - _Z95 * sd <= layout.lo + 1e-6))
+    base = None
+    if intervals == "profile" or np.any(weak):
         full = optimize.least_squares(resid_final, theta, bounds=(layout.lo, layout.hi),
                                       method="trf", max_nfev=60)
         base = min(2.0 * float(full.cost), float(np.sum(resid_final(theta) ** 2)))
     for idx, ((i, k), th, s) in enumerate(zip(layout.keys, theta, sd, strict=True)):
-        if intervals == "profile":
+        if intervals == "profile" or weak[idx]:
             lo, hi = _profile_interval(resid_final, theta, idx, layout, s, base)
         else:
             lo, hi = th - _Z95 * s, th + _Z95 * s

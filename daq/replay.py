@@ -7,6 +7,7 @@ possible) and reports progress; the consumer is any callable taking a
 
 from __future__ import annotations
 
+import heapq
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -14,32 +15,47 @@ from pathlib import Path
 
 import numpy as np
 
+from analysis.series import ChannelSeries
 from daq.blocks import SampleBlock
 from daq.readers import ReadError, open_record
 
 PACE_S = 0.1  # sample-time length of the pieces a paced replay hands over
+CHUNK_S = 1.0  # sample-time length of the blocks a record read whole is cut into
+
+
+def _series_blocks(topic: str, chans: dict[str, ChannelSeries]) -> Iterator[SampleBlock]:
+    """Blocks of at most ``CHUNK_S`` of channels that share one timing (rate, start and
+    segments); the first block after a gap carries ``gap_before=-1``."""
+    first = next(iter(chans.values()))
+    step = max(1, int(round(first.fs_hz * CHUNK_S)))
+    bounds = np.append(first.segment_starts, first.n_samples)
+    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+        for c in range(int(a), int(b), step):
+            d = min(c + step, int(b))
+            t = first.t0_s + np.arange(c, d) / first.fs_hz
+            yield SampleBlock(topic, t, {n: s.values[c:d] for n, s in chans.items()},
+                              first.fs_hz, gap_before=-1 if k and c == a else 0)
 
 
 def _record_blocks(path: Path) -> tuple[Iterator[SampleBlock], int]:
-    record = open_record(path)
-    series = dict(record.channels)
-    total = max((s.n_samples for s in series.values()), default=0)
+    """Blocks of a record read whole (CSV, rosbag2), in time order across topics.
 
-    def gen() -> Iterator[SampleBlock]:
-        topics: dict[str, dict[str, object]] = {}
-        for key, s in series.items():
-            topic, _, name = key.rpartition(":")
-            topics.setdefault(topic or "/imu", {})[name] = s
-        if record.temperature is not None:
-            topics.setdefault("/temperature", {})["temp"] = record.temperature
-        for topic, chans in topics.items():
-            first = next(iter(chans.values()))
-            bounds = np.append(first.segment_starts, first.n_samples)
-            for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
-                t = first.t0_s + np.arange(a, b) / first.fs_hz
-                yield SampleBlock(topic, t, {n: s.values[a:b] for n, s in chans.items()},
-                                  first.fs_hz, gap_before=-1 if k else 0)
-    return gen(), total
+    Channels of one topic go in one block only where they share their timing: a channel with
+    samples removed (NaN, empty cells) has segments of its own and is sent in its own blocks,
+    so no other channel loses or shifts samples."""
+    record = open_record(path)
+    total = max((s.n_samples for s in record.channels.values()), default=0)
+    groups: dict[tuple, dict[str, ChannelSeries]] = {}
+    for key, s in record.channels.items():
+        topic, _, name = key.rpartition(":")
+        timing = (topic or "/imu", s.fs_hz, s.t0_s, s.n_samples, tuple(s.segment_starts))
+        groups.setdefault(timing, {})[name] = s
+    if record.temperature is not None:
+        s = record.temperature
+        groups[("/temperature", s.fs_hz, s.t0_s, s.n_samples, tuple(s.segment_starts))] = {
+            "temp": s}
+    streams = [_series_blocks(timing[0], chans) for timing, chans in groups.items()]
+    return heapq.merge(*streams, key=lambda b: float(b.t[0])), total
 
 
 def open_blocks(path: str | Path) -> tuple[Iterator[SampleBlock], int]:
@@ -74,30 +90,39 @@ def _pieces(block: SampleBlock, n: int) -> Iterator[SampleBlock]:
                           gap_before=block.gap_before if a == 0 else 0)
 
 
+def paced(blocks: Iterator[SampleBlock], speed: float | None = 1.0,
+          sleep: Callable[[float], None] = time.sleep,
+          clock: Callable[[], float] = time.monotonic) -> Iterator[SampleBlock]:
+    """The blocks, each released when the sample clock says: ``speed`` times real time, in
+    pieces of ``PACE_S`` seconds of samples; unpaced when ``speed`` is None or not positive."""
+    speed_x = float(speed) if speed is not None and speed > 0 else None
+    t_start: float | None = None
+    wall_start = clock()
+    for block in blocks:
+        if not len(block):
+            continue
+        if speed_x is None:
+            yield block
+            continue
+        for piece in _pieces(block, max(1, int(block.fs_hz * PACE_S * speed_x))):
+            if t_start is None:
+                t_start = float(piece.t[0])
+            wait = wall_start + (float(piece.t[-1]) - t_start) / speed_x - clock()
+            if wait > 0:
+                sleep(wait)
+            yield piece
+
+
 def replay(blocks: Iterator[SampleBlock], consumer: Callable[[SampleBlock], None],
            speed: float | None = 1.0, progress: Callable[[SampleBlock], None] | None = None,
            sleep: Callable[[float], None] = time.sleep,
            clock: Callable[[], float] = time.monotonic) -> None:
     """Hand every block to ``consumer``; ``speed`` times real time, or as fast as possible
     when ``speed`` is None or not positive."""
-    paced = speed is not None and speed > 0
-    t_start: float | None = None
-    wall_start = clock()
-    for block in blocks:
-        if not len(block):
-            continue
-        pieces = _pieces(block, max(1, int(block.fs_hz * PACE_S * speed))) if paced else [block]
-        for piece in pieces:
-            if paced:
-                if t_start is None:
-                    t_start = float(piece.t[0])
-                due = wall_start + (float(piece.t[-1]) - t_start) / speed
-                wait = due - clock()
-                if wait > 0:
-                    sleep(wait)
-            consumer(piece)
-            if progress is not None:
-                progress(piece)
+    for piece in paced(blocks, speed, sleep=sleep, clock=clock):
+        consumer(piece)
+        if progress is not None:
+            progress(piece)
 
 
 @dataclass

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -25,7 +26,16 @@ COMMAND_MODULES: list[str] = [
 
 
 class _Parser(argparse.ArgumentParser):
-    """ArgumentParser whose usage errors are one line on stderr and exit code 2."""
+    """ArgumentParser whose usage errors are one line on stderr and exit code 2.
+
+    Command descriptions are the modules' docstrings; their reStructuredText literal marks
+    are dropped for the terminal.
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        if kwargs.get("description"):
+            kwargs["description"] = kwargs["description"].replace("``", "")
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(f"{self.prog}: {message}")
@@ -60,6 +70,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("imunoise: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader of stdout went away (``imunoise analyze --json | head``): stop quietly,
+        # and keep the interpreter's final flush from failing again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 1
+    except OSError as exc:  # disk full, permission denied ... where no command caught it
+        where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
+        print(f"imunoise: {exc.strerror or exc}{where}", file=sys.stderr)
+        return RuntimeFailure.exit_code
 
 
 if __name__ == "__main__":

@@ -192,8 +192,6 @@ def complete_document(doc: dict, record, full: bool = False, seed: int = 0) -> d
                 ch["suggestions"] = suggestions(record, key)
             except ValueError as exc:  # a record too short for a refit with one more term
                 ch.setdefault("warnings", []).append(f"no diagnosis: {exc}")
-            except ImportError:
-                ch.setdefault("warnings", []).append("no diagnosis: not available in this build")
     if full:
         doc["record"] = record_facts(record)
     return doc

@@ -46,7 +46,16 @@ def number(value: float | None) -> float | None:
 
 def allan_json(curve: AllanLike | None, model_adev: Sequence[float] | np.ndarray = (),
                z: Sequence[float] | np.ndarray = ()) -> dict[str, Any]:
-    """The ``allan`` object: measured deviation with its interval, model curve and z-scores."""
+    """The ``allan`` object: measured deviation with its interval, model curve and z-scores.
+
+    The arrays run parallel to ``tau_s``: without a model, ``model_adev`` and ``z`` hold null
+    at every tau."""
+    if curve is not None:
+        n_tau = len(np.asarray(curve.tau_s))
+        if len(model_adev) == 0:
+            model_adev = np.full(n_tau, np.nan)
+        if len(z) == 0:
+            z = np.full(n_tau, np.nan)
     if curve is None:
         return {"tau_s": [], "adev": [], "ci_low": [], "ci_high": [], "model_adev": floats(
             model_adev), "z": floats(z), "edf": [], "ci": None}
@@ -78,6 +87,10 @@ def psd_json(est: PsdEstimate | None) -> dict[str, Any]:
     }
 
 
+NO_ERROR: Mapping[str, None] = {"chi2_per_dof": None, "max_abs_z": None}
+"""The ``error`` object of a channel without a model fit."""
+
+
 def channel_json(
     series: ChannelSeries,
     allan: AllanLike | None,
@@ -104,7 +117,7 @@ def channel_json(
         "duration_s": number(series.duration_s),
         "n_segments": int(len(series.segment_starts)),
         "model": [dict(m) for m in model],
-        "error": dict(error) if error is not None else None,
+        "error": dict(error) if error is not None else dict(NO_ERROR),
         "failures": [dict(f) for f in failures],
         "allan": allan_json(allan, model_adev, z),
     }

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import signal
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -154,3 +156,15 @@ class CountingSink:
 
     def close(self) -> None:
         self.closed = True
+
+
+def interrupt(proc: subprocess.Popen, timeout: float = 30.0) -> str:
+    """Ctrl-C a command-line process, wait for it (kill it after ``timeout`` s) and return its
+    stderr text."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+    return err.decode() if isinstance(err, bytes) else err

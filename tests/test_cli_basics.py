@@ -34,3 +34,9 @@ def test_module_entry_point_help():
     out = subprocess.run([sys.executable, "-m", "imunoise", "--help"], capture_output=True,
                          text=True, check=True).stdout
     assert "analyze" in out
+
+
+def test_command_help_has_no_markup():
+    out = subprocess.run([sys.executable, "-m", "imunoise", "fit", "--help"],
+                         capture_output=True, text=True, check=True).stdout
+    assert "``" not in out and "imunoise fit:" in out

@@ -75,15 +75,18 @@ def test_fit_recovers_known_model_within_its_intervals():
 def test_refit_from_previous_result_is_cheap_and_agrees():
     x = NoiseStream(WBR, FS, 5).take(1 << 17)
     curve = Curve(x, FS)
+    t = time.process_time()
     first = fit_allan(curve, "white,bias_instability,random_walk")
-    t = time.perf_counter()
+    cold = time.process_time() - t
+    t = time.process_time()
     again = fit_allan(curve, "white,bias_instability,random_walk", start=first,
                       intervals="jacobian")
-    elapsed = time.perf_counter() - t
+    elapsed = time.process_time() - t
     for a, b in zip(first.terms, again.terms, strict=True):
         for k in a.params:
             assert b.params[k] == pytest.approx(a.params[k], rel=0.02)
-    assert elapsed < 0.5
+    # absolute times are in bench/fit.py; here only that the warm refit is the cheap path
+    assert elapsed < cold
 
 
 def test_missing_term_is_flagged_and_adding_it_lowers_the_error():
@@ -215,3 +218,25 @@ def test_cli_fit_with_temperature(tmp_path, capsys):
     lo, hi = coef["ci95"]["coef"]
     assert lo <= 5e-4 <= hi
     assert doc["failures"] == []
+
+
+@pytest.mark.parametrize("seed", [1, 3, 5])
+def test_quick_intervals_of_weak_terms_never_collapse(seed):
+    # White noise only, fitted with white + bias instability + random walk: B and K are not
+    # in the data. Their quick (linearised) intervals must be real intervals holding the
+    # estimate, never [x, x], and reach zero wherever the profile interval does.
+    from analysis.fit import fit_series
+
+    x = NoiseStream([("white", {"N": 1e-3})], 100.0, seed).take(60_000)
+    model = "white,bias_instability,random_walk"
+    profile, curve = fit_series(x, 100.0, model)
+    quick = fit_allan(curve, model, start=profile, intervals="jacobian")
+    lo_n, hi_n = quick.terms[0].ci95["N"]
+    assert lo_n < 1e-3 < hi_n
+    for slow, fast in zip(profile.terms[1:], quick.terms[1:], strict=True):
+        (name, value), = fast.params.items()
+        lo, hi = fast.ci95[name]
+        assert lo <= value <= hi and hi > lo
+        assert hi < 1e-2  # bounded by what the Allan band allows, not a runaway
+        if slow.ci95[name][0] == 0.0:
+            assert lo == 0.0

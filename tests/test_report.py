@@ -292,6 +292,10 @@ def test_analyze_report_end_to_end(recordings, kind, tmp_path, capsys):
     # A correct model agrees at about 95 % of taus (two independent estimates compared on
     # their combined interval); neighbouring taus are correlated, so allow a wide margin.
     assert total >= 6 * 8 and inside >= 0.8 * total, (inside, total)
+    # the diagnosis of the default model for every channel, with chi2/dof before and after
+    assert html.count("<h3>Diagnosis</h3>") == 6
+    assert len(re.findall(r"\d \u2192 \d", text)) >= 6
+    assert "no diagnosis" not in text
     assert re.search(r"samples\s*40000\b", text)
     assert re.search(rf"gaps\s*{1 if kind == 'mcap' else 0}\b", text)
     if kind == "mcap":
@@ -312,3 +316,34 @@ def test_analyze_report_bad_output_path_is_one_line_exit_2(recordings, tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is a folder" in err[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_report_names_a_missing_effect(tmp_path):
+    # A gyro with a 2.7 Hz vibration line that the default model lacks: the report's diagnosis
+    # must list the sinusoid as significant, with the misfit falling when it is added.
+    import re
+
+    from analysis.noise_stream import NoiseStream
+    from imunoise.cli import main
+
+    fs, n = 100.0, 40_000
+    t = np.arange(n) / fs
+    model = [("white", {"N": 3e-4}), ("random_walk", {"K": 2e-5})]
+    rate = NoiseStream(model, fs, seed=21).take(n) + 2e-3 * np.sin(2 * np.pi * 2.7 * t)
+    src = tmp_path / "vib.csv"
+    np.savetxt(src, np.column_stack([t, rate]), delimiter=",", header="t,gyro_x",
+               comments="", fmt="%.10g")
+    out = tmp_path / "vib.html"
+    assert main(["analyze", str(src), "--report", str(out)]) == 0
+    html = out.read_text()
+    p = _Collector()
+    p.feed(html)
+    text = " ".join(p.text)
+    assert "The model misses these effects" in text
+    first = text[text.index("The model misses these effects"):]
+    m = re.search(r"sinusoid\s+f = ([\d.]+), A = ([\d.]+)\s+([\d.]+) \u2192 ([\d.]+)\s+yes",
+                  first)
+    assert m, first[:400]
+    assert float(m.group(1)) == pytest.approx(2.7, abs=0.05)
+    assert float(m.group(2)) == pytest.approx(2e-3, rel=0.1)  # amplitude in rad/s
+    assert float(m.group(4)) < float(m.group(3))

@@ -4,7 +4,6 @@ MCAP recording, HTTP on 127.0.0.1, and Ctrl-C."""
 from __future__ import annotations
 
 import math
-import signal
 import subprocess
 import sys
 import time
@@ -13,7 +12,7 @@ from pathlib import Path
 import httpx
 from mcap.reader import make_reader
 
-from tests.live_helpers import free_port
+from tests.live_helpers import free_port, interrupt
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -50,12 +49,7 @@ def test_serve_answers_coefficients_within_a_minute_and_ctrl_c_closes_the_file(
         written = health["recording"]["file"]
         assert written and Path(written).parent == out
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            _, err = proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
+        err = interrupt(proc)
     assert proc.returncode == 0, err
     assert "recorded" in err
     # Closed cleanly: the file has its summary (a crashed file would not).

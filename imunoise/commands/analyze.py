@@ -11,9 +11,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from analysis.series import ChannelSeries
-from daq.readers import ReadError, open_record
-from daq.record import ChannelSelectionError, Record, select_channels
-from imunoise.errors import UsageError
+from daq.record import Record
+from imunoise.commands.common import add_rate_option, read_record, select
 from imunoise.progress import progress_bar, spinner
 
 if TYPE_CHECKING:  # scipy-backed modules load only when a command runs, not for --help
@@ -27,16 +26,6 @@ _PROGRESS_SAMPLES = 2_000_000
 _PROGRESS_FILE_BYTES = 30_000_000
 
 
-def _positive_rate(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"bad rate {text!r}: give Hz, e.g. 100") from None
-    if not value > 0 or not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"bad rate {text!r}: must be positive")
-    return value
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("analyze", help="Allan + PSD + default model fit, all channels",
                        description=__doc__)
@@ -45,8 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="channel to analyse (repeatable), e.g. gyro_x or /imu:gyro_x; "
                         "default: every IMU channel")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
-    p.add_argument("--rate", type=_positive_rate, metavar="HZ",
-                   help="sampling rate in Hz (needed for a CSV without a time column 't')")
+    add_rate_option(p)
     p.add_argument("--report", metavar="OUT.html",
                    help="also write a self-contained HTML report (plots, coefficients, "
                         "discrete-time model, diagnosis) to OUT.html")
@@ -144,18 +132,12 @@ def _read(path: str, rate_hz: float | None) -> Record:
     big = os.path.isfile(path) and os.path.getsize(path) > _PROGRESS_FILE_BYTES
     with spinner(big) as bar:
         bar.add_task(f"reading {path}", total=None)
-        try:
-            return open_record(path, rate_hz=rate_hz)
-        except ReadError as exc:
-            raise UsageError(str(exc)) from None
+        return read_record(path, rate_hz)
 
 
 def run(args: argparse.Namespace) -> int:
     record = _read(args.file, args.rate)
-    try:
-        keys = select_channels(record, args.channel)
-    except ChannelSelectionError as exc:
-        raise UsageError(str(exc)) from None
+    keys = select(record, args.channel)
     if args.report:
         from imunoise.files import check_output_folder
 

@@ -15,10 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from daq.readers import ReadError, open_record
-from daq.record import ChannelSelectionError, Record, select_channels
-from imunoise.commands.fit import _positive_rate, fit_json, fit_text
-from imunoise.errors import RuntimeFailure, UsageError
+from daq.record import Record
+from imunoise.commands.common import add_rate_option, fit_errors, open_imu_channel, parse_model
+from imunoise.commands.fit import fit_json, fit_text
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,8 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated terms of the model to test, e.g. "
                         "white,bias_instability,random_walk")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
-    p.add_argument("--rate", type=_positive_rate, metavar="HZ",
-                   help="sampling rate in Hz (needed for a CSV without a time column 't')")
+    add_rate_option(p)
     p.set_defaults(func=run)
 
 
@@ -41,30 +39,17 @@ def diagnose_channel(record: Record, key: str, model_text: str) -> Any:
 
     Raises UsageError for an unknown term or a record too short to fit."""
     from analysis.diagnosis import diagnose
-    from analysis.fit import parse_model_spec
-    from analysis.terms import TermError
 
-    try:
-        names, fixed = parse_model_spec(model_text)
-    except TermError as exc:
-        raise UsageError(str(exc)) from None
-    if not names:
-        raise UsageError("diagnose: --model names no term")
+    names, fixed = parse_model(model_text)
     series = record.series(key)
     temp = record.temperature
     temperature = None
     if temp is not None and temp.n_samples >= 2:
         temperature = (temp.t0_s + np.arange(temp.n_samples) / temp.fs_hz, temp.values)
-    try:
+    with fit_errors(key):
         return diagnose(series.values, series.fs_hz, names,
                         segment_starts=series.segment_starts, t0_s=series.t0_s,
-                        temperature=temperature, units=series.units, fixed=dict(fixed))
-    except TermError as exc:
-        raise UsageError(str(exc)) from None
-    except ValueError as exc:
-        raise UsageError(f"{key}: {exc}") from None
-    except np.linalg.LinAlgError as exc:
-        raise RuntimeFailure(f"{key}: the fit failed numerically ({exc})") from None
+                        temperature=temperature, units=series.units, fixed=fixed)
 
 
 def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
@@ -112,18 +97,8 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        record = open_record(args.file, rate_hz=args.rate)
-    except ReadError as exc:
-        raise UsageError(str(exc)) from None
-    try:
-        keys = select_channels(record, [args.channel])
-    except ChannelSelectionError as exc:
-        raise UsageError(str(exc)) from None
-    key = keys[0]
-    if key == "temp":
-        raise UsageError("diagnose: choose an IMU channel (gyro_* or accel_*), "
-                         "not the temperature")
+    parse_model(args.model)  # a misspelt term fails before a long read
+    record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose")
     diag = diagnose_channel(record, key, args.model)
     if args.json:
         from imunoise import report_json

@@ -14,6 +14,7 @@ import os
 import sys
 from pathlib import Path
 
+from imunoise.commands.common import add_rate_option, read_record
 from imunoise.errors import UsageError
 from imunoise.files import write_text_atomically
 from imunoise.kalibr import COMBINE, KalibrError, kalibr_values, render_yaml
@@ -34,8 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rostopic", default=None, metavar="NAME",
                    help="value of rostopic in the YAML (default: the recording's IMU topic, "
                         "else /imu0)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ",
-                   help="sample rate of a CSV without a time column")
+    add_rate_option(p)
     p.set_defaults(func=run)
 
 
@@ -75,13 +75,9 @@ def imu_topic(metadata: dict[str, str]) -> str | None:
 def fitted_channels(path: str, rate_hz: float | None = None) -> tuple[dict[str, dict], dict]:
     """Every inertial channel of a recording analysed as ``imunoise analyze`` does (default
     model fitted), and ``{"file", "rostopic"}`` facts of the recording."""
-    from daq.readers import ReadError, open_record
     from imunoise.commands.analyze import analysis_json, analyze_record
 
-    try:
-        record = open_record(path, rate_hz=rate_hz)
-    except ReadError as exc:
-        raise UsageError(str(exc)) from None
+    record = read_record(path, rate_hz)
     keys = [k for k, s in record.channels.items() if s.units in ("rad/s", "m/s^2")]
     doc = analysis_json(path, record, analyze_record(record, keys))
     return doc["channels"], {"file": path, "rostopic": imu_topic(record.metadata)}

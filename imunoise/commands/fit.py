@@ -13,21 +13,17 @@ from typing import Any
 
 import numpy as np
 
-from daq.readers import ReadError, open_record
-from daq.record import ChannelSelectionError, Record, select_channels
-from imunoise.errors import RuntimeFailure, UsageError
+from daq.record import Record
+from imunoise.commands.common import (
+    add_rate_option,
+    failure_lines,
+    fit_errors,
+    model_lines,
+    open_imu_channel,
+    parse_model,
+)
 
 JSON_CI = 0.95
-
-
-def _positive_rate(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"bad rate {text!r}: give Hz, e.g. 100") from None
-    if not value > 0 or not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"bad rate {text!r}: must be positive")
-    return value
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,8 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, metavar="TERMS",
                    help="comma-separated terms, e.g. white,bias_instability,random_walk")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
-    p.add_argument("--rate", type=_positive_rate, metavar="HZ",
-                   help="sampling rate in Hz (needed for a CSV without a time column 't')")
+    add_rate_option(p)
     p.set_defaults(func=run)
 
 
@@ -69,25 +64,15 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     """Fit ``model_text`` to channel ``key`` of ``record``: ``(FitResult, AllanCurve)``.
 
     Raises UsageError for an unknown term, a bad parameter or a record too short to fit."""
-    from analysis.fit import fit_series, parse_model_spec
-    from analysis.terms import TermError
+    from analysis.fit import fit_series
 
-    try:
-        names, fixed = parse_model_spec(model_text)
-    except TermError as exc:
-        raise UsageError(str(exc)) from None
+    names, fixed = parse_model(model_text)
     series = record.series(key)
     temperature = temperature_at(record, key) if "temperature" in names else None
-    try:
+    with fit_errors(key):
         return fit_series(series.values, series.fs_hz, names,
                           segment_starts=series.segment_starts, temperature=temperature,
-                          fixed=dict(fixed), ci=JSON_CI)
-    except TermError as exc:
-        raise UsageError(str(exc)) from None
-    except ValueError as exc:
-        raise UsageError(f"{key}: {exc}") from None
-    except np.linalg.LinAlgError as exc:
-        raise RuntimeFailure(f"{key}: the fit failed numerically ({exc})") from None
+                          fixed=fixed, ci=JSON_CI)
 
 
 def _z_on_curve(result: Any, curve: Any) -> np.ndarray:
@@ -105,55 +90,23 @@ def fit_fields(result: Any, curve: Any) -> dict[str, Any]:
 
 
 def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
-    """The ``fit`` JSON document of one channel."""
+    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
     from imunoise import report_json
 
     return report_json.channel_json(record.series(key), curve, channel=key,
-                                    **fit_fields(result, curve))
+                                    warnings=record.warnings, **fit_fields(result, curve))
 
 
 def fit_summary(result: Any, units: str) -> str:
     """The fitted model with its intervals, the error and the failing tau ranges."""
-    from analysis.terms import get_term, param_unit
-
-    lines = ["  model (95 % intervals)"]
-    for t in result.terms:
-        term = get_term(t.term)
-        for p in term.params:
-            v = t.params[p.name]
-            lo, hi = t.ci95[p.name]
-            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] "
-                         f"{param_unit(p, units)}")
-    lines.append(f"  error: chi2/dof = {result.chi2_per_dof:.3g}   max |z| = "
-                 f"{result.max_abs_z:.2f}   (flag |z| > {result.misfit.threshold:.2f})")
-    if result.failures:
-        lines.append("  the model fails at:")
-        for f in result.failures:
-            lo, hi = f["tau_s"]
-            lines.append(f"    tau {lo:.4g} .. {hi:.4g} s: {f['direction']} "
-                         f"(max |z| {f['max_abs_z']:.1f})")
-    else:
-        lines.append("  the model explains the curve at every tau")
-    return "\n".join(lines)
+    return "\n".join(model_lines(result, units) + failure_lines(result))
 
 
 def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
     """Readable report: model with intervals, curve against model, failing ranges, error."""
-    from analysis.terms import get_term, param_unit
-
-    u = series.units
-    lines = [f"{key}  [{u}]  fs {series.fs_hz:g} Hz  {series.n_samples:,} samples  "
+    lines = [f"{key}  [{series.units}]  fs {series.fs_hz:g} Hz  {series.n_samples:,} samples  "
              f"{series.duration_s:.1f} s"]
-    lines.append("  model (95 % intervals)")
-    for t in result.terms:
-        term = get_term(t.term)
-        for p in term.params:
-            v = t.params[p.name]
-            lo, hi = t.ci95[p.name]
-            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] "
-                         f"{param_unit(p, u)}")
-    lines.append(f"  error: chi2/dof = {result.chi2_per_dof:.3g}   max |z| = "
-                 f"{result.max_abs_z:.2f}   (flag |z| > {result.misfit.threshold:.2f})")
+    lines += model_lines(result, series.units)
     lines.append(f"    {'tau [s]':>10}  {'adev':>11}  {'low':>11}  {'high':>11}  "
                  f"{'model':>11}  {'z':>6}")
     model_adev = np.sqrt(result.model_avar(curve.tau_s))
@@ -163,29 +116,13 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
         flag = "  <" if abs(z) > result.misfit.threshold else ""
         lines.append(f"    {tau:10.4g}  {curve.dev[i]:11.4g}  {curve.ci_low[i]:11.4g}  "
                      f"{curve.ci_high[i]:11.4g}  {model_adev[i]:11.4g}  {z:6.2f}{flag}")
-    if result.failures:
-        lines.append("  the model fails at:")
-        for f in result.failures:
-            lo, hi = f["tau_s"]
-            lines.append(f"    tau {lo:.4g} .. {hi:.4g} s: {f['direction']} "
-                         f"(max |z| {f['max_abs_z']:.1f})")
-    else:
-        lines.append("  the model explains the curve at every tau")
+    lines += failure_lines(result)
     return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        record = open_record(args.file, rate_hz=args.rate)
-    except ReadError as exc:
-        raise UsageError(str(exc)) from None
-    try:
-        keys = select_channels(record, [args.channel])
-    except ChannelSelectionError as exc:
-        raise UsageError(str(exc)) from None
-    key = keys[0]
-    if key == "temp":
-        raise UsageError("fit: choose an IMU channel (gyro_* or accel_*), not the temperature")
+    parse_model(args.model)  # a misspelt term fails before a long read
+    record, key = open_imu_channel(args.file, args.rate, args.channel, "fit")
     result, curve = fit_channel(record, key, args.model)
     if args.json:
         from imunoise import report_json

@@ -7,8 +7,15 @@ import sys
 import time
 from pathlib import Path
 
+from imunoise.commands.common import positive_rate
 from imunoise.errors import RuntimeFailure, UsageError
 from imunoise.options import parse_duration
+
+
+def _default_rates() -> str:
+    from daq.devices import DEFAULT_RATES_HZ
+
+    return ", ".join(f"{name} {hz:g} Hz" for name, hz in DEFAULT_RATES_HZ.items())
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,17 +26,26 @@ Files are ROS 2 bags (sensor_msgs/msg/Imu on /DEVICE/imu, sensor_msgs/msg/Temper
 and rotated hourly, named DEVICE_YYYYmmddTHHMMSSZ.mcap (UTC start time). Ctrl-C stops cleanly.""",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", required=True, metavar="DEV",
-                   help="adis16350, itg3200, adxl345, razor, sim:adis16350 or sim:razor")
+                   help="adis16350, itg3200, adxl345, razor (ITG-3200 + ADXL345 on one bus), "
+                        "or the register-level simulators sim:adis16350, sim:razor")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--port", metavar="P", help="serial port of the SPI bridge")
-    where.add_argument("--bus", type=int, metavar="N", help="I2C bus number")
-    p.add_argument("--rate", type=float, metavar="HZ", help="sampling rate in Hz")
-    p.add_argument("--duration", metavar="D", help="stop after D (90s, 30m, 8h); default: "
-                   "until Ctrl-C")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    where.add_argument("--port", metavar="P", help="serial port of the SPI bridge (adis16350), "
+                       "e.g. /dev/ttyUSB0; no default")
+    where.add_argument("--bus", type=int, metavar="N",
+                       help="I2C bus number (itg3200, adxl345, razor), e.g. 1 for /dev/i2c-1; "
+                            "no default")
+    p.add_argument("--rate", type=positive_rate, metavar="HZ",
+                   help="sampling rate in Hz; the nearest rate the chip supports is used "
+                        f"(default {_default_rates()})")
+    p.add_argument("--duration", metavar="D",
+                   help="stop after D seconds, or with a unit (90s, 30m, 8h); default: until "
+                        "Ctrl-C")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (created if missing)")
     p.add_argument("--rotate", default="1h", metavar="D",
-                   help="start a new file after D (default 1h; 0 = never)")
-    p.add_argument("--seed", type=int, help="random seed of a simulated device")
+                   help="start a new file after D seconds or 90s, 30m, 8h "
+                        "(default 1h; 0 = never)")
+    p.add_argument("--seed", type=int, help="random seed of a simulated device (default 0)")
     p.set_defaults(func=run)
 
 
@@ -70,8 +86,9 @@ def _status_line(rec, acq, t_start: float) -> str:
 def run(args: argparse.Namespace) -> int:
     duration = parse_duration(args.duration) if args.duration else None
     rotate_s = None if args.rotate.strip() in ("0", "0s") else parse_duration(args.rotate)
-    if args.rate is not None and not args.rate > 0:
-        raise UsageError(f"bad rate {args.rate}: must be positive (Hz)")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"record: --out {out}: exists and is not a folder")
     try:
         from daq.devices import open_device
     except ImportError as exc:
@@ -99,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
                            rate_hz=getattr(acq, "rate_hz", None) or args.rate, rotate_s=rotate_s)
     except OSError as exc:
         acq.close()
-        raise RuntimeFailure(f"record: {exc.strerror or exc}") from exc
+        raise RuntimeFailure(f"record: cannot write to {out}: {exc.strerror or exc}") from exc
     tty = sys.stderr.isatty()
     t_start = time.monotonic()
     last_print = 0.0

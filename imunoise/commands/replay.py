@@ -3,12 +3,13 @@
 Blocks are handed over on the sample clock: real time by default, ``--speed X`` times faster,
 or as fast as possible with ``--speed max``. At the end a per-channel summary is printed
 (samples, duration, gaps and a white-noise density estimate from first differences).
+With ``--serve`` the rolling analyzer's results are served over HTTP instead (the API and
+dashboard of ``imunoise serve``) until Ctrl-C.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 
@@ -23,6 +24,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="times real time (default 1); 'max' or 0 for as fast as possible")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--serve", action="store_true",
+                   help="serve the API and dashboard (as imunoise serve) while replaying, "
+                        "until Ctrl-C")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="with --serve: address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000,
+                   help="with --serve: HTTP port (default 8000)")
     p.set_defaults(func=run)
 
 
@@ -50,11 +58,29 @@ def _consumers(summary):
     return consumers
 
 
+def _serve(args: argparse.Namespace, speed: float | None) -> int:
+    """``imunoise serve --replay FILE`` with the blocks paced at ``speed`` (None: unpaced)."""
+    from pathlib import Path
+
+    from imunoise.commands import serve
+
+    if not Path(args.file).exists():
+        raise UsageError(f"replay: {args.file}: no such file or directory")
+    sub = argparse.ArgumentParser(prog="imunoise").add_subparsers()
+    serve.register(sub)
+    serve_args = sub.choices["serve"].parse_args(
+        ["--replay", args.file, "--host", args.host, "--port", str(args.port)])
+    serve_args.speed = speed
+    return serve.run(serve_args)
+
+
 def run(args: argparse.Namespace) -> int:
     from daq.readers import ReadError
     from daq.replay import ReplaySummary, open_blocks, replay
 
     speed = _speed(args.speed)
+    if args.serve:
+        return _serve(args, speed)
     try:
         blocks, total = open_blocks(args.file)
     except ReadError as exc:
@@ -87,12 +113,21 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"replay: {args.file}: {exc}") from exc
     rows = summary.rows()
     if args.json:
-        print(json.dumps({"file": args.file, "channels": rows}))
+        from imunoise.report_json import dumps, number
+
+        for r in rows:
+            r["white_noise_density"] = number(r["white_noise_density"])
+        print(dumps({"file": args.file, "channels": rows}))
         return 0
     print(f"{'channel':32s} {'samples':>10s} {'duration':>10s} {'gaps':>5s}  white noise")
     for r in rows:
         n = r["white_noise_density"]
         unit = r["units"]
+        if not math.isfinite(n):
+            conv = "n/a (fewer than two samples in a row)"
+            print(f"{r['channel']:32s} {r['samples']:>10d} {r['duration_s']:>9.1f}s "
+                  f"{r['gaps']:>5d}  {conv}")
+            continue
         if unit == "rad/s":
             conv = f"{n * 180 / math.pi * 60:.4g} deg/sqrt(h)"
         elif unit == "m/s^2":

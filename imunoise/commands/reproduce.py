@@ -18,7 +18,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paper", choices=["petkov2010", "hemerly2017"], help="which paper")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
-    p.add_argument("--seed", type=int, default=None, help="seed of the simulations")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the simulations (default 2010 for petkov2010, 2017 for "
+                        "hemerly2017, so runs repeat)")
     p.set_defaults(func=run)
 
 

@@ -33,16 +33,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--replay", metavar="FILE", help="feed a recording instead of a device")
     p.add_argument("--serial", dest="serial_port", metavar="P",
                    help="serial port of the SPI bridge (ADIS16350), e.g. /dev/ttyUSB0")
-    p.add_argument("--bus", type=int, metavar="N", help="I2C bus number (ITG-3200, ADXL345)")
-    p.add_argument("--rate", type=float, metavar="HZ", help="sampling rate in Hz")
-    p.add_argument("--seed", type=int, help="simulator random seed")
+    p.add_argument("--bus", type=int, metavar="N",
+                   help="I2C bus number (ITG-3200, ADXL345), e.g. 1 for /dev/i2c-1")
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="sampling rate in Hz (default: the device's, 102.4 Hz for the "
+                        "ADIS16350, 100 Hz for the others)")
+    p.add_argument("--seed", type=int, help="simulator random seed (default 0)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1; any other needs a token)")
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
     p.add_argument("--out", metavar="DIR", help="record MCAP files here (default: no recording)")
     p.add_argument("--token", help=f"token required by changing requests (or ${TOKEN_ENV})")
     p.add_argument("--model", default="white,bias_instability,random_walk", metavar="TERMS",
-                   help="initial model (comma-separated terms)")
+                   help="initial model, comma-separated terms "
+                        "(default white,bias_instability,random_walk)")
     p.add_argument("--refit-interval", type=float, default=2.0, metavar="S",
                    help="least time between refits, s (default 2)")
     p.add_argument("--analysis-cpu", type=float, default=0.3, metavar="F",
@@ -81,6 +85,11 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
             blocks, total = open_blocks(path)
         except ReadError as exc:
             raise UsageError(f"serve: {exc}") from None
+        speed = getattr(args, "speed", None)  # set by ``imunoise replay --serve``
+        if speed is not None:
+            from daq.replay import paced
+
+            blocks = paced(blocks, speed)
         return blocks, {"spec": f"replay:{path.name}", "samples_in_file": total}, False
     spec = args.device or "sim:adis16350"
     if spec not in DEVICES:
