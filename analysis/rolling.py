@@ -1,9 +1,19 @@
 """Rolling analysis of live data: streaming Allan and PSD, the current model, refits, diagnosis.
 
+The numbers are those of the batch tools on the same samples: the Allan curve is
+:class:`analysis.streaming_allan.StreamingAllan` on the octave grid of ``imunoise fit``
+(exact up to ``m0``, strided beyond), the model is fitted by :func:`analysis.fit.fit_allan`
+and the diagnosis is :func:`analysis.diagnosis.diagnose`.
+
 :class:`RollingAnalyzer` takes blocks of samples and keeps one :class:`ChannelAnalyzer` per
-channel. Feeding (``update``) only runs the streaming estimators, which are
-vectorised and cheap; refits and diagnosis run in :meth:`ChannelAnalyzer.refresh`, which the
-caller invokes from its own thread at a bounded cadence, so acquisition never waits on a fit.
+channel. Feeding (``update``) only runs the streaming estimators, which are vectorised and
+cheap. The work that costs (fits, diagnosis) is scheduled by :meth:`RollingAnalyzer.refresh`,
+which the caller invokes from its own thread: one job at a time, channels in turn (the one
+waiting longest first), and after each job a pause long enough to keep the analysis CPU time
+under ``cpu_budget`` of one core. Routine refits start from the previous result and use
+linearised intervals; a full fit (cold start, profile-likelihood intervals: exactly what
+``imunoise fit`` does) runs at a slower cadence, on request and at the end of a replay.
+A model change refits at once.
 
 Blocks are taken structurally (anything with ``stream``, ``channels``, ``fs_hz`` and
 ``gap_before`` attributes, e.g. ``daq.blocks.SampleBlock``), so this module imports nothing from
@@ -12,27 +22,37 @@ Blocks are taken structurally (anything with ``stream``, ``channels``, ``fs_hz``
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import multiprocessing as mp
 import threading
 import time
-from collections import deque
-from collections.abc import Iterable, Sequence
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
-from analysis.live_estimators import AllanCurveData, OctaveAllan
-from analysis.live_fit import ORDER, TERMS, LiveFit, fit_model, rank_missing_terms
+from analysis.allan import AllanCurve
+from analysis.diagnosis import diagnose
+from analysis.fit import FitResult, find_line, fit_allan
 from analysis.psd import StreamingPsd
 from analysis.series import channel_units
-from analysis.terms import get_term
+from analysis.streaming_allan import StreamingAllan
+from analysis.terms import TERM_NAMES, TermError, get_term
 from analysis.units import param_units as _param_units
 
 DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
-VALID_TERMS: tuple[str, ...] = tuple(ORDER)
-# Octave Allan points needed before missing terms are ranked (a shaped term has two parameters).
-MIN_TAUS_FOR_DIAGNOSIS = 8
+# ``temperature`` needs the whole temperature record regressed out of the rate series first,
+# which a bounded-memory stream does not keep.
+VALID_TERMS: tuple[str, ...] = tuple(t for t in TERM_NAMES if t != "temperature")
+CURVE_CI = 0.95  # the band of the Allan curve, as in ``imunoise fit --json``
+OCTAVE_GRID = (1 << np.arange(41)).astype(np.int64)  # the averaging factors of ``imunoise fit``
+FULL_INTERVALS = "profile"
+QUICK_INTERVALS = "jacobian"
 
 
 class BlockLike(Protocol):
@@ -44,15 +64,16 @@ class BlockLike(Protocol):
     gap_before: int
 
 
-def model_psd(f_hz: np.ndarray, params: dict[str, dict[str, float]], fs_hz: float) -> np.ndarray:
-    """One-sided model PSD ((channel units)^2/Hz) of the fitted terms at ``f_hz``.
+def model_psd(f_hz: np.ndarray, params: Sequence[tuple[str, dict[str, float]]],
+              fs_hz: float) -> np.ndarray:
+    """One-sided model PSD ((channel units)^2/Hz) of fitted terms ``[(term, params)]``.
 
     Sinusoids are spectral lines and add nothing to the continuous spectrum drawn here.
     """
     f = np.asarray(f_hz, dtype=np.float64)
     out = np.zeros_like(f)
-    for name, p in params.items():
-        if name != "sinusoid":
+    for name, p in params:
+        if name not in ("sinusoid", "temperature"):
             out += get_term(name).psd(f, fs_hz, **p)
     return out
 
@@ -68,15 +89,236 @@ class ErrorPoint:
     n_samples: int
 
 
-def _error(fit: LiveFit | None) -> dict[str, float | None]:
+@dataclass
+class JobStats:
+    """CPU and wall time of the analysis jobs of one channel (seconds)."""
+
+    fits: int = 0
+    full_fits: int = 0
+    diagnoses: int = 0
+    last_fit_cpu_s: float = 0.0
+    last_full_cpu_s: float = 0.0
+    last_diagnosis_cpu_s: float = 0.0
+    last_fit_wall_s: float = 0.0
+
+
+def _error(fit: FitResult | None) -> dict[str, float | None]:
     if fit is None:
         return {"chi2_per_dof": None, "max_abs_z": None}
-    return {"chi2_per_dof": fit.chi2_per_dof, "max_abs_z": fit.max_abs_z}
+    return {"chi2_per_dof": _num(fit.chi2_per_dof), "max_abs_z": _num(fit.max_abs_z)}
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
 
 
 def _finite(x: Iterable[float]) -> list[float | None]:
     """A JSON-safe list: non-finite numbers become ``None``."""
     return [float(v) if math.isfinite(v) else None for v in np.asarray(list(x), dtype=float)]
+
+
+def check_terms(terms: Iterable[str]) -> None:
+    """Raise ``ValueError`` naming the valid terms when one is unknown or not live."""
+    terms = list(terms)
+    bad = [t for t in terms if t not in TERM_NAMES]
+    if bad:
+        raise ValueError(f"unknown term {', '.join(map(repr, bad))}; valid terms: "
+                         f"{', '.join(VALID_TERMS)}")
+    if "temperature" in terms:
+        raise ValueError("the temperature term needs the whole temperature record and is "
+                         "fitted by 'imunoise fit FILE --model ...,temperature'; valid live "
+                         f"terms: {', '.join(VALID_TERMS)}")
+
+
+_AMPLITUDE = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
+              "rate_ramp": "R", "gauss_markov": "sigma", "sinusoid": "A"}
+
+
+def _lifted(params: Sequence[tuple[str, dict[str, float]]], curve: AllanCurve,
+            floor: float = 1e-3, level: float = 1e-2) -> list[tuple[str, dict[str, float]]]:
+    """A warm start in which no term is negligible.
+
+    A term the previous data did not need sits at the bottom of its range, where the
+    likelihood is flat in its log-parameter and a solver started there stays. A term whose
+    Allan variance stays below ``floor`` of the measured one at every tau is raised to
+    ``level`` of it where it is most prominent, so new data can claim it (the fit lowers it
+    again if they do not)."""
+    tau = np.asarray(curve.tau_s, dtype=np.float64)
+    measured = np.asarray(curve.dev, dtype=np.float64) ** 2
+    ok = measured > 0
+    out: list[tuple[str, dict[str, float]]] = []
+    for name, p in params:
+        p = dict(p)
+        amp = _AMPLITUDE.get(name)
+        if amp is not None and ok.any():
+            ratio = float(np.max(get_term(name).avar(tau[ok], curve.fs_hz, **p) / measured[ok]))
+            if ratio < floor:
+                p[amp] *= math.sqrt(level / max(ratio, 1e-300))
+        out.append((name, p))
+    return out
+
+
+def _ordered(terms: Iterable[str]) -> list[str]:
+    chosen = set(terms)
+    return [t for t in VALID_TERMS if t in chosen]
+
+
+# --- jobs: plain functions of plain data, so they can run in a worker process ----------------
+
+def _job_fit(curve: AllanCurve, model: list[str], start: Any, line_samples: np.ndarray | None,
+             intervals: str) -> FitResult:
+    """``fit_allan`` cold (``start`` None, a sinusoid starting from the strongest line of
+    ``line_samples``) or warm."""
+    line = find_line(line_samples, curve.fs_hz) if line_samples is not None else None
+    if start is None:
+        return fit_allan(curve, model, line=line, intervals=intervals)
+    return fit_allan(curve, model, start=start, intervals=intervals)
+
+
+def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
+                       hints: dict[str, dict[str, float]],
+                       line_samples: np.ndarray | None) -> FitResult:
+    """A changed model: the cold start of ``imunoise fit`` and a warm start from the previous
+    model's parameters (``start``; a new term from ``hints`` or the spectral line); the one
+    with the smaller misfit wins (a nested model must not fit worse)."""
+    line = find_line(line_samples, curve.fs_hz) if line_samples is not None else None
+    best = fit_allan(curve, model, line=line, intervals=QUICK_INTERVALS)
+    if start is None:
+        return best
+    start = list(start)
+    have = {t for t, _ in start}
+    for term in model:
+        if term in have:
+            continue
+        if term in hints:
+            start.append((term, hints[term]))
+        elif term == "sinusoid" and line is not None and line[1] > 0:
+            start.append((term, {"A": line[1], "f": line[0]}))
+    try:
+        warm = fit_allan(curve, model, start=start, line=line, intervals=QUICK_INTERVALS)
+    except (ValueError, np.linalg.LinAlgError):
+        return best
+    return warm if warm.misfit.chi2 < best.misfit.chi2 else best
+
+
+def _job_diagnose(values: np.ndarray, fs_hz: float, model: list[str], starts: np.ndarray,
+                  units: str) -> tuple[list[dict], list[dict]]:
+    """``analysis.diagnosis.diagnose``: suggestions and the significant findings that are not
+    a term (outliers, gaps, a changing noise level), as JSON-ready dicts."""
+    result = diagnose(values, fs_hz, model, segment_starts=starts, units=units)
+    findings = [f.to_dict() for f in result.findings if f.significant and f.term is None]
+    return ([s.to_dict() for s in result.suggestions],
+            [{k: f[k] for k in ("kind", "p_value", "why", "range")} for f in findings])
+
+
+def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """``fn(*args)`` and the CPU seconds of the thread that ran it."""
+    t0 = time.thread_time()
+    out = fn(*args)
+    return out, time.thread_time() - t0
+
+
+class Runner(Protocol):
+    """Runs a job function, returns ``(result, CPU seconds)``."""
+
+    def __call__(self, fn: Callable[..., Any], *args: Any) -> tuple[Any, float]: ...
+
+
+def run_inline(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """Run a job in the calling thread."""
+    return _timed(fn, *args)
+
+
+class WorkerProcess:
+    """Runs jobs in one worker process, so a fit never holds the interpreter lock that the
+    acquisition thread needs. A worker that dies is replaced and the job retried once; if
+    the replacement dies too (e.g. a main module that cannot be imported twice), jobs run in
+    the calling thread from then on (``fallback`` says why).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pool: ProcessPoolExecutor | None = None
+        self.fallback: str | None = None
+
+    def _executor(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                # spawn, not fork: the parent runs threads (acquisition, HTTP) holding locks
+                self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+            return self._pool
+
+    def __call__(self, fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+        for _ in (0, 1):
+            if self.fallback is not None:
+                break
+            pool = self._executor()
+            try:
+                return pool.submit(_timed, fn, *args).result()
+            except BrokenProcessPool as exc:
+                with self._lock:
+                    if self._pool is pool:
+                        self._pool = None
+                last = exc
+        else:
+            self.fallback = f"the worker process died twice ({last}); fits run in-process"
+        return _timed(fn, *args)
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+class RecentSamples:
+    """The most recent ``capacity`` samples with their gap-free segment starts (bounded)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = int(capacity)
+        self._chunks: deque[tuple[bool, np.ndarray]] = deque()  # (starts a segment, values)
+        self._n = 0
+
+    def append(self, values: np.ndarray, new_segment: bool) -> None:
+        if values.size == 0:
+            return
+        if values.size >= self.capacity:
+            self._chunks.clear()
+            self._n = 0
+            values = values[-self.capacity:]
+            new_segment = True  # its beginning is not the segment's, but nothing precedes it
+        self._chunks.append((new_segment or not self._chunks, values.copy()))
+        self._n += values.size
+        while self._n > self.capacity:
+            starts, first = self._chunks[0]
+            excess = self._n - self.capacity
+            if first.size <= excess:
+                self._chunks.popleft()
+                self._n -= first.size
+                if self._chunks:
+                    self._chunks[0] = (True, self._chunks[0][1])
+            else:
+                self._chunks[0] = (True, first[excess:])
+                self._n -= excess
+
+    def series(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(values, segment_starts)`` of the window."""
+        if not self._chunks:
+            return np.zeros(0), np.zeros(1, dtype=np.int64)
+        values = np.concatenate([c for _, c in self._chunks])
+        sizes = np.array([c.size for _, c in self._chunks])
+        offsets = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+        starts = offsets[[s for s, _ in self._chunks]]
+        return values, np.asarray(starts, dtype=np.int64)
+
+    def longest_segment(self) -> np.ndarray:
+        values, starts = self.series()
+        bounds = np.append(starts, values.size)
+        k = int(np.argmax(np.diff(bounds)))
+        return values[bounds[k]:bounds[k + 1]]
+
+    def __len__(self) -> int:
+        return self._n
 
 
 class ChannelAnalyzer:
@@ -87,70 +329,127 @@ class ChannelAnalyzer:
         fs_hz: sampling rate in Hz.
         units: SI units of the values (derived from the name when omitted).
         model: initial model (term names).
-        refit_interval_s: least wall-clock time between two refits.
-        diagnosis_interval_s: least wall-clock time between two diagnoses.
+        refit_interval_s: least time between two routine refits (warm start, linearised
+            intervals) of this channel; the scheduler's CPU budget may space them further.
+        full_refit_interval_s: least time between two full fits (cold start, profile
+            intervals, as ``imunoise fit``).
+        diagnosis_interval_s: least time between two diagnoses.
         history_interval_s: least time between two error-history entries of one model
             revision (a model change always adds one).
         history_len: error history entries kept (bounded memory; 2000 entries at 10 s cover
             5.5 h, older ones are dropped).
         nperseg: PSD segment length in samples at every level of the decimation cascade.
+        recent_samples: samples kept for the diagnosis's evidence and a sinusoid's starting
+            line (bounded; 2^18 samples is 44 min at 100 Hz, 2 MB).
+        m0: largest averaging factor of the Allan curve computed on every start index.
+        runner: runs the fits and the diagnosis (:func:`run_inline`, or a
+            :class:`WorkerProcess` to keep them off the interpreter lock).
     """
 
     def __init__(self, channel: str, fs_hz: float, units: str | None = None,
                  model: Sequence[str] = DEFAULT_MODEL, refit_interval_s: float = 2.0,
-                 diagnosis_interval_s: float = 10.0, history_interval_s: float = 10.0,
-                 history_len: int = 2000,
-                 nperseg: int = 256) -> None:
+                 full_refit_interval_s: float = 60.0, diagnosis_interval_s: float = 60.0,
+                 history_interval_s: float = 10.0, history_len: int = 2000,
+                 nperseg: int = 256, recent_samples: int = 1 << 18, m0: int = 4096,
+                 runner: Runner = run_inline) -> None:
         check_terms(model)
         self.channel = channel
         self.fs_hz = float(fs_hz)
         self.units = units if units is not None else channel_units(channel)
         self.refit_interval_s = refit_interval_s
+        self.full_refit_interval_s = full_refit_interval_s
         self.diagnosis_interval_s = diagnosis_interval_s
         self.history_interval_s = history_interval_s
-        self._allan = OctaveAllan(self.fs_hz)
+        self._allan = StreamingAllan(self.fs_hz, kinds=("oadev",), m0=m0, m_grid=OCTAVE_GRID)
         self._psd = StreamingPsd(self.fs_hz, nperseg=nperseg)
+        self._recent = RecentSamples(recent_samples)
         self._lock = threading.RLock()
-        self._model = [t for t in ORDER if t in model]
+        self._fit_lock = threading.Lock()  # one fit of this channel at a time
+        self._model = _ordered(model)
         self._model_revision = 0
         self.n_samples = 0
         self.n_segments = 0
+        self._seg_len = 0
+        self._closed_segments: dict[int, int] = {}  # length in samples -> how many
         self._gap_pending = False
-        self._new_since_fit = 0
-        self._fit: LiveFit | None = None
-        self._curve: AllanCurveData | None = None
+        self._fit: FitResult | None = None
+        self._fit_intervals = ""
+        self._fit_n = -1  # samples behind the published fit
+        self._fit_wall: float | None = None
+        self._curve: AllanCurve | None = None
+        self._cache: OrderedDict[tuple[tuple[str, ...], int, str], FitResult] = OrderedDict()
         self._suggestions: list[dict] = []
+        self._findings: list[dict] = []
+        self._diag_note = ""
         self._diag_revision = -1
+        self._diag_n = -1
+        self._full_n = -1
         self._last_fit_t = -math.inf
+        self._last_full_t = -math.inf
         self._last_diag_t = -math.inf
         self._history: deque[ErrorPoint] = deque(maxlen=history_len)
+        self.stats = JobStats()
+        self.last_job_t = -math.inf  # when the scheduler last ran a job of this channel
+        self.runner = runner
+        self.job_cpu_s = 0.0  # CPU seconds of this channel's jobs, wherever they ran
         self.revision = 0  # bumps whenever published results change
 
     # --- feeding (acquisition-side, cheap) -------------------------------------------------
     def update(self, values: np.ndarray, new_segment: bool = False) -> None:
-        """Add samples (SI units). ``new_segment``: they do not follow the previous ones."""
+        """Add samples (SI units). ``new_segment``: they do not follow the previous ones.
+        Non-finite samples are a gap: the finite runs around them are separate segments."""
         v = np.asarray(values, dtype=np.float64).ravel()
         finite = np.isfinite(v)
         if finite.all():
             runs = [v]
             leading_gap = trailing_gap = False
-        else:  # non-finite samples are a gap: analyse the finite runs as separate segments
+        else:
             edges = np.flatnonzero(np.diff(np.concatenate(([0], finite.view(np.int8), [0]))))
             runs = [v[a:b] for a, b in zip(edges[0::2], edges[1::2], strict=True)]
             leading_gap, trailing_gap = not finite[0], not finite[-1]
         with self._lock:
             self._gap_pending |= new_segment or leading_gap
             for k, run in enumerate(runs):
-                if self._gap_pending or k > 0 or self.n_segments == 0:
+                starts = self._gap_pending or k > 0 or self.n_segments == 0
+                if starts:
+                    self._close_segment()
                     self._allan.new_segment()
                     self._psd.new_segment()
                     self.n_segments += 1
                     self._gap_pending = False
                 self._allan.update(run)
                 self._psd.update(run)
+                self._recent.append(run, starts)
                 self.n_samples += int(run.size)
-                self._new_since_fit += int(run.size)
+                self._seg_len += int(run.size)
             self._gap_pending |= trailing_gap
+
+    def _close_segment(self) -> None:
+        if self._seg_len:
+            self._closed_segments[self._seg_len] = self._closed_segments.get(self._seg_len, 0) + 1
+        self._seg_len = 0
+
+    def _full_counts(self, m: np.ndarray) -> np.ndarray:
+        """Differences of the full overlapping estimate at each m, pooled over segments
+        (``n + 1 - 2m`` per segment of ``n`` samples)."""
+        lengths = dict(self._closed_segments)
+        if self._seg_len:
+            lengths[self._seg_len] = lengths.get(self._seg_len, 0) + 1
+        total = np.zeros(m.size, dtype=np.int64)
+        for n, count in lengths.items():
+            total += count * np.maximum(n + 1 - 2 * m, 0)
+        return total
+
+    def curve(self) -> AllanCurve:
+        """The overlapping Allan curve of everything fed so far (octave taus, 95 % band).
+
+        Beyond ``m0`` the streaming estimate averages every d-th difference; ``n_terms``
+        reports the count of the full estimate it stands for, which is what the fit's
+        covariance needs (the deviation equals the full one to a small fraction of its
+        interval)."""
+        with self._lock:
+            c = self._allan.curve("oadev", ci=CURVE_CI)
+            return dataclasses.replace(c, n_terms=self._full_counts(np.asarray(c.m)))
 
     # --- model ---------------------------------------------------------------------------
     @property
@@ -159,25 +458,42 @@ class ChannelAnalyzer:
             return list(self._model)
 
     def set_model(self, terms: Sequence[str]) -> dict[str, Any]:
-        """Replace the model and refit now. Returns the error before and after."""
+        """Replace the model and refit now (``fit_allan``). Returns the error before and after.
+
+        Raises ``ValueError`` for an unknown term, an empty model or data too short to fit."""
         check_terms(terms)
         if not terms:
             raise ValueError("the model needs at least one term")
-        with self._lock:
-            before = _error(self._fit)
-            old = list(self._model)
-            self._model = [t for t in ORDER if t in terms]
-            if self._model != old:
+        new = _ordered(terms)
+        with self._fit_lock:
+            with self._lock:
+                before = _error(self._fit)
+                old_fit = self._fit
+                if new == self._model:
+                    return self._change_reply(before)
+                curve, n = self.curve(), self.n_samples
+            fit, intervals = None, QUICK_INTERVALS
+            if self._enough(curve, new):
+                fit, intervals = self._fit_new_model(curve, n, new, old_fit)
+            with self._lock:
+                self._model = new
                 self._model_revision += 1
-        self.refresh(force=True)
-        with self._lock:
-            return {"channel": self.channel, "model": list(self._model),
-                    "model_revision": self._model_revision,
-                    "error_before": before, "error_after": _error(self._fit)}
+                if fit is not None:
+                    self._publish(fit, curve, intervals, time.monotonic(), n)
+                self.revision += 1
+                return self._change_reply(before)
+
+    def _change_reply(self, before: dict[str, float | None]) -> dict[str, Any]:
+        return {"channel": self.channel, "model": list(self._model),
+                "model_revision": self._model_revision,
+                "error_before": before, "error_after": _error(self._fit)}
 
     def add_term(self, term: str) -> dict[str, Any]:
         check_terms([term])
-        return self.set_model(self.model + [term])
+        model = self.model
+        if term in model:
+            raise ValueError(f"term {term!r} is already in the model")
+        return self.set_model(model + [term])
 
     def remove_term(self, term: str) -> dict[str, Any]:
         check_terms([term])
@@ -186,48 +502,217 @@ class ChannelAnalyzer:
             raise ValueError(f"term {term!r} is not in the model; model: {', '.join(model)}")
         return self.set_model([t for t in model if t != term])
 
-    # --- refit and diagnosis (off the acquisition path) ----------------------------------
-    def refresh(self, force: bool = False, now: float | None = None) -> bool:
-        """Refit (and diagnose) when due. Returns whether results changed."""
+    # --- fits ----------------------------------------------------------------------------
+    def _enough(self, curve: AllanCurve, model: Sequence[str]) -> bool:
+        n_free = sum(len(get_term(t).params) for t in model)
+        return int(np.count_nonzero(curve.dev > 0)) > n_free
+
+    def _line_samples(self, model: Sequence[str]) -> np.ndarray | None:
+        """The longest recent gap-free stretch, where a sinusoid's line is looked for."""
+        if "sinusoid" not in model:
+            return None
+        with self._lock:
+            return self._recent.longest_segment()
+
+    def _run(self, fn: Callable[..., Any], *args: Any) -> Any:
+        out, cpu = self.runner(fn, *args)
+        with self._lock:
+            self.job_cpu_s += cpu
+        return out, cpu
+
+    def _cached(self, model: Sequence[str], intervals: str, n: int
+                ) -> tuple[FitResult, str] | None:
+        """A fit of ``model`` on exactly the current data (same samples), if one was made,
+        with its kind of intervals (a profile fit serves a request for linearised ones)."""
+        for kind in (FULL_INTERVALS, intervals):
+            hit = self._cache.get((tuple(model), n, kind))
+            if hit is not None:
+                return hit, kind
+        return None
+
+    def _remember(self, fit: FitResult, model: Sequence[str], n: int, intervals: str) -> None:
+        self._cache[(tuple(model), n, intervals)] = fit
+        while len(self._cache) > 16:
+            self._cache.popitem(last=False)
+
+    def _fit_new_model(self, curve: AllanCurve, n: int, model: list[str],
+                       previous: FitResult | None) -> tuple[FitResult, str]:
+        """Fit a changed model (:func:`_job_fit_new_model`), or reuse a fit of the same model
+        on the same samples."""
+        with self._lock:
+            hit = self._cached(model, QUICK_INTERVALS, n)
+        if hit is not None:
+            return hit
+        start = None
+        hints: dict[str, dict[str, float]] = {}
+        if previous is not None:
+            start = [(t, p) for t, p in previous.params if t in model]
+            hints = {t: h for t in model if (h := self._hint(t)) is not None}
+        try:
+            best, cpu = self._run(_job_fit_new_model, curve, model, start, hints,
+                                  self._line_samples(model))
+        except (ValueError, TermError, np.linalg.LinAlgError) as exc:
+            raise ValueError(f"{self.channel}: cannot fit {'+'.join(model)}: {exc}") from None
+        self.stats.last_fit_cpu_s = cpu
+        self.stats.fits += 1
+        with self._lock:
+            self._remember(best, model, n, QUICK_INTERVALS)
+        return best, QUICK_INTERVALS
+
+    def _hint(self, term: str) -> dict[str, float] | None:
+        """The diagnosis's parameters for ``term``, the start of a warm refit that adds it."""
+        with self._lock:
+            for s in self._suggestions:
+                if s.get("term") == term and s.get("params") and all(
+                        v is not None and math.isfinite(v) and v > 0
+                        for v in s["params"].values()):
+                    return dict(s["params"])
+        return None
+
+    def refit(self, full: bool = False, now: float | None = None) -> bool:
+        """Refit the current model to the current curve. Returns whether results changed.
+
+        Routine refits start from the previous result with linearised intervals; ``full``
+        fits start cold with profile-likelihood intervals, as ``imunoise fit`` does."""
+        now = time.monotonic() if now is None else now
+        with self._fit_lock:
+            with self._lock:
+                model = list(self._model)
+                revision = self._model_revision
+                previous = self._fit if self._fit is not None and \
+                    [t.term for t in self._fit.terms] == model else None
+                n = self.n_samples
+                intervals = FULL_INTERVALS if full else QUICK_INTERVALS
+                hit = self._cached(model, intervals, n)
+                self._last_fit_t = now
+                if full:
+                    self._last_full_t = now
+                # the curve of exactly these n samples (HTTP threads refit too)
+                curve = self._curve if hit is not None and self._fit_n == n else self.curve()
+            if hit is not None:
+                fit, intervals = hit
+            else:
+                if not self._enough(curve, model):
+                    return False
+                cold = full or previous is None
+                w0 = time.monotonic()
+                try:
+                    fit, cpu = self._run(
+                        _job_fit, curve, model,
+                        None if cold else _lifted(previous.params, curve),
+                        self._line_samples(model) if cold else None, intervals)
+                except (ValueError, TermError, np.linalg.LinAlgError):
+                    return False
+                self.stats.last_fit_wall_s = time.monotonic() - w0
+                if full:
+                    self.stats.full_fits += 1
+                    self.stats.last_full_cpu_s = cpu
+                else:
+                    self.stats.fits += 1
+                    self.stats.last_fit_cpu_s = cpu
+            with self._lock:
+                if revision != self._model_revision:
+                    return False  # the model changed meanwhile; that change published its fit
+                self._remember(fit, model, n, intervals)
+                if full:
+                    self._full_n = n
+                self._publish(fit, curve, intervals, now, n)
+                return True
+
+    def _publish(self, fit: FitResult, curve: AllanCurve, intervals: str, now: float,
+                 n: int | None = None) -> None:
+        """Make ``fit`` the current result (caller holds the lock)."""
+        self._fit, self._curve, self._fit_intervals = fit, curve, intervals
+        self._fit_n = self.n_samples if n is None else n
+        self._fit_wall = time.time()
+        model = [t.term for t in fit.terms]
+        last = self._history[-1] if self._history else None
+        point = ErrorPoint(self._model_revision, model, float(fit.chi2_per_dof), time.time(),
+                           self._fit_n)
+        if last is None or last.revision != self._model_revision or \
+                time.time() - last.time_s >= self.history_interval_s:
+            self._history.append(point)
+        elif len(self._history) >= 2 and self._history[-2].revision == last.revision:
+            self._history[-1] = point  # within one interval: the latest fit stands for it
+        else:
+            self._history.append(point)  # the first entry of a revision stays as it was
+        self.revision += 1
+
+    def diagnose(self, now: float | None = None) -> bool:
+        """Run :func:`analysis.diagnosis.diagnose` on the recent samples and the current
+        model. Returns whether suggestions were published."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            due = force or (self._new_since_fit > 0 and
-                            now - self._last_fit_t >= self.refit_interval_s)
-            if not due:
-                return False
-            curve = self._allan.curve()
+            self._last_diag_t = now
             model = list(self._model)
             revision = self._model_revision
-            n_samples = self.n_samples
-            self._new_since_fit = 0
-            self._last_fit_t = now
-        if curve.tau_s.size < 3:
+            values, starts = self._recent.series()
+            n = self.n_samples
+        try:
+            (suggestions, findings), cpu = self._run(_job_diagnose, values, self.fs_hz, model,
+                                                     starts, self.units)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            with self._lock:
+                if revision == self._model_revision:
+                    self._suggestions, self._findings = [], []
+                    self._diag_note = f"waiting for data: {exc}"
+                    self._diag_revision, self._diag_n = revision, n
+                    self.revision += 1
             return False
-        fit = fit_model(curve.tau_s, curve.avar, curve.edf, model, self.fs_hz)
-        diagnose = force or revision != self._diag_revision or \
-            now - self._last_diag_t >= self.diagnosis_interval_s
-        suggestions = None
-        if curve.tau_s.size < MIN_TAUS_FOR_DIAGNOSIS:
-            suggestions = []
-        elif diagnose:
-            suggestions = rank_missing_terms(curve.tau_s, curve.avar, curve.edf, model,
-                                             self.fs_hz, base=fit)
+        self.stats.last_diagnosis_cpu_s = cpu
+        self.stats.diagnoses += 1
         with self._lock:
             if revision != self._model_revision:
-                return False  # the model changed meanwhile; the next refresh publishes
-            self._fit = fit
-            self._curve = curve
-            if suggestions is not None:
-                self._suggestions = suggestions
-                self._diag_revision = revision
-                self._last_diag_t = now
-            last = self._history[-1] if self._history else None
-            if last is None or last.revision != revision or \
-                    time.time() - last.time_s >= self.history_interval_s:
-                self._history.append(ErrorPoint(revision, model, fit.chi2_per_dof,
-                                                 time.time(), n_samples))
+                return False
+            self._suggestions = suggestions
+            self._findings = findings
+            self._diag_revision = revision
+            self._diag_n = n
+            covered = values.size / self.fs_hz
+            self._diag_note = "" if values.size >= n else \
+                f"based on the most recent {covered:.0f} s of the record"
             self.revision += 1
         return True
+
+    # --- scheduling ----------------------------------------------------------------------
+    def due(self, now: float) -> tuple[float, str] | None:
+        """The most overdue job of this channel: ``(since when it is due, kind)``, or None.
+
+        Kinds: ``"full"`` (cold start, profile intervals), ``"fit"`` (warm, linearised),
+        ``"diagnose"``."""
+        with self._lock:
+            n, fitted = self.n_samples, self._fit_n
+            jobs: list[tuple[float, str]] = []
+            if n > fitted and n > 0:
+                jobs.append((self._last_fit_t + self.refit_interval_s, "fit"))
+                if n > self._full_n:
+                    jobs.append((self._last_full_t + self.full_refit_interval_s, "full"))
+            if self._fit is not None and \
+                    (self._diag_revision != self._model_revision or n > self._diag_n):
+                wait = 0.0 if self._diag_revision != self._model_revision else \
+                    self.diagnosis_interval_s
+                jobs.append((self._last_diag_t + wait, "diagnose"))
+        ready = [j for j in jobs if j[0] <= now]
+        if not ready:
+            return None
+        # a full fit supersedes a routine one that is due at the same time
+        kinds = {k for _, k in ready}
+        if "full" in kinds and "fit" in kinds:
+            ready = [j for j in ready if j[1] != "fit"]
+        return min(ready)
+
+    def run(self, kind: str, now: float | None = None) -> bool:
+        """Run one job of :meth:`due`'s kinds."""
+        self.last_job_t = time.monotonic() if now is None else now
+        if kind == "diagnose":
+            return self.diagnose(now)
+        return self.refit(full=(kind == "full"), now=now)
+
+    @property
+    def fitted(self) -> bool:
+        """Whether a fit has been published."""
+        with self._lock:
+            return self._fit is not None
 
     # --- views (JSON-ready dicts) --------------------------------------------------------
     def coefficients(self) -> dict[str, Any]:
@@ -239,17 +724,20 @@ class ChannelAnalyzer:
                 "n_samples": self.n_samples, "duration_s": self.n_samples / self.fs_hz,
                 "segments": self.n_segments, "model_revision": self._model_revision,
                 "model": [], "error": None, "failures": [],
+                "intervals": self._fit_intervals or None,
+                "fitted_samples": self._fit_n if fit is not None else 0,
+                "fitted_at": self._fit_wall,
             }
             if fit is None:
                 out["model"] = [{"term": t, "params": {}, "ci95": {}} for t in model]
                 return out
-            for term in fit.model:
-                entry: dict[str, Any] = {"term": term, "params": {}, "ci95": {}, "units": {},
+            for t in fit.terms:
+                entry: dict[str, Any] = {"term": t.term, "params": {}, "ci95": {}, "units": {},
                                          "conventional": {}}
-                for name, value in fit.params[term].items():
+                for name, value in t.params.items():
                     pu = _param_units(name, self.channel)
-                    ci = fit.ci95[term].get(name)
-                    entry["params"][name] = value
+                    ci = [float(c) for c in t.ci95[name]] if name in t.ci95 else None
+                    entry["params"][name] = float(value)
                     entry["units"][name] = pu.si
                     if ci:
                         entry["ci95"][name] = ci
@@ -257,31 +745,40 @@ class ChannelAnalyzer:
                         "value": value * pu.factor, "units": pu.conventional,
                         "ci95": [c * pu.factor for c in ci] if ci else None}
                 out["model"].append(entry)
-            out["error"] = {"chi2_per_dof": fit.chi2_per_dof, "max_abs_z": fit.max_abs_z}
+            out["error"] = _error(fit)
             out["failures"] = fit.failures
             return out
 
+    def _z_on_curve(self, fit: FitResult, curve: AllanCurve) -> np.ndarray:
+        z_map = dict(zip(np.round(fit.tau_s, 12), fit.z, strict=True))
+        return np.array([z_map.get(round(float(t), 12), np.nan) for t in curve.tau_s])
+
     def allan(self) -> dict[str, Any]:
-        """Allan deviation with its band, the model, each term's curve and the z residuals."""
+        """Allan deviation with its band, the model, each term's curve and the z residuals.
+
+        Once a fit exists this is the curve it was fitted to (at most one refit old), so the
+        band, the model and the z residuals belong together; before, the live curve."""
         with self._lock:
             curve, fit = self._curve, self._fit
-            if curve is None:
-                curve = self._allan.curve()
-                fit = None
+            if curve is None or fit is None:
+                curve, fit = self.curve(), None
+            keep = curve.dev > 0  # a constant signal has no log-scale value
+            tau = np.asarray(curve.tau_s)[keep]
             out: dict[str, Any] = {
                 "channel": self.channel, "units": self.units,
-                "tau_s": _finite(curve.tau_s), "adev": _finite(curve.dev),
-                "ci_low": _finite(curve.ci_low), "ci_high": _finite(curve.ci_high),
+                "tau_s": _finite(tau), "adev": _finite(curve.dev[keep]),
+                "ci_low": _finite(curve.ci_low[keep]), "ci_high": _finite(curve.ci_high[keep]),
                 "model": list(self._model), "model_adev": None, "terms": {}, "z": None,
                 "failures": [], "error": None,
             }
-            if fit is not None and len(fit.model_avar) == len(curve.tau_s):
-                out["model_adev"] = _finite(np.sqrt(fit.model_avar))
-                out["terms"] = {t: _finite(np.sqrt(a)) for t, a in fit.term_avar.items()}
-                out["z"] = _finite(fit.z)
+            if fit is not None:
+                out["model_adev"] = _finite(np.sqrt(fit.model_avar(tau)))
+                out["terms"] = {k: _finite(np.sqrt(v))
+                                for k, v in fit.term_avar_at(tau).items()}
+                out["z"] = _finite(self._z_on_curve(fit, curve)[keep])
                 out["failures"] = fit.failures
-                out["error"] = {"chi2_per_dof": fit.chi2_per_dof, "max_abs_z": fit.max_abs_z}
-                out["model"] = list(fit.model)
+                out["error"] = _error(fit)
+                out["model"] = [t.term for t in fit.terms]
             return out
 
     def psd(self, max_points: int = 400) -> dict[str, Any]:
@@ -306,22 +803,24 @@ class ChannelAnalyzer:
         return out
 
     def diagnosis(self) -> dict[str, Any]:
-        """The latest ranking of missing terms, best first (``note`` says why it is empty)."""
+        """The latest diagnosis of the current model, best first (``note`` says why it is
+        empty or what it rests on)."""
         with self._lock:
-            n_taus = self._curve.tau_s.size if self._curve is not None else 0
-            if n_taus < MIN_TAUS_FOR_DIAGNOSIS:
-                note = (f"waiting for data: the diagnosis needs {MIN_TAUS_FOR_DIAGNOSIS} octaves "
-                        f"of averaging time, the data so far give {n_taus}")
-            elif len(self._model) == len(ORDER):
-                note = "every term is already in the model"
+            suggestions: list[dict] = []
+            if self._fit is None:
+                note = "waiting for data: no fit yet"
+            elif self._diag_revision != self._model_revision:
+                note = "waiting for the diagnosis of the current model"
             else:
-                note = ""
+                note = self._diag_note
+                suggestions = [dict(s) for s in self._suggestions
+                               if s["term"] not in self._model]
+                if not suggestions and not note:
+                    note = "every term is already in the model"
             return {"channel": self.channel, "model": list(self._model), "note": note,
-                    "model_revision": self._model_revision,
-                    "error": ({"chi2_per_dof": self._fit.chi2_per_dof,
-                               "max_abs_z": self._fit.max_abs_z} if self._fit else None),
-                    "suggestions": [dict(s) for s in self._suggestions
-                                    if s["term"] not in self._model]}
+                    "model_revision": self._model_revision, "error": _error(self._fit)
+                    if self._fit is not None else None,
+                    "suggestions": suggestions, "findings": list(self._findings)}
 
     def history(self) -> list[dict[str, Any]]:
         """Error history: (model revision, model, chi2 per dof, wall time, samples)."""
@@ -330,28 +829,42 @@ class ChannelAnalyzer:
                      "time_s": p.time_s, "n_samples": p.n_samples} for p in self._history]
 
 
-def check_terms(terms: Iterable[str]) -> None:
-    """Raise ``ValueError`` naming the valid terms when one is unknown."""
-    bad = [t for t in terms if t not in TERMS]
-    if bad:
-        raise ValueError(f"unknown term {', '.join(map(repr, bad))}; valid terms: "
-                         f"{', '.join(VALID_TERMS)}")
-
-
 class RollingAnalyzer:
-    """One :class:`ChannelAnalyzer` per analysable channel of the blocks fed.
+    """One :class:`ChannelAnalyzer` per analysable channel of the blocks fed, and the
+    scheduler of their fits.
 
     Channels named ``gyro_*`` and ``accel_*`` are analysed; a channel name already taken by
     another stream is keyed ``STREAM:NAME``.
+
+    Args:
+        model: initial model of every channel.
+        cpu_budget: fraction of one core the fits and diagnoses may use on average; after a
+            job of ``c`` CPU seconds the next starts no sooner than ``c / cpu_budget`` after
+            it began.
+        workers: ``"inline"`` (jobs run in the calling thread) or ``"process"`` (in one
+            worker process, off the interpreter lock of the acquisition; call :meth:`close`).
+        **analyzer_kwargs: passed to each :class:`ChannelAnalyzer`.
     """
 
-    def __init__(self, model: Sequence[str] = DEFAULT_MODEL, **analyzer_kwargs: Any) -> None:
+    def __init__(self, model: Sequence[str] = DEFAULT_MODEL, cpu_budget: float = 0.3,
+                 workers: str = "inline", **analyzer_kwargs: Any) -> None:
         check_terms(model)
+        if not 0 < cpu_budget <= 1:
+            raise ValueError(f"cpu_budget must be in (0, 1], got {cpu_budget}")
+        if workers not in ("inline", "process"):
+            raise ValueError(f"workers must be 'inline' or 'process', got {workers!r}")
+        self._worker = WorkerProcess() if workers == "process" else None
+        analyzer_kwargs.setdefault("runner", self._worker or run_inline)
         self._model = list(model)
         self._kwargs = analyzer_kwargs
+        self.cpu_budget = cpu_budget
         self._lock = threading.Lock()
         self._analyzers: dict[str, ChannelAnalyzer] = {}
         self._keys: dict[tuple[str, str], str] = {}
+        self._next_job_t = -math.inf
+        self._job_cpu = 0.0
+        self._job_wall = 0.0
+        self._jobs: deque[tuple[float, str, str, float]] = deque(maxlen=256)
 
     def update(self, block: BlockLike) -> None:
         """Route a block's channels to their analyzers (new segment after a gap)."""
@@ -387,13 +900,70 @@ class RollingAnalyzer:
             return self._analyzers[channel]
 
     def refresh(self, force: bool = False) -> bool:
-        """Refit every channel that is due. Returns whether anything changed."""
+        """Run the most overdue job of any channel, if the CPU budget allows one now.
+
+        ``force``: bring every channel up to date at once, ignoring the budget (a full fit
+        and a diagnosis each; used at the end of a replay). Returns whether anything
+        changed."""
         with self._lock:
             analyzers = list(self._analyzers.values())
-        changed = False
-        for a in analyzers:
-            changed |= a.refresh(force=force)
+        if force:
+            changed = False
+            for a in analyzers:
+                changed |= a.refit(full=True)
+                if a.fitted:
+                    changed |= a.diagnose()
+            return changed
+        now = time.monotonic()
+        if now < self._next_job_t:
+            return False
+        # channels in turn: the one whose last job is oldest, then its most overdue job
+        due = [(a.last_job_t, d, a) for a in analyzers if (d := a.due(now)) is not None]
+        if not due:
+            return False
+        _, (_, kind), a = min(due, key=lambda x: (x[0], x[1]))
+        t0, w0, j0 = time.thread_time(), time.monotonic(), a.job_cpu_s
+        changed = a.run(kind, now)
+        wall = time.monotonic() - w0
+        # this thread's CPU (curve, bookkeeping) plus the job's, wherever it ran
+        cpu = time.thread_time() - t0 + (a.job_cpu_s - j0 if self._worker else 0.0)
+        with self._lock:
+            self._next_job_t = w0 + cpu / self.cpu_budget
+            self._job_cpu += cpu
+            self._job_wall += wall
+            self._jobs.append((time.time(), a.channel, kind, cpu))
         return changed
+
+    def stats(self) -> dict[str, Any]:
+        """What the scheduler did: CPU per job kind, jobs per minute, the refit period."""
+        with self._lock:
+            jobs = list(self._jobs)
+            analyzers = list(self._analyzers.values())
+            total_cpu = self._job_cpu
+        now = time.time()
+        recent = [j for j in jobs if now - j[0] <= 60.0]
+        per_kind: dict[str, list[float]] = {}
+        for _, _, kind, cpu in jobs:
+            per_kind.setdefault(kind, []).append(cpu)
+        fits = sorted(j[0] for j in jobs if j[2] in ("fit", "full"))
+        period = None
+        if len(fits) >= 2 and analyzers:
+            period = (fits[-1] - fits[0]) / (len(fits) - 1) * len(analyzers)
+        return {
+            "workers": "inline" if self._worker is None else
+            ("process" if self._worker.fallback is None else "inline (worker failed)"),
+            "cpu_budget": self.cpu_budget,
+            "cpu_s_total": total_cpu,
+            "cpu_fraction_last_minute": sum(j[3] for j in recent) / 60.0,
+            "jobs_last_minute": len(recent),
+            "median_cpu_s": {k: float(np.median(v)) for k, v in per_kind.items()},
+            "refit_period_s": period,
+        }
+
+    def close(self) -> None:
+        """Stop the worker process, if any."""
+        if self._worker is not None:
+            self._worker.close()
 
     @property
     def revision(self) -> int:

@@ -6,8 +6,8 @@ Three roles, two threads:
   file) and hands each one to the recorder and to a queue for the analyzer. It never waits on
   analysis or HTTP: for a live device the queue is large and ``put_nowait`` is used, so a stalled
   analyzer costs analysis coverage (counted in ``health()``) but never a recorded sample;
-- the *analysis thread* drains the queue into a :class:`analysis.rolling.RollingAnalyzer` and refits
-  at the analyzers' own bounded cadence;
+- the *analysis thread* drains the queue into a :class:`analysis.rolling.RollingAnalyzer` and
+  runs its fits and diagnoses one at a time, within the analyzer's CPU budget;
 - HTTP handlers only read published results (and change a model, which refits that channel).
 """
 
@@ -119,6 +119,9 @@ class LiveService:
                 pass
         for t in self._threads:
             t.join(timeout)
+        closer = getattr(self.analyzers, "close", None)
+        if callable(closer):
+            closer()
         for sink in self.sinks:
             try:
                 sink.close()
@@ -250,6 +253,7 @@ class LiveService:
             "last_block_age_s": (now - last) if last else None,
             "recording": {"file": self.current_file(), "sink_errors": self.sink_errors},
             "channels": self.analyzers.channels,
+            "analysis": _jsonable(self.analyzers.stats()),
             "error": self.error,
         }
 

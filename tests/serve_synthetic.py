@@ -17,6 +17,7 @@ import uvicorn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from analysis.rolling import RollingAnalyzer  # noqa: E402
 from imunoise.live import LiveService  # noqa: E402
 from tests.live_helpers import CountingSink, SyntheticImu  # noqa: E402
 from web.app import create_app  # noqa: E402
@@ -26,7 +27,9 @@ def main() -> None:
     port, rate = int(sys.argv[1]), float(sys.argv[2])
     source = SyntheticImu(fs_hz=rate, block=max(1, int(rate / 20)), pace=True, seed=11)
     sink = CountingSink()
-    service = LiveService(source, sinks=[sink], realtime=True).start()
+    # as ``imunoise serve``: fits and diagnoses in a worker process
+    service = LiveService(source, RollingAnalyzer(workers="process"), sinks=[sink],
+                          realtime=True).start()
     server = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=port,
                                            log_level="warning", timeout_graceful_shutdown=1))
 

@@ -8,6 +8,7 @@ import math
 import httpx
 import pytest
 
+from analysis.fit import fit_allan
 from imunoise.cli import main
 from imunoise.live import LiveService
 from tests.live_helpers import SINE_A, SINE_F, SyntheticImu, running_server
@@ -92,11 +93,21 @@ def test_diagnosis_then_add_the_suggestion_and_error_falls(client) -> None:
     top = d["suggestions"][0]
     assert top["term"] == "sinusoid" and top["significant"]
     assert top["params"]["A"] == pytest.approx(SINE_A, rel=0.1)
+    # gyro_y is white noise and random walk: the default model leaves nothing significant
+    dy = client.get("/diagnosis", params={"channel": "gyro_y"}).json()
+    assert dy["suggestions"] and not [s for s in dy["suggestions"] if s["significant"]]
+    m0 = client.get("/model", params={"channel": "gyro_x"}).json()
+    assert "sinusoid" in m0["valid_terms"] and "temperature" not in m0["valid_terms"]
     r = client.post("/model", json={"channel": "gyro_x", "add": "sinusoid"})
     assert r.status_code == 200, r.text
     change = r.json()
     assert change["error_before"]["chi2_per_dof"] == pytest.approx(d["error"]["chi2_per_dof"])
     assert change["error_after"]["chi2_per_dof"] < change["error_before"]["chi2_per_dof"] / 10
+    c = client.get("/coefficients").json()["channels"]["gyro_x"]
+    assert c["error"] == change["error_after"]
+    sine = next(t for t in c["model"] if t["term"] == "sinusoid")
+    assert sine["params"]["f"] == pytest.approx(SINE_F, rel=0.01)  # Allan fit, octave taus
+    assert sine["params"]["A"] == pytest.approx(SINE_A, rel=0.05)
     m = client.get("/model", params={"channel": "gyro_x"}).json()
     assert "sinusoid" in m["model"] and m["model_revision"] == 1
     assert [h["revision"] for h in m["history"]][-2:] == [0, 1]
@@ -104,6 +115,22 @@ def test_diagnosis_then_add_the_suggestion_and_error_falls(client) -> None:
     assert r.status_code == 200
     assert r.json()["error_after"]["chi2_per_dof"] == pytest.approx(
         change["error_before"]["chi2_per_dof"], rel=1e-9)
+
+
+def test_refit_on_request_gives_the_profile_intervals_of_imunoise_fit(service, client) -> None:
+    r = client.post("/refit", json={"channel": "gyro_y", "intervals": "profile"})
+    assert r.status_code == 200, r.text
+    live = r.json()
+    assert live["intervals"] == "profile" and live["fitted_samples"] == N_BLOCKS * 1000
+    ref = fit_allan(service.analyzers.get("gyro_y").curve(),
+                    "white,bias_instability,random_walk")
+    for got, want in zip(live["model"], ref.terms, strict=True):
+        assert got["term"] == want.term
+        for k, v in want.params.items():
+            assert got["params"][k] == pytest.approx(v, rel=1e-6)
+    assert client.post("/refit", json={"channel": "gyro_y", "intervals": "exact"}
+                       ).status_code == 422
+    assert client.get("/health").json()["analysis"]["cpu_budget"] == 0.3
 
 
 @pytest.mark.parametrize(("method", "path", "body", "status", "message"), [

@@ -24,6 +24,7 @@ from imunoise import __version__
 from imunoise.live import LiveService
 from web.models import (
     AllanCurve,
+    ChannelCoefficients,
     Coefficients,
     Diagnosis,
     Health,
@@ -31,6 +32,7 @@ from web.models import (
     ModelChangeRequest,
     ModelState,
     PsdCurve,
+    RefitRequest,
 )
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -124,7 +126,7 @@ def create_app(service: LiveService, token: str | None = None,
         return analyzer(channel).psd()
 
     @app.get("/diagnosis", response_model=Diagnosis,
-             summary="missing terms ranked by how much they would lower the error")
+             summary="missing terms, most significant first, with the error each would leave")
     async def diagnosis(channel: str | None = Query(None)) -> dict[str, Any]:
         return analyzer(channel).diagnosis()
 
@@ -151,6 +153,14 @@ def create_app(service: LiveService, token: str | None = None,
         except ValueError as exc:
             raise HTTPException(400, str(exc)) from None
         return result
+
+    @app.post("/refit", response_model=ChannelCoefficients,
+              dependencies=[Depends(require_token)],
+              summary="refit a channel now; 'profile' gives the intervals of imunoise fit")
+    def post_refit(req: RefitRequest) -> dict[str, Any]:
+        a = analyzer(req.channel)
+        a.refit(full=req.intervals == "profile")
+        return a.coefficients()
 
     @app.get("/events", summary="server-sent events: 'update' whenever results change")
     async def events(request: Request) -> StreamingResponse:

@@ -49,6 +49,12 @@ class ChannelCoefficients(BaseModel):
     model: list[Term]
     error: Error | None
     failures: list[Failure]
+    intervals: str | None = Field(
+        None, description="how the 95 % intervals were computed: 'profile' (profile "
+                          "likelihood, as imunoise fit) or 'jacobian' (linearised, routine "
+                          "refits)")
+    fitted_samples: int = Field(0, description="samples the published fit rests on")
+    fitted_at: float | None = Field(None, description="UNIX time of the published fit, s")
 
 
 class Coefficients(BaseModel):
@@ -85,10 +91,21 @@ class PsdCurve(BaseModel):
 
 class Suggestion(BaseModel):
     term: str
-    params: dict[str, float]
-    chi2_per_dof_after: float
+    params: dict[str, float | None]
+    ci95: dict[str, list[float | None]] = Field(default_factory=dict)
+    chi2_per_dof_before: float | None = None
+    chi2_per_dof_after: float | None
     significant: bool
+    p_value: float | None = Field(None, description="corrected for the number of candidates")
     why: str
+    evidence: list[str] = Field(default_factory=list)
+
+
+class Finding(BaseModel):
+    kind: str
+    p_value: float
+    why: str
+    range: dict[str, list[float]] = Field(default_factory=dict)
 
 
 class Diagnosis(BaseModel):
@@ -98,6 +115,9 @@ class Diagnosis(BaseModel):
     model_revision: int
     error: Error | None
     suggestions: list[Suggestion]
+    findings: list[Finding] = Field(
+        default_factory=list, description="outliers, gaps, a changing noise level: why a "
+                                          "model can look wrong without a missing term")
 
 
 class HistoryPoint(BaseModel):
@@ -134,6 +154,14 @@ class ModelChangeRequest(BaseModel):
         return self
 
 
+class RefitRequest(BaseModel):
+    """Refit one channel now (``profile``: cold start and profile intervals, as imunoise fit)."""
+
+    model_config = ConfigDict(extra="forbid")
+    channel: str
+    intervals: str = Field("profile", pattern="^(profile|jacobian)$")
+
+
 class ModelChange(BaseModel):
     channel: str
     model: list[str]
@@ -152,4 +180,7 @@ class Health(BaseModel):
     last_block_age_s: float | None
     recording: dict[str, Any]
     channels: list[str]
+    analysis: dict[str, Any] | None = Field(
+        None, description="fit scheduler: CPU budget and use, median CPU s per job kind, "
+                          "refit period per channel")
     error: str | None

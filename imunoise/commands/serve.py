@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default white,bias_instability,random_walk)")
     p.add_argument("--refit-interval", type=float, default=2.0, metavar="S",
                    help="least time between refits, s (default 2)")
+    p.add_argument("--analysis-cpu", type=float, default=0.3, metavar="F",
+                   help="fraction of one core the fits and diagnoses may use on average; "
+                        "their cadence adapts to it (default 0.3)")
     p.set_defaults(func=run)
 
 
@@ -168,6 +171,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"serve: {exc}") from None
     if args.refit_interval <= 0:
         raise UsageError("serve: --refit-interval must be positive")
+    if not 0 < args.analysis_cpu <= 1:
+        raise UsageError(f"serve: --analysis-cpu must be in (0, 1], got {args.analysis_cpu:g}")
 
     source, info, realtime = open_source(args)
     sinks = []
@@ -180,7 +185,8 @@ def run(args: argparse.Namespace) -> int:
             raise
         sinks.append(RecorderSink(recorder, source))
     service = LiveService(
-        source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval), sinks=sinks,
+        source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval,
+                                cpu_budget=args.analysis_cpu, workers="process"), sinks=sinks,
         device=info, realtime=realtime,
         current_file=(lambda: recorder.stats.file or None) if recorder else None)
     app = create_app(service, token=token,

@@ -57,9 +57,12 @@ function drawAllan(a) {
   if (a.model_adev) {
     series.push({ label: "model", stroke: "#000", width: 2 });
     data.push(a.model_adev);
+    // A term the data do not need sits near zero: draw only where it is within two decades
+    // of the measurement, so the log axis keeps to the data.
+    const floor = 1e-2 * Math.min(...a.adev.filter((v) => v > 0));
     Object.entries(a.terms).forEach(([name, ys], i) => {
       series.push({ label: name, stroke: COLORS[i % COLORS.length], width: 1, dash: [6, 4] });
-      data.push(ys.map((v) => (v > 0 ? v : null)));
+      data.push(ys.map((v) => (v > floor ? v : null)));
     });
   }
   plot("allan-plot", {
@@ -116,6 +119,9 @@ function drawCoefficients(c) {
     }
   }
   document.querySelector("#coefficients tbody").innerHTML = rows.join("");
+  $("fit-info").textContent = c.intervals ?
+    `fit of ${c.fitted_samples.toLocaleString()} samples, ` +
+    `${c.intervals === "profile" ? "profile-likelihood" : "linearised"} intervals` : "no fit yet";
   $("record-info").textContent = `${c.n_samples.toLocaleString()} samples, ` +
     `${fmt(c.duration_s, 4)} s analysed in ${c.segments} segment(s) at ${fmt(c.fs_hz)} Hz`;
 }
@@ -127,6 +133,8 @@ function drawModel(m) {
   $("model-terms").innerHTML = m.model.map((t) =>
     `<span class="term">${t} <button class="remove-term" data-term="${t}" title="remove">×</button></span>`
   ).join("");
+  $("add-any").innerHTML = m.valid_terms.filter((t) => !m.model.includes(t)).map((t) =>
+    `<button class="add-any" data-term="${t}">+ ${t}</button>`).join("");
   const h = m.history;
   $("history").innerHTML = h.slice(-12).reverse().map((p) =>
     `<li>rev ${p.revision}: χ²/dof ${fmt(p.chi2_per_dof)} [${p.model.join(", ")}]</li>`).join("");
@@ -144,12 +152,14 @@ function drawDiagnosis(d) {
     const ps = Object.entries(s.params).map(([k, v]) => `${k} = ${fmt(v)}`).join(", ");
     return `<li><button class="add-term" data-term="${s.term}">Add ${s.term}</button>
       <span class="${s.significant ? "sig" : ""}">${s.significant ? "significant" : "not significant"}</span>:
-      χ²/dof after ${fmt(s.chi2_per_dof_after)} (${ps})<span class="why">${s.why}</span></li>`;
+      χ²/dof after ${fmt(s.chi2_per_dof_after)}${s.p_value !== null && s.p_value !== undefined ? `, p = ${fmt(s.p_value, 2)}` : ""} (${ps})<span class="why">${s.why}</span></li>`;
   });
+  const found = (d.findings || []).map((f) => `<li class="finding">${f.why}</li>`);
+  items.push(...found);
   const note = document.createElement("li");
   note.textContent = d.note || "no candidate terms left";
   $("suggestions").innerHTML = items.join("");
-  if (!items.length) $("suggestions").appendChild(note);
+  if (!d.suggestions.length || d.note) $("suggestions").appendChild(note);
 }
 
 async function refresh() {
@@ -195,7 +205,9 @@ async function changeModel(body) {
 document.addEventListener("click", (ev) => {
   const b = ev.target.closest("button");
   if (!b) return;
-  if (b.classList.contains("add-term")) changeModel({ add: b.dataset.term });
+  if (b.classList.contains("add-term") || b.classList.contains("add-any")) {
+    changeModel({ add: b.dataset.term });
+  }
   if (b.classList.contains("remove-term")) changeModel({ remove: b.dataset.term });
 });
 $("channel").addEventListener("change", (ev) => { state.channel = ev.target.value; refresh(); });
