@@ -314,7 +314,7 @@ def fit_likelihood(values: np.ndarray, fs_hz: float, names: Sequence[str],
     theta, best = _minimise(nll, theta0, lo_a, hi_a)
     # amplitudes the Allan fit set near zero get a second start, as the likelihood surface
     # of weakly identified terms has a valley along the trade-off between them
-    for j, (i, k) in enumerate(keys):
+    for j, (_, k) in enumerate(keys):
         if k in ("sigma", "K"):
             alt = theta.copy()
             alt[j] = min(theta[j] + 2.0, hi_a[j] - 1e-6)
@@ -347,7 +347,7 @@ def _minimise(fun, theta0: np.ndarray, lo: np.ndarray, hi: np.ndarray
               ) -> tuple[np.ndarray, float]:
     if theta0.size == 0:
         return theta0, fun(theta0)
-    sol = optimize.minimize(fun, theta0, method="L-BFGS-B", bounds=list(zip(lo, hi)),
+    sol = optimize.minimize(fun, theta0, method="L-BFGS-B", bounds=list(zip(lo, hi, strict=True)),
                             options={"maxiter": 200})
     th = sol.x
     # polish with Nelder-Mead: the surface is flat along sigma-K trade-offs
@@ -394,7 +394,7 @@ def _profile(fun, theta: np.ndarray, best: float, j: int, lo: np.ndarray, hi: np
             return fun(t2)
 
         sol = optimize.minimize(sub, guess, method="L-BFGS-B",
-                                bounds=list(zip(lo[others], hi[others])),
+                                bounds=list(zip(lo[others], hi[others], strict=True)),
                                 options={"maxiter": 100})
         return float(sol.fun) - best, sol.x
 
@@ -427,3 +427,41 @@ def _profile(fun, theta: np.ndarray, best: float, j: int, lo: np.ndarray, hi: np
                 inside, guess = mid, g
         out.append(0.5 * (inside + outside))
     return out[0], out[1]
+
+
+def fisher_information(model: Model, fs_hz: float, n_samples: int, keys: Sequence[tuple[int, str]],
+                       block: int | None = None, step: float = 1e-5) -> np.ndarray:
+    """Expected Fisher information of the log-parameters ``keys`` for a gap-free record of
+    ``n_samples`` samples under ``model``, from the exact block-mean likelihood:
+    ``0.5 tr(S^-1 dS_i S^-1 dS_j)`` for the differenced block means plus the chi-square
+    information of the within-block sum of squares. Its inverse is the Cramer-Rao bound of
+    any unbiased estimator using the reduced record (blocks short enough that the non-white
+    terms are negligible inside them lose almost nothing: see :func:`choose_block`)."""
+    base = [(n, dict(p)) for n, p in model]
+    m = int(block) if block else choose_block(base, fs_hz, n_samples)
+    nb = n_samples // m
+    nz = nb - 1
+
+    def moved(j: int, h: float) -> list[tuple[str, dict[str, float]]]:
+        out = [(n, dict(p)) for n, p in base]
+        i, k = keys[j]
+        out[i][1][k] *= math.exp(h)
+        return out
+
+    s_inv = np.linalg.inv(linalg.toeplitz(diff_block_acov(base, fs_hz, m, nz - 1)))
+    d_s, d_w = [], []
+    for j in range(len(keys)):
+        up, dn = moved(j, step), moved(j, -step)
+        d_s.append((linalg.toeplitz(diff_block_acov(up, fs_hz, m, nz - 1))
+                    - linalg.toeplitz(diff_block_acov(dn, fs_hz, m, nz - 1))) / (2 * step))
+        d_w.append((math.log(within_block_ss(up, fs_hz, m))
+                    - math.log(within_block_ss(dn, fs_hz, m))) / (2 * step))
+    a = [s_inv @ d for d in d_s]
+    dof = nb * (m - 1)
+    k = len(keys)
+    info = np.empty((k, k))
+    for i in range(k):
+        for j in range(i, k):
+            info[i, j] = info[j, i] = (0.5 * float(np.sum(a[i] * a[j].T))
+                                       + 0.5 * dof * d_w[i] * d_w[j])
+    return info
