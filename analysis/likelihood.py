@@ -247,9 +247,12 @@ class LikelihoodFit:
     keys: list[tuple[int, str]]
 
 
-def _bounds(name: str, pname: str, fs: float, duration: float) -> tuple[float, float]:
+def _bounds(name: str, pname: str, fs: float, duration: float, m: int
+            ) -> tuple[float, float]:
     if pname == "T":
-        return math.log(0.2 / fs), math.log(max(50.0 * duration, 1.0 / fs))
+        # a correlation time shorter than a block looks like white noise inside the blocks,
+        # which the within-block part does not resolve
+        return math.log(m / fs), math.log(max(50.0 * duration, 2.0 * m / fs))
     return math.log(1e-30), math.log(1e6)
 
 
@@ -292,7 +295,7 @@ def fit_likelihood(values: np.ndarray, fs_hz: float, names: Sequence[str],
             if (i, pname) in fixed:
                 continue
             keys.append((i, pname))
-            b = _bounds(n, pname, fs, duration)
+            b = _bounds(n, pname, fs, duration, m)
             lo.append(b[0])
             hi.append(b[1])
     lo_a, hi_a = np.array(lo), np.array(hi)
