@@ -6,9 +6,11 @@ The paper's Allan-asymptote reading missed N, B, K by 2.6 %, 22.5 % and 18.2 %. 
 only ten correlation times long: the Markov hump (near 190 s) and the random walk share the
 last two octaves of the curve, whose estimates have 4-10 degrees of freedom, so sigma and K
 trade against each other (Hemerly finds the same with ARMA and Kalman methods). N is beaten
-by an order of magnitude; the sigma and K targets are not reached and are kept as expected
-failures (strict: they turn into errors the day the estimator does better). Figures:
-docs/fit.md.
+by an order of magnitude. The sigma and K targets are out of reach of any unbiased estimator:
+the Cramer-Rao bound of the exact Gaussian model at this record length puts the spread of
+ln(sigma) near 0.9 and of ln(K) near 1.4 (0.43 and 1.03 with T known), i.e. median errors of
+60-90 %, which the test below asserts. The K interval coverage shortfall is kept as a strict
+expected failure. Figures: docs/fit.md.
 """
 
 import math
@@ -17,6 +19,7 @@ import numpy as np
 import pytest
 
 from analysis.fit import fit_allan
+from analysis.likelihood import fisher_information
 from analysis.noise_stream import NoiseStream
 from tests._avar_batch import Curve
 
@@ -62,9 +65,19 @@ def test_random_walk_interval_coverage(monte_carlo):
     assert 0.90 <= coverage["K"] <= 0.98, coverage
 
 
-@pytest.mark.xfail(strict=True, reason="sigma and K are not separable in a 1000 s record "
-                   "(median errors about 30 % and 90 %)")
-@pytest.mark.parametrize(("param", "paper"), [("sigma", 0.225), ("K", 0.182)])
-def test_bias_and_random_walk_beat_the_paper(monte_carlo, param, paper):
-    median, _ = monte_carlo
-    assert median[param] < paper, median
+def test_sigma_and_k_targets_lie_beyond_the_cramer_rao_bound():
+    """The paper's sigma and K errors are below what any unbiased estimator can reach in
+    1000 s: the Fisher information of the exact Gaussian model (block-mean likelihood, which
+    loses almost nothing at this block length) bounds the spread of ln(sigma) and ln(K)."""
+    keys = [(0, "N"), (1, "sigma"), (1, "T"), (2, "K")]
+    info = fisher_information(MODEL, 100.0, 100_000, keys, block=256)
+    sd = np.sqrt(np.diag(np.linalg.inv(info)))
+    # median |relative error| of an efficient unbiased log-normal estimate: ~0.674 sd
+    median_bound = 0.6745 * sd
+    assert median_bound[0] < 0.026  # N: the target is well inside the bound
+    assert median_bound[1] > 2.0 * 0.225, sd  # sigma
+    assert median_bound[3] > 2.0 * 0.182, sd  # K
+    # with T known the bound is tighter but still beyond the paper's errors
+    kept = [0, 1, 3]
+    sd_t = np.sqrt(np.diag(np.linalg.inv(info[np.ix_(kept, kept)])))
+    assert 0.6745 * sd_t[1] > 0.225 and 0.6745 * sd_t[2] > 0.182, sd_t
