@@ -3,9 +3,11 @@ MCAP recording, HTTP on 127.0.0.1, and Ctrl-C."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -48,9 +50,27 @@ def test_serve_answers_coefficients_within_a_minute_and_ctrl_c_closes_the_file(
         assert health["device"]["state"] == "running"
         written = health["recording"]["file"]
         assert written and Path(written).parent == out
+        # A dashboard stays connected to the event stream while the user presses Ctrl-C.
+        events_seen = threading.Event()
+
+        def listen() -> None:
+            with contextlib.suppress(httpx.HTTPError), httpx.stream(
+                    "GET", base + "/events", timeout=30) as response:
+                for line in response.iter_lines():
+                    if line.startswith("event: update"):
+                        events_seen.set()
+
+        listener = threading.Thread(target=listen, daemon=True)
+        listener.start()
+        assert events_seen.wait(20), "no update event on /events"
     finally:
+        t_stop = time.monotonic()
         err = interrupt(proc)
     assert proc.returncode == 0, err
+    assert "Traceback" not in err and "graceful shutdown exceeded" not in err, err
+    assert time.monotonic() - t_stop < 15, "Ctrl-C with an open event stream took too long"
+    listener.join(5)
+    assert not listener.is_alive(), "the event stream stayed open after the server stopped"
     assert "recorded" in err
     # Closed cleanly: the file has its summary (a crashed file would not).
     with open(written, "rb") as f:

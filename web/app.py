@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import hmac
 import json
+import threading
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -67,6 +68,9 @@ def create_app(service: LiveService, token: str | None = None,
                               "inertial sensor. Values in SI units unless labelled.")
     app.state.service = service
     app.state.closing = closing
+    # Set by the server when a stop is requested: the event streams end at once instead of
+    # holding the graceful shutdown open (the lifespan's ``closing`` comes only after it).
+    app.state.stop_streams = threading.Event()
 
     def require_token(request: Request) -> None:
         if token is None:
@@ -168,7 +172,7 @@ def create_app(service: LiveService, token: str | None = None,
             last = None
             yield "retry: 2000\n\n"
             idle = 0.0
-            while not app.state.closing.is_set():
+            while not (app.state.closing.is_set() or app.state.stop_streams.is_set()):
                 if await request.is_disconnected():
                     break
                 rev = service.revision

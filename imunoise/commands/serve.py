@@ -153,6 +153,19 @@ def open_recorder(out: str, device: str, config: dict[str, str] | None,
         raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
 
 
+def _make_server(config: Any, stop_streams: threading.Event) -> Any:
+    """A uvicorn server that also ends the live event streams as soon as a stop is asked for,
+    so Ctrl-C or SIGTERM closes an open dashboard's connection instead of timing out on it."""
+    import uvicorn
+
+    class _Server(uvicorn.Server):
+        def handle_exit(self, sig: int, frame: object) -> None:
+            stop_streams.set()
+            super().handle_exit(sig, frame)
+
+    return _Server(config)
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -193,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
                      allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
                             timeout_graceful_shutdown=2, lifespan="on")
-    server = uvicorn.Server(config)
+    server = _make_server(config, app.state.stop_streams)
     service.start()
     url_host = f"[{args.host}]" if ":" in args.host else args.host
     print(f"imunoise: serving {info['spec']} on http://{url_host}:{args.port}/ "
