@@ -34,6 +34,7 @@ import numpy as np
 from scipy import ndimage, optimize, signal, special
 
 from analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
+from analysis.profile import profile_bounds
 from analysis.terms import TERMS, TermError, ar1_avar_shape, get_term, parse_terms
 
 LINEAR_TERMS = ("white", "quantization", "bias_instability", "random_walk", "rate_ramp")
@@ -589,35 +590,10 @@ def _profile_interval(resid: Any, theta: np.ndarray, idx: int, layout: _Layout, 
         sol = optimize.least_squares(sub, x0, bounds=(lo_b, hi_b), method="trf", max_nfev=40)
         return 2.0 * float(sol.cost) - base, sol.x
 
-    out = []
-    for direction in (-1.0, 1.0):
-        bound = layout.lo[idx] if direction < 0 else layout.hi[idx]
-        step = max(2.0 * _Z95 * sd, 0.05) if np.isfinite(sd) and sd > 0 else 1.0
-        inside, guess = float(theta[idx]), theta[others]
-        outside = None
-        for _ in range(12):
-            v = float(np.clip(inside + direction * step, min(bound, theta[idx]),
-                              max(bound, theta[idx])))
-            e, g = excess(v, guess)
-            if e > _CHI2_95_1DOF:
-                outside = v
-                break
-            inside, guess = v, g
-            if v == bound:
-                break
-            step *= 2.0
-        if outside is None:
-            out.append(bound)
-            continue
-        for _ in range(5):
-            mid = 0.5 * (inside + outside)
-            e, g = excess(mid, guess)
-            if e > _CHI2_95_1DOF:
-                outside = mid
-            else:
-                inside, guess = mid, g
-        out.append(0.5 * (inside + outside))
-    return out[0], out[1]
+    step = max(2.0 * _Z95 * sd, 0.05) if np.isfinite(sd) and sd > 0 else 1.0
+    return profile_bounds(excess, float(theta[idx]), float(layout.lo[idx]),
+                          float(layout.hi[idx]), step, _CHI2_95_1DOF, theta[others],
+                          bisections=5)
 
 
 def _fixed_keys(names: list[str], fixed: dict[str | int, dict[str, float]], fs: float

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg, optimize
 
+from analysis.profile import profile_bounds
 from analysis.terms import ar1_avar_shape
 
 LIKELIHOOD_TERMS = ("white", "gauss_markov", "random_walk")
@@ -401,35 +402,9 @@ def _profile(fun, theta: np.ndarray, best: float, j: int, lo: np.ndarray, hi: np
                                 options={"maxiter": 100})
         return float(sol.fun) - best, sol.x
 
-    out = []
-    for direction in (-1.0, 1.0):
-        bound = lo[j] if direction < 0 else hi[j]
-        step = min(max(1.5 * sd, 0.02), 3.0)
-        inside, guess = float(theta[j]), theta[others]
-        outside = None
-        for _ in range(12):
-            v = float(np.clip(inside + direction * step, min(bound, theta[j]),
-                              max(bound, theta[j])))
-            e, g = excess(v, guess)
-            if e > _CHI2_95_HALF:
-                outside = v
-                break
-            inside, guess = v, g
-            if v == bound:
-                break
-            step *= 2.0
-        if outside is None:
-            out.append(bound)
-            continue
-        for _ in range(8):
-            mid = 0.5 * (inside + outside)
-            e, g = excess(mid, guess)
-            if e > _CHI2_95_HALF:
-                outside = mid
-            else:
-                inside, guess = mid, g
-        out.append(0.5 * (inside + outside))
-    return out[0], out[1]
+    step = min(max(1.5 * sd, 0.02), 3.0)
+    return profile_bounds(excess, float(theta[j]), float(lo[j]), float(hi[j]), step,
+                          _CHI2_95_HALF, theta[others], bisections=8)
 
 
 def fisher_information(model: Model, fs_hz: float, n_samples: int, keys: Sequence[tuple[int, str]],
