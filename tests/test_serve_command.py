@@ -77,3 +77,36 @@ def test_serve_answers_coefficients_within_a_minute_and_ctrl_c_closes_the_file(
         summary = make_reader(f).get_summary()
     assert summary is not None and summary.statistics.message_count > 0
     assert not (out / ".imunoise-reserve").exists()
+
+
+def test_recorder_sink_records_an_outage_that_ended_between_two_blocks(tmp_path: Path) -> None:
+    """The device state is sampled when blocks arrive: an outage that began and ended between
+    two blocks still lands in the file as reconnecting -> running, from the reconnect count."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from daq.blocks import SampleBlock
+    from daq.recorder import McapRecorder
+    from imunoise.commands.serve import RecorderSink
+
+    stats = SimpleNamespace(state="running", reconnects=0, last_error="")
+    rec = McapRecorder(tmp_path, "test", rate_hz=100.0, fsync=False, threaded=False)
+    sink = RecorderSink(rec, SimpleNamespace(stats=stats))
+
+    def block(k: int) -> SampleBlock:
+        t = (np.arange(100) + 100 * k) / 100.0
+        return SampleBlock(stream="/test/imu", t=t, fs_hz=100.0,
+                           channels={"gyro_x": np.zeros(100)})
+
+    sink.write(block(0))
+    stats.reconnects, stats.last_error = 1, "no answer"
+    sink.write(block(2))  # one block lost; state already back to running
+    sink.write(block(3))
+    sink.close()
+    with open(rec.stats.files[0], "rb") as f:
+        texts = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/diagnostics"]
+    joined = b"".join(texts)
+    assert b"device state: reconnecting (no answer)" in joined
+    assert b"device state: running" in joined
+    assert joined.count(b"device state:") == 2

@@ -126,18 +126,32 @@ class RecorderSink:
         self.recorder = recorder
         self.acquisition = acquisition
         self._state: str | None = None
+        self._reconnects = 0
 
     def write(self, block: Any) -> None:
         self.recorder.write(block)
-        state = str(getattr(getattr(self.acquisition, "stats", None), "state", ""))
+        stats = getattr(self.acquisition, "stats", None)
+        state = str(getattr(stats, "state", ""))
+        reconnects = int(getattr(stats, "reconnects", 0) or 0)
+        t = float(block.t[-1]) if len(block) else None
+        # States are sampled when a block arrives; an outage that ended between two blocks
+        # shows only in the reconnect count, and is recorded as the change it was.
+        if (self._state is not None and reconnects > self._reconnects
+                and state == self._state == "running"):
+            reason = str(getattr(stats, "last_error", "") or "")
+            self._event("reconnecting" + (f" ({reason})" if reason else ""), t)
+            self._state = "reconnecting"
         if self._state is not None and state != self._state:
-            from daq import ros2_msgs
-
-            level = ros2_msgs.OK if state in ("running", "ok") else ros2_msgs.WARN
-            self.recorder.event(level, f"device state: {state}",
-                                {"event": "state", "state": state},
-                                t=float(block.t[-1]) if len(block) else None)
+            self._event(state, t)
         self._state = state
+        self._reconnects = reconnects
+
+    def _event(self, state: str, t: float | None) -> None:
+        from daq import ros2_msgs
+
+        level = ros2_msgs.OK if state in ("running", "ok") else ros2_msgs.WARN
+        self.recorder.event(level, f"device state: {state}", {"event": "state", "state": state},
+                            t=t)
 
     def close(self) -> None:
         self.recorder.close()
