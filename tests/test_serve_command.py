@@ -105,7 +105,8 @@ def test_recorder_sink_records_an_outage_that_ended_between_two_blocks(tmp_path:
     sink.write(block(3))
     sink.close()
     with open(rec.stats.files[0], "rb") as f:
-        texts = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/diagnostics"]
+        texts = [m.data for _, ch, m in make_reader(f).iter_messages()
+                 if ch.topic == "/diagnostics"]
     joined = b"".join(texts)
     assert b"device state: reconnecting (no answer)" in joined
     assert b"device state: running" in joined
