@@ -34,9 +34,9 @@ import numpy as np
 from analysis import allan_kernels
 from analysis.blas import single_thread_blas
 from analysis.edf import chi2_interval, greenhall_edf, noise_id_lag1_phase
+from core.units import ONE_SIGMA_CI
 
 #: Confidence level of a one-sigma interval, as printed by Stable32.
-ONE_SIGMA_CI = 0.683
 
 
 @dataclass(frozen=True)
@@ -463,7 +463,7 @@ def allan(
         kind: ``"oadev"``, ``"adev"``, ``"mdev"`` or ``"ohdev"``.
         m: a grid name or count for ``tau_grid``, or explicit averaging factors.
         segment_starts: indices where contiguous segments begin (as
-            ``analysis.series.ChannelSeries``); each is processed on its own.
+            ``core.series.ChannelSeries``); each is processed on its own.
         ci: two-sided confidence level of ``ci_low``/``ci_high``; ``None`` for the deviations
             only (no noise identification: ``edf``, ``ci_low``, ``ci_high`` and ``ci`` are
             nan, ``alpha`` is the given one or 0).

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from analysis.series import ChannelSeries
+from core.series import ChannelSeries
 
 if TYPE_CHECKING:
     from analysis.psd import PsdEstimate

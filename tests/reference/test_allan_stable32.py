@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import gzip
 from functools import cache
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from analysis.allan import allan, identify_noise, phase_from_rate
 from analysis.edf import LAG1_MIN_POINTS
+from tests.shared_paths import SHARED_DATA
 
-DATA = Path("../shared/data/stable32")
+DATA = SHARED_DATA / "stable32"
 
 pytestmark = pytest.mark.skipif(
     not DATA.is_dir(), reason="reference data ../shared/data/stable32 not present"

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from analysis.allan import allan
 from analysis.streaming_allan import StreamingAllan, default_streaming_grid
+from tests.shared_paths import SHARED_DATA
 
-RUN1 = Path("../shared/data/adis16405/run1.npz")
+RUN1 = SHARED_DATA / "adis16405/run1.npz"
 
 
 def _signal(n: int, seed: int) -> np.ndarray:
