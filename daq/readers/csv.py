@@ -14,6 +14,12 @@ How imperfect files are read (each case adds a one-line warning to the record):
 
 Anything else that is malformed (no known channel columns, text where a number should be, a row
 with a different number of fields, binary data) is a :class:`ReadError` naming the line.
+
+The EuRoC/ASL layout of ``imu0/data.csv`` (EuRoC MAV, TUM-VI and most VIO datasets) is recognised
+by its header, ``#timestamp [ns],w_RS_S_x [rad s^-1],...,a_RS_S_z [m s^-2]``: time stamps in
+nanoseconds, ``w_RS_S_*`` the gyro in rad/s and ``a_RS_S_*`` the accelerometer in m/s^2. The
+dataset's ``sensor.yaml`` beside the file, when present, is read into the record's metadata
+(``dataset_*`` keys) so that its stated noise figures can be shown next to the measured ones.
 """
 
 from __future__ import annotations
@@ -31,6 +37,15 @@ from daq.readers import ReadError
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
+# EuRoC/ASL column names (lower case, units stripped) -> ours; their time stamps are in ns.
+ASL_COLUMNS = {"timestamp": TIME_COLUMN,
+               "w_rs_s_x": "gyro_x", "w_rs_s_y": "gyro_y", "w_rs_s_z": "gyro_z",
+               "a_rs_s_x": "accel_x", "a_rs_s_y": "accel_y", "a_rs_s_z": "accel_z"}
+ASL_TIME_SCALE = 1e-9  # ns -> s
+# Keys of the dataset's sensor.yaml shown beside the measured values (Kalibr's noise model).
+SENSOR_YAML_KEYS = ("rate_hz", "gyroscope_noise_density", "gyroscope_random_walk",
+                    "accelerometer_noise_density", "accelerometer_random_walk")
+_UNITS_SUFFIX = re.compile(r"\s*\[[^\]]*\]\s*$")
 _DELIMITERS = (",", ";", "\t")
 # Inferred rates outside this range usually mean a time column in ms, us or ns.
 _PLAUSIBLE_RATE_HZ = (0.5, 1e5)
@@ -53,6 +68,57 @@ def _header(data: bytes, path: Path) -> tuple[list[str], str, int]:
     delim = next((d for d in _DELIMITERS if d in text), ",")
     names = [n.strip().strip('"').strip("'").strip().lower() for n in text.split(delim)]
     return names, delim, body_start
+
+
+def _asl_names(names: list[str]) -> list[str] | None:
+    """Our column names for an EuRoC/ASL header (``#timestamp [ns], w_RS_S_x [rad s^-1], ...``),
+    or None when the header is not of that layout."""
+    bare = [_UNITS_SUFFIX.sub("", n.lstrip("#").strip()) for n in names]
+    if not bare or bare[0] != "timestamp" or not any(b in ASL_COLUMNS for b in bare[1:]):
+        return None
+    return [ASL_COLUMNS.get(b, b) for b in bare]
+
+
+def _asl_seconds(data: bytes, delim: str, t_ns: np.ndarray) -> tuple[np.ndarray, float]:
+    """EuRoC/ASL nanosecond stamps as seconds after the first one, and that first one (s).
+
+    A float64 holds a stamp near 1.4e18 ns, or 1.4e9 s, only to about 250 ns, which biases the
+    rate in the ninth digit; the stamps are read again as integers and differenced before
+    scaling. Falls back to the float values when a stamp is not an integer (the reader's other
+    checks then apply).
+    """
+    try:
+        ns = np.loadtxt(io.BytesIO(data), delimiter=delim, usecols=[0], dtype=np.int64, ndmin=1,
+                        comments=None, skiprows=1)
+    except ValueError:
+        ns = None
+    if ns is None or ns.size != t_ns.size or ns.size == 0:
+        first = float(t_ns[np.isfinite(t_ns)][0]) if np.isfinite(t_ns).any() else 0.0
+        return (t_ns - first) * ASL_TIME_SCALE, first * ASL_TIME_SCALE
+    return (ns - ns[0]).astype(np.float64) * ASL_TIME_SCALE, int(ns[0]) * ASL_TIME_SCALE
+
+
+def _sensor_yaml(path: Path, warnings: list[str]) -> dict[str, str]:
+    """The stated noise figures of an EuRoC/ASL ``sensor.yaml`` beside ``path`` (``dataset_*``
+    metadata keys), or nothing when there is none."""
+    yaml_path = path.parent / "sensor.yaml"
+    if not yaml_path.is_file():
+        return {}
+    import yaml
+
+    try:
+        doc = yaml.safe_load(yaml_path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        warnings.append(f"{yaml_path}: not read ({str(exc).splitlines()[0]})")
+        return {}
+    if not isinstance(doc, dict):
+        return {}
+    out = {"dataset_sensor_yaml": str(yaml_path)}
+    for key in SENSOR_YAML_KEYS:
+        value = doc.get(key)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[f"dataset_{key}"] = f"{float(value):.9g}"
+    return out
 
 
 def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarray, np.ndarray,
@@ -176,6 +242,9 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
     if _blank(data):
         raise ReadError(f"{path}: empty file")
     names, delim, body_start = _header(data, path)
+    asl = _asl_names(names)
+    if asl is not None:
+        names = asl
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise ReadError(f"{path}: duplicate column(s) {', '.join(dup)}")
@@ -202,6 +271,10 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
 
     if has_t:
         t = cols[TIME_COLUMN]
+        t_offset = 0.0  # seconds to add to t for the absolute time of the record's start
+        if asl is not None:
+            t_rel, t_offset = _asl_seconds(data, delim, t)
+            t = cols[TIME_COLUMN] = t_rel
         good_t = np.isfinite(t)
         if not good_t.all():
             n_bad = int((~good_t).sum())
@@ -218,7 +291,7 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
             warnings.append(f"sampling rate from 't' is {fs:.6g} Hz: is 't' in seconds?")
         starts = segment_starts_from_times(t, fs)
         warnings.extend(_describe_gaps(t, starts))
-        t0 = float(t[0])
+        t0 = float(t[0]) + t_offset
     else:
         fs = float(rate_hz)  # type: ignore[arg-type]
         starts = np.zeros(1, dtype=np.int64)
@@ -247,8 +320,10 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{path}: no valid values in any IMU channel")
     temperature = series(TEMPERATURE_KEY) if has_temp else None
     ignored = [n for n in names if n not in wanted]
-    metadata = {"format": "csv", "rows": str(n_rows), "columns": ",".join(wanted),
-                "fs_hz": f"{fs:.9g}"}
+    metadata = {"format": "euroc-asl csv" if asl is not None else "csv", "rows": str(n_rows),
+                "columns": ",".join(wanted), "fs_hz": f"{fs:.9g}"}
+    if asl is not None:
+        metadata.update(_sensor_yaml(path, warnings))
     if ignored:
         metadata["ignored_columns"] = ",".join(ignored)
     return Record(source=str(path), channels=out, temperature=temperature, metadata=metadata,

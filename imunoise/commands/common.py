@@ -69,6 +69,11 @@ def open_imu_channel(path: str, rate_hz: float | None, selector: str,
     return record, key
 
 
+# Amplitude parameters: zero means the term is absent, so an interval reaching zero leaves the
+# amplitude unresolved (a time constant or frequency interval is shown as it is).
+AMPLITUDES = ("N", "Q", "B", "K", "R", "sigma", "A", "coef")
+
+
 def model_lines(result: FitResult | Any, units: str) -> list[str]:
     """The fitted model with its 95 % intervals (one line per parameter, units labelled) and
     the error line."""
@@ -79,8 +84,12 @@ def model_lines(result: FitResult | Any, units: str) -> list[str]:
         for p in get_term(t.term).params:
             v = t.params[p.name]
             lo, hi = t.ci95[p.name]
-            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] "
-                         f"{param_unit(p, units)}")
+            unit = param_unit(p, units)
+            if p.name in AMPLITUDES and not lo > 0.0:  # an interval reaching zero: no estimate
+                lines.append(f"    {t.term:17s} {p.name:5s} = not resolved (95 % upper bound "
+                             f"{hi:.4g}) {unit}")
+                continue
+            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] {unit}")
     lines.append(f"  error: chi2/dof = {result.chi2_per_dof:.3g}   max |z| = "
                  f"{result.max_abs_z:.2f}   (flag |z| > {result.misfit.threshold:.2f})")
     return lines

@@ -61,7 +61,8 @@ def load_channels(path: str, rate_hz: float | None = None) -> tuple[dict, dict]:
             raise UsageError(f"{path}: not an analyze JSON document ({exc})") from None
         if not isinstance(doc, dict) or not isinstance(doc.get("channels"), dict):
             raise UsageError(f"{path}: not an analyze JSON document (no 'channels' object)")
-        return doc["channels"], {"file": path, "rostopic": None}
+        return doc["channels"], {"file": path, "rostopic": None,
+                                 "dataset": doc.get("dataset", {})}
     return fitted_channels(path, rate_hz)
 
 
@@ -80,7 +81,8 @@ def fitted_channels(path: str, rate_hz: float | None = None) -> tuple[dict[str, 
     record = read_record(path, rate_hz)
     keys = [k for k, s in record.channels.items() if s.units in ("rad/s", "m/s^2")]
     doc = analysis_json(path, record, analyze_record(record, keys))
-    return doc["channels"], {"file": path, "rostopic": imu_topic(record.metadata)}
+    return doc["channels"], {"file": path, "rostopic": imu_topic(record.metadata),
+                             "dataset": doc.get("dataset", {})}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -91,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
                             combine=args.combine, inflate=args.inflate)
     except KalibrError as exc:
         raise UsageError(f"export-kalibr: {exc}") from None
-    text = render_yaml(imu, source=os.path.basename(str(args.file).rstrip("/")))
+    text = render_yaml(imu, source=os.path.basename(str(args.file).rstrip("/")),
+                       stated=facts.get("dataset") or {})
     if args.output == "-":
         sys.stdout.write(text)
         return 0
