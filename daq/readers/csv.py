@@ -4,8 +4,9 @@ columns ``gyro_x gyro_y gyro_z`` (rad/s) and ``accel_x accel_y accel_z`` (m/s^2)
 
 How imperfect files are read (each case adds a one-line warning to the record):
 
-- a gap in ``t`` (an interval off the nominal one by more than half a period) starts a new
-  segment; the estimators never bridge it;
+- the time stamps go through the shared timing model (:mod:`core.timing`): samples really
+  missing start a new segment, which the estimators never bridge; jittered stamps are re-timed
+  on the sample grid and the jitter is reported;
 - time going backwards or repeating also starts a new segment (the samples are kept);
 - rows whose ``t`` is not a finite number are dropped (they cannot be placed in time);
 - a NaN, an infinite or an empty channel value removes that sample from that channel only and
@@ -32,7 +33,7 @@ import numpy as np
 
 from core.record import TEMPERATURE_KEY, Record
 from core.series import ChannelSeries, channel_units
-from core.timing import estimate_rate, segment_starts_from_times
+from core.timing import analyse_stamps
 from daq.readers import ReadError
 
 TIME_COLUMN = "t"
@@ -137,24 +138,6 @@ def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarra
     new_index = np.cumsum(keep) - 1
     starts = new_index[flags & keep]
     return values[keep], starts.astype(np.int64), n_bad
-
-
-def _describe_gaps(t: np.ndarray, starts: np.ndarray) -> list[str]:
-    if len(starts) <= 1:
-        return []
-    idx = starts[1:]
-    dt = t[idx] - t[idx - 1]
-    back = int(np.sum(dt <= 0))
-    out = []
-    if back:
-        first = int(idx[np.argmax(dt <= 0)])
-        out.append(f"time goes backwards or repeats {back} time(s) (first at data row "
-                   f"{first + 1}); treated as gaps")
-    fwd = dt[dt > 0]
-    if fwd.size:
-        out.append(f"{fwd.size} gap(s) in time (largest {float(fwd.max()):.6g} s); segments are "
-                   "analysed separately")
-    return out
 
 
 def _load(text: bytes, usecols: list[int], delim: str, path: Path) -> np.ndarray:
@@ -284,13 +267,14 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         if len(t) < 2:
             raise ReadError(f"{path}: need at least two rows with valid times")
         try:
-            fs = float(rate_hz) if rate_hz is not None else estimate_rate(t)
+            timing = analyse_stamps(t, rate_hz=rate_hz)
         except ValueError as exc:
             raise ReadError(f"{path}: {exc}") from None
+        fs = timing.fs_hz
         if rate_hz is None and not _PLAUSIBLE_RATE_HZ[0] <= fs <= _PLAUSIBLE_RATE_HZ[1]:
             warnings.append(f"sampling rate from 't' is {fs:.6g} Hz: is 't' in seconds?")
-        starts = segment_starts_from_times(t, fs)
-        warnings.extend(_describe_gaps(t, starts))
+        starts = timing.segment_starts
+        warnings.extend(timing.notes)
         t0 = float(t[0]) + t_offset
     else:
         fs = float(rate_hz)  # type: ignore[arg-type]

@@ -73,7 +73,8 @@ def test_a_missing_sample_in_ns_stamps_is_one_gap(tmp_path):
     rec = open_record(path)
     g = rec.channels["gyro_x"]
     np.testing.assert_array_equal(g.segment_starts, [0, 3000])
-    assert any("1 gap(s) in time" in w for w in rec.warnings)
+    assert any("1 sample(s) missing in 1 gap(s) (largest 0.01 s, before sample 3001)" in w
+               for w in rec.warnings)
     assert "dataset_sensor_yaml" not in rec.metadata
 
 
