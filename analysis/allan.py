@@ -33,10 +33,16 @@ import numpy as np
 
 from analysis import allan_kernels
 from analysis.blas import single_thread_blas
-from analysis.edf import chi2_interval, greenhall_edf, noise_id_lag1_phase
+from analysis.edf import (
+    LAG1_MIN_POINTS,
+    chi2_interval,
+    greenhall_edf,
+    noise_id_b1_rn,
+    noise_id_lag1_phase,
+)
+from core.units import ONE_SIGMA_CI
 
 #: Confidence level of a one-sigma interval, as printed by Stable32.
-ONE_SIGMA_CI = 0.683
 
 
 @dataclass(frozen=True)
@@ -463,7 +469,7 @@ def allan(
         kind: ``"oadev"``, ``"adev"``, ``"mdev"`` or ``"ohdev"``.
         m: a grid name or count for ``tau_grid``, or explicit averaging factors.
         segment_starts: indices where contiguous segments begin (as
-            ``analysis.series.ChannelSeries``); each is processed on its own.
+            ``core.series.ChannelSeries``); each is processed on its own.
         ci: two-sided confidence level of ``ci_low``/``ci_high``; ``None`` for the deviations
             only (no noise identification: ``edf``, ``ci_low``, ``ci_high`` and ``ci`` are
             nan, ``alpha`` is the given one or 0).
@@ -546,7 +552,7 @@ def allan(
     if alpha_arr is None:
         if phases:
             u_long = phases[int(np.argmax(seg_points))]
-            alpha_arr = identify_noise(u_long, ms, kind)
+            alpha_arr = identify_noise(u_long, ms, kind, n_terms=counts)
         else:
             alpha_arr = np.zeros(0, dtype=np.int64)
     lo, hi = alpha_range(kind)
@@ -569,18 +575,48 @@ def allan(
     )
 
 
-def identify_noise(u: np.ndarray, ms: np.ndarray, kind: str) -> np.ndarray:
-    """Lag-1 ACF noise exponent per m from one segment's phase ``u`` (rate x samples units).
+def identify_noise(
+    u: np.ndarray, ms: np.ndarray, kind: str, n_terms: np.ndarray | None = None
+) -> np.ndarray:
+    """Noise exponent alpha per m from one segment's phase ``u`` (rate x samples units).
 
     The series examined at each m is the m-sample averages of the rate,
     ``diff(u[::m]) / m``, for rate and phase input alike: this reproduces the noise types
     Stable32 prints for its phase data sets (decimating the phase instead disagrees with
-    them at long tau). Hadamard allows one more differencing than Allan (dmax 3 instead of 2).
+    them at long tau). With at least ``LAG1_MIN_POINTS`` averages the lag-1 ACF decides
+    (Hadamard allows one more differencing than Allan: dmax 3 instead of 2); with fewer, the
+    B1 ratio and R(n) (``analysis.edf.noise_id_b1_rn``), evaluated at ``n_terms``, the number
+    of terms of the statistic at each m (default: those of ``kind`` on this one segment).
     """
+    ms = np.asarray(ms, dtype=np.int64)
+    if n_terms is None:
+        n_terms = term_counts(u.size, ms, kind)
+    lo, hi = alpha_range(kind)
     with single_thread_blas():
-        return noise_id_lag1_phase(
-            u, ms, "freq", dmax=KINDS[kind].d, alpha_range=alpha_range(kind)
-        )
+        alpha = noise_id_lag1_phase(u, ms, "freq", dmax=KINDS[kind].d, alpha_range=(lo, hi))
+        for j in np.flatnonzero((u.size - 1) // np.maximum(ms, 1) < LAG1_MIN_POINTS):
+            m = int(ms[j])
+            z = np.diff(u[::m]) / m
+
+            def rn(m: int = m) -> float:
+                mvar = normalise(*segment_sums(u, np.array([m]), "mdev"), np.array([m]), "mdev")
+                avar = normalise(*segment_sums(u, np.array([m]), "oadev"), np.array([m]), "oadev")
+                return float(mvar[0] / avar[0])
+
+            found = noise_id_b1_rn(z, int(n_terms[j]), m, rn)
+            if found is not None:
+                alpha[j] = min(max(found, lo), hi)
+    return alpha
+
+
+def term_counts(n_phase: int, ms: np.ndarray, kind: str) -> np.ndarray:
+    """Number of terms of ``kind`` at each m on one segment of ``n_phase`` phase points."""
+    ms = np.asarray(ms, dtype=np.int64)
+    if kind == "adev":
+        return np.maximum((n_phase - 1) // ms - 1, 0)
+    if kind == "mdev":
+        return np.maximum(n_phase - 3 * ms + 1, 0)
+    return np.maximum(n_phase - KINDS[kind].span * ms, 0)
 
 
 def _kind_function(kind: str):

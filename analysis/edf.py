@@ -21,12 +21,18 @@ alpha  clock name                    inertial-sensor name
 stability variances based on finite differences", Proc. 35th PTTI (2003), which is what
 Stable32 uses. ``noise_id_lag1`` implements the lag-1 autocorrelation identification of
 W. J. Riley and C. A. Greenhall, "Power law noise identification using the lag 1
-autocorrelation", Proc. 18th EFTF (2004).
+autocorrelation", Proc. 18th EFTF (2004). Where the averaged series is too short for it (fewer
+than ``LAG1_MIN_POINTS`` averages, the longest taus) ``noise_id_b1_rn`` identifies the noise as
+Stable32 does there: the B1 bias ratio (Barnes 1969; Howe, Beard, Greenhall and Riley 2000,
+table 3), with R(n), the ratio of the modified to the normal Allan variance, separating the
+phase-noise types that B1 cannot (W. J. Riley, Handbook of Frequency Stability Analysis, NIST
+SP 1065, 2008, section 5.6).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy import special, stats
@@ -263,6 +269,73 @@ def noise_id_lag1_series(
             return alpha_i, alpha_f
         z = np.diff(z)
         d += 1
+
+
+# Allan-variance tau exponents mu tried by the B1 test, and the alpha each stands for (mu = -2
+# covers white and flicker phase noise, which R(n) separates).
+_B1_MUS = (-2, -1, 0, 1, 2)
+_WHITE_FM_RN = 0.5  # MVAR / AVAR of white rate noise for m >> 1
+RN_FROM_MU = -2
+
+
+def b1_theory(n: float, mu: int) -> float:
+    """Expected B1 ratio (standard variance / Allan variance) of ``n`` adjacent averages for
+    Allan-variance tau exponent ``mu`` (Howe et al. 2000, table 3)."""
+    n = float(n)
+    if mu == -2:
+        return (n * n - 1.0) / (1.5 * n * (n - 1.0))
+    if mu == 0:
+        return n * math.log(n) / (2.0 * (n - 1.0) * math.log(2.0))
+    return n * (1.0 - n**mu) / (2.0 * (n - 1.0) * (1.0 - 2.0**mu))
+
+
+def rn_theory_flicker_pm(m: int) -> float:
+    """Expected R(n) = MVAR / AVAR of flicker phase noise at averaging factor ``m``, with the
+    measurement bandwidth at the Nyquist frequency (NIST SP 1065 table 6 expressions)."""
+    avar = (1.038 + 3.0 * math.log(math.pi * m)) / (4.0 * math.pi**2)
+    mvar = 3.0 * math.log(256.0 / 27.0) / (8.0 * math.pi**2)
+    return mvar / avar
+
+
+def noise_id_b1_rn(
+    z: np.ndarray, n_terms: int, m: int, rn: Callable[[], float]
+) -> int | None:
+    """Noise exponent alpha from few averages: the B1 ratio, then R(n) for phase noise.
+
+    Args:
+        z: the non-overlapping m-sample averages of the rate (at least 3).
+        n_terms: number of terms of the statistic being reported at this m (its "#" column in
+            Stable32): the B1 expectation is evaluated there, as Stable32 does.
+        m: averaging factor.
+        rn: returns the measured MVAR / (overlapping) AVAR at ``m``; called only when B1 points
+            to phase noise.
+
+    The measured B1 is the sample variance of ``z`` over its non-overlapping Allan variance;
+    the noise type is the one whose expectation is nearest on a log scale (boundaries at the
+    geometric means). When that is phase noise, R(n) is compared the same way with its
+    expectations for white phase (1/m), flicker phase and white rate noise (1/2).
+
+    Returns:
+        integer alpha, or ``None`` when ``z`` is too short or constant.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if z.size < 3 or n_terms < 2:
+        return None
+    avar = 0.5 * float(np.mean(np.diff(z) ** 2))
+    if not avar > 0.0:
+        return None
+    b1 = float(np.var(z, ddof=1)) / avar
+    if not b1 > 0.0:
+        return None
+    expected = np.array([b1_theory(n_terms, mu) for mu in _B1_MUS])
+    mu = _B1_MUS[int(np.argmin(np.abs(np.log(b1 / expected))))]
+    if mu > RN_FROM_MU:
+        return -mu - 1
+    ratio = rn()
+    if not ratio > 0.0:
+        return 2
+    candidates = np.array([1.0 / m, rn_theory_flicker_pm(m), _WHITE_FM_RN])
+    return (2, 1, 0)[int(np.argmin(np.abs(np.log(ratio / candidates))))]
 
 
 def noise_id_lag1(

@@ -31,9 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.units import G0
-
-DEG = math.pi / 180.0
+from core.units import DEG, G0
 
 PETKOV_GYRO = {"B_dps": 1.55e-2, "T_s": 120.0, "N_dps_rts": 5.75e-2, "K_dps_s32": 9e-4,
                "rms_dps": 0.581614, "a_d": 0.999917}

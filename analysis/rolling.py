@@ -16,7 +16,7 @@ linearised intervals; a full fit (cold start, profile-likelihood intervals: exac
 A model change refits at once.
 
 Blocks are taken structurally (anything with ``stream``, ``channels``, ``fs_hz`` and
-``gap_before`` attributes, e.g. ``daq.blocks.SampleBlock``), so this module imports nothing from
+``gap_before`` attributes, e.g. ``core.blocks.SampleBlock``), so this module imports nothing from
 ``daq``.
 """
 
@@ -40,17 +40,17 @@ from analysis.allan import AllanCurve
 from analysis.diagnosis import diagnose
 from analysis.fit import FitResult, find_line, fit_allan
 from analysis.psd import StreamingPsd
-from analysis.series import channel_units
 from analysis.streaming_allan import StreamingAllan
 from analysis.terms import TermError, get_term, parse_model, term_names
 from analysis.terms import model_psd as _terms_psd
-from analysis.units import param_units as _param_units
+from core.series import channel_units
+from core.units import CI95
+from core.units import param_units as _param_units
 
 DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
 # ``temperature`` needs the whole temperature record regressed out of the rate series first,
 # which a bounded-memory stream does not keep.
 VALID_TERMS: tuple[str, ...] = term_names(live=True)
-CURVE_CI = 0.95  # the band of the Allan curve, as in ``imunoise fit --json``
 OCTAVE_GRID = (1 << np.arange(41)).astype(np.int64)  # the averaging factors of ``imunoise fit``
 FULL_INTERVALS = "profile"
 QUICK_INTERVALS = "jacobian"
@@ -448,7 +448,7 @@ class ChannelAnalyzer:
         covariance needs (the deviation equals the full one to a small fraction of its
         interval)."""
         with self._lock:
-            c = self._allan.curve("oadev", ci=CURVE_CI)
+            c = self._allan.curve("oadev", ci=CI95)
             return dataclasses.replace(c, n_terms=self._full_counts(np.asarray(c.m)))
 
     # --- model ---------------------------------------------------------------------------

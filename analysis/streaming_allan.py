@@ -48,9 +48,11 @@ from analysis.allan import (
     default_max_m,
     edf_for,
     normalise,
+    segment_sums,
+    term_counts,
 )
 from analysis.blas import single_thread_blas
-from analysis.edf import LAG1_MIN_POINTS, chi2_interval, noise_id_lag1_series
+from analysis.edf import LAG1_MIN_POINTS, chi2_interval, noise_id_b1_rn, noise_id_lag1_series
 
 STREAMING_KINDS = tuple(OVERLAP_KERNELS)
 
@@ -343,27 +345,51 @@ class StreamingAllan:
         return points
 
     def _noise_alpha(self, ms: np.ndarray, kind: str) -> np.ndarray:
-        """Lag-1 ACF alpha per m from the recent window and the strided history."""
+        """Noise alpha per m from the recent window and the strided history: the lag-1 ACF
+        where 30 or more averages exist, the B1 ratio and R(n) below that (as the batch
+        ``identify_noise``; R(n) comes from the strided history, which is enough to tell
+        phase noise from rate noise)."""
         lo, hi = alpha_range(kind)
         dmax = KINDS[kind].d
         n_recent = min(self._recent_n, self._seg_n) if self._seg_n else self._recent_n
         recent = self._recent[self.noise_window - n_recent :]
         u_recent = np.concatenate(([0.0], np.cumsum(recent - recent.mean()))) if n_recent else None
         hist = self._hist[: self._hist_n] if self._seg_n else None
+        n_terms = term_counts(self._seg_n + 1, ms, kind) if self._seg_n else None
         out = np.zeros(ms.size, dtype=np.int64)
         last: int | None = None
         with single_thread_blas():
             for j in np.argsort(ms, kind="stable"):
                 m = int(ms[j])
-                z = None
-                if u_recent is not None and n_recent // m >= LAG1_MIN_POINTS:
-                    z = np.diff(u_recent[::m]) / m
-                elif hist is not None and m >= self._stride:
-                    step = max(1, round(m / self._stride))
-                    if (hist.size - 1) // step >= LAG1_MIN_POINTS:
-                        z = np.diff(hist[::step]) / (step * self._stride)
+                z, step = self._averages(m, u_recent, n_recent, hist)
                 res = noise_id_lag1_series(z, "freq", dmax) if z is not None else None
-                if res is not None:
-                    last = res[0]
+                found = res[0] if res is not None else None
+                if found is None and z is not None and n_terms is not None:
+                    found = noise_id_b1_rn(z, int(n_terms[j]), m,
+                                           lambda h=hist, s=step: _strided_rn(h, s))
+                if found is not None:
+                    last = found
                 out[j] = last if last is not None else 0
         return np.clip(out, lo, hi)
+
+    def _averages(self, m: int, u_recent: np.ndarray | None, n_recent: int,
+                  hist: np.ndarray | None) -> tuple[np.ndarray | None, int]:
+        """The m-sample averages of the rate from the recent window when it holds 30 of them,
+        else from the strided history (and the history step that spans m)."""
+        if u_recent is not None and n_recent // m >= LAG1_MIN_POINTS:
+            return np.diff(u_recent[::m]) / m, 0
+        if hist is not None and m >= self._stride:
+            step = max(1, round(m / self._stride))
+            if (hist.size - 1) // step >= 3:
+                return np.diff(hist[::step]) / (step * self._stride), step
+        return None, 0
+
+
+def _strided_rn(hist: np.ndarray | None, step: int) -> float:
+    """MVAR / AVAR at ``step`` history points from the strided phase history."""
+    if hist is None or step < 1 or hist.size <= 3 * step:
+        return float("nan")
+    m = np.array([step])
+    mvar = normalise(*segment_sums(hist, m, "mdev"), m, "mdev")
+    avar = normalise(*segment_sums(hist, m, "oadev"), m, "oadev")
+    return float(mvar[0] / avar[0])

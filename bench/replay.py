@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from daq.blocks import SampleBlock  # noqa: E402
+from core.blocks import SampleBlock  # noqa: E402
 from daq.readers import open_record  # noqa: E402
 from daq.recorder import McapRecorder  # noqa: E402
 

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 from daq.clock import Clock, RealClock
 from daq.drivers.common import StreamBuffer
 from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from core.errors import ImunoiseError
 
-class DeviceError(Exception):
+
+class DeviceError(ImunoiseError):
     """A device or its transport failed; the message names the port or bus and the reason."""
 
 

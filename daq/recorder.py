@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import CompressionType, IndexType, Writer
 
+from core.blocks import SampleBlock
 from daq import ros2_msgs as msgs
-from daq.blocks import SampleBlock
 
 SOFTWARE = "imunoise"
 GYRO = ("gyro_x", "gyro_y", "gyro_z")

@@ -2,7 +2,7 @@
 
 ``replay`` paces the blocks on the sample clock (``speed`` times real time, or as fast as
 possible) and reports progress; the consumer is any callable taking a
-:class:`daq.blocks.SampleBlock`, e.g. ``RollingAnalyzer.update``.
+:class:`core.blocks.SampleBlock`, e.g. ``RollingAnalyzer.update``.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.series import ChannelSeries
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
+from core.series import ChannelSeries
 from daq.readers import ReadError, open_record
 
 PACE_S = 0.1  # sample-time length of the pieces a paced replay hands over
@@ -150,7 +150,7 @@ class ReplaySummary:
             key = f"{multi}:{name}"
             s = self.channels.get(key)
             if s is None:
-                from analysis.series import channel_units
+                from core.series import channel_units
 
                 s = self.channels[key] = _ChannelSummary(fs_hz=block.fs_hz,
                                                          units=channel_units(name))

@@ -1,13 +1,11 @@
 """Errors that the command line turns into one line on stderr and an exit code."""
 
+from core.errors import ImunoiseError, InputError
 
-class UsageError(Exception):
+
+class UsageError(InputError):
     """Bad usage or bad input: exit code 2, nothing written half-way."""
 
-    exit_code = 2
 
-
-class RuntimeFailure(Exception):
+class RuntimeFailure(ImunoiseError):
     """The command was well-formed but failed while running (device lost, disk full): exit 1."""
-
-    exit_code = 1

@@ -28,6 +28,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from core.errors import InputError
+
 COMBINE = ("max", "rms", "mean")
 _AXES = ("x", "y", "z")
 _KIND_KEYS = {
@@ -38,7 +40,7 @@ _KIND_KEYS = {
 }
 
 
-class KalibrError(ValueError):
+class KalibrError(InputError):
     """The fitted channels cannot give a Kalibr file (missing axes or terms)."""
 
 

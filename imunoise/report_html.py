@@ -23,7 +23,7 @@ from html import escape
 
 import numpy as np
 
-from analysis.units import conventional, si_unit
+from core.units import conventional, si_unit
 from imunoise import __version__
 from imunoise.svg_plot import PALETTE, Plot
 

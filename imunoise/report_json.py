@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from analysis.series import ChannelSeries
+from core.series import ChannelSeries
 
 if TYPE_CHECKING:
     from analysis.psd import PsdEstimate
@@ -27,6 +27,7 @@ class AllanLike(Protocol):
     ci_low: np.ndarray
     ci_high: np.ndarray
     edf: np.ndarray
+    alpha: np.ndarray
     ci: float
 
 
@@ -58,7 +59,7 @@ def allan_json(curve: AllanLike | None, model_adev: Sequence[float] | np.ndarray
             z = np.full(n_tau, np.nan)
     if curve is None:
         return {"tau_s": [], "adev": [], "ci_low": [], "ci_high": [], "model_adev": floats(
-            model_adev), "z": floats(z), "edf": [], "ci": None}
+            model_adev), "z": floats(z), "edf": [], "alpha": [], "ci": None}
     return {
         "tau_s": floats(curve.tau_s),
         "adev": floats(curve.dev),
@@ -67,6 +68,7 @@ def allan_json(curve: AllanLike | None, model_adev: Sequence[float] | np.ndarray
         "model_adev": floats(model_adev),
         "z": floats(z),
         "edf": floats(curve.edf),
+        "alpha": [int(a) for a in np.asarray(curve.alpha).ravel()],
         "ci": number(curve.ci),
     }
 

@@ -6,8 +6,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from analysis import units
-from analysis.series import ChannelSeries
+from core import units
+from core.series import ChannelSeries
 
 if TYPE_CHECKING:
     from analysis.psd import PsdEstimate

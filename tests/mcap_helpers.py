@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 from daq.recorder import McapRecorder
 
 GYRO_LSB = 0.07326 * np.pi / 180  # rad/s per count (ADIS16350)

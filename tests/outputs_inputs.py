@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from analysis.noise_stream import NoiseStream
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 from daq.recorder import McapRecorder
 
 FS = 100.0

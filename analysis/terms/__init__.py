@@ -11,6 +11,8 @@ See docs/terms.md for the formulas and for how to add a term.
 """
 
 from analysis.terms.base import Param, Term, TermError, TermSimulator, param_unit
+from analysis.terms.bias_instability import BIAS_INSTABILITY_FACTOR
+from analysis.terms.gauss_markov import ar1_avar_shape
 from analysis.terms.registry import (
     TERMS,
     _discover,
@@ -21,12 +23,9 @@ from analysis.terms.registry import (
     term_names,
     validate_params,
 )
+from analysis.terms.spec import Entry, ModelSpec, labels, parse_model, parse_terms
 
 _discover()
-
-from analysis.terms.bias_instability import BIAS_INSTABILITY_FACTOR  # noqa: E402
-from analysis.terms.gauss_markov import ar1_avar_shape  # noqa: E402
-from analysis.terms.spec import Entry, ModelSpec, labels, parse_model, parse_terms  # noqa: E402
 
 TERM_NAMES: tuple[str, ...] = term_names()
 """All term names in vocabulary order (derived from the registry)."""

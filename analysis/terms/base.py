@@ -22,11 +22,13 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from core.errors import InputError
+
 if TYPE_CHECKING:
     from analysis.discrete import DiscreteModel
 
 
-class TermError(ValueError):
+class TermError(InputError):
     """Unknown term, unknown parameter, or a parameter outside its physical range."""
 
 

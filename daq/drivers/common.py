@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 
 
 class StreamBuffer:

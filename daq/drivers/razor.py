@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 from daq.drivers.adxl345 import Adxl345
 from daq.drivers.common import StreamBuffer
 from daq.drivers.itg3200 import Itg3200

@@ -1,4 +1,4 @@
-"""Input files to :class:`daq.record.Record`: one entry point, dispatching on the path.
+"""Input files to :class:`core.record.Record`: one entry point, dispatching on the path.
 
 - ``.csv``: :mod:`daq.readers.csv` (CONTRACT.md's column layout).
 - ``.mcap``: the bulk numpy reader (:mod:`daq.readers.mcap`), falling back to per-message
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from daq.record import Record
+from core.record import Record
 
 
 class ReadError(ValueError):

@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.series import ChannelSeries, channel_units, estimate_rate, segment_starts_from_times
+from core.record import TEMPERATURE_KEY, Record
+from core.series import ChannelSeries, channel_units
+from core.timing import estimate_rate, segment_starts_from_times
 from daq.readers import ReadError
-from daq.record import TEMPERATURE_KEY, Record
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")

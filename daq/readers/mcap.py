@@ -25,11 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.series import ChannelSeries, segment_starts_from_times
+from core.blocks import SampleBlock
+from core.record import Record
+from core.series import ChannelSeries
+from core.timing import segment_starts_from_times
 from daq import mcap_layout as ml
 from daq import ros2_msgs as msgs
-from daq.blocks import SampleBlock
-from daq.record import Record
 
 GYRO = ("gyro_x", "gyro_y", "gyro_z")
 ACCEL = ("accel_x", "accel_y", "accel_z")

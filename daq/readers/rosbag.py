@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from core.record import Record
 from daq import ros2_msgs as msgs
 from daq.readers.mcap import ACCEL, GYRO, make_series, topic_timing
-from daq.record import Record
 
 
 class RosbagReadError(ValueError):

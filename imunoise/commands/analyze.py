@@ -10,15 +10,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from analysis.series import ChannelSeries
-from daq.record import Record
+from core.record import Record
+from core.series import ChannelSeries
+from core.units import CI95
 from imunoise.commands.common import add_rate_option, read_record, select
 from imunoise.progress import progress_bar, spinner
 
 if TYPE_CHECKING:  # scipy-backed modules load only when a command runs, not for --help
     from analysis.psd import PsdEstimate
 
-JSON_CI = 0.95
 """Confidence level of the Allan and PSD intervals in the output."""
 
 # Samples (summed over channels) above which the work takes more than a few seconds.
@@ -74,7 +74,7 @@ def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
 
     try:
         out.allan = oadev(series.values, series.fs_hz, m="octave",
-                          segment_starts=series.segment_starts, ci=JSON_CI)
+                          segment_starts=series.segment_starts, ci=CI95)
     except ValueError as exc:
         out.warnings.append(f"no Allan deviation: {exc}")
 
@@ -86,7 +86,7 @@ def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
     longest = int(np.max(np.diff(bounds))) if series.n_samples else 0
     try:
         out.psd = log_psd(series.values, series.fs_hz, segment_starts=series.segment_starts,
-                          ci=JSON_CI, nperseg=default_nperseg(longest))
+                          ci=CI95, nperseg=default_nperseg(longest))
     except ValueError as exc:
         out.warnings.append(f"no PSD: {exc}")
 

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from core.record import TEMPERATURE_KEY, ChannelSelectionError, Record, select_channels
 from daq.readers import ReadError, open_record
-from daq.record import TEMPERATURE_KEY, ChannelSelectionError, Record, select_channels
 from imunoise.errors import RuntimeFailure, UsageError
 
 if TYPE_CHECKING:

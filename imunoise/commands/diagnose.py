@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from daq.record import Record
+from core.record import Record
 from imunoise.commands.common import add_rate_option, fit_errors, open_imu_channel, parse_model
 from imunoise.commands.fit import fit_json, fit_text
 

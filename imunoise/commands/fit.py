@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from daq.record import Record
+from core.record import Record
+from core.units import CI95
 from imunoise.commands.common import (
     add_rate_option,
     failure_lines,
@@ -22,8 +23,6 @@ from imunoise.commands.common import (
     open_imu_channel,
     parse_model,
 )
-
-JSON_CI = 0.95
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -72,7 +71,7 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     with fit_errors(key):
         return fit_series(series.values, series.fs_hz, names,
                           segment_starts=series.segment_starts, temperature=temperature,
-                          fixed=fixed, ci=JSON_CI)
+                          fixed=fixed, ci=CI95)
 
 
 def _z_on_curve(result: Any, curve: Any) -> np.ndarray:

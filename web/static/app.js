@@ -43,8 +43,23 @@ function decades(u, min, max) {
 }
 const LOG = { distr: 3, range: decades };
 
+// Log axes label the decades only, as Stable32 and matplotlib do: 10⁻³, 10⁻², 1, 10 ...
+// uPlot hands the minor ticks in too (null where its own filter dropped them); they stay bare.
+const SUPERSCRIPT = { "-": "⁻", 0: "⁰", 1: "¹", 2: "²", 3: "³", 4: "⁴", 5: "⁵", 6: "⁶", 7: "⁷",
+                      8: "⁸", 9: "⁹" };
+
+function decadeLabel(v) {
+  if (!(v > 0)) return "";
+  const e = Math.log10(v);
+  const n = Math.round(e);
+  if (Math.abs(e - n) > 1e-9) return "";
+  if (n === 0) return "1";
+  if (n === 1) return "10";
+  return "10" + String(n).split("").map((c) => SUPERSCRIPT[c]).join("");
+}
+
 function logAxis(label) {
-  return { label, values: (u, vals) => vals.map((v) => fmt(v, 2)) };
+  return { label, values: (u, vals) => vals.map(decadeLabel) };
 }
 
 function drawAllan(a) {

@@ -9,15 +9,15 @@ nothing that matters. Figures: docs/fit.md.
 """
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from analysis.fit import fit_allan
 from tests._avar_batch import Curve
+from tests.shared_paths import SHARED_DATA
 
-DATA = Path("../shared/data/adis16405")
+DATA = SHARED_DATA / "adis16405"
 FS = 100.0
 MODEL = "white,bias_instability,random_walk"
 CHANNELS = ["gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]

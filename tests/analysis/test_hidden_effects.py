@@ -133,7 +133,7 @@ def test_csv_file_through_the_command_line(tmp_path: Path):
 
 
 def test_mcap_file_with_slow_temperature_topic(tmp_path: Path):
-    from daq.blocks import SampleBlock
+    from core.blocks import SampleBlock
     from daq.recorder import McapRecorder
 
     term, truth = HIDDEN["temperature"]

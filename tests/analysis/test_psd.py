@@ -6,7 +6,6 @@ correlated), and the normalised dispersion mean((P/S - 1)^2 dof/2) is 1 with a s
 """
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -218,8 +217,6 @@ def test_default_nperseg():
     assert default_nperseg(10) == 64
 
 
-DATA = Path("../shared/data")
-
 
 def _avar_from_psd(est, tau, fs):
     """Allan variance implied by a one-sided PSD: the discrete m-sample average's response,
@@ -234,14 +231,12 @@ def _avar_from_psd(est, tau, fs):
     return total, float(np.sqrt(np.sum(contrib**2 * 2.0 / est.dof))) / total
 
 
-def test_real_adis16405_psd_reproduces_published_allan_variance():
+def test_real_adis16405_psd_reproduces_published_allan_variance(shared_data):
     """The PSD of real ADIS16405 data, turned into Allan variance, matches the published
     overlapping Allan variance of the same run (avar_curves adis_av) for tau <= 10 s (below
     that the PSD covers the whole band that matters)."""
-    run = DATA / "adis16405" / "run1.npz"
-    curves = DATA / "avar_curves" / "avar_curves.json"
-    if not run.exists() or not curves.exists():
-        pytest.skip("reference data ../shared/data (adis16405, avar_curves) not present")
+    run = shared_data / "adis16405" / "run1.npz"
+    curves = shared_data / "avar_curves" / "avar_curves.json"
     d = np.load(run)
     gyro = d["gyro_counts"] * float(d["gyro_scale_dps"])
     accel = d["accel_counts"] * float(d["accel_scale_g"])

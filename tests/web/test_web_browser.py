@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import re
 import shutil
 from pathlib import Path
 
@@ -85,6 +86,7 @@ def _check_dashboard(page, url: str) -> None:
         el = page.locator(f"#{plot_id}")
         assert el.locator("canvas").count() == 1, f"{plot_id} has no canvas"
         assert int(el.get_attribute("data-points") or 0) >= least, f"{plot_id} is empty"
+    _check_log_axis_labels(page)
     # The default model misses gyro_x's sinusoid: the z strip marks failures.
     assert int(page.locator("#z-plot").get_attribute("data-failures")) > 0
     rows = page.locator("#coefficients tbody tr")
@@ -94,6 +96,21 @@ def _check_dashboard(page, url: str) -> None:
     assert page.locator("#model-editor button.add-any").count() == 4
     assert "samples" in page.locator("#status").inner_text()
     assert page.errors == [], f"console errors {page.errors}"
+
+
+DECADE = re.compile(r"^(1|10|10⁻?[¹²³⁴⁵⁶⁷⁸⁹][⁰¹²³⁴⁵⁶⁷⁸⁹]*)$")
+
+
+def _check_log_axis_labels(page) -> None:
+    """Log axes label decades only (10⁻³, 10⁻², 1, 10 ...); minor ticks carry no text."""
+    for plot_id, axes in (("allan-plot", (0, 1)), ("psd-plot", (0, 1)), ("z-plot", (0,))):
+        ticks = page.evaluate(f"state.plots['{plot_id}'].axes.map((a) => a._values || [])")
+        for i in axes:
+            labels = ticks[i]
+            shown = [t for t in labels if t]
+            assert len(shown) >= 2, f"{plot_id} axis {i}: too few decade labels {labels}"
+            assert all(DECADE.match(t) for t in shown), f"{plot_id} axis {i}: {labels}"
+            assert len(labels) > len(shown), f"{plot_id} axis {i}: no unlabelled minor ticks"
 
 
 def test_clicking_add_changes_the_model_and_the_error_falls(page, url, tmp_path) -> None:

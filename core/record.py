@@ -5,12 +5,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from analysis.series import ChannelSeries
+from core.errors import InputError
+from core.series import ChannelSeries
 
 TEMPERATURE_KEY = "temp"
 
 
-class ChannelSelectionError(ValueError):
+class ChannelSelectionError(InputError):
     """A channel selector names no channel of the record (the message lists the valid ones)."""
 
 

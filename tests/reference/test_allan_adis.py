@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from analysis.allan import oadev
+from tests.shared_paths import SHARED_DATA
 
-RUN1 = Path("../shared/data/adis16405/run1.npz")
-CURVES = Path("../shared/data/avar_curves/avar_curves.json")
+RUN1 = SHARED_DATA / "adis16405/run1.npz"
+CURVES = SHARED_DATA / "avar_curves/avar_curves.json"
 
 pytestmark = pytest.mark.skipif(
     not (RUN1.is_file() and CURVES.is_file()),

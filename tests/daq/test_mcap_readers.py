@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType, IndexType, Writer
 
+from core.blocks import SampleBlock
 from daq import ros2_msgs as m
-from daq.blocks import SampleBlock
 from daq.readers import mcap as bulk
 from daq.readers import open_record
 from daq.readers.mcap import iter_blocks, read_mcap

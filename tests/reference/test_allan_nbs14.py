@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import json
 from decimal import Decimal
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from analysis.allan import adev, allan, mdev, oadev, ohdev
+from tests.shared_paths import SHARED_DATA
 
-REF = Path("../shared/data/stable32/nbs14_reference.json")
+REF = SHARED_DATA / "stable32/nbs14_reference.json"
 
 pytestmark = pytest.mark.skipif(not REF.is_file(), reason=f"reference file {REF} not present")
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from core.record import ChannelSelectionError, Record, select_channels
 from daq.readers import ReadError, open_record
 from daq.readers.csv import read_csv
-from daq.record import ChannelSelectionError, Record, select_channels
 
 
 def _write(tmp_path, text, name="rec.csv"):
@@ -166,7 +166,7 @@ def test_dispatch_errors(tmp_path):
 
 
 def _record(keys, temp=False):
-    from analysis.series import ChannelSeries
+    from core.series import ChannelSeries
 
     def s(k):
         return ChannelSeries(name=k, units="rad/s", fs_hz=1.0, values=np.zeros(4))

@@ -17,13 +17,13 @@ from daq.readers import open_record
 from daq.recorder import McapRecorder, SyncedFile
 from tests.mcap_helpers import make_blocks
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 # Live-paced recorder: 1 kHz in 20 ms blocks; prints the samples handed over after each block.
 RECORDER_SCRIPT = """
 import sys, time
 import numpy as np
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 from daq.recorder import McapRecorder
 fs, n = 1000.0, 20
 rec = McapRecorder(sys.argv[1], "adis16350", rotate_s=None)

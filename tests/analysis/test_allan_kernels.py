@@ -14,7 +14,7 @@ from analysis import allan_kernels
 from analysis.allan import allan
 from analysis.streaming_allan import StreamingAllan
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture

@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 
 from tests.live_helpers import free_port, interrupt
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_serve_answers_coefficients_within_a_minute_and_ctrl_c_closes_the_file(
@@ -86,7 +86,7 @@ def test_recorder_sink_records_an_outage_that_ended_between_two_blocks(tmp_path:
 
     import numpy as np
 
-    from daq.blocks import SampleBlock
+    from core.blocks import SampleBlock
     from daq.recorder import McapRecorder
     from imunoise.commands.serve import RecorderSink
 

@@ -113,7 +113,7 @@ def test_threaded_recorder_makes_data_durable_within_a_second(tmp_path):
 
 
 def test_malformed_block_stops_recording_with_message_and_keeps_file(tmp_path):
-    from daq.blocks import SampleBlock
+    from core.blocks import SampleBlock
 
     rec = McapRecorder(tmp_path, "adis16350", fsync=False, rotate_s=None)
     good = make_blocks(2, 100)

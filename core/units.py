@@ -27,10 +27,19 @@ import numpy as np
 G0 = 9.80665
 """Standard gravity in m/s^2."""
 
+DEG = math.pi / 180.0
+"""One degree in rad."""
+
 DEG_PER_RAD = 180.0 / math.pi
 SQRT_S_PER_SQRT_H = 60.0  # sqrt(3600 s)
 S_PER_H = 3600.0
 ARCSEC_PER_RAD = DEG_PER_RAD * 3600.0
+
+CI95 = 0.95
+"""Confidence level of every interval the user sees: JSON, text, dashboard, reports, exports."""
+
+ONE_SIGMA_CI = 0.683
+"""The 68.3 % level of Stable32's tables, used to compare with them."""
 
 Kind = Literal["gyro", "accel"]
 

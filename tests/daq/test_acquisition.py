@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from analysis.allan import oadev
+from core.blocks import SampleBlock
 from daq.acquisition import Acquisition
-from daq.blocks import SampleBlock
 from daq.clock import RealClock, VirtualClock
 from daq.devices import DEVICES, open_device
 from daq.drivers import adis16350 as adis

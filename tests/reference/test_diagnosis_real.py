@@ -7,8 +7,9 @@ import pytest
 
 from analysis.diagnosis import diagnose
 from analysis.evidence import outliers, robust_z, spectral_lines
+from tests.shared_paths import SHARED_DATA
 
-DATA = Path("../shared/data")
+DATA = SHARED_DATA
 BASE = "white,bias_instability,random_walk"
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from analysis import units as u
+from core import units as u
 
 
 def test_rate_conversions():

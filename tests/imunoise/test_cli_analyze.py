@@ -161,8 +161,8 @@ def test_too_short_record_still_reports(tmp_path, capsys):
 
 
 def test_progress_bar_goes_to_stderr_only(capsys):
-    from analysis.series import ChannelSeries
-    from daq.record import Record
+    from core.record import Record
+    from core.series import ChannelSeries
     from imunoise.commands.analyze import analyze_record
 
     rec = Record(source="mem", channels={"gyro_x": ChannelSeries(

@@ -1,6 +1,6 @@
 import numpy as np
 
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 from daq.replay import ReplaySummary, open_blocks, replay
 from imunoise.cli import main
 from tests.mcap_helpers import make_blocks, record_blocks

@@ -17,7 +17,7 @@ from analysis.rolling import (
     RecentSamples,
     RollingAnalyzer,
 )
-from daq.blocks import SampleBlock
+from core.blocks import SampleBlock
 from imunoise.cli import main
 
 FS = 100.0

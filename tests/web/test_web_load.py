@@ -17,7 +17,7 @@ from imunoise.live import LiveService
 from tests.live_helpers import free_port, running_server
 from web.app import create_app
 
-HERE = Path(__file__).resolve().parent
+TESTS = Path(__file__).resolve().parent.parent
 CLIENTS = 50
 REQUESTS = 2000
 PATHS = ["/health", "/coefficients", "/allan?channel=gyro_x", "/psd?channel=gyro_y",
@@ -71,8 +71,8 @@ def _wait_until(cond, timeout: float = 10.0) -> bool:
 
 def test_load_50_clients_2000_requests_while_recording_1khz_drops_nothing() -> None:
     port = free_port()
-    proc = subprocess.Popen([sys.executable, str(HERE / "serve_synthetic.py"), str(port), "1000"],
-                            stdout=subprocess.PIPE, text=True, cwd=HERE.parent)
+    proc = subprocess.Popen([sys.executable, str(TESTS / "serve_synthetic.py"), str(port), "1000"],
+                            stdout=subprocess.PIPE, text=True, cwd=TESTS.parent)
     try:
         assert proc.stdout.readline().strip() == "ready"
         base = f"http://127.0.0.1:{port}"

@@ -11,9 +11,10 @@ import pytest
 import yaml
 
 from imunoise.cli import build_parser
+from tests.shared_paths import SHARED_REFERENCE
 
-ROOT = Path(__file__).resolve().parent.parent
-SCHEMA = Path("../shared/reference/compose/compose-spec.json")
+ROOT = Path(__file__).resolve().parents[2]
+SCHEMA = SHARED_REFERENCE / "compose/compose-spec.json"
 
 
 def _compose() -> dict:
