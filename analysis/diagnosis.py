@@ -30,7 +30,7 @@ from scipy import stats
 from analysis import evidence
 from analysis.evidence.finding import Finding, family_p
 from analysis.fit import FitResult, find_line, fit_allan, fit_series
-from analysis.terms import TERM_NAMES, get_term
+from analysis.terms import TERMS, get_term, parse_model
 
 DEFAULT_ALPHA = 0.05
 """Family-wise probability that a correctly specified model gets any significant suggestion."""
@@ -178,7 +178,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     Args:
         values: rate samples (SI units), all gap-free segments concatenated.
         fs_hz: sampling rate in Hz.
-        model: term names (``"white,random_walk"`` or a list).
+        model: the model (a specification string such as ``"white,gauss_markov:T=100"`` or
+            a list of names; see :func:`analysis.terms.parse_model`).
         segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
         t0_s: time of the first sample, seconds (same base as the temperature times).
         temperature: ``(times_s, degC)`` of the temperature record, any rate.
@@ -192,8 +193,9 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     x = np.asarray(values, dtype=np.float64)
     starts = (np.asarray(segment_starts, dtype=np.int64) if segment_starts is not None
               else np.zeros(1, dtype=np.int64))
-    names = model.split(",") if isinstance(model, str) else list(model)
-    names = [n.strip() for n in names if n.strip()]
+    spec = parse_model(model)
+    names = spec.names
+    fixed = {**spec.fixed, **(fixed or {})}
     t_rate = _times(x.size, fs_hz, t0_s)
     temp_at = None
     if temperature is not None:
@@ -230,8 +232,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             t_rate, x, temperature[0], temperature[1], alpha=alpha, units=units)
     findings.extend(by_term.values())
 
-    candidates = [t for t in TERM_NAMES if t not in names
-                  and (t != "temperature" or temperature is not None)]
+    candidates = [n for n, t in TERMS.items() if n not in names and t.kind == "additive"
+                  and (t.needs_record != "temperature" or temperature is not None)]
     suggestions: list[Suggestion] = []
     before = base.chi2_per_dof
     for term in candidates:
@@ -284,7 +286,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         ci: dict[str, tuple[float, float]] = {}
         chi_after = float("nan")
         if after is not None:
-            tf = next(t for t in after.terms if t.term == term)
+            tf = after.terms[len(names)]  # the added term (the model may repeat its name)
             params, ci = dict(tf.params), dict(tf.ci95)
             if ev is not None and ev.significant:
                 # Parameters the evidence pinned (held fixed in the refit) take its interval.

@@ -41,59 +41,24 @@ import numpy as np
 from scipy.optimize import nnls
 from scipy.signal import lfilter
 
-TWO_LN2_OVER_PI = 2.0 * np.log(2.0) / np.pi
+from analysis.terms import TermError, get_term
+from analysis.terms.gauss_markov import TERM as GAUSS_MARKOV
+from analysis.terms.random_walk import sampled_walk_avar as random_walk_avar
+
 # Relative share of the model's Allan variance below which bias instability gets no states.
 NEGLIGIBLE_FLICKER = 1e-4
 
-# Terms whose contribution is a random process with a finite discrete-time state.
-STOCHASTIC_TERMS = ("white", "quantization", "random_walk", "gauss_markov", "bias_instability")
-DETERMINISTIC_TERMS = ("rate_ramp", "sinusoid", "temperature")
-
 
 def markov_avar(tau_s: np.ndarray, fs_hz: float, sigma: float, T_s: float) -> np.ndarray:
-    """Exact overlapping Allan variance of a sampled first-order Markov (AR(1)) sequence.
-
-    ``x_{k+1} = a x_k + w_k`` with ``a = exp(-1/(fs T))`` and stationary standard deviation
-    ``sigma`` (channel units). For averages of ``m = tau fs`` samples::
-
-        AVAR = sigma^2 / m^2 * [ m + 2a(m(1-a) - (1-a^m))/(1-a)^2 - a(1-a^m)^2/(1-a)^2 ]
-
-    (variance of one m-average minus the covariance of two adjacent ones). ``tau_s`` in s,
-    result in units^2.
-    """
-    m = np.asarray(tau_s, dtype=np.float64) * fs_hz
-    x = 1.0 / (fs_hz * T_s)
-    a = np.exp(-x)
-    one_minus_a = -np.expm1(-x)
-    one_minus_am = -np.expm1(-m * x)
-    inner = m + (2.0 * a * (m * one_minus_a - one_minus_am) - a * one_minus_am**2) / one_minus_a**2
-    # For m x << 1 the bracket cancels to O(m^3 x) and loses about 1/(m x)^2 of its digits. There
-    # use its Taylor series in x: sum_k c_k exp(-k x) with lag weights c_k whose first moments are
-    # sum c_k k = -m (2 m^2 + 1)/3 and sum c_k k^2 = -m^4 (relative error about 0.35 (m x)^2).
-    small = m * x < 1e-4
-    inner = np.where(small, x * m * (2.0 * m**2 + 1.0) / 3.0 - 0.5 * (m**2 * x) ** 2, inner)
-    return sigma**2 * np.maximum(inner, 0.0) / m**2
-
-
-def random_walk_avar(tau_s: np.ndarray, fs_hz: float, K: float) -> np.ndarray:
-    """Exact Allan variance of a sampled random walk with step ``K sqrt(dt)`` (units^2)."""
-    m = np.asarray(tau_s, dtype=np.float64) * fs_hz
-    return K**2 / fs_hz * (2.0 * m**2 + 1.0) / (6.0 * m)
-
-
-def white_avar(tau_s: np.ndarray, N: float) -> np.ndarray:
-    """Allan variance of sampled white noise of density ``N`` (exact for integer m)."""
-    return N**2 / np.asarray(tau_s, dtype=np.float64)
-
-
-def quantization_avar(tau_s: np.ndarray, Q: float) -> np.ndarray:
-    """Allan variance of the differenced white angle error of std ``Q`` (exact)."""
-    return 3.0 * Q**2 / np.asarray(tau_s, dtype=np.float64) ** 2
+    """Exact overlapping Allan variance (units^2) of a sampled first-order Markov sequence
+    with stationary standard deviation ``sigma`` and correlation time ``T_s`` (the
+    ``gauss_markov`` term's)."""
+    return GAUSS_MARKOV.avar(tau_s, fs_hz, sigma=sigma, T=T_s)
 
 
 def flat_flicker_avar(tau_s: np.ndarray, B: float) -> np.ndarray:
     """The bias-instability plateau (2 ln2/pi) B^2 on ``tau_s`` (units^2)."""
-    return np.full(np.shape(tau_s), TWO_LN2_OVER_PI * B**2, dtype=np.float64)
+    return get_term("bias_instability").avar(tau_s, 1.0, B=B)
 
 
 @dataclass(frozen=True)
@@ -164,6 +129,8 @@ class DiscreteModel:
     sinusoids: list[tuple[float, float]] = field(default_factory=list)
     temperature_coef: float = 0.0
     flicker: FlickerApproximation | None = None
+    flicker_B: float = 0.0
+    """Bias instability still to be approximated (set while terms are added)."""
 
     @property
     def dt_s(self) -> float:
@@ -176,16 +143,16 @@ class DiscreteModel:
         """
         tau = np.asarray(tau_s, dtype=np.float64)
         fs = self.fs_hz
-        out = white_avar(tau, self.white_sigma / np.sqrt(fs))
-        out = out + quantization_avar(tau, self.quantization_sigma)
+        out = get_term("white").avar(tau, fs, N=self.white_sigma / np.sqrt(fs))
+        out = out + get_term("quantization").avar(tau, fs, Q=self.quantization_sigma)
+        # the discrete state is a point-sampled walk, not the continuous model's averaged one
         out = out + random_walk_avar(tau, fs, self.random_walk_step * np.sqrt(fs))
         for st in self.markov:
             out = out + markov_avar(tau, fs, st.sigma, st.T_s)
-        out = out + self.ramp_rate**2 * tau**2 / 2.0
+        out = out + get_term("rate_ramp").avar(tau, fs, R=self.ramp_rate)
         for amp, f in self.sinusoids:
-            m = tau * fs
-            out = out + amp**2 * np.sin(np.pi * f * tau) ** 4 / (m * np.sin(np.pi * f / fs)) ** 2
-        return out
+            out = out + get_term("sinusoid").avar(tau, fs, A=amp, f=f)
+        return out.reshape(np.shape(tau))
 
     def to_dict(self) -> dict:
         """JSON-ready description (the ``discrete_model`` key of ``analyze --json``)."""
@@ -228,7 +195,7 @@ def _normalise(model) -> list[tuple[str, dict[str, float]]]:
     return out
 
 
-def _markov_state(term: str, sigma: float, T_s: float, fs_hz: float) -> MarkovState:
+def markov_state(term: str, sigma: float, T_s: float, fs_hz: float) -> MarkovState:
     x = 1.0 / (fs_hz * T_s)
     a = float(np.exp(-x))
     return MarkovState(term=term, T_s=float(T_s), sigma=float(sigma), a_d=a,
@@ -265,30 +232,12 @@ def discretize(
         raise ValueError(f"sample rate must be positive, got {fs_hz}")
     terms = _normalise(model)
     dm = DiscreteModel(fs_hz=float(fs_hz), units=units)
-    white_n = 0.0
-    bias_b = 0.0
     for term, p in terms:
-        if term == "white":
-            white_n = np.hypot(white_n, p["N"])
-        elif term == "quantization":
-            dm.quantization_sigma = float(np.hypot(dm.quantization_sigma, p["Q"]))
-        elif term == "random_walk":
-            k_total = np.hypot(dm.random_walk_step * np.sqrt(fs_hz), p["K"])
-            dm.random_walk_step = float(k_total / np.sqrt(fs_hz))
-        elif term == "gauss_markov":
-            dm.markov.append(_markov_state(term, p["sigma"], p["T"], fs_hz))
-        elif term == "bias_instability":
-            bias_b = float(np.hypot(bias_b, p["B"]))
-        elif term == "rate_ramp":
-            dm.ramp_rate += p["R"]
-        elif term == "sinusoid":
-            dm.sinusoids.append((p["A"], p["f"]))
-        elif term == "temperature":
-            dm.temperature_coef += p["coef"]
-        else:
-            raise ValueError(f"unknown term {term!r}: valid are "
-                             f"{', '.join(STOCHASTIC_TERMS + DETERMINISTIC_TERMS)}")
-    dm.white_sigma = float(white_n * np.sqrt(fs_hz))
+        try:
+            get_term(term).add_discrete(dm, p)
+        except TermError as exc:
+            raise ValueError(str(exc)) from None
+    bias_b = dm.flicker_B
     if bias_b > 0:
         _approximate_flicker(dm, bias_b, tau_range_s, flicker_avar, tolerance,
                              max_states_per_decade)
@@ -331,7 +280,7 @@ def _approximate_flicker(dm: DiscreteModel, B: float, tau_range_s, flicker_avar,
     err, T, var, density = best
     for t, v in zip(T, var, strict=True):
         if v > 0:
-            dm.markov.append(_markov_state("bias_instability", float(np.sqrt(v)), float(t), fs))
+            dm.markov.append(markov_state("bias_instability", float(np.sqrt(v)), float(t), fs))
     dm.flicker = FlickerApproximation(B=B, tau_range_s=(lo, hi), states_per_decade=density,
                                       max_rel_avar_error=err)
 

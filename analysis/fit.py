@@ -35,11 +35,15 @@ from scipy import ndimage, optimize, signal, special
 
 from analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
 from analysis.profile import profile_bounds
-from analysis.terms import TERMS, TermError, ar1_avar_shape, get_term, parse_terms
+from analysis.terms import (
+    ModelSpec,
+    TermError,
+    get_term,
+    labels,
+    model_avar,
+    parse_model,
+)
 
-LINEAR_TERMS = ("white", "quantization", "bias_instability", "random_walk", "rate_ramp")
-_LINEAR_PARAM = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
-                 "rate_ramp": "R"}
 _Z95 = 1.959963984540054
 _LOSS = "soft_l1"
 _MAX_SHORT_TRIM = 4
@@ -56,7 +60,7 @@ class CurveLike(Protocol):
     n_terms: np.ndarray
 
 
-ModelSpec = Sequence[str] | Sequence[tuple[str, dict[str, float]]] | str
+ModelLike = Sequence[str] | Sequence[tuple[str, dict[str, float]]] | str | ModelSpec
 
 
 @dataclass
@@ -135,14 +139,9 @@ class FitResult:
     def term_avar_at(self, tau_s: np.ndarray | float) -> dict[str, np.ndarray]:
         """Per-term Allan variance at ``tau_s`` keyed ``term`` (``term#2`` for repeats)."""
         tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))
-        out: dict[str, np.ndarray] = {}
-        for t in self.terms:
-            key, k = t.term, 1
-            while key in out:
-                k += 1
-                key = f"{t.term}#{k}"
-            out[key] = _term_avar(t.term, t.params, tau, self.fs_hz)
-        return out
+        return {key: _term_avar(t.term, t.params, tau, self.fs_hz)
+                for key, t in zip(labels([t.term for t in self.terms]), self.terms,
+                                  strict=True)}
 
     def allan_dict(self, ci_low: np.ndarray | None = None, ci_high: np.ndarray | None = None
                    ) -> dict[str, list[float]]:
@@ -159,33 +158,16 @@ class FitResult:
 
 
 def _term_avar(name: str, params: dict[str, float], tau: np.ndarray, fs: float) -> np.ndarray:
-    if name == "temperature":
+    term = get_term(name)
+    if term.role == "regressor":
         return np.zeros_like(tau)
-    return get_term(name).avar(tau, fs, **params)
-
-
-# --- model specification --------------------------------------------------------------------
-
-def normalise_model(model: ModelSpec) -> list[tuple[str, dict[str, float] | None]]:
-    """``"white,random_walk"``, ``["white"]`` or ``[("white", {"N": 1e-3})]`` ->
-    ``[(term, params or None)]``; unknown terms raise :class:`TermError`."""
-    if isinstance(model, str):
-        return [(n, None) for n in parse_terms(model)]
-    out: list[tuple[str, dict[str, float] | None]] = []
-    for item in model:
-        if isinstance(item, str):
-            out.append((item, None))
-        else:
-            name, params = item
-            out.append((name, dict(params) if params is not None else None))
-    parse_terms([n for n, _ in out])
-    return out
+    return term.avar(tau, fs, **params)
 
 
 # --- starting values ------------------------------------------------------------------------
 
 def _linear_shape(name: str, tau: np.ndarray, fs: float) -> np.ndarray:
-    return get_term(name).avar(tau, fs, **{_LINEAR_PARAM[name]: 1.0})
+    return get_term(name).unit_avar(tau, fs, {})
 
 
 def _nnls_weighted(design: np.ndarray, avar: np.ndarray, w: np.ndarray
@@ -201,15 +183,20 @@ def _nnls_weighted(design: np.ndarray, avar: np.ndarray, w: np.ndarray
 def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float,
                   nu: np.ndarray, duration_s: float, line: tuple[float, float] | None,
                   fixed: dict[tuple[int, str], float] | None = None) -> list[dict[str, float]]:
+    """Starting parameters: the linear terms' squared amplitudes by one weighted NNLS solve;
+    each nonlinear term (in model order) by a grid search over its shape parameters
+    (``Term.start_shapes``, a fixed value taking the grid's place) with its amplitude
+    linear."""
     fixed = fixed or {}
     w = np.sqrt(nu / 2.0)
     columns: list[np.ndarray] = []
     owners: list[int] = []
     for i, n in enumerate(names):
-        if n in LINEAR_TERMS:
+        term = get_term(n)
+        if term.linear and term.role != "regressor":
             columns.append(_linear_shape(n, tau, fs))
             owners.append(i)
-    fixed_extra: dict[int, dict[str, float]] = {}
+    shapes: dict[int, dict[str, float]] = {}
     base = np.stack(columns, axis=1) if columns else np.zeros((len(tau), 0))
 
     def solve(extra_cols: list[np.ndarray]) -> tuple[np.ndarray, float]:
@@ -220,36 +207,24 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
 
     extra_cols: list[np.ndarray] = []
     extra_owner: list[int] = []
-    t_grid = np.geomspace(2.0 / fs, max(duration_s / 2.0, 4.0 / fs), 36)
     for i, n in enumerate(names):
-        if n == "gauss_markov":
-            best = None
-            for t in ([fixed[(i, "T")]] if (i, "T") in fixed else t_grid):
-                col = ar1_avar_shape(tau * fs, 1.0 / (fs * t))
-                _, r = solve(extra_cols + [col])
-                if best is None or r < best[0]:
-                    best = (r, t, col)
-            assert best is not None
-            extra_cols.append(best[2])
-            extra_owner.append(i)
-            fixed_extra[i] = {"T": float(best[1])}
-        elif n == "sinusoid":
-            if (i, "f") in fixed:
-                f0 = fixed[(i, "f")]
-            elif line is not None:
-                f0 = line[0]
-            else:
-                best = None
-                for f in np.geomspace(2.0 / duration_s, 0.45 * fs, 60):
-                    col = get_term("sinusoid").avar(tau, fs, A=1.0, f=f)
-                    _, r = solve(extra_cols + [col])
-                    if best is None or r < best[0]:
-                        best = (r, f)
-                assert best is not None
-                f0 = float(best[1])
-            extra_cols.append(get_term("sinusoid").avar(tau, fs, A=1.0, f=f0))
-            extra_owner.append(i)
-            fixed_extra[i] = {"f": float(f0)}
+        term = get_term(n)
+        if term.linear or term.role == "regressor" or term.kind == "filter":
+            continue
+        held = {k: fixed[(i, k)] for k in term.shape_params if (i, k) in fixed}
+        candidates = [{**c, **held} for c in term.start_shapes(fs, duration_s, line)]
+        if held and len(held) == len(term.shape_params):
+            candidates = [held]
+        best = None
+        for cand in candidates:
+            col = term.unit_avar(tau, fs, cand)
+            _, r = solve(extra_cols + [col]) if len(candidates) > 1 else (None, 0.0)
+            if best is None or r < best[0]:
+                best = (r, cand, col)
+        assert best is not None
+        extra_cols.append(best[2])
+        extra_owner.append(i)
+        shapes[i] = {k: float(v) for k, v in best[1].items()}
     coef, _ = solve(extra_cols)
     start: list[dict[str, float]] = [dict() for _ in names]
     all_owners = owners + extra_owner
@@ -258,16 +233,11 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
         # a term the data do not need starts small but positive (log parameters)
         floor = 1e-4 * float(np.min(avar / np.maximum(col, 1e-300)))
         c2 = max(float(c), floor)
-        n = names[owner]
-        if n in LINEAR_TERMS:
-            start[owner][_LINEAR_PARAM[n]] = math.sqrt(c2)
-        elif n == "gauss_markov":
-            start[owner] = {"sigma": math.sqrt(c2), **fixed_extra[owner]}
-        elif n == "sinusoid":
-            amp = math.sqrt(c2)
-            if line is not None and c <= 0:
-                amp = line[1]
-            start[owner] = {"A": amp, **fixed_extra[owner]}
+        term = get_term(names[owner])
+        amp = math.sqrt(c2)
+        if not term.linear:
+            amp = term.start_amplitude(amp if c > 0 else 0.0, line) or amp
+        start[owner] = {term.amplitude: amp, **shapes.get(owner, {})}
     return start
 
 
@@ -288,21 +258,16 @@ def _layout(names: list[str], fs: float, duration_s: float,
     lo: list[float] = []
     hi: list[float] = []
     for i, n in enumerate(names):
-        if n == "temperature":
+        term = get_term(n)
+        if term.role == "regressor":
             continue
-        for p in get_term(n).params:
+        for p in term.params:
             if (i, p.name) in fixed:
                 continue
             keys.append((i, p.name))
-            if p.name == "T":
-                lo.append(math.log(0.2 / fs))
-                hi.append(math.log(max(50.0 * duration_s, 1.0 / fs)))
-            elif p.name == "f":
-                lo.append(math.log(0.5 / duration_s))
-                hi.append(math.log(0.5 * fs))
-            else:
-                lo.append(math.log(1e-30))
-                hi.append(math.log(1e6))
+            a, b = p.log_fit_bounds(fs, duration_s)
+            lo.append(a)
+            hi.append(b)
     return _Layout(names, keys, np.array(lo), np.array(hi), dict(fixed))
 
 
@@ -317,15 +282,14 @@ def _unpack(layout: _Layout, theta: np.ndarray) -> list[dict[str, float]]:
 
 def _model_terms(layout: _Layout, params: list[dict[str, float]]
                  ) -> list[tuple[str, dict[str, float]]]:
-    return [(n, p) for n, p in zip(layout.names, params, strict=True) if n != "temperature"]
+    return [(n, p) for n, p in zip(layout.names, params, strict=True)
+            if get_term(n).role != "regressor"]
 
 
 def _avar_of(layout: _Layout, params: list[dict[str, float]], tau: np.ndarray, fs: float
              ) -> np.ndarray:
-    total = np.zeros_like(tau)
-    for n, p in _model_terms(layout, params):
-        total += TERMS[n].avar_fn(tau, fs, **p)  # parameters already validated
-    return total
+    # parameters already validated by the layout's bounds
+    return model_avar(_model_terms(layout, params), tau, fs, checked=False)
 
 
 def _log_weights(model: list[tuple[str, dict[str, float]]], fs: float, m: np.ndarray,
@@ -398,9 +362,10 @@ def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndar
     and the fit settle in the wrong valley."""
     out: list[list[dict[str, float]]] = []
     for i, n in enumerate(names):
-        if n not in LINEAR_TERMS:
+        term = get_term(n)
+        if not term.linear or term.role == "regressor":
             continue
-        key = _LINEAR_PARAM[n]
+        key = term.amplitude
         shape = _linear_shape(n, tau, fs)
         level = float(np.max(shape / avar))  # 1/c at which the term alone reaches the data
         c_now = start[i][key] ** 2
@@ -411,7 +376,7 @@ def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndar
     return out
 
 
-def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
+def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
               line: tuple[float, float] | None = None, temperature: TermFit | None = None,
               fixed: dict[str | int, dict[str, float]] | None = None,
               family_rate: float = 0.10, max_nfev: int = 200,
@@ -443,8 +408,10 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
         TermError: unknown term, or a model with no term to fit.
         ValueError: a curve with fewer taus than free parameters, or non-positive values.
     """
-    spec = normalise_model(model)
-    names = [n for n, _ in spec]
+    parsed = parse_model(model)
+    spec = [(e.name, e.start) for e in parsed.entries]
+    names = parsed.names
+    fixed = {**parsed.fixed, **(fixed or {})}
     fs = float(curve.fs_hz)
     tau = np.asarray(curve.tau_s, dtype=np.float64)
     m = np.asarray(curve.m, dtype=np.float64)
@@ -543,14 +510,15 @@ def fit_allan(curve: CurveLike, model: ModelSpec, *, start: Any = None,
         else:
             lo, hi = th - _Z95 * s, th + _Z95 * s
         # an amplitude whose interval reaches its lower bound is consistent with zero
-        lo_v = 0.0 if (lo <= layout.lo[idx] + 1e-6 and k not in ("T", "f")) else math.exp(lo)
+        scale = get_term(names[i]).param(k).is_scale
+        lo_v = 0.0 if (lo <= layout.lo[idx] + 1e-6 and not scale) else math.exp(lo)
         ci[i][k] = (float(lo_v), float(math.exp(min(hi, 700.0))))
     for (i, k), v in layout.fixed.items():
         ci[i][k] = (float(v), float(v))
 
     terms_out: list[TermFit] = []
     for i, n in enumerate(names):
-        if n == "temperature":
+        if get_term(n).role == "regressor":
             if temperature is None:
                 raise TermError("the temperature term needs a temperature record: fit the "
                                 "series with fit_series(..., temperature=...)")
@@ -611,11 +579,8 @@ def _fixed_keys(names: list[str], fixed: dict[str | int, dict[str, float]], fs: 
             idx = names.index(key)
         term = get_term(names[idx])
         for pname, value in params.items():
-            if pname not in term.param_names:
-                raise TermError(f"{term.name} has no parameter {pname!r}; expected "
-                                f"{', '.join(term.param_names)}")
-            p = next(q for q in term.params if q.name == pname)
-            hi = fs / 2.0 if pname == "f" else p.hi
+            p = term.param(pname)
+            hi = p.upper(fs)
             if not (math.isfinite(value) and p.lo < value <= hi):
                 raise TermError(f"{term.name}.{pname} = {value:g} outside its physical range "
                                 f"({p.lo:g}, {hi:g}]")
@@ -643,15 +608,8 @@ def _match_start(names: list[str], start: list[tuple[str, dict[str, float]]]
         if hit is not None:
             out.append(pool.pop(hit)[1])
         else:
-            out.append(_small_default(n))
+            out.append(dict(get_term(n).small_default))
     return out
-
-
-def _small_default(name: str) -> dict[str, float]:
-    return {"white": {"N": 1e-6}, "quantization": {"Q": 1e-9}, "bias_instability": {"B": 1e-7},
-            "random_walk": {"K": 1e-9}, "rate_ramp": {"R": 1e-10},
-            "gauss_markov": {"sigma": 1e-6, "T": 10.0}, "sinusoid": {"A": 1e-6, "f": 1.0},
-            "temperature": {"coef": 0.0}}[name]
 
 
 # --- helpers on the series ------------------------------------------------------------------
@@ -721,32 +679,7 @@ def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int =
     return term, y - coef * tc
 
 
-def parse_model_spec(text: str) -> tuple[list[str], dict[int, dict[str, float]]]:
-    """``"white,gauss_markov:T=100,random_walk"`` -> term names and fixed parameters by model
-    index. A parameter written after a term (``term:P=value[:P2=value]``) is held fixed."""
-    names: list[str] = []
-    fixed: dict[int, dict[str, float]] = {}
-    for item in (s.strip() for s in text.split(",")):
-        if not item:
-            continue
-        name, *assigns = item.split(":")
-        name = name.strip()
-        names.append(name)
-        for a in assigns:
-            key, eq, value = a.partition("=")
-            try:
-                fixed.setdefault(len(names) - 1, {})[key.strip()] = float(value)
-            except ValueError:
-                raise TermError(f"bad fixed parameter {a!r} in {item!r}: use "
-                                f"{name}:PARAM=VALUE") from None
-            if not eq:
-                raise TermError(f"bad fixed parameter {a!r} in {item!r}: use "
-                                f"{name}:PARAM=VALUE")
-    parse_terms(names)
-    return names, fixed
-
-
-def fit_series(values: np.ndarray, fs_hz: float, model: ModelSpec, *,
+def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
                segment_starts: np.ndarray | None = None,
                temperature: np.ndarray | None = None,
                fixed: dict[str | int, dict[str, float]] | None = None,
@@ -770,8 +703,8 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelSpec, *,
     """
     from analysis.allan import oadev
 
-    spec = normalise_model(model)
-    names = [n for n, _ in spec]
+    spec = parse_model(model)
+    names = spec.names
     x = np.asarray(values, dtype=np.float64)
     temp_term = None
     if "temperature" in names:
@@ -781,7 +714,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelSpec, *,
         temp_term, x = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
     curve = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
     line = None
-    if "sinusoid" in names:
+    if any(get_term(n).role == "line" for n in names):
         bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
         k = int(np.argmax(np.diff(bounds)))
         line = find_line(x[bounds[k]:bounds[k + 1]], fs_hz)

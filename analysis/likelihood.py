@@ -35,10 +35,10 @@ import numpy as np
 from scipy import linalg, optimize
 
 from analysis.profile import profile_bounds
-from analysis.terms import ar1_avar_shape
+from analysis.terms import TERMS, ar1_avar_shape
 
-LIKELIHOOD_TERMS = ("white", "gauss_markov", "random_walk")
-"""Terms whose exact block-mean likelihood is implemented."""
+ESTIMATOR = "block_likelihood"
+"""The name terms list in ``Term.estimators`` when this likelihood supports them."""
 
 _CHI2_95_HALF = 1.920729410347062  # chi2(1) 95 % quantile / 2
 _MAX_BLOCKS = 4096
@@ -49,8 +49,14 @@ Model = Sequence[tuple[str, dict[str, float]]]
 
 def supports(names: Sequence[str]) -> bool:
     """True when the model can be fitted by :func:`fit_likelihood` (white noise present, every
-    term one of :data:`LIKELIHOOD_TERMS`)."""
-    return "white" in names and all(n in LIKELIHOOD_TERMS for n in names)
+    term one whose ``Term.estimators`` lists :data:`ESTIMATOR`)."""
+    return "white" in names and all(n in TERMS and ESTIMATOR in TERMS[n].estimators
+                                    for n in names)
+
+
+def supported_terms() -> tuple[str, ...]:
+    """Names of the terms this likelihood supports."""
+    return tuple(n for n, t in TERMS.items() if ESTIMATOR in t.estimators)
 
 
 # --- exact second moments of block means -----------------------------------------------------
@@ -278,7 +284,7 @@ def fit_likelihood(values: np.ndarray, fs_hz: float, names: Sequence[str],
     names = list(names)
     if not supports(names):
         raise ValueError(f"no exact likelihood for model {','.join(names)}: it needs white "
-                         f"noise and only {', '.join(LIKELIHOOD_TERMS)}")
+                         f"noise and only {', '.join(supported_terms())}")
     fixed = dict(fixed or {})
     x = np.asarray(values, dtype=np.float64)
     fs = float(fs_hz)
@@ -291,8 +297,7 @@ def fit_likelihood(values: np.ndarray, fs_hz: float, names: Sequence[str],
     lo: list[float] = []
     hi: list[float] = []
     for i, n in enumerate(names):
-        for pname in {"white": ("N",), "random_walk": ("K",),
-                      "gauss_markov": ("sigma", "T")}[n]:
+        for pname in TERMS[n].param_names:
             if (i, pname) in fixed:
                 continue
             keys.append((i, pname))

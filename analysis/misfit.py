@@ -33,24 +33,21 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from analysis.terms import get_term
+from analysis.terms import get_term, model_psd
 
 Model = Sequence[tuple[str, dict[str, float]]]
 
-_GAUSSIAN_TERMS = ("white", "quantization", "bias_instability", "random_walk", "gauss_markov")
 _SIN4 = (3.0 / 8.0, -0.5, 1.0 / 8.0)  # sin^4 x = 3/8 - cos(2x)/2 + cos(4x)/8
 _POINTS_PER_DECADE = 100
 Z_CLIP = 12.0
 
 
 def _two_sided_psd(model: Model, u: np.ndarray, fs_hz: float) -> np.ndarray:
-    """Two-sided PSD (units^2/Hz) of the model's Gaussian terms at f = u fs."""
-    f = u * fs_hz
-    total = np.zeros_like(u)
-    for name, params in model:
-        if name in _GAUSSIAN_TERMS:
-            total += 0.5 * get_term(name).psd(f, fs_hz, **params)
-    return total
+    """Two-sided PSD (units^2/Hz) of the model's Gaussian noise (its ``role == "noise"`` terms,
+    seen through its output filter when it has one) at f = u fs."""
+    noise = [(n, p) for n, p in model
+             if get_term(n).role == "noise" or get_term(n).kind == "filter"]
+    return 0.5 * model_psd(noise, u * fs_hz, fs_hz)
 
 
 def _bin_avg_cos(nu: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
@@ -146,13 +143,14 @@ def _deterministic_terms(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.
     n = len(m)
     line = np.zeros((n, n))
     ramp = np.zeros((n, n))
-    for name, p in model:
-        if name == "sinusoid":
-            u0 = p["f"] / fs_hz
-            s_n = float(_two_sided_psd(model, np.array([u0]), fs_hz)[0])
-            h = _h2(m, u0)
-            line += p["A"] ** 2 * fs_hz * s_n * np.outer(h, h)
-    r2 = sum(p["R"] ** 2 for name, p in model if name == "rate_ramp")
+    lines = [get_term(name).line(p) for name, p in model if get_term(name).role == "line"]
+    for amp, f0 in lines:
+        u0 = f0 / fs_hz
+        s_n = float(_two_sided_psd(model, np.array([u0]), fs_hz)[0])
+        h = _h2(m, u0)
+        line += amp**2 * fs_hz * s_n * np.outer(h, h)
+    r2 = sum(get_term(name).ramp_slope(p) ** 2 for name, p in model
+             if get_term(name).role == "ramp")
     if r2 > 0:
         width = ub - ua
         d = np.empty(n)
@@ -164,12 +162,11 @@ def _deterministic_terms(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.
                               np.sin(np.pi * um * m[i]) ** 2)
             avg2 = sin2_m / (m[i] ** 2 * np.sin(np.pi * um) ** 2)
             d[i] = 2.0 * fs_hz * float(np.sum(s2 * avg2 * 4.0 * sin2_span * width))
-            for name, p in model:
-                if name == "sinusoid":
-                    u0 = p["f"] / fs_hz
-                    a2 = math.sin(math.pi * u0 * m[i]) ** 2 / (m[i] ** 2 * math.sin(
-                        math.pi * u0) ** 2)
-                    d[i] += 0.5 * p["A"] ** 2 * a2 * 4.0 * math.sin(math.pi * u0 * span) ** 2
+            for amp, f0 in lines:
+                u0 = f0 / fs_hz
+                a2 = math.sin(math.pi * u0 * m[i]) ** 2 / (m[i] ** 2 * math.sin(
+                    math.pi * u0) ** 2)
+                d[i] += 0.5 * amp**2 * a2 * 4.0 * math.sin(math.pi * u0 * span) ** 2
         tau = m / fs_hz
         mean_sd = m / n_terms * np.sqrt(d)
         ramp = r2 * np.outer(tau * mean_sd, tau * mean_sd)

@@ -41,7 +41,8 @@ from analysis.diagnosis import diagnose
 from analysis.fit import FitResult, find_line, fit_allan
 from analysis.psd import StreamingPsd
 from analysis.streaming_allan import StreamingAllan
-from analysis.terms import TERM_NAMES, TermError, get_term
+from analysis.terms import TermError, get_term, parse_model, term_names
+from analysis.terms import model_psd as _terms_psd
 from core.series import channel_units
 from core.units import CI95
 from core.units import param_units as _param_units
@@ -49,7 +50,7 @@ from core.units import param_units as _param_units
 DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
 # ``temperature`` needs the whole temperature record regressed out of the rate series first,
 # which a bounded-memory stream does not keep.
-VALID_TERMS: tuple[str, ...] = tuple(t for t in TERM_NAMES if t != "temperature")
+VALID_TERMS: tuple[str, ...] = term_names(live=True)
 OCTAVE_GRID = (1 << np.arange(41)).astype(np.int64)  # the averaging factors of ``imunoise fit``
 FULL_INTERVALS = "profile"
 QUICK_INTERVALS = "jacobian"
@@ -71,11 +72,7 @@ def model_psd(f_hz: np.ndarray, params: Sequence[tuple[str, dict[str, float]]],
     Sinusoids are spectral lines and add nothing to the continuous spectrum drawn here.
     """
     f = np.asarray(f_hz, dtype=np.float64)
-    out = np.zeros_like(f)
-    for name, p in params:
-        if name not in ("sinusoid", "temperature"):
-            out += get_term(name).psd(f, fs_hz, **p)
-    return out
+    return _terms_psd(params, f, fs_hz, continuous_only=True).reshape(f.shape)
 
 
 @dataclass
@@ -118,20 +115,14 @@ def _finite(x: Iterable[float]) -> list[float | None]:
 
 
 def check_terms(terms: Iterable[str]) -> None:
-    """Raise ``ValueError`` naming the valid terms when one is unknown or not live."""
-    terms = list(terms)
-    bad = [t for t in terms if t not in TERM_NAMES]
-    if bad:
-        raise ValueError(f"unknown term {', '.join(map(repr, bad))}; valid terms: "
-                         f"{', '.join(VALID_TERMS)}")
-    if "temperature" in terms:
-        raise ValueError("the temperature term needs the whole temperature record and is "
-                         "fitted by 'imunoise fit FILE --model ...,temperature'; valid live "
-                         f"terms: {', '.join(VALID_TERMS)}")
-
-
-_AMPLITUDE = {"white": "N", "quantization": "Q", "bias_instability": "B", "random_walk": "K",
-              "rate_ramp": "R", "gauss_markov": "sigma", "sinusoid": "A"}
+    """Raise ``ValueError`` naming the valid terms when one is unknown or not live (the model
+    grammar of :func:`analysis.terms.parse_model`; ``TermError`` is a ``ValueError``)."""
+    spec = parse_model(list(terms))
+    for name in spec.names:
+        if not get_term(name).live:
+            raise ValueError(f"the {name} term needs the whole {get_term(name).needs_record} "
+                             f"record and is fitted by 'imunoise fit FILE --model "
+                             f"...,{name}'; valid live terms: {', '.join(VALID_TERMS)}")
 
 
 def _lifted(params: Sequence[tuple[str, dict[str, float]]], curve: AllanCurve,
@@ -149,7 +140,8 @@ def _lifted(params: Sequence[tuple[str, dict[str, float]]], curve: AllanCurve,
     out: list[tuple[str, dict[str, float]]] = []
     for name, p in params:
         p = dict(p)
-        amp = _AMPLITUDE.get(name)
+        term = get_term(name)
+        amp = term.amplitude if term.role != "regressor" else None
         if amp is not None and ok.any():
             ratio = float(np.max(get_term(name).avar(tau[ok], curve.fs_hz, **p) / measured[ok]))
             if ratio < floor:
@@ -159,8 +151,16 @@ def _lifted(params: Sequence[tuple[str, dict[str, float]]], curve: AllanCurve,
 
 
 def _ordered(terms: Iterable[str]) -> list[str]:
-    chosen = set(terms)
-    return [t for t in VALID_TERMS if t in chosen]
+    """The model's entries (``name`` or ``name:P=V``, the grammar of
+    :func:`analysis.terms.parse_model`) in vocabulary order, repeated terms kept in order."""
+    entries = parse_model(list(terms)).entries
+    rank = {n: k for k, n in enumerate(VALID_TERMS)}
+    return [e.text() for e in sorted(entries, key=lambda e: rank.get(e.name, len(rank)))]
+
+
+def _names(model: Iterable[str]) -> list[str]:
+    """Term names of a live model's entries."""
+    return parse_model(list(model)).names
 
 
 # --- jobs: plain functions of plain data, so they can run in a worker process ----------------
@@ -187,7 +187,7 @@ def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
         return best
     start = list(start)
     have = {t for t, _ in start}
-    for term in model:
+    for term in _names(model):
         if term in have:
             continue
         if term in hints:
@@ -461,9 +461,9 @@ class ChannelAnalyzer:
         """Replace the model and refit now (``fit_allan``). Returns the error before and after.
 
         Raises ``ValueError`` for an unknown term, an empty model or data too short to fit."""
-        check_terms(terms)
         if not terms:
             raise ValueError("the model needs at least one term")
+        check_terms(terms)
         new = _ordered(terms)
         with self._fit_lock:
             with self._lock:
@@ -491,25 +491,28 @@ class ChannelAnalyzer:
     def add_term(self, term: str) -> dict[str, Any]:
         check_terms([term])
         model = self.model
-        if term in model:
+        name = parse_model([term]).names[0]
+        if name in _names(model) and not get_term(name).repeatable:
             raise ValueError(f"term {term!r} is already in the model")
         return self.set_model(model + [term])
 
     def remove_term(self, term: str) -> dict[str, Any]:
         check_terms([term])
         model = self.model
-        if term not in model:
+        if term not in model and term not in _names(model):
             raise ValueError(f"term {term!r} is not in the model; model: {', '.join(model)}")
-        return self.set_model([t for t in model if t != term])
+        return self.set_model([t for t, n in zip(model, _names(model), strict=True)
+                               if t != term and n != term])
 
     # --- fits ----------------------------------------------------------------------------
     def _enough(self, curve: AllanCurve, model: Sequence[str]) -> bool:
-        n_free = sum(len(get_term(t).params) for t in model)
+        spec = parse_model(list(model))
+        n_free = sum(len(get_term(e.name).params) - len(e.fixed) for e in spec.entries)
         return int(np.count_nonzero(curve.dev > 0)) > n_free
 
     def _line_samples(self, model: Sequence[str]) -> np.ndarray | None:
         """The longest recent gap-free stretch, where a sinusoid's line is looked for."""
-        if "sinusoid" not in model:
+        if not any(get_term(n).role == "line" for n in _names(model)):
             return None
         with self._lock:
             return self._recent.longest_segment()
@@ -546,8 +549,9 @@ class ChannelAnalyzer:
         start = None
         hints: dict[str, dict[str, float]] = {}
         if previous is not None:
-            start = [(t, p) for t, p in previous.params if t in model]
-            hints = {t: h for t in model if (h := self._hint(t)) is not None}
+            names = _names(model)
+            start = [(t, p) for t, p in previous.params if t in names]
+            hints = {t: h for t in names if (h := self._hint(t)) is not None}
         try:
             best, cpu = self._run(_job_fit_new_model, curve, model, start, hints,
                                   self._line_samples(model))
@@ -580,7 +584,7 @@ class ChannelAnalyzer:
                 model = list(self._model)
                 revision = self._model_revision
                 previous = self._fit if self._fit is not None and \
-                    [t.term for t in self._fit.terms] == model else None
+                    [t.term for t in self._fit.terms] == _names(model) else None
                 n = self.n_samples
                 intervals = FULL_INTERVALS if full else QUICK_INTERVALS
                 hit = self._cached(model, intervals, n)

@@ -21,6 +21,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from analysis.rolling import VALID_TERMS, ChannelAnalyzer
+from analysis.terms import parse_model
 from imunoise import __version__
 from imunoise.live import LiveService
 from web.models import (
@@ -152,6 +153,8 @@ def create_app(service: LiveService, token: str | None = None,
                 result = a.add_term(change.add)
             elif change.remove is not None:
                 result = a.remove_term(change.remove)
+            elif change.model is not None:
+                result = a.set_model([e.text() for e in parse_model(change.model).entries])
             else:
                 result = a.set_model(change.terms or [])
         except ValueError as exc:

@@ -138,19 +138,21 @@ class ModelState(BaseModel):
 
 
 class ModelChangeRequest(BaseModel):
-    """Add or remove one term, or replace the whole model (exactly one of the three)."""
+    """Add or remove one term, or replace the whole model by a list of terms or by a model
+    specification (a suggestion's ``apply.model``); exactly one of the four."""
 
     model_config = ConfigDict(extra="forbid")
     channel: str
     add: str | None = None
     remove: str | None = None
     terms: list[str] | None = None
+    model: str | None = None
 
     @model_validator(mode="after")
     def _one_action(self) -> ModelChangeRequest:
-        given = [k for k in ("add", "remove", "terms") if getattr(self, k) is not None]
+        given = [k for k in ("add", "remove", "terms", "model") if getattr(self, k) is not None]
         if len(given) != 1:
-            raise ValueError("give exactly one of 'add', 'remove' or 'terms'")
+            raise ValueError("give exactly one of 'add', 'remove', 'terms' or 'model'")
         return self
 
 

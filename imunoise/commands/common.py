@@ -110,16 +110,15 @@ def failure_lines(result: FitResult | Any) -> list[str]:
 def parse_model(text: str) -> tuple[list[str], dict[str, float]]:
     """Term names and held parameters of ``--model TERMS``; an unknown term, a bad or
     out-of-range parameter or an empty model is a usage error naming the valid terms."""
-    from analysis.fit import parse_model_spec
-    from analysis.terms import TermError
+    from analysis.terms import TermError, parse_model
 
+    if not text.strip(" ,"):
+        raise UsageError(f"--model {text!r} names no term")
     try:
-        names, fixed = parse_model_spec(text)
+        spec = parse_model(text)
     except TermError as exc:
         raise UsageError(str(exc)) from None
-    if not names:
-        raise UsageError(f"--model {text!r} names no term")
-    return list(names), dict(fixed)
+    return spec.names, spec.fixed
 
 
 @contextmanager

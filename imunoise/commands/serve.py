@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="record MCAP files here (default: no recording)")
     p.add_argument("--token", help=f"token required by changing requests (or ${TOKEN_ENV})")
     p.add_argument("--model", default="white,bias_instability,random_walk", metavar="TERMS",
-                   help="initial model, comma-separated terms "
+                   help="initial model, comma-separated terms; TERM:P=VALUE holds a "
+                        "parameter (SI units), e.g. white,gauss_markov:T=100 "
                         "(default white,bias_instability,random_walk)")
     p.add_argument("--refit-interval", type=float, default=2.0, metavar="S",
                    help="least time between refits, s (default 2)")
@@ -191,8 +192,9 @@ def run(args: argparse.Namespace) -> int:
     check_security(args.host, token)
     if not 0 < args.port < 65536:
         raise UsageError(f"serve: bad port {args.port}")
-    model = [t.strip() for t in args.model.split(",") if t.strip()]
     try:
+        from analysis.terms import parse_model
+        model = [e.text() for e in parse_model(args.model).entries]
         check_terms(model)
     except ValueError as exc:
         raise UsageError(f"serve: {exc}") from None

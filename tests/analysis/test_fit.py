@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from analysis.allan import oadev
-from analysis.fit import find_line, fit_allan, parse_model_spec, regress_temperature
+from analysis.fit import find_line, fit_allan, regress_temperature
 from analysis.misfit import avar_covariance, failure_threshold
 from analysis.noise_stream import NoiseStream
-from analysis.terms import TermError
+from analysis.terms import TermError, parse_model
 from imunoise.cli import main
 from tests._avar_batch import Curve, oavar_rows
 
@@ -104,7 +104,8 @@ def test_missing_term_is_flagged_and_adding_it_lowers_the_error():
 
 
 def test_fixed_parameters_and_bad_models():
-    names, fixed = parse_model_spec("white, gauss_markov:T=5, random_walk")
+    spec = parse_model("white, gauss_markov:T=5, random_walk")
+    names, fixed = spec.names, spec.fixed
     assert names == ["white", "gauss_markov", "random_walk"] and fixed == {1: {"T": 5.0}}
     model = [("white", {"N": 1e-3}), ("gauss_markov", {"sigma": 2e-3, "T": 5.0})]
     curve = Curve(NoiseStream(model, FS, 4).take(1 << 16), FS)
@@ -119,7 +120,7 @@ def test_fixed_parameters_and_bad_models():
     with pytest.raises(TermError, match="no parameter 'Q'"):
         fit_allan(curve, ["white"], fixed={"white": {"Q": 1.0}})
     with pytest.raises(TermError, match="PARAM=VALUE"):
-        parse_model_spec("white:N")
+        parse_model("white:N")
     short = Curve(NoiseStream(model, FS, 4).take(40), FS)
     with pytest.raises(ValueError, match="too few"):
         fit_allan(short, "white,bias_instability,random_walk,gauss_markov")

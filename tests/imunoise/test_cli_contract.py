@@ -143,6 +143,14 @@ RUNS: dict[str, Run] = {
                                         "{dir}/r3.html"], 2, ("nope",), not_created=("r3.html",)),
     "serve missing replay": Run(["serve", "--replay", "{dir}/gone.mcap", "--port", "1"], 2,
                                 ("gone.mcap",)),
+    # serve parses --model with the grammar of fit: a held parameter passes (the run then
+    # stops at the missing replay file), an unknown term is refused by name
+    "serve held parameter": Run(["serve", "--replay", "{dir}/gone.mcap", "--port", "1",
+                                 "--model", "white,gauss_markov:T=100"], 2, ("gone.mcap",)),
+    "serve unknown term": Run(["serve", "--replay", "{dir}/gone.mcap", "--port", "1",
+                               "--model", "white,flicker"], 2, ("flicker", "valid terms")),
+    "serve non-live term": Run(["serve", "--replay", "{dir}/gone.mcap", "--port", "1",
+                                "--model", "white,temperature"], 2, ("temperature",)),
     "replay serve missing file": Run(["replay", "{dir}/gone.mcap", "--serve"], 2,
                                      ("gone.mcap", "no such")),
     "missing required option": Run(["fit", "{csv}", "--model", "white"], 2, ("--channel",)),

@@ -144,6 +144,12 @@ def test_refit_on_request_gives_the_profile_intervals_of_imunoise_fit(service, c
     ("post", "/model", {"channel": "gyro_x", "add": "white", "remove": "white"}, 422,
      "exactly one of"),
     ("post", "/model", {"channel": "gyro_x", "path": "/etc/passwd"}, 422, "path"),
+    ("post", "/model", {"channel": "gyro_x", "model": "white,flicker"}, 400,
+     "valid terms: white, quantization"),
+    ("post", "/model", {"channel": "gyro_x", "model": "white,temperature"}, 400,
+     "temperature"),
+    ("post", "/model", {"channel": "gyro_x", "model": "white", "add": "white"}, 422,
+     "exactly one of"),
 ])
 def test_bad_requests_get_4xx_with_a_reason(client, method, path, body, status, message) -> None:
     r = client.request(method.upper(), path, json=body)
