@@ -56,6 +56,12 @@ class Timing:
     backward: int = 0
     notes: list[str] = field(default_factory=list)
 
+    def facts(self) -> dict[str, float | int]:
+        """JSON-ready summary: rate, samples missing, jitter and backward steps."""
+        return {"fs_hz": self.fs_hz, "segments": int(self.segment_starts.size),
+                "missing_samples": self.missing, "jitter_rms_s": self.jitter_rms_s,
+                "jitter_max_s": self.jitter_max_s, "backward_steps": self.backward}
+
 
 def relative_seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
     """(times after the first in s, first time in s) from int64 ns or float s stamps.

@@ -276,14 +276,17 @@ def _ci_text(ci: tuple[float, float] | None) -> str:
     return "interval unknown" if ci is None else f"95 % [{_f(ci[0])}, {_f(ci[1])}]"
 
 
-def render_yaml(imu: KalibrImu, source: str = "", stated: Mapping | None = None) -> str:
+def render_yaml(imu: KalibrImu, source: str = "", stated: Mapping | None = None,
+                notes: list[str] | tuple[str, ...] = ()) -> str:
     """The ``imu.yaml`` text: Kalibr's keys, then per-axis values as comments, and what the
-    dataset's own ``sensor.yaml`` states (``stated``, from ``analyze``'s ``dataset``) when known."""
+    dataset's own ``sensor.yaml`` states (``stated``, from ``analyze``'s ``dataset``) when known.
+    ``notes`` are facts about the recording (rate, jitter, missing samples, motion)."""
     how = {"max": "largest of the axes", "rms": "root mean square of the axes",
            "mean": "mean of the axes"}[imu.combine]
     lines = [
         "# IMU noise parameters for Kalibr, written by imunoise export-kalibr",
         f"# source: {source}" if source else "# source: (not given)",
+        *[f"# recording: {line}" for line in notes],
         "# continuous-time values: noise density = white-noise N, random walk = rate random walk K",
         f"# axes combined as the {how}; inflation factor {imu.inflate:g}"
         + (" (values below already multiplied)" if imu.inflate != 1 else " (none)"),

@@ -308,7 +308,8 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
                 "columns": ",".join(wanted), "fs_hz": f"{fs:.9g}"}
     if asl is not None:
         metadata.update(_sensor_yaml(path, warnings))
+    facts = {"timing": {"csv": timing.facts()}} if has_t else {}
     if ignored:
         metadata["ignored_columns"] = ",".join(ignored)
     return Record(source=str(path), channels=out, temperature=temperature, metadata=metadata,
-                  warnings=warnings)
+                  warnings=warnings, facts=facts)

@@ -413,11 +413,13 @@ def read_mcap(path: str | Path, rate_hz: float | None = None) -> Record:
                    if tp.kind == "temperature" and fill[tp.cid]]
     if not imu_topics and not temp_topics:
         raise ml.McapFormatError("no Imu or Temperature messages in the file")
+    timings: dict[str, dict] = {}
     for tp in imu_topics:
         n = fill[tp.cid]
         cols = {k: v[:n] for k, v in arrays.pop(tp.cid).items()}
         t = cols.pop("t")
         timing = topic_timing(t, tp.topic, src.metadata, rate_hz)
+        timings[tp.topic] = timing.facts()
         warnings.extend(timing.notes)
         label = tp.topic if len(imu_topics) > 1 else ""
         for name, v in cols.items():
@@ -440,7 +442,7 @@ def read_mcap(path: str | Path, rate_hz: float | None = None) -> Record:
         meta["fs_hz"] = f"{next(iter(channels.values())).fs_hz:.9g}"
     meta["topics"] = ",".join(tp.topic for tp in src.topics.values())
     return Record(source=str(path), channels=channels, temperature=temperature, metadata=meta,
-                  warnings=warnings)
+                  warnings=warnings, facts={"timing": timings} if timings else {})
 
 
 def raw_counts(values: np.ndarray, metadata: dict[str, str], channel: str) -> np.ndarray | None:

@@ -233,6 +233,7 @@ def read_rosbag1(path: str | Path, rate_hz: float | None = None) -> Record:
         raise Rosbag1Error(f"{path.name}: no sensor_msgs/Imu or sensor_msgs/Temperature "
                            "messages")
     channels: dict[str, ChannelSeries] = {}
+    timings: dict[str, dict] = {}
     for s in imu:
         t, seq = s.column("t"), s.column("seq")
         w, a = s.column("w"), s.column("a")
@@ -247,6 +248,7 @@ def read_rosbag1(path: str | Path, rate_hz: float | None = None) -> Record:
         timing = analyse_stamps(t, seq=_seq_or_none(seq) if keep.all() else None,
                                 rate_hz=rate_hz, name=s.topic)
         warnings.extend(timing.notes)
+        timings[s.topic] = timing.facts()
         label = f"{s.topic}:" if len(imu) > 1 else ""
         present = [(GYRO, w, "rad/s", s.column("w_cov0")),
                    (ACCEL, a, "m/s^2", s.column("a_cov0"))]
@@ -271,4 +273,5 @@ def read_rosbag1(path: str | Path, rate_hz: float | None = None) -> Record:
     if channels:
         metadata["fs_hz"] = f"{next(iter(channels.values())).fs_hz:.9g}"
     return Record(source=str(path), channels=channels, temperature=temperature,
-                  metadata=metadata, warnings=warnings)
+                  metadata=metadata, warnings=warnings,
+                  facts={"timing": timings} if timings else {})

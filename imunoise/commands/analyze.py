@@ -129,6 +129,9 @@ def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> 
     stated = dataset_statement(record)
     if stated:
         doc["dataset"] = stated
+    for key in ("timing", "motion"):
+        if key in record.facts:
+            doc[key] = record.facts[key]
     return doc
 
 
@@ -160,15 +163,15 @@ def dataset_lines(record: Record, key: str) -> list[str]:
             + ", ".join(parts) + "; compare N and K above"]
 
 
-def _read(path: str, rate_hz: float | None) -> Record:
+def _read(path: str, rate_hz: float | None, static: str = "auto") -> Record:
     big = os.path.isfile(path) and os.path.getsize(path) > _PROGRESS_FILE_BYTES
     with spinner(big) as bar:
         bar.add_task(f"reading {path}", total=None)
-        return read_record(path, rate_hz)
+        return read_record(path, rate_hz, static)
 
 
 def run(args: argparse.Namespace) -> int:
-    record = _read(args.file, args.rate)
+    record = _read(args.file, args.rate, args.static)
     keys = select(record, args.channel)
     if args.report:
         from imunoise.files import check_output_folder
