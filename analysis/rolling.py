@@ -783,7 +783,15 @@ class ChannelAnalyzer:
                 out["failures"] = fit.failures
                 out["error"] = _error(fit)
                 out["model"] = [t.term for t in fit.terms]
-            return out
+                # the bound covers the measured band and the fitted model (as analyze does)
+                upper = np.fmax(curve.ci_high[keep], np.sqrt(fit.model_avar(tau)))
+            else:
+                upper = None
+            duration = float(curve.n_terms[0] + 2 * curve.m[0]) / curve.fs_hz \
+                if len(curve.m) else None
+        out["overbound"] = (_overbound(tau, upper, curve.fs_hz, duration)
+                            if upper is not None else None)
+        return out
 
     def psd(self, max_points: int = 400) -> dict[str, Any]:
         """Log-frequency PSD (thinned to ``max_points``) with its band and the model PSD."""
@@ -973,3 +981,17 @@ class RollingAnalyzer:
     def revision(self) -> int:
         with self._lock:
             return sum(a.revision for a in self._analyzers.values())
+
+
+def _overbound(tau: np.ndarray, upper: np.ndarray, fs_hz: float,
+               duration_s: float | None) -> dict[str, Any] | None:
+    """The over-bounding model of the live curve (:mod:`analysis.overbound`) for ``/allan``."""
+    from analysis.overbound import overbound
+
+    try:
+        ob = overbound(tau, upper, fs_hz, duration_s=duration_s)
+    except ValueError:
+        return None
+    return {"model_adev": _finite(ob.model_adev), "N": ob.N, "K": ob.K,
+            "markov": [{"sigma": s, "T_s": t} for s, t in ob.markov],
+            "median_excess": float(np.median(ob.excess)), "max_excess": float(ob.excess.max())}

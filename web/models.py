@@ -63,6 +63,17 @@ class Coefficients(BaseModel):
     record_length_s: float = Field(description="longest channel's analysed length, s")
 
 
+class OverboundCurve(BaseModel):
+    """Filter-safe noise model: on or above the measured upper 95 % bound at every tau."""
+
+    model_adev: list[float | None]
+    N: float = Field(description="white-noise density, units/sqrt(Hz)")
+    K: float = Field(description="random-walk density, units/sqrt(s)")
+    markov: list[dict[str, float]] = Field(description="first-order Markov states: sigma, T_s")
+    median_excess: float = Field(description="median of model/upper - 1 over the taus")
+    max_excess: float
+
+
 class AllanCurve(BaseModel):
     channel: str
     units: str
@@ -76,6 +87,8 @@ class AllanCurve(BaseModel):
     z: list[float | None] | None = Field(description="standardised residual at each tau")
     failures: list[Failure]
     error: Error | None
+    overbound: OverboundCurve | None = Field(
+        None, description="over-bounding model for a Kalman filter (after the first fit)")
 
 
 class PsdCurve(BaseModel):
