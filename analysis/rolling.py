@@ -351,8 +351,12 @@ class ChannelAnalyzer:
                  full_refit_interval_s: float = 60.0, diagnosis_interval_s: float = 60.0,
                  history_interval_s: float = 10.0, history_len: int = 2000,
                  nperseg: int = 256, recent_samples: int = 1 << 18, m0: int = 4096,
-                 runner: Runner = run_inline) -> None:
+                 runner: Runner = run_inline, targets: str | None = None) -> None:
         check_terms(model)
+        self.targets = targets
+        """Wanted 95 % half-widths (``K=20%,B=10%``, see :mod:`analysis.planning`): the
+        coefficients then say how much longer to record for each."""
+        self._plan_cache: tuple[int, dict] | None = None
         self.channel = channel
         self.fs_hz = float(fs_hz)
         self.units = units if units is not None else channel_units(channel)
@@ -751,7 +755,48 @@ class ChannelAnalyzer:
                 out["model"].append(entry)
             out["error"] = _error(fit)
             out["failures"] = fit.failures
-            return out
+        for entry, t in zip(out["model"], fit.terms, strict=True):
+            entry["relative_halfwidth"] = {
+                k: ((hi - lo) / (2 * v) if v > 0 and lo > 0 else None)
+                for k, v in t.params.items() for lo, hi in [t.ci95.get(k, (0.0, 0.0))]}
+        if self.targets:
+            self._add_time_to_target(out, fit)
+        return out
+
+    def _add_time_to_target(self, out: dict[str, Any], fit: FitResult) -> None:
+        """Per targeted parameter: the target and the further recording time (s) until the
+        95 % interval reaches it, from the plan for the fitted model (computed once per fit;
+        None when the parameter is not resolved yet or the target is out of reach)."""
+        from analysis.planning import parse_targets, plan
+        from analysis.terms import labels
+
+        if self._plan_cache is None or self._plan_cache[0] != id(fit):
+            spec = [(t.term, dict(t.params)) for t in fit.terms]
+            resolved = [(lab, p) for t, lab in zip(fit.terms, labels([t.term for t in fit.terms]),
+                                                   strict=True)
+                        for p in t.params if t.ci95.get(p, (0.0, 0.0))[0] > 0]
+            try:
+                targets = [tg for tg in parse_targets(self.targets, spec)
+                           if (tg.label, tg.param) in resolved]
+                plans = {(p.target.label, p.target.param): p for p in
+                         plan(spec, self.fs_hz, targets)}
+            except ValueError:
+                plans = {}
+            self._plan_cache = (id(fit), plans)
+        plans = self._plan_cache[1]
+        recorded = out["duration_s"]
+        for entry, label in zip(out["model"], labels([e["term"] for e in out["model"]]),
+                                strict=True):
+            entry["target"], entry["time_to_target_s"] = {}, {}
+            for k in entry["params"]:
+                p = plans.get((label, k))
+                if p is None:
+                    continue
+                now = entry["relative_halfwidth"].get(k)
+                entry["target"][k] = p.target.relative
+                entry["time_to_target_s"][k] = (
+                    0.0 if now is not None and now <= p.target.relative else
+                    None if p.record_s is None else max(0.0, p.record_s - recorded))
 
     def _z_on_curve(self, fit: FitResult, curve: AllanCurve) -> np.ndarray:
         z_map = dict(zip(np.round(fit.tau_s, 12), fit.z, strict=True))

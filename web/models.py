@@ -36,6 +36,14 @@ class Term(BaseModel):
     ci95: dict[str, list[float]] = Field(default_factory=dict, description="95 % intervals")
     units: dict[str, str] = Field(default_factory=dict, description="SI units per parameter")
     conventional: dict[str, ConventionalValue] = Field(default_factory=dict)
+    relative_halfwidth: dict[str, float | None] = Field(
+        default_factory=dict, description="(high - low) / (2 value) of the 95 % interval now; "
+                                          "null where the interval reaches zero")
+    target: dict[str, float] = Field(
+        default_factory=dict, description="wanted relative half-width (serve --target)")
+    time_to_target_s: dict[str, float | None] = Field(
+        default_factory=dict, description="further recording time until the target is met, "
+                                          "s (0: met; null: not reachable)")
 
 
 class ChannelCoefficients(BaseModel):

@@ -44,6 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
     p.add_argument("--out", metavar="DIR", help="record MCAP files here (default: no recording)")
     p.add_argument("--token", help=f"token required by changing requests (or ${TOKEN_ENV})")
+    p.add_argument("--target", metavar="P=X%",
+                   help="wanted 95 %% half-widths, e.g. K=20%%,B=10%%: /coefficients and the "
+                        "dashboard then show how much longer to record for each")
     p.add_argument("--model", default="white,bias_instability,random_walk", metavar="TERMS",
                    help="initial model, comma-separated terms; TERM:P=VALUE holds a "
                         "parameter (SI units), e.g. white,gauss_markov:T=100 "
@@ -215,7 +218,8 @@ def run(args: argparse.Namespace) -> int:
         sinks.append(RecorderSink(recorder, source))
     service = LiveService(
         source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval,
-                                cpu_budget=args.analysis_cpu, workers="process"), sinks=sinks,
+                                cpu_budget=args.analysis_cpu, workers="process",
+                                targets=args.target), sinks=sinks,
         device=info, realtime=realtime,
         current_file=(lambda: recorder.stats.file or None) if recorder else None)
     app = create_app(service, token=token,

@@ -120,6 +120,19 @@ function drawPsd(p) {
     axes: [logAxis("frequency (Hz)"), logAxis(p.units)] }, data);
 }
 
+// The interval now (+-% of the value) and, with serve --target, the recording still needed.
+function planText(t, name) {
+  const now = (t.relative_halfwidth || {})[name];
+  let text = now === null || now === undefined ? "unresolved" : `±${fmt(100 * now, 2)} %`;
+  const target = (t.target || {})[name];
+  if (target !== undefined) {
+    const more = t.time_to_target_s[name];
+    text += ` → ±${fmt(100 * target, 2)} %: ` + (more === null ? "out of reach" :
+      more === 0 ? "met" : `${fmt(more / 3600, 2)} h more`);
+  }
+  return text;
+}
+
 function drawCoefficients(c) {
   const rows = [];
   for (const t of c.model) {
@@ -130,7 +143,7 @@ function drawCoefficients(c) {
         <td>${fmt(value)}</td><td>${ci ? `${fmt(ci[0])} … ${fmt(ci[1])}` : ""}</td>
         <td>${(t.units || {})[name] || ""}</td><td>${conv ? fmt(conv.value) : ""}</td>
         <td>${conv && conv.ci95 ? `${fmt(conv.ci95[0])} … ${fmt(conv.ci95[1])}` : ""}</td>
-        <td>${conv ? conv.units : ""}</td></tr>`);
+        <td>${conv ? conv.units : ""}</td><td class="plan">${planText(t, name)}</td></tr>`);
     }
   }
   document.querySelector("#coefficients tbody").innerHTML = rows.join("");
