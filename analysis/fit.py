@@ -535,12 +535,18 @@ def _chi2(prob: _Problem, theta: np.ndarray) -> float:
     return misfit(prob.avar, avar_fit, cov, prob.n_free, prob.family_rate).chi2
 
 
-def _solve_and_trim(prob: _Problem, theta0: np.ndarray) -> _Point:
-    """Solve from ``theta0``; then, while the shortest tau still used fails, set it aside and
-    refit. A sensor's anti-aliasing and decimation filters make the shortest taus fall below
-    any sum of the terms; they are reported as failures without dragging the parameters."""
+def _solve_all(prob: _Problem, theta0: np.ndarray) -> _Point:
+    """Solve from ``theta0`` on every tau."""
+    lay = prob.layout
+    theta = _solve(lay, theta0, prob.y, prob.tau, prob.m, prob.n_terms, prob.fs, prob.max_nfev)
+    return _Point(theta, np.ones(len(prob.tau), dtype=bool), _chi2(prob, theta))
+
+
+def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
+    """While the shortest tau still used fails, set it aside and refit. A sensor's
+    anti-aliasing and decimation filters make the shortest taus fall below any sum of the
+    terms; they are reported as failures without dragging the parameters."""
     lay, tau, m, n_terms = prob.layout, prob.tau, prob.m, prob.n_terms
-    theta = _solve(lay, theta0, prob.y, tau, m, n_terms, prob.fs, prob.max_nfev)
     used = np.ones(len(tau), dtype=bool)
     threshold = failure_threshold(len(tau), prob.family_rate)
     for first in range(min(_MAX_SHORT_TRIM, len(tau))):
@@ -654,11 +660,11 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
     for theta0 in thetas:  # a start within 10 % of an earlier one adds nothing
         if all(np.max(np.abs(theta0 - d)) > 0.1 for d in distinct):
             distinct.append(theta0)
-    points = [_solve_and_trim(prob, theta0) for theta0 in distinct]
+    points = [_solve_all(prob, theta0) for theta0 in distinct]
     # chi2 differences below the solver's tolerance do not count: the first start among the
     # near-best wins (the order of the starts is fixed, so equal curves give equal models)
     low = min(p.chi2 for p in points)
-    best = next(p for p in points if p.chi2 <= low + _CHI2_TIE)
+    best = _trim(prob, next(p for p in points if p.chi2 <= low + _CHI2_TIE).theta)
     # the smaller model's solution itself when every solve does worse: adding a term never
     # raises chi2 (by more than the solver's tolerance)
     if exact is not None and exact.chi2 < best.chi2 - _CHI2_TIE:
@@ -883,23 +889,38 @@ def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int =
     return term, y - coef * tc
 
 
+def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | None = None
+                ) -> tuple[float, float] | None:
+    """The strongest spectral line of the longest gap-free segment (:func:`find_line`): the
+    start of a line term in :func:`fit_series`."""
+    x = np.asarray(values, dtype=np.float64)
+    bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
+    k = int(np.argmax(np.diff(bounds)))
+    return find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
+
+
 def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
                segment_starts: np.ndarray | None = None,
                temperature: np.ndarray | None = None,
                fixed: dict[str | int, dict[str, float]] | None = None,
-               ci: float = 0.95, start: Any = None) -> tuple[FitResult, Any]:
+               ci: float = 0.95, start: Any = None, memo: dict | None = None,
+               intervals: str = "profile") -> tuple[FitResult, Any]:
     """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
     for a sinusoid, temperature regression, then :func:`fit_allan`.
 
     Args:
         values: rate samples in SI units, all segments concatenated.
         fs_hz: sampling rate, Hz.
-        model: term names or ``[(term, params)]``.
+        model: a model specification (:func:`analysis.terms.parse_model`).
         segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
         temperature: temperature in degC at each sample (required with ``temperature``).
         fixed: parameters held at known values (see :func:`fit_allan`).
         ci: confidence level of the curve's ``ci_low``/``ci_high``.
         start: starting point of a refit (see :func:`fit_allan`).
+        memo: a dict shared by fits of one series (the diagnosis's candidates): its Allan
+            curves, spectral line and nested solutions are computed once. A fit with a memo
+            gives exactly the numbers of one without.
+        intervals: see :func:`fit_allan` (intervals never change the parameters or chi2).
 
     Returns:
         ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
@@ -907,21 +928,30 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
     """
     from analysis.allan import oadev
 
+    memo = {} if memo is None else memo
     spec = parse_model(model)
     names = spec.names
     x = np.asarray(values, dtype=np.float64)
     temp_term = None
-    if "temperature" in names:
+    regressed = any(get_term(n).role == "regressor" for n in names)
+    if regressed:
         if temperature is None:
             raise TermError("the temperature term needs a temperature record, and this "
                             "record has none")
-        temp_term, x = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
-    curve = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
+        key = ("temperature", id(values), ci)
+        if key not in memo:
+            memo[key] = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
+        temp_term, x = memo[key]
+    key = ("curve", id(values), regressed, ci)
+    if key not in memo:
+        memo[key] = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
+    curve = memo[key]
     line = None
     if any(get_term(n).role == "line" for n in names):
-        bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
-        k = int(np.argmax(np.diff(bounds)))
-        line = find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
-    result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed)
+        key = ("line", id(values), regressed)
+        if key not in memo:
+            memo[key] = series_line(x, fs_hz, segment_starts)
+        line = memo[key]
+    result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
+                       memo=memo, intervals=intervals)
     return result, curve
-
