@@ -456,3 +456,25 @@ def default_nperseg(n_longest: int, preferred: int = 256) -> int:
     while n > 64 and 2 * n > n_longest:
         n //= 2
     return n
+
+
+def white_level(psd: np.ndarray, dof: np.ndarray, ci: float = 0.95
+                ) -> tuple[float, float, float] | None:
+    """White-noise density N (units/sqrt(Hz)) from one-sided PSD points of a white band.
+
+    A white rate noise with Allan variance N^2/tau has the flat one-sided PSD 2 N^2, so
+    N = sqrt(mean(S) / 2) over the band. The mean of points with ``dof`` degrees of freedom each
+    is a scaled chi-square; neighbouring Welch bins of a Hann window are correlated, so half of
+    the summed degrees of freedom is used (conservative: the true effective number is about
+    two thirds). Returns ``(N, low, high)`` at confidence ``ci``, or None without usable points.
+    """
+    s = np.asarray(psd, dtype=np.float64)
+    d = np.asarray(dof, dtype=np.float64)
+    ok = np.isfinite(s) & (s > 0) & np.isfinite(d) & (d > 0)
+    if not ok.any():
+        return None
+    mean = float(np.mean(s[ok]))
+    nu = 0.5 * float(np.sum(d[ok]))
+    lo_q, hi_q = chi2.ppf([(1 + ci) / 2, (1 - ci) / 2], nu)
+    return (math.sqrt(mean / 2.0), math.sqrt(mean * nu / lo_q / 2.0),
+            math.sqrt(mean * nu / hi_q / 2.0))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from core.errors import InputError
 from core.series import ChannelSeries
@@ -27,6 +28,8 @@ class Record:
         metadata: free-form facts about the source (format, device, columns ...).
         warnings: one-line notes about what was repaired while reading (gaps, NaN, a truncated
             last line ...), for the user to see.
+        facts: JSON-ready findings of steps applied after reading (e.g. ``motion``: where the
+            sensor moved and which stretches are analysed).
     """
 
     source: str
@@ -34,6 +37,7 @@ class Record:
     temperature: ChannelSeries | None = None
     metadata: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    facts: dict[str, Any] = field(default_factory=dict)
 
     def valid_selectors(self) -> list[str]:
         """Channel keys a selector may name, temperature last."""

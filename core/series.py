@@ -38,6 +38,28 @@ class ChannelSeries:
         bounds = np.append(self.segment_starts, len(self.values))
         return [self.values[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
 
+    def restricted(self, ranges: list[tuple[int, int]]) -> ChannelSeries:
+        """The samples in ``ranges`` (``[start, stop)`` indices, increasing, not overlapping),
+        each range its own segment besides the gaps already inside it; ``t0_s`` moves to the
+        first range's start (counted in samples, so gaps before it are not included)."""
+        bounds = np.append(self.segment_starts, self.n_samples)
+        parts, starts, at = [], [], 0
+        for a, b in ranges:
+            a, b = max(0, int(a)), min(self.n_samples, int(b))
+            if b <= a:
+                continue
+            parts.append(self.values[a:b])
+            inner = bounds[(bounds > a) & (bounds < b)] - a
+            starts.extend([at] + [at + int(i) for i in inner])
+            at += b - a
+        if not parts:
+            raise ValueError(f"{self.name}: no samples in the selected ranges")
+        first = next(int(a) for a, b in ranges if min(self.n_samples, int(b)) > max(0, int(a)))
+        return ChannelSeries(name=self.name, units=self.units, fs_hz=self.fs_hz,
+                             values=np.concatenate(parts),
+                             segment_starts=np.asarray(starts, dtype=np.int64),
+                             t0_s=self.t0_s + first / self.fs_hz)
+
     @property
     def n_samples(self) -> int:
         return int(len(self.values))

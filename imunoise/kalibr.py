@@ -15,10 +15,14 @@ a random walk, both in continuous time, and uses one value per sensor for all th
 Axis combination: by default the largest of the three axes' point estimates (``max``, the
 conservative choice for a filter); ``rms`` (root mean square) and ``mean`` are offered. An
 optional inflation factor multiplies all four values and is stated in the file. When an axis'
-random walk is not resolved within the record (K zero, or its interval collapsed onto the
-estimate), K is replaced by the largest value the measured Allan band allows,
-min over tau of sqrt(3 ci_high^2 / tau), and the file says so. Each axis' own values and 95 %
-intervals are written as comments.
+random walk is not resolved within the record (K zero, its interval reaching zero, or collapsed
+onto the estimate), K is replaced by the largest value the measured Allan band allows,
+min over tau of sqrt(3 ci_high^2 / tau), and the file says so. When the fit does not resolve the
+white noise N (its interval reaches zero, or the model fails at the shortest averaging times
+where N shows), N comes from the PSD's white top band instead, with its own interval; without
+that either, there is no file (an unresolved number is never exported as a measurement). Each
+axis' own values, 95 % intervals and sources are written as comments, and so are the combined
+values' intervals (the same combination applied to the axes' interval ends).
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ from dataclasses import dataclass, field
 from core.errors import InputError
 
 COMBINE = ("max", "rms", "mean")
+N_FROM_FIT = "Allan fit, white term"
+N_FROM_PSD = "PSD white level of the top band (the Allan fit does not resolve N: {why})"
 _AXES = ("x", "y", "z")
 _KIND_KEYS = {
     "gyro": ("gyroscope_noise_density", "gyroscope_random_walk", "rad/s/sqrt(Hz)",
@@ -54,6 +60,7 @@ class AxisValues:
     K: float
     K_ci: tuple[float, float] | None
     K_from_allan_bound: bool = False
+    N_source: str = N_FROM_FIT
 
 
 @dataclass
@@ -69,6 +76,26 @@ class KalibrImu:
     combine: str
     inflate: float
     axes: dict[str, list[AxisValues]] = field(default_factory=dict)
+
+    def note(self, key: str) -> str:
+        """The comment of one Kalibr key: its 95 % interval (or why it is a bound) and source."""
+        kind = "gyro" if key.startswith("gyro") else "accel"
+        axes = self.axes.get(kind, [])
+        if key.endswith("noise_density"):
+            cis = [a.N_ci for a in axes]
+            sources = sorted({a.N_source.split(" (")[0] for a in axes})
+        else:
+            if any(a.K_from_allan_bound for a in axes):
+                return ("upper bound: the random walk is not resolved on every axis; largest K "
+                        "inside the measured Allan band")
+            cis = [a.K_ci for a in axes]
+            sources = ["Allan fit, random_walk term"]
+        src = "; ".join(sources)
+        if not axes or any(c is None for c in cis):
+            return f"interval unknown; from the {src}"
+        lo = _combine([c[0] for c in cis], self.combine) * self.inflate  # type: ignore[index]
+        hi = _combine([c[1] for c in cis], self.combine) * self.inflate  # type: ignore[index]
+        return f"95 % [{_f(lo)}, {_f(hi)}]; from the {src}"
 
 
 def _ci(entry: Mapping, param: str) -> tuple[float, float] | None:
@@ -98,12 +125,47 @@ def _allan_bound(channel_doc: Mapping) -> float | None:
     return min(vals) if vals else None
 
 
-def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
-    """N and K of one fitted channel (contract JSON ``fit`` keys).
+def _n_unresolved(channel_doc: Mapping, n: tuple[float, tuple | None]) -> str | None:
+    """Why the fitted white noise N cannot be exported as a measurement, or None when it can."""
+    value, ci = n
+    if not value > 0.0 or ci is None or not ci[0] > 0.0:
+        return "its 95 % interval reaches zero"
+    tau = (channel_doc.get("allan") or {}).get("tau_s") or []
+    if tau:
+        shortest = min(t for t in tau if t is not None)
+        for f in channel_doc.get("failures") or []:
+            lo = (f.get("tau_s") or [None])[0]
+            if lo is not None and lo <= 2.0 * shortest:
+                return (f"the model fails at the shortest averaging times "
+                        f"({lo:.3g} s), where N shows")
+    return None
 
-    When the random walk is not resolved (K zero, or its interval collapsed onto the estimate,
-    as when the fit sits on its lower bound), K becomes the largest value the measured Allan
-    band allows (:func:`_allan_bound`), and the axis is marked.
+
+def _psd_white(channel_doc: Mapping) -> tuple[float, tuple[float, float]] | None:
+    """N and its 95 % interval from the PSD's full-rate (Welch) band of an analyze document."""
+    from analysis.psd import white_level
+
+    psd = channel_doc.get("psd") or {}
+    top = [i for i, m in enumerate(psd.get("method") or []) if m == "welch"]
+    if not top:
+        return None
+    values = [psd["psd"][i] for i in top]
+    dofs = [psd["dof"][i] for i in top]
+    found = white_level([float("nan") if v is None else v for v in values],
+                        [float("nan") if d is None else d for d in dofs])
+    if found is None:
+        return None
+    return found[0], (found[1], found[2])
+
+
+def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
+    """N and K of one fitted channel (contract JSON ``fit`` keys, plus ``psd`` when present).
+
+    When the random walk is not resolved (K zero, its interval reaching zero, or collapsed onto
+    the estimate, as when the fit sits on its lower bound), K becomes the largest value the
+    measured Allan band allows (:func:`_allan_bound`), and the axis is marked. When the white
+    noise is not resolved by the fit, N comes from the PSD white level; without a PSD that is
+    an error.
     """
     n = _term(channel_doc, "white", "N")
     k = _term(channel_doc, "random_walk", "K")
@@ -111,8 +173,19 @@ def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
     if missing:
         raise KalibrError(f"{name}: the fitted model has no {' or '.join(missing)} term; Kalibr "
                           "needs white and random_walk")
+    n_val, n_ci = n
+    n_source = N_FROM_FIT
+    why = _n_unresolved(channel_doc, n)
+    if why is not None:
+        white = _psd_white(channel_doc)
+        if white is None:
+            raise KalibrError(f"{name}: the white noise N is not resolved ({why}) and there is "
+                              "no PSD to measure it from: analyse the recording itself, not a "
+                              "fit-only JSON, or record longer")
+        (n_val, n_ci), n_source = white, N_FROM_PSD.format(why=why)
     k_val, k_ci = k
-    resolved = k_val > 0.0 and k_ci is not None and k_ci[1] > k_val * (1.0 + 1e-6)
+    resolved = (k_val > 0.0 and k_ci is not None and k_ci[0] > 0.0
+                and k_ci[1] > k_val * (1.0 + 1e-6))
     bounded = False
     if not resolved:
         bound = _allan_bound(channel_doc)
@@ -120,7 +193,7 @@ def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
             raise KalibrError(f"{name}: random walk K is not resolved and the Allan curve is "
                               "missing: record longer data")
         k_val, bounded = bound, True
-    return AxisValues(name, n[0], n[1], k_val, k_ci, bounded)
+    return AxisValues(name, n_val, n_ci, k_val, k_ci, bounded, n_source)
 
 
 def _combine(values: list[float], how: str) -> float:
@@ -203,24 +276,32 @@ def _ci_text(ci: tuple[float, float] | None) -> str:
     return "interval unknown" if ci is None else f"95 % [{_f(ci[0])}, {_f(ci[1])}]"
 
 
-def render_yaml(imu: KalibrImu, source: str = "") -> str:
-    """The ``imu.yaml`` text: Kalibr's keys, then per-axis values as comments."""
+def render_yaml(imu: KalibrImu, source: str = "", stated: Mapping | None = None,
+                notes: list[str] | tuple[str, ...] = ()) -> str:
+    """The ``imu.yaml`` text: Kalibr's keys, then per-axis values as comments, and what the
+    dataset's own ``sensor.yaml`` states (``stated``, from ``analyze``'s ``dataset``) when known.
+    ``notes`` are facts about the recording (rate, jitter, missing samples, motion)."""
     how = {"max": "largest of the axes", "rms": "root mean square of the axes",
            "mean": "mean of the axes"}[imu.combine]
     lines = [
         "# IMU noise parameters for Kalibr, written by imunoise export-kalibr",
         f"# source: {source}" if source else "# source: (not given)",
+        *[f"# recording: {line}" for line in notes],
         "# continuous-time values: noise density = white-noise N, random walk = rate random walk K",
         f"# axes combined as the {how}; inflation factor {imu.inflate:g}"
         + (" (values below already multiplied)" if imu.inflate != 1 else " (none)"),
         "",
         "# Accelerometers",
         f"accelerometer_noise_density: {_f(imu.accelerometer_noise_density)}  # m/s^2/sqrt(Hz)",
+        f"#   {imu.note('accelerometer_noise_density')}",
         f"accelerometer_random_walk: {_f(imu.accelerometer_random_walk)}  # m/s^3/sqrt(Hz)",
+        f"#   {imu.note('accelerometer_random_walk')}",
         "",
         "# Gyroscopes",
         f"gyroscope_noise_density: {_f(imu.gyroscope_noise_density)}  # rad/s/sqrt(Hz)",
+        f"#   {imu.note('gyroscope_noise_density')}",
         f"gyroscope_random_walk: {_f(imu.gyroscope_random_walk)}  # rad/s^2/sqrt(Hz)",
+        f"#   {imu.note('gyroscope_random_walk')}",
         "",
         f"rostopic: {_yaml_str(imu.rostopic)}",
         f"update_rate: {float(imu.update_rate)!r}  # Hz",
@@ -230,12 +311,20 @@ def render_yaml(imu: KalibrImu, source: str = "") -> str:
     for kind in ("gyro", "accel"):
         _, _, n_unit, k_unit = _KIND_KEYS[kind]
         for ax in imu.axes.get(kind, []):
-            lines.append(f"#   {ax.channel}: N = {_f(ax.N)} {n_unit} ({_ci_text(ax.N_ci)})")
+            lines.append(f"#   {ax.channel}: N = {_f(ax.N)} {n_unit} ({_ci_text(ax.N_ci)}; "
+                         f"from the {ax.N_source})")
             if ax.K_from_allan_bound:
                 lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} (random walk not "
                              "resolved: largest K inside the measured Allan band)")
             else:
                 lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} ({_ci_text(ax.K_ci)})")
+    if stated:
+        lines.append(f"# The dataset's {stated.get('sensor_yaml', 'sensor.yaml')} states (not "
+                     "measured):")
+        lines += [f"#   {key}: {_f(float(stated[key]))}" for key in
+                  ("gyroscope_noise_density", "gyroscope_random_walk",
+                   "accelerometer_noise_density", "accelerometer_random_walk", "rate_hz")
+                  if key in stated]
     return "\n".join(lines) + "\n"
 
 

@@ -22,7 +22,8 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
     """Read a recording into memory.
 
     Args:
-        path: a ``.csv`` or ``.mcap`` file, or a rosbag2 folder.
+        path: a ``.csv`` (also EuRoC/ASL ``imu0/data.csv``), ``.mcap`` or ``.bag`` (ROS 1)
+            file, or a rosbag2 folder.
         rate_hz: nominal sampling rate in Hz; needed for a CSV without a time column ``t``,
             otherwise it overrides the rate inferred from the time stamps.
 
@@ -48,8 +49,17 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
         return read_csv(p, rate_hz=rate_hz)
     if suffix == ".mcap":
         return _read_mcap_file(p, rate_hz)
-    raise ReadError(f"{p}: unsupported file type {suffix or '(none)'!r}: expected .csv, .mcap "
-                    "or a rosbag2 folder")
+    if suffix == ".bag":
+        from daq.readers.rosbag1 import Rosbag1Error, read_rosbag1
+
+        try:
+            return read_rosbag1(p, rate_hz)
+        except Rosbag1Error as exc:
+            raise ReadError(str(exc)) from exc
+        except OSError as exc:
+            raise ReadError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    raise ReadError(f"{p}: unsupported file type {suffix or '(none)'!r}: expected .csv, .mcap, "
+                    ".bag (ROS 1) or a rosbag2 folder")
 
 
 def _read_bag(path: Path, rate_hz: float | None = None) -> Record:

@@ -4,8 +4,9 @@ columns ``gyro_x gyro_y gyro_z`` (rad/s) and ``accel_x accel_y accel_z`` (m/s^2)
 
 How imperfect files are read (each case adds a one-line warning to the record):
 
-- a gap in ``t`` (an interval off the nominal one by more than half a period) starts a new
-  segment; the estimators never bridge it;
+- the time stamps go through the shared timing model (:mod:`core.timing`): samples really
+  missing start a new segment, which the estimators never bridge; jittered stamps are re-timed
+  on the sample grid and the jitter is reported;
 - time going backwards or repeating also starts a new segment (the samples are kept);
 - rows whose ``t`` is not a finite number are dropped (they cannot be placed in time);
 - a NaN, an infinite or an empty channel value removes that sample from that channel only and
@@ -14,6 +15,12 @@ How imperfect files are read (each case adds a one-line warning to the record):
 
 Anything else that is malformed (no known channel columns, text where a number should be, a row
 with a different number of fields, binary data) is a :class:`ReadError` naming the line.
+
+The EuRoC/ASL layout of ``imu0/data.csv`` (EuRoC MAV, TUM-VI and most VIO datasets) is recognised
+by its header, ``#timestamp [ns],w_RS_S_x [rad s^-1],...,a_RS_S_z [m s^-2]``: time stamps in
+nanoseconds, ``w_RS_S_*`` the gyro in rad/s and ``a_RS_S_*`` the accelerometer in m/s^2. The
+dataset's ``sensor.yaml`` beside the file, when present, is read into the record's metadata
+(``dataset_*`` keys) so that its stated noise figures can be shown next to the measured ones.
 """
 
 from __future__ import annotations
@@ -26,11 +33,20 @@ import numpy as np
 
 from core.record import TEMPERATURE_KEY, Record
 from core.series import ChannelSeries, channel_units
-from core.timing import estimate_rate, segment_starts_from_times
+from core.timing import analyse_stamps
 from daq.readers import ReadError
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
+# EuRoC/ASL column names (lower case, units stripped) -> ours; their time stamps are in ns.
+ASL_COLUMNS = {"timestamp": TIME_COLUMN,
+               "w_rs_s_x": "gyro_x", "w_rs_s_y": "gyro_y", "w_rs_s_z": "gyro_z",
+               "a_rs_s_x": "accel_x", "a_rs_s_y": "accel_y", "a_rs_s_z": "accel_z"}
+ASL_TIME_SCALE = 1e-9  # ns -> s
+# Keys of the dataset's sensor.yaml shown beside the measured values (Kalibr's noise model).
+SENSOR_YAML_KEYS = ("rate_hz", "gyroscope_noise_density", "gyroscope_random_walk",
+                    "accelerometer_noise_density", "accelerometer_random_walk")
+_UNITS_SUFFIX = re.compile(r"\s*\[[^\]]*\]\s*$")
 _DELIMITERS = (",", ";", "\t")
 # Inferred rates outside this range usually mean a time column in ms, us or ns.
 _PLAUSIBLE_RATE_HZ = (0.5, 1e5)
@@ -55,6 +71,57 @@ def _header(data: bytes, path: Path) -> tuple[list[str], str, int]:
     return names, delim, body_start
 
 
+def _asl_names(names: list[str]) -> list[str] | None:
+    """Our column names for an EuRoC/ASL header (``#timestamp [ns], w_RS_S_x [rad s^-1], ...``),
+    or None when the header is not of that layout."""
+    bare = [_UNITS_SUFFIX.sub("", n.lstrip("#").strip()) for n in names]
+    if not bare or bare[0] != "timestamp" or not any(b in ASL_COLUMNS for b in bare[1:]):
+        return None
+    return [ASL_COLUMNS.get(b, b) for b in bare]
+
+
+def _asl_seconds(data: bytes, delim: str, t_ns: np.ndarray) -> tuple[np.ndarray, float]:
+    """EuRoC/ASL nanosecond stamps as seconds after the first one, and that first one (s).
+
+    A float64 holds a stamp near 1.4e18 ns, or 1.4e9 s, only to about 250 ns, which biases the
+    rate in the ninth digit; the stamps are read again as integers and differenced before
+    scaling. Falls back to the float values when a stamp is not an integer (the reader's other
+    checks then apply).
+    """
+    try:
+        ns = np.loadtxt(io.BytesIO(data), delimiter=delim, usecols=[0], dtype=np.int64, ndmin=1,
+                        comments=None, skiprows=1)
+    except ValueError:
+        ns = None
+    if ns is None or ns.size != t_ns.size or ns.size == 0:
+        first = float(t_ns[np.isfinite(t_ns)][0]) if np.isfinite(t_ns).any() else 0.0
+        return (t_ns - first) * ASL_TIME_SCALE, first * ASL_TIME_SCALE
+    return (ns - ns[0]).astype(np.float64) * ASL_TIME_SCALE, int(ns[0]) * ASL_TIME_SCALE
+
+
+def _sensor_yaml(path: Path, warnings: list[str]) -> dict[str, str]:
+    """The stated noise figures of an EuRoC/ASL ``sensor.yaml`` beside ``path`` (``dataset_*``
+    metadata keys), or nothing when there is none."""
+    yaml_path = path.parent / "sensor.yaml"
+    if not yaml_path.is_file():
+        return {}
+    import yaml
+
+    try:
+        doc = yaml.safe_load(yaml_path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        warnings.append(f"{yaml_path}: not read ({str(exc).splitlines()[0]})")
+        return {}
+    if not isinstance(doc, dict):
+        return {}
+    out = {"dataset_sensor_yaml": str(yaml_path)}
+    for key in SENSOR_YAML_KEYS:
+        value = doc.get(key)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[f"dataset_{key}"] = f"{float(value):.9g}"
+    return out
+
+
 def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarray, np.ndarray,
                                                                         int]:
     """Drop non-finite samples; a segment starts where ``seg_flags`` says or after a dropped one.
@@ -71,24 +138,6 @@ def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarra
     new_index = np.cumsum(keep) - 1
     starts = new_index[flags & keep]
     return values[keep], starts.astype(np.int64), n_bad
-
-
-def _describe_gaps(t: np.ndarray, starts: np.ndarray) -> list[str]:
-    if len(starts) <= 1:
-        return []
-    idx = starts[1:]
-    dt = t[idx] - t[idx - 1]
-    back = int(np.sum(dt <= 0))
-    out = []
-    if back:
-        first = int(idx[np.argmax(dt <= 0)])
-        out.append(f"time goes backwards or repeats {back} time(s) (first at data row "
-                   f"{first + 1}); treated as gaps")
-    fwd = dt[dt > 0]
-    if fwd.size:
-        out.append(f"{fwd.size} gap(s) in time (largest {float(fwd.max()):.6g} s); segments are "
-                   "analysed separately")
-    return out
 
 
 def _load(text: bytes, usecols: list[int], delim: str, path: Path) -> np.ndarray:
@@ -176,6 +225,9 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
     if _blank(data):
         raise ReadError(f"{path}: empty file")
     names, delim, body_start = _header(data, path)
+    asl = _asl_names(names)
+    if asl is not None:
+        names = asl
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise ReadError(f"{path}: duplicate column(s) {', '.join(dup)}")
@@ -202,6 +254,10 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
 
     if has_t:
         t = cols[TIME_COLUMN]
+        t_offset = 0.0  # seconds to add to t for the absolute time of the record's start
+        if asl is not None:
+            t_rel, t_offset = _asl_seconds(data, delim, t)
+            t = cols[TIME_COLUMN] = t_rel
         good_t = np.isfinite(t)
         if not good_t.all():
             n_bad = int((~good_t).sum())
@@ -211,14 +267,15 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         if len(t) < 2:
             raise ReadError(f"{path}: need at least two rows with valid times")
         try:
-            fs = float(rate_hz) if rate_hz is not None else estimate_rate(t)
+            timing = analyse_stamps(t, rate_hz=rate_hz)
         except ValueError as exc:
             raise ReadError(f"{path}: {exc}") from None
+        fs = timing.fs_hz
         if rate_hz is None and not _PLAUSIBLE_RATE_HZ[0] <= fs <= _PLAUSIBLE_RATE_HZ[1]:
             warnings.append(f"sampling rate from 't' is {fs:.6g} Hz: is 't' in seconds?")
-        starts = segment_starts_from_times(t, fs)
-        warnings.extend(_describe_gaps(t, starts))
-        t0 = float(t[0])
+        starts = timing.segment_starts
+        warnings.extend(timing.notes)
+        t0 = float(t[0]) + t_offset
     else:
         fs = float(rate_hz)  # type: ignore[arg-type]
         starts = np.zeros(1, dtype=np.int64)
@@ -247,9 +304,12 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{path}: no valid values in any IMU channel")
     temperature = series(TEMPERATURE_KEY) if has_temp else None
     ignored = [n for n in names if n not in wanted]
-    metadata = {"format": "csv", "rows": str(n_rows), "columns": ",".join(wanted),
-                "fs_hz": f"{fs:.9g}"}
+    metadata = {"format": "euroc-asl csv" if asl is not None else "csv", "rows": str(n_rows),
+                "columns": ",".join(wanted), "fs_hz": f"{fs:.9g}"}
+    if asl is not None:
+        metadata.update(_sensor_yaml(path, warnings))
+    facts = {"timing": {"csv": timing.facts()}} if has_t else {}
     if ignored:
         metadata["ignored_columns"] = ",".join(ignored)
     return Record(source=str(path), channels=out, temperature=temperature, metadata=metadata,
-                  warnings=warnings)
+                  warnings=warnings, facts=facts)

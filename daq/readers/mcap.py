@@ -28,7 +28,7 @@ import numpy as np
 from core.blocks import SampleBlock
 from core.record import Record
 from core.series import ChannelSeries
-from core.timing import segment_starts_from_times
+from core.timing import Timing, analyse_stamps, relative_seconds, segment_starts_from_times
 from daq import mcap_layout as ml
 from daq import ros2_msgs as msgs
 
@@ -345,69 +345,18 @@ def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v for k, v in data.items() if k != "t"}
 
 
-def seconds(t: np.ndarray) -> tuple[np.ndarray, float]:
-    """(times relative to the first, in s; first time in s) from int64 ns or float s."""
-    if t.size == 0:
-        return np.zeros(0), 0.0
-    if t.dtype == np.int64:
-        return (t - t[0]) * 1e-9, int(t[0]) * 1e-9
-    return t - t[0], float(t[0])
-
-
-@dataclass
-class Timing:
-    """Sampling of one topic: rate (Hz), first time (s), gap-free segment starts, notes."""
-
-    fs_hz: float
-    t0_s: float
-    segment_starts: np.ndarray
-    notes: list[str]
-
-
 def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = None,
                  rate_hz: float | None = None) -> Timing:
-    """Rate, segments and anomalies of int64 nanosecond stamps, in a few passes.
-
-    The median interval (of a subsample) locates the gaps: an interval that departs from it by
-    more than half a period starts a new segment (missing samples, repeated or backward time).
-    The rate is then taken from the longest gap-free run (span over intervals), which averages
-    out jitter and the rounding of single stamps. With fewer than two increasing stamps the rate
-    comes from the ``rate_hz`` metadata, else ValueError. A given ``rate_hz`` replaces the
-    inferred rate (gaps are then judged against its period).
-    """
-    n = ns.size
-    t0 = int(ns[0]) * 1e-9 if n else 0.0
-    dt = np.diff(ns)
-    sample = dt[:: max(1, dt.size // 100_000)]
-    sample = sample[sample > 0]
-    if sample.size == 0:
+    """Timing of one topic's int64 nanosecond stamps (:func:`core.timing.analyse_stamps`); with
+    fewer than two increasing stamps the rate comes from the ``rate_hz`` metadata, else
+    ValueError. A given ``rate_hz`` replaces the inferred rate."""
+    try:
+        return analyse_stamps(ns, rate_hz=rate_hz, name=name)
+    except ValueError:
         fs = float((metadata or {}).get("rate_hz", "nan"))
         if not np.isfinite(fs) or fs <= 0:
-            raise ValueError("cannot infer a sampling rate: fewer than two increasing time "
-                             "stamps")
-        return Timing(fs, t0, np.zeros(1, np.int64), [])
-    period = 1e9 / rate_hz if rate_hz else float(np.median(sample))
-    # |dt - period| > period / 2, without float temporaries the size of the record
-    breaks = np.flatnonzero((dt < 0.5 * period) | (dt > 1.5 * period)) + 1
-    bounds = np.concatenate(([0], breaks, [n]))
-    lengths = np.diff(bounds)
-    k = int(np.argmax(lengths))
-    if rate_hz:
-        fs = float(rate_hz)
-    elif lengths[k] >= 3:
-        first, last = int(bounds[k]), int(bounds[k + 1]) - 1
-        fs = (last - first) / ((int(ns[last]) - int(ns[first])) * 1e-9)
-    else:
-        fs = 1e9 / period
-    notes = []
-    back = int(np.count_nonzero(dt <= 0))
-    if back:
-        notes.append(f"{name}: time stamps go backwards or repeat at {back} places "
-                     "(treated as segment boundaries)")
-    gaps = int(np.count_nonzero(dt > 1.5 * period))
-    if gaps:
-        notes.append(f"{name}: {gaps} gaps in header.stamp (segments are analysed separately)")
-    return Timing(fs, t0, np.concatenate(([0], breaks)).astype(np.int64), notes)
+            raise
+        return analyse_stamps(ns, rate_hz=fs, name=name)
 
 
 def make_series(name: str, t: np.ndarray, values: np.ndarray, timing: Timing,
@@ -422,7 +371,7 @@ def make_series(name: str, t: np.ndarray, values: np.ndarray, timing: Timing,
     bad = int((~finite).sum())
     warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
     t, values = t[finite], np.ascontiguousarray(values[finite], dtype=np.float64)
-    rel, t0 = seconds(t)
+    rel, t0 = relative_seconds(t)
     starts = segment_starts_from_times(rel, timing.fs_hz) if t.size else np.zeros(1, np.int64)
     return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz, values=values,
                          segment_starts=starts, t0_s=t0)
@@ -464,11 +413,13 @@ def read_mcap(path: str | Path, rate_hz: float | None = None) -> Record:
                    if tp.kind == "temperature" and fill[tp.cid]]
     if not imu_topics and not temp_topics:
         raise ml.McapFormatError("no Imu or Temperature messages in the file")
+    timings: dict[str, dict] = {}
     for tp in imu_topics:
         n = fill[tp.cid]
         cols = {k: v[:n] for k, v in arrays.pop(tp.cid).items()}
         t = cols.pop("t")
         timing = topic_timing(t, tp.topic, src.metadata, rate_hz)
+        timings[tp.topic] = timing.facts()
         warnings.extend(timing.notes)
         label = tp.topic if len(imu_topics) > 1 else ""
         for name, v in cols.items():
@@ -491,7 +442,7 @@ def read_mcap(path: str | Path, rate_hz: float | None = None) -> Record:
         meta["fs_hz"] = f"{next(iter(channels.values())).fs_hz:.9g}"
     meta["topics"] = ",".join(tp.topic for tp in src.topics.values())
     return Record(source=str(path), channels=channels, temperature=temperature, metadata=meta,
-                  warnings=warnings)
+                  warnings=warnings, facts={"timing": timings} if timings else {})
 
 
 def raw_counts(values: np.ndarray, metadata: dict[str, str], channel: str) -> np.ndarray | None:
@@ -534,7 +485,7 @@ def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[Sam
                     fs = 1.0
                 rates[cid] = fs
             cols = _split(data)
-            rel, t_first = seconds(ns)
+            rel, t_first = relative_seconds(ns)
             t = rel + t_first
             bounds = np.append(segment_starts_from_times(rel, fs), t.size)
             for a, b in zip(bounds[:-1], bounds[1:], strict=True):

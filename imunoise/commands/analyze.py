@@ -125,18 +125,53 @@ def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> 
                                         **(fit_fields(r.fit, r.allan) if r.fit else {}))
         for r in results
     }
-    return report_json.analyze_json(path, channels, record.warnings)
+    doc = report_json.analyze_json(path, channels, record.warnings)
+    stated = dataset_statement(record)
+    if stated:
+        doc["dataset"] = stated
+    for key in ("timing", "motion"):
+        if key in record.facts:
+            doc[key] = record.facts[key]
+    return doc
 
 
-def _read(path: str, rate_hz: float | None) -> Record:
+def dataset_statement(record: Record) -> dict[str, Any]:
+    """What a dataset's own ``sensor.yaml`` states (EuRoC/ASL layout), to show beside the
+    measured values: ``{"sensor_yaml": path, "rate_hz": ..., "gyroscope_noise_density": ...}``."""
+    md = record.metadata
+    out: dict[str, Any] = {}
+    for key, value in md.items():
+        if key == "dataset_sensor_yaml":
+            out["sensor_yaml"] = value
+        elif key.startswith("dataset_"):
+            out[key.removeprefix("dataset_")] = float(value)
+    return out
+
+
+def dataset_lines(record: Record, key: str) -> list[str]:
+    """The dataset's stated noise figures for one channel's kind, for the text output."""
+    stated = dataset_statement(record)
+    kind = "gyroscope" if key.split(":")[-1].startswith("gyro") else "accelerometer"
+    units = {"gyroscope": ("rad/s/sqrt(Hz)", "rad/s^2/sqrt(Hz)"),
+             "accelerometer": ("m/s^2/sqrt(Hz)", "m/s^3/sqrt(Hz)")}[kind]
+    parts = [f"{name} {stated[name]:.4g} {unit}"
+             for name, unit in ((f"{kind}_noise_density", units[0]),
+                                (f"{kind}_random_walk", units[1])) if name in stated]
+    if not parts:
+        return []
+    return [f"  stated by {stated.get('sensor_yaml', 'sensor.yaml')} (not measured): "
+            + ", ".join(parts) + "; compare N and K above"]
+
+
+def _read(path: str, rate_hz: float | None, static: str = "auto") -> Record:
     big = os.path.isfile(path) and os.path.getsize(path) > _PROGRESS_FILE_BYTES
     with spinner(big) as bar:
         bar.add_task(f"reading {path}", total=None)
-        return read_record(path, rate_hz)
+        return read_record(path, rate_hz, static)
 
 
 def run(args: argparse.Namespace) -> int:
-    record = _read(args.file, args.rate)
+    record = _read(args.file, args.rate, args.static)
     keys = select(record, args.channel)
     if args.report:
         from imunoise.files import check_output_folder
@@ -168,4 +203,6 @@ def run(args: argparse.Namespace) -> int:
             print(channel_text(r.key, r.series, r.allan, r.psd, r.warnings))
             if r.fit is not None:
                 print(fit_summary(r.fit, r.series.units))
+            for line in dataset_lines(record, r.key):
+                print(line)
     return 0

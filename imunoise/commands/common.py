@@ -34,17 +34,113 @@ def positive_rate(text: str) -> float:
     return value
 
 
+STATIC_HELP = ("which samples to analyse: 'auto' (default) finds where the sensor moved and "
+               "uses only the still stretches; 'all' uses everything (numbers from moving data "
+               "are not noise)")
+STATIC_CHOICES = ("auto", "all")
+
+
 def add_rate_option(parser: argparse.ArgumentParser) -> None:
-    """``--rate HZ`` with the shared check and help."""
+    """``--rate HZ`` and ``--static auto|all``: the options of every command that reads a
+    recording for its noise."""
     parser.add_argument("--rate", type=positive_rate, metavar="HZ", help=RATE_HELP)
+    parser.add_argument("--static", choices=STATIC_CHOICES, default="auto", help=STATIC_HELP)
 
 
-def read_record(path: str, rate_hz: float | None = None) -> Record:
-    """:func:`daq.readers.open_record`, a read error becoming a usage error (exit 2)."""
+def read_record(path: str, rate_hz: float | None = None, static: str = "all") -> Record:
+    """:func:`daq.readers.open_record`, a read error becoming a usage error (exit 2); with
+    ``static="auto"`` the IMU channels keep only the stretches where the sensor rested
+    (:func:`keep_still`)."""
     try:
-        return open_record(path, rate_hz=rate_hz)
+        record = open_record(path, rate_hz=rate_hz)
     except ReadError as exc:
         raise UsageError(str(exc)) from None
+    return keep_still(record) if static == "auto" else _motion_all(record)
+
+
+def _topics(record: Record) -> dict[str, list[str]]:
+    """IMU channel keys grouped by topic prefix (``""`` for plain names)."""
+    out: dict[str, list[str]] = {}
+    for key in record.channels:
+        prefix = key.rsplit(":", 1)[0] + ":" if ":" in key else ""
+        out.setdefault(prefix, []).append(key)
+    return out
+
+
+def _detect(record: Record, keys: list[str]):
+    """Motion of one topic's channels, or None when they cannot be taken together."""
+    from analysis.motion import detect_motion
+
+    series = [record.channels[k] for k in keys]
+    n = series[0].n_samples
+    if any(s.n_samples != n for s in series) or n == 0:
+        return None
+
+    def stack(kind: str) -> np.ndarray | None:
+        cols = [record.channels[k].values for k in keys if k.split(":")[-1].startswith(kind)]
+        return np.column_stack(cols) if cols else None
+
+    return detect_motion(series[0].fs_hz, stack("gyro"), stack("accel"))
+
+
+def _motion_doc(motion, static: str) -> dict[str, Any]:
+    return {"static": static, "moved": motion.moved, "still_s": motion.still_seconds(),
+            "duration_s": motion.n_samples / motion.fs_hz, "summary": motion.describe(),
+            "stretches": [{"start_s": st.start / motion.fs_hz, "stop_s": st.stop / motion.fs_hz,
+                           "moving": st.moving,
+                           "peak_rate_rad_s": st.peak_rate if math.isfinite(st.peak_rate)
+                           else None,
+                           "peak_force_m_s2": st.peak_force if math.isfinite(st.peak_force)
+                           else None}
+                          for st in motion.stretches]}
+
+
+def keep_still(record: Record) -> Record:
+    """The record with each topic's IMU channels cut to its still stretches (each a segment),
+    and ``facts["motion"]`` saying what was found. When a topic never rests, its channels are
+    kept whole and a warning says that their numbers are not noise."""
+    facts: dict[str, Any] = {}
+    for prefix, keys in _topics(record).items():
+        motion = _detect(record, keys)
+        if motion is None:
+            continue
+        doc = facts[prefix.rstrip(":") or "imu"] = _motion_doc(motion, "auto")
+        if not motion.moved:
+            continue
+        name = prefix.rstrip(":") or "the IMU"
+        still = [(st.start, st.stop) for st in motion.still]
+        if not still:
+            doc["used"] = "all (no still stretch)"
+            record.warnings.append(f"{name}: {motion.describe()}; there is no still stretch, "
+                                   "so the noise numbers below come from moving data and are "
+                                   "not the sensor's noise")
+            continue
+        for k in keys:
+            record.channels[k] = record.channels[k].restricted(still)
+        doc["used"] = f"{len(still)} still stretch(es), {motion.still_seconds():.0f} s"
+        record.warnings.append(f"{name}: {motion.describe()}; analysing the {len(still)} still "
+                               f"stretch(es), {motion.still_seconds():.0f} s (--static all for "
+                               "everything)")
+    if facts:
+        record.facts["motion"] = facts
+    return record
+
+
+def _motion_all(record: Record) -> Record:
+    """``--static all``: nothing cut; the motion is still found and reported."""
+    facts: dict[str, Any] = {}
+    for prefix, keys in _topics(record).items():
+        motion = _detect(record, keys)
+        if motion is None:
+            continue
+        facts[prefix.rstrip(":") or "imu"] = {**_motion_doc(motion, "all"), "used": "all"}
+        if motion.moved:
+            record.warnings.append(f"{prefix.rstrip(':') or 'the IMU'}: {motion.describe()}; "
+                                   "analysing everything as asked (--static all): numbers from "
+                                   "moving stretches are not noise")
+    if facts:
+        record.facts["motion"] = facts
+    return record
 
 
 def select(record: Record, selectors: Sequence[str]) -> list[str]:
@@ -57,16 +153,21 @@ def select(record: Record, selectors: Sequence[str]) -> list[str]:
 
 
 def open_imu_channel(path: str, rate_hz: float | None, selector: str,
-                     command: str) -> tuple[Record, str]:
+                     command: str, static: str = "auto") -> tuple[Record, str]:
     """Read a recording and resolve one inertial channel: ``(record, key)``.
 
     Raises UsageError for unreadable input, an unknown channel or the temperature."""
-    record = read_record(path, rate_hz)
+    record = read_record(path, rate_hz, static)
     key = select(record, [selector])[0]
     if key == TEMPERATURE_KEY:
         raise UsageError(f"{command}: choose an IMU channel (gyro_* or accel_*), "
                          "not the temperature")
     return record, key
+
+
+# Amplitude parameters: zero means the term is absent, so an interval reaching zero leaves the
+# amplitude unresolved (a time constant or frequency interval is shown as it is).
+AMPLITUDES = ("N", "Q", "B", "K", "R", "sigma", "A", "coef")
 
 
 def model_lines(result: FitResult | Any, units: str) -> list[str]:
@@ -79,8 +180,12 @@ def model_lines(result: FitResult | Any, units: str) -> list[str]:
         for p in get_term(t.term).params:
             v = t.params[p.name]
             lo, hi = t.ci95[p.name]
-            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] "
-                         f"{param_unit(p, units)}")
+            unit = param_unit(p, units)
+            if p.name in AMPLITUDES and not lo > 0.0:  # an interval reaching zero: no estimate
+                lines.append(f"    {t.term:17s} {p.name:5s} = not resolved (95 % upper bound "
+                             f"{hi:.4g}) {unit}")
+                continue
+            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] {unit}")
     lines.append(f"  error: chi2/dof = {result.chi2_per_dof:.3g}   max |z| = "
                  f"{result.max_abs_z:.2f}   (flag |z| > {result.misfit.threshold:.2f})")
     return lines

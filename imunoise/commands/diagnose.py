@@ -98,7 +98,8 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
 
 def run(args: argparse.Namespace) -> int:
     parse_model(args.model)  # a misspelt term fails before a long read
-    record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose")
+    record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
+                                   args.static)
     diag = diagnose_channel(record, key, args.model)
     if args.json:
         from imunoise import report_json

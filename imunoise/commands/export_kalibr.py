@@ -49,7 +49,8 @@ def _factor(text: str) -> float:
     return v
 
 
-def load_channels(path: str, rate_hz: float | None = None) -> tuple[dict, dict]:
+def load_channels(path: str, rate_hz: float | None = None, static: str = "auto"
+                  ) -> tuple[dict, dict]:
     """Fitted channels and facts (``file``, ``rostopic``) from a recording or analyze JSON."""
     p = Path(path)
     if not p.exists():
@@ -61,8 +62,9 @@ def load_channels(path: str, rate_hz: float | None = None) -> tuple[dict, dict]:
             raise UsageError(f"{path}: not an analyze JSON document ({exc})") from None
         if not isinstance(doc, dict) or not isinstance(doc.get("channels"), dict):
             raise UsageError(f"{path}: not an analyze JSON document (no 'channels' object)")
-        return doc["channels"], {"file": path, "rostopic": None}
-    return fitted_channels(path, rate_hz)
+        return doc["channels"], {"file": path, "rostopic": None,
+                                 "dataset": doc.get("dataset", {}), "notes": _notes(doc)}
+    return fitted_channels(path, rate_hz, static)
 
 
 def imu_topic(metadata: dict[str, str]) -> str | None:
@@ -72,26 +74,51 @@ def imu_topic(metadata: dict[str, str]) -> str | None:
     return imu[0] if len(imu) == 1 else None
 
 
-def fitted_channels(path: str, rate_hz: float | None = None) -> tuple[dict[str, dict], dict]:
+def fitted_channels(path: str, rate_hz: float | None = None, static: str = "auto"
+                    ) -> tuple[dict[str, dict], dict]:
     """Every inertial channel of a recording analysed as ``imunoise analyze`` does (default
-    model fitted), and ``{"file", "rostopic"}`` facts of the recording."""
+    model fitted, still stretches only unless ``static="all"``), and the facts of the
+    recording (``file``, ``rostopic``, ``dataset``, ``notes`` for the file's comments).
+
+    Raises UsageError when the sensor never rested (numbers from moving data are not noise)
+    unless ``static="all"``."""
     from imunoise.commands.analyze import analysis_json, analyze_record
 
-    record = read_record(path, rate_hz)
+    record = read_record(path, rate_hz, static)
+    never_still = [f"{topic}: {m['summary']}" for topic, m in
+                   record.facts.get("motion", {}).items() if m.get("used", "").startswith("all (")]
+    if never_still and static == "auto":
+        raise UsageError("export-kalibr: the sensor never rested (" + "; ".join(never_still)
+                         + "): noise numbers from moving data are not the sensor's noise; "
+                         "record it at rest, or give --static all to export anyway")
     keys = [k for k, s in record.channels.items() if s.units in ("rad/s", "m/s^2")]
     doc = analysis_json(path, record, analyze_record(record, keys))
-    return doc["channels"], {"file": path, "rostopic": imu_topic(record.metadata)}
+    return doc["channels"], {"file": path, "rostopic": imu_topic(record.metadata),
+                             "dataset": doc.get("dataset", {}), "notes": _notes(doc)}
+
+
+def _notes(doc: dict) -> list[str]:
+    """The recording's timing and motion facts, one line each, for the yaml's comments."""
+    lines = []
+    for topic, t in (doc.get("timing") or {}).items():
+        lines.append(f"{topic}: {t['fs_hz']:.6g} Hz, {t['missing_samples']} sample(s) missing, "
+                     f"time stamp jitter rms {t['jitter_rms_s']:.3g} s (max "
+                     f"{t['jitter_max_s']:.3g} s)")
+    for topic, m in (doc.get("motion") or {}).items():
+        lines.append(f"{topic}: {m['summary']}; used: {m.get('used', 'all')}")
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
-    channels, facts = load_channels(args.file, args.rate)
+    channels, facts = load_channels(args.file, args.rate, args.static)
     try:
         imu = kalibr_values(channels, topic=args.topic,
                             rostopic=args.rostopic or facts.get("rostopic"),
                             combine=args.combine, inflate=args.inflate)
     except KalibrError as exc:
         raise UsageError(f"export-kalibr: {exc}") from None
-    text = render_yaml(imu, source=os.path.basename(str(args.file).rstrip("/")))
+    text = render_yaml(imu, source=os.path.basename(str(args.file).rstrip("/")),
+                       stated=facts.get("dataset") or {}, notes=facts.get("notes") or [])
     if args.output == "-":
         sys.stdout.write(text)
         return 0

@@ -92,8 +92,12 @@ def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any
     """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
     from imunoise import report_json
 
-    return report_json.channel_json(record.series(key), curve, channel=key,
-                                    warnings=record.warnings, **fit_fields(result, curve))
+    doc = report_json.channel_json(record.series(key), curve, channel=key,
+                                   warnings=record.warnings, **fit_fields(result, curve))
+    for fact in ("timing", "motion"):
+        if fact in record.facts:
+            doc[fact] = record.facts[fact]
+    return doc
 
 
 def fit_summary(result: Any, units: str) -> str:
@@ -121,7 +125,7 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
 
 def run(args: argparse.Namespace) -> int:
     parse_model(args.model)  # a misspelt term fails before a long read
-    record, key = open_imu_channel(args.file, args.rate, args.channel, "fit")
+    record, key = open_imu_channel(args.file, args.rate, args.channel, "fit", args.static)
     result, curve = fit_channel(record, key, args.model)
     if args.json:
         from imunoise import report_json

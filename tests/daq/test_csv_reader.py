@@ -80,8 +80,8 @@ def test_gaps_and_backwards_time_become_segments(tmp_path):
     assert list(s.segment_starts) == [0, 40, 70]
     np.testing.assert_array_equal(s.values, x)  # nothing lost
     text = " | ".join(rec.warnings)
-    assert "backwards" in text and "data row 71" in text
-    assert "1 gap(s) in time (largest 5.1 s)" in text
+    assert "backwards or repeats at 1 place(s) (first before sample 71)" in text
+    assert "50 sample(s) missing in 1 gap(s) (largest 5.1 s, before sample 41)" in text
 
 
 def test_nan_and_empty_values_split_only_their_channel(tmp_path):

@@ -100,7 +100,7 @@ def test_text_output_and_channel_selection(imu_csv):
     line = next(s for s in out.splitlines() if "N from PSD" in s and "deg/sqrt(h)" in s)
     n_si = float(line.split(":")[1].split()[0])
     assert n_si == pytest.approx(SIGMA_G / math.sqrt(FS), rel=0.03)
-    assert "warning: 1 gap(s) in time" in proc.stderr
+    assert "warning: 200 sample(s) missing in 1 gap(s) (largest 2.01 s" in proc.stderr
 
 
 def test_temperature_channel_and_rate_option(tmp_path):

@@ -70,7 +70,12 @@ def test_yaml_reads_back_with_exact_keys_and_comments():
     assert all(isinstance(data[k], float) for k in KALIBR_KEYS - {"rostopic"})
     assert "inflation factor 2" in text
     # per-axis values and intervals as comments, before inflation
-    assert "#   gyro_y: N = 2.500000e-04 rad/s/sqrt(Hz) (95 % [2.450000e-04, 2.550000e-04])" in text
+    assert ("#   gyro_y: N = 2.500000e-04 rad/s/sqrt(Hz) (95 % [2.450000e-04, 2.550000e-04]; "
+            "from the Allan fit, white term)") in text
+    # every Kalibr value carries its interval (axes' interval ends combined, inflated) and source
+    assert ("gyroscope_noise_density: 5.000000e-04  # rad/s/sqrt(Hz)\n"
+            "#   95 % [4.900000e-04, 5.100000e-04]; from the Allan fit, white term") in text
+    assert "#   95 % [4.200000e-06, 7.800000e-06]; from the Allan fit, random_walk term" in text
     assert "#   accel_x: K = 4.000000e-05 m/s^3/sqrt(Hz)" in text
 
 
@@ -216,3 +221,61 @@ def test_export_from_recording(recordings, kind, tmp_path):
     again = yaml.safe_load(out2.read_text())
     for key in KALIBR_KEYS - {"rostopic"}:
         assert again[key] == pytest.approx(data[key], rel=1e-6)
+
+
+def _psd_doc(level: float, n_points: int = 40, dof: float = 30.0) -> dict:
+    """A flat one-sided PSD top band of ``level`` units^2/Hz, as analyze --json writes it."""
+    return {"f_hz": list(range(1, n_points + 1)), "psd": [level] * n_points,
+            "ci_low": [level / 2] * n_points, "ci_high": [level * 2] * n_points,
+            "dof": [dof] * n_points, "method": ["welch"] * n_points, "ci": 0.95}
+
+
+def _unresolved_white(ch: dict, key: str) -> None:
+    """The fit of ``key`` puts N on its lower bound, interval reaching zero (a host-stamped log)."""
+    ch[key]["model"][0] = {"term": "white", "params": {"N": 6.6e-30},
+                           "ci95": {"N": [0.0, 3.0e-4]}}
+
+
+def test_unresolved_white_noise_comes_from_the_psd_with_its_interval():
+    from scipy import stats
+
+    ch = _doc()["channels"]
+    _unresolved_white(ch, "gyro_x")
+    ch["gyro_x"]["psd"] = _psd_doc(2 * (1.7e-4) ** 2)  # white N = 1.7e-4 -> S = 2 N^2
+    imu = kalibr_values(ch)
+    ax = imu.axes["gyro"][0]
+    assert ax.N == pytest.approx(1.7e-4, rel=1e-12)
+    nu = 0.5 * 40 * 30.0  # half the summed dof (neighbouring Hann bins are correlated)
+    lo = 1.7e-4 * math.sqrt(nu / stats.chi2.ppf(0.975, nu))
+    hi = 1.7e-4 * math.sqrt(nu / stats.chi2.ppf(0.025, nu))
+    assert ax.N_ci == pytest.approx((lo, hi), rel=1e-9)
+    text = render_yaml(imu)
+    assert "gyro_x: N = 1.700000e-04" in text
+    assert "from the PSD white level of the top band (the Allan fit does not resolve N: its 95 % " \
+           "interval reaches zero)" in text
+    assert "6.6e-30" not in text and "6.600000e-30" not in text
+
+
+def test_unresolved_white_noise_without_a_psd_is_refused_exit_2(tmp_path, capsys):
+    doc = _doc()
+    _unresolved_white(doc["channels"], "accel_y")
+    with pytest.raises(KalibrError, match="accel_y: the white noise N is not resolved"):
+        kalibr_values(doc["channels"])
+    src = tmp_path / "fit.json"
+    src.write_text(json.dumps(doc))
+    out = tmp_path / "imu.yaml"
+    assert main(["export-kalibr", str(src), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "its 95 % interval reaches zero" in err[0]
+    assert not out.exists()
+
+
+def test_a_fit_failing_at_the_shortest_taus_does_not_give_n():
+    ch = _doc()["channels"]
+    ch["gyro_z"]["allan"] = {"tau_s": [0.005, 0.01, 0.02, 0.04], "ci_high": [1e-3] * 4}
+    ch["gyro_z"]["failures"] = [{"tau_s": [0.005, 0.02], "max_abs_z": 9.0,
+                                 "direction": "measured below model"}]
+    ch["gyro_z"]["psd"] = _psd_doc(2 * (1.2e-4) ** 2)
+    ax = kalibr_values(ch).axes["gyro"][2]
+    assert ax.N == pytest.approx(1.2e-4, rel=1e-12)
+    assert "fails at the shortest averaging times" in ax.N_source

@@ -1,0 +1,194 @@
+"""Where a sensor moved: still and moving stretches of a record, from its own samples.
+
+Noise coefficients describe a sensor at rest. A robot's log moves most of the time, and
+motion read as noise gives numbers that are not noise. The record is cut into windows of
+about a second; a window is moving when
+
+* its spread is far above the typical window's (the sensor's own noise) and above a motion
+  level (``GYRO_MOTION_SPREAD``, ``ACCEL_MOTION_SPREAD``): rotation,
+  vibration, handling (spread and level are medians, so that a single spike, a knock or an
+  outlier, is not motion); or its spread is above any MEMS noise level at rest
+  (``GYRO_STD_FLOOR``, ``ACCEL_STD_FLOOR``), which catches records that never rest;
+* its mean rate departs from the still windows' median rate (a steady turn has a small spread
+  but a large mean), beyond both the noise of a window mean and ``GYRO_MEAN_FLOOR``;
+* its mean specific force changes from the window before by more than ``ACCEL_STEP_FLOOR``
+  (a new tilt or a steady acceleration; rests in different orientations stay still).
+
+The thresholds sit many standard deviations above what white noise, bias instability or rate
+random walk do in one window, so that a still record has no moving window (calibrated in the
+tests on simulated still records with those terms). Still windows next to a moving one are
+dropped too (settling), and still stretches shorter than ``MIN_STILL_S`` are not used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+WINDOW_S = 1.0
+"""Window length (s); at least ``MIN_WINDOW_SAMPLES`` samples."""
+MIN_WINDOW_SAMPLES = 32
+SPREAD_FACTOR = 4.0
+"""A window whose spread exceeds the record's typical (median) window spread by this factor,
+and is above the motion level below, moves."""
+GYRO_MOTION_SPREAD = 0.01
+"""rad/s (about 0.6 deg/s): a rate spread below this is not called motion."""
+ACCEL_MOTION_SPREAD = 0.05
+"""m/s^2: a specific-force spread below this is not called motion."""
+MEAN_SIGMAS = 8.0
+"""A window mean further than this many window-mean standard deviations from the still level
+moves."""
+GYRO_STD_FLOOR = 0.1
+"""rad/s: a per-sample spread above any MEMS gyro's noise at rest (about 10 times typical)."""
+ACCEL_STD_FLOOR = 0.5
+"""m/s^2: likewise for accelerometers."""
+GYRO_MEAN_FLOOR = 0.02
+"""rad/s (about 1 deg/s): a mean rate change below this is not called motion."""
+ACCEL_STEP_FLOOR = 0.1
+"""m/s^2 (about 0.6 deg of tilt): a mean specific-force change below this is not motion."""
+MIN_STILL_S = 10.0
+"""Still stretches shorter than this (s) are not used for noise analysis."""
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """A run of samples ``[start, stop)`` that moved or rested, with how much it moved."""
+
+    start: int
+    stop: int
+    moving: bool
+    peak_rate: float
+    """Largest window-mean departure of the rate from rest (rad/s; nan without a gyro)."""
+    peak_force: float
+    """Largest window-to-window change of the mean specific force (m/s^2; nan without an
+    accelerometer)."""
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Still and moving stretches of a record sampled at ``fs_hz``."""
+
+    fs_hz: float
+    n_samples: int
+    stretches: tuple[Stretch, ...]
+
+    @property
+    def moving(self) -> tuple[Stretch, ...]:
+        return tuple(s for s in self.stretches if s.moving)
+
+    @property
+    def still(self) -> tuple[Stretch, ...]:
+        """Still stretches long enough to analyse."""
+        return tuple(s for s in self.stretches if not s.moving
+                     and (s.stop - s.start) >= MIN_STILL_S * self.fs_hz)
+
+    @property
+    def moved(self) -> bool:
+        return bool(self.moving)
+
+    def still_seconds(self) -> float:
+        return sum(s.stop - s.start for s in self.still) / self.fs_hz
+
+    def describe(self) -> str:
+        """One line for the user."""
+        if not self.moved:
+            return "the sensor rested throughout (no motion found)"
+        total = self.n_samples / self.fs_hz
+        moving_s = sum(s.stop - s.start for s in self.moving) / self.fs_hz
+        parts = []
+        for s in self.moving[:5]:
+            how = []
+            if np.isfinite(s.peak_rate):
+                how.append(f"{np.degrees(s.peak_rate):.3g} deg/s")
+            if np.isfinite(s.peak_force):
+                how.append(f"{s.peak_force:.3g} m/s^2")
+            parts.append(f"{s.start / self.fs_hz:.1f}-{s.stop / self.fs_hz:.1f} s"
+                         + (f" (up to {', '.join(how)})" if how else ""))
+        more = f" and {len(self.moving) - 5} more" if len(self.moving) > 5 else ""
+        return (f"the sensor moved in {len(self.moving)} stretch(es), {moving_s:.0f} s of "
+                f"{total:.0f} s: {'; '.join(parts)}{more}")
+
+
+def _spread(win: np.ndarray) -> np.ndarray:
+    """Robust standard deviation of each window, largest over the axes: 1.4826 times the median
+    absolute deviation, which a single spike (a knock, an outlier) does not move."""
+    dev = np.abs(win - np.median(win, axis=1, keepdims=True))
+    return 1.4826 * np.median(dev, axis=1).max(axis=1)
+
+
+def _windows(x: np.ndarray, w: int) -> np.ndarray:
+    """(n_windows, w, axes) view of the whole windows of ``x`` (samples x axes)."""
+    n = (x.shape[0] // w) * w
+    return x[:n].reshape(-1, w, x.shape[1])
+
+
+def _moving_windows(gyro: np.ndarray | None, accel: np.ndarray | None, w: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per window: moving flag, rate departure (rad/s) and force change (m/s^2)."""
+    n_win = (gyro if gyro is not None else accel).shape[0] // w  # type: ignore[union-attr]
+    moving = np.zeros(n_win, bool)
+    rate = np.full(n_win, np.nan)
+    force = np.full(n_win, np.nan)
+    if gyro is not None:
+        win = _windows(gyro, w)
+        std = _spread(win)
+        quiet = float(np.median(std))
+        moving |= ((std > SPREAD_FACTOR * quiet) & (std > GYRO_MOTION_SPREAD)) \
+            | (std > GYRO_STD_FLOOR)
+        mean = np.median(win, axis=1)
+        rest = mean[~moving] if np.any(~moving) else mean
+        level = np.median(rest, axis=0)
+        rate = np.abs(mean - level).max(axis=1)
+        limit = max(MEAN_SIGMAS * quiet / np.sqrt(w), GYRO_MEAN_FLOOR)
+        moving |= rate > limit
+    if accel is not None:
+        win = _windows(accel, w)
+        std = _spread(win)
+        quiet = float(np.median(std))
+        moving |= ((std > SPREAD_FACTOR * quiet) & (std > ACCEL_MOTION_SPREAD)) \
+            | (std > ACCEL_STD_FLOOR)
+        mean = np.median(win, axis=1)
+        step = np.zeros(n_win)
+        step[1:] = np.abs(np.diff(mean, axis=0)).max(axis=1)
+        force = step
+        limit = max(MEAN_SIGMAS * quiet / np.sqrt(w) * np.sqrt(2.0), ACCEL_STEP_FLOOR)
+        jump = step > limit
+        moving |= jump
+        moving[:-1] |= jump[1:]  # the change happened across both windows
+    return moving, rate, force
+
+
+def detect_motion(fs_hz: float, gyro: np.ndarray | None = None,
+                  accel: np.ndarray | None = None) -> Motion:
+    """Still and moving stretches of a record.
+
+    Args:
+        fs_hz: sampling rate (Hz).
+        gyro: rates, samples x axes (rad/s), or None.
+        accel: specific force, samples x axes (m/s^2), or None.
+    """
+    if gyro is None and accel is None:
+        raise ValueError("motion detection needs gyro or accelerometer samples")
+    n = (gyro if gyro is not None else accel).shape[0]  # type: ignore[union-attr]
+    w = max(MIN_WINDOW_SAMPLES, int(round(WINDOW_S * fs_hz)))
+    if n < 3 * w:
+        return Motion(fs_hz, n, (Stretch(0, n, False, np.nan, np.nan),))
+    moving, rate, force = _moving_windows(gyro, accel, w)
+    # settling: a still window next to a moving one is not used either
+    grown = moving.copy()
+    grown[1:] |= moving[:-1]
+    grown[:-1] |= moving[1:]
+    flags = np.append(grown, grown[-1])  # the partial last window follows the one before
+    rate = np.append(rate, rate[-1])
+    force = np.append(force, force[-1])
+    edges = np.flatnonzero(np.diff(flags.astype(np.int8))) + 1
+    bounds = np.concatenate(([0], edges, [flags.size]))
+    stretches = []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        start, stop = int(a) * w, min(n, int(b) * w) if b < flags.size else n
+        mv = bool(flags[a])
+        peak_r = float(np.nanmax(rate[a:b])) if mv and np.isfinite(rate[a:b]).any() else np.nan
+        peak_f = float(np.nanmax(force[a:b])) if mv and np.isfinite(force[a:b]).any() else np.nan
+        stretches.append(Stretch(start, stop, mv, peak_r, peak_f))
+    return Motion(fs_hz, n, tuple(stretches))

@@ -1,0 +1,79 @@
+"""Motion detection: still records (with bias instability, random walk and knocks) never move;
+a robot that turns and drives is found where and as much as it moved."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from analysis.motion import detect_motion
+from analysis.noise_stream import simulate
+
+FS = 100.0
+GYRO_MODEL = [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+              ("random_walk", {"K": 2e-5})]
+ACCEL_MODEL = [("white", {"N": 2e-3}), ("bias_instability", {"B": 2e-4}),
+               ("random_walk", {"K": 5e-5})]
+
+
+def still_record(seconds: float, seed: int, gyro_model=GYRO_MODEL, accel_model=ACCEL_MODEL):
+    n = int(seconds * FS)
+    g = np.column_stack([simulate(gyro_model, n, FS, rng=10 * seed + i) for i in range(3)])
+    a = np.column_stack([simulate(accel_model, n, FS, rng=10 * seed + 5 + i) for i in range(3)])
+    return g, a + [0.0, 0.0, 9.80665]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_still_half_hour_with_wandering_bias_never_moves(seed):
+    """Bias instability and a rate random walk ten times a good MEMS gyro's, and a single
+    knock: no window moves (0 false alarms in 4 x 1800 windows)."""
+    g, a = still_record(1800, seed)
+    g[100_000] += 0.15  # one knock: a spike, not motion
+    a[100_000] += 2.0
+    m = detect_motion(FS, g, a)
+    assert not m.moved, m.describe()
+    assert m.still_seconds() == pytest.approx(1800, abs=1)
+
+
+def test_a_robot_that_turns_rests_tilted_and_drives_is_found():
+    g, a = still_record(300, seed=9)
+    t = np.arange(g.shape[0]) / FS
+    turn = (t >= 60) & (t < 80)  # a smooth 90 deg turn about z in 20 s
+    g[turn, 2] += np.pi / 2 / 20 * (1 - np.cos(2 * np.pi * (t[turn] - 60) / 20))
+    tilt = t >= 80  # it stops on a 5 deg slope: gravity shifts into x
+    a[tilt, 0] += 9.80665 * np.sin(np.radians(5))
+    drive = (t >= 180) & (t < 220)  # driving: vibration and accelerations
+    rng = np.random.default_rng(4)
+    g[drive] += rng.normal(0, 0.05, (drive.sum(), 3))
+    a[drive] += rng.normal(0, 0.8, (drive.sum(), 3))
+    m = detect_motion(FS, g, a)
+    moving = [(s.start / FS, s.stop / FS) for s in m.moving]
+    assert len(moving) == 2, m.describe()
+    (a0, b0), (a1, b1) = moving
+    assert 57 <= a0 <= 61 and 79 <= b0 <= 83  # within a window (1 s) plus settling
+    assert 177 <= a1 <= 181 and 219 <= b1 <= 223
+    assert np.degrees(m.moving[0].peak_rate) == pytest.approx(9.0, rel=0.1)  # 2 x 4.5 deg/s
+    # 60 s of motion, each stretch widened by its settling windows
+    assert len(m.still) == 3 and m.still_seconds() == pytest.approx(300 - 60 - 4, abs=3)
+    assert "moved in 2 stretch(es)" in m.describe()
+
+
+def test_a_record_that_never_rests_has_no_still_stretch():
+    g, a = still_record(120, seed=2)
+    rng = np.random.default_rng(1)
+    g += rng.normal(0, 0.3, g.shape)
+    a += rng.normal(0, 2.0, a.shape)
+    m = detect_motion(FS, g, a)
+    assert m.moved and m.still == ()
+
+
+def test_real_still_recordings_do_not_move(shared_data):
+    for run in range(1, 7):
+        d = np.load(shared_data / "adis16405" / f"run{run}.npz")
+        g = d["gyro_counts"] * float(d["gyro_scale_dps"]) * np.pi / 180
+        a = d["accel_counts"] * float(d["accel_scale_g"]) * 9.80665
+        assert not detect_motion(100.0, g, a).moved, run  # run 4 holds a real knock
+    d = np.load(shared_data / "galaxy_s5" / "galaxy_s5_static_10hz.npz")
+    assert not detect_motion(10.0, d["gyro"], d["accel"]).moved
+    d = np.load(shared_data / "mtig_outliers" / "gyro_x.npz")  # a hundred 10-sigma outliers
+    assert not detect_motion(100.0, d["gyro_x"][:, None]).moved
