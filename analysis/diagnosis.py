@@ -29,8 +29,8 @@ from scipy import stats
 
 from analysis import evidence
 from analysis.evidence.finding import Finding, family_p
-from analysis.fit import FitResult, find_line, fit_allan, fit_series
-from analysis.terms import TERMS, get_term, parse_model
+from analysis.fit import FitResult, fit_series
+from analysis.terms import TERMS, Entry, ModelSpec, TermError, get_term, parse_model
 
 DEFAULT_ALPHA = 0.05
 """Family-wise probability that a correctly specified model gets any significant suggestion."""
@@ -55,6 +55,9 @@ class Suggestion:
         why: plain-words explanation: the effect, where it shows, the expected improvement.
         evidence: the evidence findings that support it (kinds).
         fit: the refitted model (not serialised).
+        apply: how to apply it: ``{"model": the full model specification, "args": extra
+            command-line options of fit and diagnose}``; ``imunoise fit --model
+            apply.model`` reports exactly ``chi2_per_dof_after``.
     """
 
     term: str
@@ -68,6 +71,7 @@ class Suggestion:
     why: str
     evidence: list[str] = field(default_factory=list)
     fit: FitResult | None = None
+    apply: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """CONTRACT.md ``suggestions`` entry (plus ``p_value``, ``ci95``, ``evidence``)."""
@@ -80,7 +84,9 @@ class Suggestion:
                 "chi2_per_dof_after": num(self.chi2_per_dof_after),
                 "significant": bool(self.significant), "p_value": num(self.p_value),
                 "log10_p": num(self.log_p / np.log(10.0)),
-                "why": self.why, "evidence": list(self.evidence)}
+                "why": self.why, "evidence": list(self.evidence),
+                "apply": {"model": self.apply.get("model", ""),
+                          "args": list(self.apply.get("args", []))}}
 
 
 @dataclass
@@ -143,9 +149,10 @@ def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
                    {"taus_set_aside": [float(t) for t in tau]})
 
 
-def _in_band(fit: FitResult, line_finding: Finding) -> bool:
-    """Whether the refitted sinusoid's frequency lies in the band the line search covered."""
-    f = next(t.params["f"] for t in fit.terms if t.term == "sinusoid")
+def _in_band(fit: FitResult, line_finding: Finding, index: int) -> bool:
+    """Whether the refitted line's frequency (term ``index``) lies in the band the line
+    search covered."""
+    f = fit.terms[index].params["f"]
     lo, hi = line_finding.details.get("f_searched_hz", (np.inf, -np.inf))
     return bool(lo <= f <= hi)
 
@@ -166,6 +173,106 @@ def _why(term: str, rng: tuple[float, float] | None, before: float, after: float
     if np.isfinite(after):
         parts.append(f"Adding it brings chi2/dof from {before:.3g} to {after:.3g}.")
     return " ".join(parts)
+
+
+def _fold(spec: ModelSpec, fixed: dict | None) -> ModelSpec:
+    """``spec`` with the parameters held by ``fixed`` (keyed by model index or term name, its
+    first occurrence) written into its entries."""
+    entries = list(spec.entries)
+    for key, params in (fixed or {}).items():
+        idx = key if isinstance(key, int) else spec.names.index(key) \
+            if key in spec.names else None
+        if idx is None or not 0 <= idx < len(entries):
+            raise TermError(f"fixed parameters given for {key!r}, which is not in the model "
+                            f"({', '.join(spec.names)})")
+        e = entries[idx]
+        entries[idx] = Entry(e.name, {**e.fixed, **{k: float(v) for k, v in params.items()}},
+                             e.start)
+    return parse_model(ModelSpec(tuple(entries)).text()) if entries else spec
+
+
+@dataclass
+class _Context:
+    """What every candidate's refit shares."""
+
+    x: np.ndarray
+    fs_hz: float
+    starts: np.ndarray
+    temp_at: np.ndarray | None
+    memo: dict
+    base: FitResult
+    spec: ModelSpec
+    by_term: dict[str, Finding]
+    n_candidates: int
+
+
+def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[str, float]]:
+    """The model with ``term`` appended, fitted exactly as ``imunoise fit --model`` fits it
+    (its ``apply.model``): ``(fit or None, model, parameters the evidence pinned)``."""
+    pinned: dict[str, float] = {}
+    f_ev = ctx.by_term.get(term)
+    if get_term(term).role == "line" and f_ev is not None and f_ev.significant \
+            and "f" in f_ev.params:
+        # The PSD pins the frequency far better than the Allan curve can.
+        pinned = {"f": float(f_ev.params["f"])}
+    spec = ModelSpec(ctx.spec.entries + (Entry(term, pinned),))
+    needs = any(get_term(n).needs_record == "temperature" for n in spec.names)
+    try:
+        after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
+                              temperature=ctx.temp_at if needs else None, memo=ctx.memo,
+                              intervals="jacobian")
+    except (ValueError, np.linalg.LinAlgError):
+        after = None
+    return after, spec, pinned
+
+
+def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
+    """Refit with ``term`` and weigh the fall of the error with the evidence."""
+    base, before = ctx.base, ctx.base.chi2_per_dof
+    after, spec, pinned = _refit(ctx, term)
+    k = len(get_term(term).params)
+    regressor = get_term(term).role == "regressor"
+    falls = after is not None and bool(np.isfinite(after.chi2_per_dof)) \
+        and after.chi2_per_dof < before
+    sources: list[float] = []
+    if falls and not regressor:
+        # A term that leaves the misfit per degree of freedom no better is no suggestion,
+        # even if the raw chi2 fell (it does whenever the given model is wrong anyway).
+        sources.append(_lr_logp(base, after, k))
+    ev = ctx.by_term.get(term)
+    if ev is not None:
+        sources.append(_logp(ev.p_value))
+    if get_term(term).role == "line" and ev is not None and not ev.significant \
+            and after is not None and _in_band(after, ev, len(ctx.spec)):
+        # A sinusoid big enough to bend the Allan curve is a line in the spectrum; with no
+        # line where the refit put it, the Allan improvement is some other bump.
+        sources = [_logp(ev.p_value)]
+    # Bonferroni over the sources and over the candidates, in log form.
+    logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(ctx.n_candidates)) \
+        if sources else 0.0
+    params: dict[str, float] = {}
+    ci: dict[str, tuple[float, float]] = {}
+    chi_after = float("nan")
+    if after is not None:
+        tf = after.terms[len(ctx.spec)]  # the added term (the model may repeat its name)
+        params, ci = dict(tf.params), dict(tf.ci95)
+        if ev is not None and ev.significant:
+            # Parameters the evidence pinned (held fixed in the refit) take its interval.
+            ci.update({key: (lo, hi) for key, (lo, hi) in ev.details.get("ci95", {}).items()
+                       if key in pinned})
+        chi_after = after.chi2_per_dof
+    elif ev is not None:
+        params = dict(ev.params)
+    rng = _z_range(base, after) if after is not None and not regressor else None
+    supporting = [ev] if ev is not None else []
+    return Suggestion(
+        term=term, params=params, ci95=ci, chi2_per_dof_before=before,
+        chi2_per_dof_after=chi_after, p_value=float(np.exp(logp)), log_p=logp,
+        # significant only when applying it really lowers the error the fit reports
+        significant=bool(logp < np.log(alpha) and falls),
+        why=_why(term, rng, before, chi_after, supporting),
+        evidence=[f.kind for f in supporting if f.significant], fit=after,
+        apply={"model": spec.text(), "args": []})
 
 
 def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
@@ -193,17 +300,17 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     x = np.asarray(values, dtype=np.float64)
     starts = (np.asarray(segment_starts, dtype=np.int64) if segment_starts is not None
               else np.zeros(1, dtype=np.int64))
-    spec = parse_model(model)
-    names = spec.names
-    fixed = {**spec.fixed, **(fixed or {})}
+    base_spec = _fold(parse_model(model), fixed)
+    names = base_spec.names
     t_rate = _times(x.size, fs_hz, t0_s)
     temp_at = None
     if temperature is not None:
         temp_at = np.interp(t_rate, np.asarray(temperature[0], float),
                             np.asarray(temperature[1], float))
-    base, curve = fit_series(x, fs_hz, names, segment_starts=starts,
+    memo: dict = {}
+    base, curve = fit_series(x, fs_hz, base_spec, segment_starts=starts,
                              temperature=temp_at if "temperature" in names else None,
-                             fixed=fixed)
+                             memo=memo)
     segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
                                                    strict=True)) if s.size]
 
@@ -234,75 +341,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
 
     candidates = [n for n, t in TERMS.items() if n not in names and t.kind == "additive"
                   and (t.needs_record != "temperature" or temperature is not None)]
-    suggestions: list[Suggestion] = []
-    before = base.chi2_per_dof
-    for term in candidates:
-        k = len(get_term(term).params)
-        fix: dict = {}
-        try:
-            if term == "temperature":
-                after, _ = fit_series(x, fs_hz, names + [term], segment_starts=starts,
-                                      temperature=temp_at, fixed=fixed)
-            else:
-                line, fix = None, dict(fixed or {})
-                f_ev = by_term.get("sinusoid")
-                if term == "sinusoid" and f_ev is not None and f_ev.significant:
-                    # The PSD pins the frequency far better than the Allan curve can.
-                    line = (f_ev.params["f"], f_ev.params["A"])
-                    fix[len(names)] = {"f": f_ev.params["f"]}
-                elif term == "sinusoid":
-                    line = find_line(max(segments, key=len), fs_hz, min_snr=3.0)
-                after = fit_allan(curve, names + [term], line=line, fixed=fix,
-                                  intervals="jacobian")
-                if after.misfit.chi2 > base.misfit.chi2:
-                    # A nested model cannot fit worse: the cold start found a poorer optimum,
-                    # so start again from the given model's fit with the new term small.
-                    warm = fit_allan(curve, names + [term], start=base, line=line, fixed=fix,
-                                     intervals="jacobian")
-                    if warm.misfit.chi2 < after.misfit.chi2:
-                        after = warm
-        except (ValueError, np.linalg.LinAlgError):
-            after = None
-        fix_used = fix.get(len(names), {}) if after is not None and term != "temperature" \
-            else {}
-        sources: list[float] = []
-        if after is not None and term != "temperature" and after.chi2_per_dof < before:
-            # A term that leaves the misfit per degree of freedom no better is no suggestion,
-            # even if the raw chi2 fell (it does whenever the given model is wrong anyway).
-            sources.append(_lr_logp(base, after, k))
-        ev = by_term.get(term)
-        if ev is not None:
-            sources.append(_logp(ev.p_value))
-        if term == "sinusoid" and ev is not None and not ev.significant and after is not None \
-                and _in_band(after, ev):
-            # A sinusoid big enough to bend the Allan curve is a line in the spectrum; with no
-            # line where the refit put it, the Allan improvement is some other bump.
-            sources = [_logp(ev.p_value)]
-        # Bonferroni over the sources and over the candidates, in log form.
-        logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(len(candidates))) \
-            if sources else 0.0
-        p_adj = float(np.exp(logp))
-        params: dict[str, float] = {}
-        ci: dict[str, tuple[float, float]] = {}
-        chi_after = float("nan")
-        if after is not None:
-            tf = after.terms[len(names)]  # the added term (the model may repeat its name)
-            params, ci = dict(tf.params), dict(tf.ci95)
-            if ev is not None and ev.significant:
-                # Parameters the evidence pinned (held fixed in the refit) take its interval.
-                ci.update({key: (lo, hi) for key, (lo, hi) in ev.details.get("ci95", {}).items()
-                           if key in fix_used})
-            chi_after = after.chi2_per_dof
-        elif ev is not None:
-            params = dict(ev.params)
-        rng = _z_range(base, after) if after is not None and term != "temperature" else None
-        supporting = [ev] if ev is not None else []
-        suggestions.append(Suggestion(
-            term=term, params=params, ci95=ci, chi2_per_dof_before=before,
-            chi2_per_dof_after=chi_after, p_value=p_adj, log_p=logp,
-            significant=logp < np.log(alpha),
-            why=_why(term, rng, before, chi_after, supporting),
-            evidence=[f.kind for f in supporting if f.significant], fit=after))
+    ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term, len(candidates))
+    suggestions = [_suggest(ctx, term, alpha) for term in candidates]
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
     # parameters, so a two-parameter Markov term does not win merely by being flexible.
     suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))

@@ -26,6 +26,8 @@ series first (see :func:`fit_series`).
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -36,6 +38,7 @@ from scipy import ndimage, optimize, signal, special
 from analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
 from analysis.profile import profile_bounds
 from analysis.terms import (
+    Entry,
     ModelSpec,
     TermError,
     get_term,
@@ -48,6 +51,7 @@ _Z95 = 1.959963984540054
 _LOSS = "soft_l1"
 _MAX_SHORT_TRIM = 4
 _F_SCALE = 3.0
+_CHI2_TIE = 0.05  # chi2 differences below this are the solver's tolerance
 
 
 class CurveLike(Protocol):
@@ -292,11 +296,34 @@ def _avar_of(layout: _Layout, params: list[dict[str, float]], tau: np.ndarray, f
     return model_avar(_model_terms(layout, params), tau, fs, checked=False)
 
 
+_COV_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_COV_LOCK = threading.Lock()
+
+
+def _covariance(model: list[tuple[str, dict[str, float]]], fs: float, m: np.ndarray,
+                n_terms: np.ndarray) -> np.ndarray:
+    """:func:`analysis.misfit.avar_covariance`, remembered for the last 64 distinct inputs
+    (a fit asks for the same model's covariance when it solves, trims, scores and reports)."""
+    key = (repr(model), fs, m.tobytes(), n_terms.tobytes())
+    with _COV_LOCK:
+        hit = _COV_CACHE.get(key)
+        if hit is not None:
+            _COV_CACHE.move_to_end(key)
+            return hit
+    cov = avar_covariance(model, fs, m, n_terms)
+    cov.setflags(write=False)
+    with _COV_LOCK:
+        _COV_CACHE[key] = cov
+        while len(_COV_CACHE) > 64:
+            _COV_CACHE.popitem(last=False)
+    return cov
+
+
 def _log_weights(model: list[tuple[str, dict[str, float]]], fs: float, m: np.ndarray,
                  n_terms: np.ndarray, avar_model: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Whitening matrix, mean bias of ln(avar_hat) and the covariance of the AVAR estimates."""
-    cov = avar_covariance(model, fs, m, n_terms)
+    cov = _covariance(model, fs, m, n_terms)
     var = np.clip(np.diag(cov), 1e-300, None)
     nu = np.clip(2.0 * avar_model**2 / var, 1.0, 1e12)
     sd = np.sqrt(var)
@@ -380,7 +407,7 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
               line: tuple[float, float] | None = None, temperature: TermFit | None = None,
               fixed: dict[str | int, dict[str, float]] | None = None,
               family_rate: float = 0.10, max_nfev: int = 200,
-              intervals: str = "profile") -> FitResult:
+              intervals: str = "profile", memo: dict | None = None) -> FitResult:
     """Fit a sum of noise terms to a measured overlapping Allan curve.
 
     Args:
@@ -400,16 +427,73 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         family_rate: probability that a correct model reports any failure (sets the |z|
             threshold).
         max_nfev: cap on model evaluations of the least-squares solver.
+        memo: a dict shared by fits of one curve (the diagnosis's candidates): the solutions
+            of the nested models each fit starts from are computed once.
         intervals: ``"profile"`` (profile likelihood: the other parameters re-fitted while
             one is moved until chi2 rises by 3.84; honest for weakly determined terms, about
             0.1-0.5 s) or ``"jacobian"`` (linearised, log-parameter space; for quick refits).
+
+    Solutions: the fit is solved from several starts (the linear solve, each near-zero linear
+    term raised, the linear solve with every tau weighted alike and, unless ``start`` is given,
+    the solution of the model without its last term with that term at zero and at its own
+    start) and the one with the smallest reported misfit ``chi2`` wins (the first of those
+    within 0.05 of it, the solver's tolerance). The model without its last term is itself
+    fitted this way, so appending a term to a model (the diagnosis's ``apply.model``) never
+    raises ``chi2`` by more than that tolerance.
 
     Raises:
         TermError: unknown term, or a model with no term to fit.
         ValueError: a curve with fewer taus than free parameters, or non-positive values.
     """
     parsed = parse_model(model)
-    spec = [(e.name, e.start) for e in parsed.entries]
+    prob = _problem(curve, parsed, fixed, family_rate, max_nfev)
+    memo = {} if memo is None else memo
+    folded = _folded(parsed, prob)
+    key = _memo_key(curve, folded, line)
+    hit = memo.get(key) if start is None else None
+    if hit is not None:
+        point = hit[1]
+    else:
+        point = _best_point(prob, curve, folded, start, line, memo)
+        if start is None:
+            memo[key] = (prob, point)
+    return _result(prob, point, intervals, temperature)
+
+
+@dataclass
+class _Problem:
+    """One fit: the model's layout and the usable part of the curve."""
+
+    names: list[str]
+    spec: list[tuple[str, dict[str, float] | None]]
+    layout: _Layout
+    fs: float
+    tau: np.ndarray
+    m: np.ndarray
+    n_terms: np.ndarray
+    avar: np.ndarray
+    y: np.ndarray
+    nu0: np.ndarray
+    duration: float
+    family_rate: float
+    max_nfev: int
+
+    @property
+    def n_free(self) -> int:
+        return len(self.layout.keys)
+
+
+@dataclass
+class _Point:
+    """A candidate solution: log-parameters, taus it rests on and its reported chi2."""
+
+    theta: np.ndarray
+    used: np.ndarray
+    chi2: float
+
+
+def _problem(curve: CurveLike, parsed: ModelSpec, fixed: dict | None, family_rate: float,
+             max_nfev: int) -> _Problem:
     names = parsed.names
     fixed = {**parsed.fixed, **(fixed or {})}
     fs = float(curve.fs_hz)
@@ -418,10 +502,12 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
     n_terms = np.asarray(curve.n_terms, dtype=np.float64)
     avar = np.asarray(curve.dev, dtype=np.float64) ** 2
     keep = np.isfinite(avar) & (avar > 0) & (n_terms > 0)
-    tau, m, n_terms, avar = tau[keep], m[keep], n_terms[keep], avar[keep]
+    # the averaging times are m/fs exactly: a rate read with a last-digit difference must
+    # not move the fit
+    tau = (m / fs)[keep] if np.allclose(tau, m / fs, rtol=1e-6) else tau[keep]
+    m, n_terms, avar = m[keep], n_terms[keep], avar[keep]
     duration = float((n_terms[0] + 2 * m[0] - 1) / fs) if len(m) else 0.0
-    fixed_keys = _fixed_keys(names, fixed or {}, fs)
-    layout = _layout(names, fs, duration, fixed_keys)
+    layout = _layout(names, fs, duration, _fixed_keys(names, fixed, fs))
     n_free = len(layout.keys)
     if n_free == 0:
         raise TermError("the model has no noise term to fit to the Allan curve")
@@ -430,58 +516,197 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
     if len(tau) <= n_free:
         raise ValueError(f"the Allan curve has {len(tau)} usable taus, too few for "
                          f"{n_free} free parameters: record longer")
+    return _Problem(names, [(e.name, e.start) for e in parsed.entries], layout, fs, tau, m,
+                    n_terms, avar, np.log(avar), _default_nu(curve)[keep], duration,
+                    family_rate, max_nfev)
 
-    if start is not None:
-        start_params = start.params if isinstance(start, FitResult) else list(start)
-        start_list = _match_start(names, start_params)
-    elif all(p is not None for _, p in spec):
-        start_list = [dict(p or {}) for _, p in spec]
-    else:
-        nu0 = _default_nu(curve)[keep]
-        start_list = _start_values(names, tau, avar, fs, nu0, duration, line, fixed_keys)
-        for i, (_, p) in enumerate(spec):
-            if p is not None:
-                start_list[i].update(p)
-    y = np.log(avar)
-    starts = [start_list]
-    if start is None:
-        starts += _bumped_starts(names, start_list, tau, avar, fs)
-    best: tuple[float, np.ndarray] | None = None
-    for cand in starts:
-        theta0 = np.array([math.log(max(cand[i][k], 1e-300)) for i, k in layout.keys])
-        theta0 = np.clip(theta0, layout.lo + 1e-9, layout.hi - 1e-9)
-        theta = _solve(layout, theta0, y, tau, m, n_terms, fs, max_nfev)
-        score = _neg2_loglik(layout, theta, y, tau, m, n_terms, fs)
-        if best is None or score < best[0]:
-            best = (score, theta)
-    assert best is not None
-    theta = best[1]
 
-    # A sensor's anti-aliasing and decimation filters make the shortest taus fall below any
-    # sum of the terms. When the shortest taus fail, set them aside one at a time and refit,
-    # so they are reported as failures without dragging the parameters of the rest.
+def _theta_of(prob: _Problem, params: list[dict[str, float]]) -> np.ndarray:
+    lay = prob.layout
+    theta = np.array([math.log(max(params[i][k], 1e-300)) for i, k in lay.keys])
+    return np.clip(theta, lay.lo + 1e-9, lay.hi - 1e-9)
+
+
+def _chi2(prob: _Problem, theta: np.ndarray) -> float:
+    """The reported misfit chi2 (every tau, the model's own covariance)."""
+    params = _unpack(prob.layout, theta)
+    avar_fit = _avar_of(prob.layout, params, prob.tau, prob.fs)
+    cov = _covariance(_model_terms(prob.layout, params), prob.fs, prob.m, prob.n_terms)
+    return misfit(prob.avar, avar_fit, cov, prob.n_free, prob.family_rate).chi2
+
+
+def _solve_all(prob: _Problem, theta0: np.ndarray) -> _Point:
+    """Solve from ``theta0`` on every tau."""
+    lay = prob.layout
+    theta = _solve(lay, theta0, prob.y, prob.tau, prob.m, prob.n_terms, prob.fs, prob.max_nfev)
+    return _Point(theta, np.ones(len(prob.tau), dtype=bool), _chi2(prob, theta))
+
+
+def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
+    """While the shortest tau still used fails, set it aside and refit. A sensor's
+    anti-aliasing and decimation filters make the shortest taus fall below any sum of the
+    terms; they are reported as failures without dragging the parameters."""
+    lay, tau, m, n_terms = prob.layout, prob.tau, prob.m, prob.n_terms
     used = np.ones(len(tau), dtype=bool)
-    threshold = failure_threshold(len(tau), family_rate)
+    threshold = failure_threshold(len(tau), prob.family_rate)
     for first in range(min(_MAX_SHORT_TRIM, len(tau))):
-        if len(tau) - first - 1 < n_free + 3:
+        if len(tau) - first - 1 < prob.n_free + 3:
             break
-        params = _unpack(layout, theta)
-        avar_fit = _avar_of(layout, params, tau, fs)
-        cov = avar_covariance(_model_terms(layout, params), fs, m[used], n_terms[used])
-        z_used = misfit(avar[used], avar_fit[used], cov, n_free, family_rate).z
+        params = _unpack(lay, theta)
+        avar_fit = _avar_of(lay, params, tau, prob.fs)
+        cov = _covariance(_model_terms(lay, params), prob.fs, m[used], n_terms[used])
+        z_used = misfit(prob.avar[used], avar_fit[used], cov, prob.n_free,
+                        prob.family_rate).z
         if abs(z_used[0]) <= threshold:
             break
         used[first] = False
-        theta = _solve(layout, theta, y[used], tau[used], m[used], n_terms[used], fs,
-                       max_nfev)
+        theta = _solve(lay, theta, prob.y[used], tau[used], m[used], n_terms[used], prob.fs,
+                       prob.max_nfev)
+    return _Point(theta, used, _chi2(prob, theta))
 
+
+def _cold_starts(prob: _Problem, line: tuple[float, float] | None
+                 ) -> list[list[dict[str, float]]]:
+    """Starting points without a previous fit: the linear solve weighted by each estimate's
+    degrees of freedom, the same with every tau weighted alike (it follows the long taus the
+    first neglects) and each near-zero linear term raised."""
+    names, lay = prob.names, prob.layout
+    if all(p is not None for _, p in prob.spec):
+        return [[dict(p or {}) for _, p in prob.spec]]
+    out = []
+    for nu in (prob.nu0, np.full_like(prob.nu0, 2.0)):
+        first = _start_values(names, prob.tau, prob.avar, prob.fs, nu, prob.duration, line,
+                              lay.fixed)
+        for i, (_, p) in enumerate(prob.spec):
+            if p is not None:
+                first[i].update(p)
+        out.append(first)
+    out += _bumped_starts(names, out[0], prob.tau, prob.avar, prob.fs)
+    return out
+
+
+def _folded(parsed: ModelSpec, prob: _Problem) -> ModelSpec:
+    """``parsed`` with every held parameter (also those given by keyword) in its entry."""
+    fixed = {i: {k: v for (j, k), v in prob.layout.fixed.items() if j == i}
+             for i in range(len(parsed.entries))}
+    return ModelSpec(tuple(Entry(e.name, fixed[i], e.start)
+                           for i, e in enumerate(parsed.entries)))
+
+
+def _memo_key(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None
+              ) -> tuple | None:
+    if any(e.start is not None for e in spec.entries):
+        return None
+    uses_line = any(get_term(n).role == "line" for n in spec.names)
+    return (id(curve), spec.text(), line if uses_line else None)
+
+
+def _prefix(parsed: ModelSpec, prob: _Problem) -> tuple[ModelSpec, int] | None:
+    """The model without its last term that has free parameters, and that term's index."""
+    free = {i for i, _ in prob.layout.keys}
+    if len(free) < 2 or any(e.start is not None for e in parsed.entries):
+        return None
+    last = max(free)
+    return ModelSpec(tuple(e for i, e in enumerate(parsed.entries) if i != last)), last
+
+
+def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
+                   line: tuple[float, float] | None, memo: dict, cold: list[dict[str, float]]
+                   ) -> tuple[list[np.ndarray], _Point | None]:
+    """The start from the solution of the model without its last term, with that term at zero
+    (also returned unsolved: its chi2 is the smaller model's)."""
+    pre = _prefix(parsed, prob)
+    if pre is None:
+        return [], None
+    sub_spec, last = pre
+    sub = _memo_point(curve, sub_spec, line, prob, memo)
+    if sub is None:
+        return [], None
+    sub_prob, sub_point = sub
+    sub_params = _unpack(sub_prob.layout, sub_point.theta)
+    params = sub_params[:last] + [dict(cold[last])] + sub_params[last:]
+    term = get_term(prob.names[last])
+    params[last] = {**params[last], term.amplitude: 1e-300}
+    at_zero = _theta_of(prob, params)
+    exact = _Point(at_zero, sub_point.used.copy(), _chi2(prob, at_zero))
+    return [at_zero], exact
+
+
+def _memo_point(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None,
+                prob: _Problem, memo: dict) -> tuple[_Problem, _Point] | None:
+    key = _memo_key(curve, spec, line)
+    if key not in memo:
+        try:
+            sub_prob = _problem(curve, spec, None, prob.family_rate, prob.max_nfev)
+            memo[key] = (sub_prob, _best_point(sub_prob, curve, spec, None, line, memo))
+        except (ValueError, np.linalg.LinAlgError):
+            memo[key] = None
+    return memo[key]
+
+
+def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
+                line: tuple[float, float] | None, memo: dict) -> _Point:
+    """The candidate with the smallest reported chi2 (the first of equals)."""
+    if start is not None:
+        start_params = start.params if isinstance(start, FitResult) else list(start)
+        thetas = [_theta_of(prob, _match_start(prob.names, start_params))]
+        exact = None
+    else:
+        cold = _cold_starts(prob, line)
+        thetas = [_theta_of(prob, c) for c in cold]
+        nested, exact = _nested_starts(prob, curve, parsed, line, memo, cold[0])
+        thetas += nested
+    distinct: list[np.ndarray] = []
+    for theta0 in thetas:  # a start within 10 % of an earlier one adds nothing
+        if all(np.max(np.abs(theta0 - d)) > 0.1 for d in distinct):
+            distinct.append(theta0)
+    points = [_solve_all(prob, theta0) for theta0 in distinct]
+    # chi2 differences below the solver's tolerance do not count: the first start among the
+    # near-best wins (the order of the starts is fixed, so equal curves give equal models)
+    low = min(p.chi2 for p in points)
+    best = _trim(prob, next(p for p in points if p.chi2 <= low + _CHI2_TIE).theta)
+    # the smaller model's solution itself when every solve does worse: adding a term never
+    # raises chi2 (by more than the solver's tolerance)
+    if exact is not None and exact.chi2 < best.chi2 - _CHI2_TIE:
+        best = exact
+    assert best is not None
+    return best
+
+
+def _result(prob: _Problem, point: _Point, intervals: str, temperature: TermFit | None
+            ) -> FitResult:
+    names, layout, fs, tau = prob.names, prob.layout, prob.fs, prob.tau
+    m, n_terms, avar, theta, used = prob.m, prob.n_terms, prob.avar, point.theta, point.used
     params = _unpack(layout, theta)
     model_final = _model_terms(layout, params)
     avar_fit = _avar_of(layout, params, tau, fs)
-    cov = avar_covariance(model_final, fs, m, n_terms)
-    mf = misfit(avar, avar_fit, cov, n_free, family_rate)
-    whiten, bias, _ = _log_weights(model_final, fs, m[used], n_terms[used], avar_fit[used])
-    y_used, tau_used = y[used], tau[used]
+    cov = _covariance(model_final, fs, m, n_terms)
+    mf = misfit(avar, avar_fit, cov, prob.n_free, prob.family_rate)
+    ci, param_cov = _intervals(prob, point, model_final, avar_fit, intervals)
+    terms_out: list[TermFit] = []
+    for i, n in enumerate(names):
+        if get_term(n).role == "regressor":
+            if temperature is None:
+                raise TermError("the temperature term needs a temperature record: fit the "
+                                "series with fit_series(..., temperature=...)")
+            terms_out.append(temperature)
+        else:
+            terms_out.append(TermFit(n, params[i], ci[i]))
+    term_avar = [_term_avar(t.term, t.params, tau, fs) for t in terms_out]
+    return FitResult(terms=terms_out, fs_hz=fs, tau_s=tau, m=m.astype(np.int64),
+                     n_terms=n_terms.astype(np.int64), avar_measured=avar, avar_fit=avar_fit,
+                     term_avar=term_avar, misfit=mf,
+                     failures=failures(tau, mf.z, mf.threshold), param_cov=param_cov,
+                     free_params=list(layout.keys), used=used)
+
+
+def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.ndarray,
+               intervals: str) -> tuple[list[dict[str, tuple[float, float]]], np.ndarray]:
+    """95 % intervals: linearised in log-parameter space, or by profile likelihood."""
+    layout, fs, used, theta = prob.layout, prob.fs, point.used, point.theta
+    whiten, bias, _ = _log_weights(model_final, fs, prob.m[used], prob.n_terms[used],
+                                   avar_fit[used])
+    y_used, tau_used = prob.y[used], prob.tau[used]
 
     def resid_final(th: np.ndarray) -> np.ndarray:
         mod = _avar_of(layout, _unpack(layout, th), tau_used, fs)
@@ -490,7 +715,7 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
     jac = _jacobian(resid_final, theta)
     param_cov = np.linalg.pinv(jac.T @ jac)
     sd = np.sqrt(np.clip(np.diag(param_cov), 0.0, None))
-    ci: list[dict[str, tuple[float, float]]] = [dict() for _ in names]
+    ci: list[dict[str, tuple[float, float]]] = [dict() for _ in prob.names]
     # A linearised interval is only honest for a parameter the curve determines well. For an
     # amplitude near zero the Jacobian column vanishes (the pseudo-inverse then reports a zero
     # width) or the log-scale interval runs to its bound; such parameters get the profile
@@ -510,27 +735,12 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         else:
             lo, hi = th - _Z95 * s, th + _Z95 * s
         # an amplitude whose interval reaches its lower bound is consistent with zero
-        scale = get_term(names[i]).param(k).is_scale
+        scale = get_term(prob.names[i]).param(k).is_scale
         lo_v = 0.0 if (lo <= layout.lo[idx] + 1e-6 and not scale) else math.exp(lo)
         ci[i][k] = (float(lo_v), float(math.exp(min(hi, 700.0))))
     for (i, k), v in layout.fixed.items():
         ci[i][k] = (float(v), float(v))
-
-    terms_out: list[TermFit] = []
-    for i, n in enumerate(names):
-        if get_term(n).role == "regressor":
-            if temperature is None:
-                raise TermError("the temperature term needs a temperature record: fit the "
-                                "series with fit_series(..., temperature=...)")
-            terms_out.append(temperature)
-        else:
-            terms_out.append(TermFit(n, params[i], ci[i]))
-    term_avar = [_term_avar(t.term, t.params, tau, fs) for t in terms_out]
-    return FitResult(terms=terms_out, fs_hz=fs, tau_s=tau, m=m.astype(np.int64),
-                     n_terms=n_terms.astype(np.int64), avar_measured=avar, avar_fit=avar_fit,
-                     term_avar=term_avar, misfit=mf,
-                     failures=failures(tau, mf.z, mf.threshold), param_cov=param_cov,
-                     free_params=list(layout.keys), used=used)
+    return ci, param_cov
 
 
 _CHI2_95_1DOF = 3.841458820694124
@@ -679,23 +889,38 @@ def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int =
     return term, y - coef * tc
 
 
+def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | None = None
+                ) -> tuple[float, float] | None:
+    """The strongest spectral line of the longest gap-free segment (:func:`find_line`): the
+    start of a line term in :func:`fit_series`."""
+    x = np.asarray(values, dtype=np.float64)
+    bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
+    k = int(np.argmax(np.diff(bounds)))
+    return find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
+
+
 def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
                segment_starts: np.ndarray | None = None,
                temperature: np.ndarray | None = None,
                fixed: dict[str | int, dict[str, float]] | None = None,
-               ci: float = 0.95, start: Any = None) -> tuple[FitResult, Any]:
+               ci: float = 0.95, start: Any = None, memo: dict | None = None,
+               intervals: str = "profile") -> tuple[FitResult, Any]:
     """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
     for a sinusoid, temperature regression, then :func:`fit_allan`.
 
     Args:
         values: rate samples in SI units, all segments concatenated.
         fs_hz: sampling rate, Hz.
-        model: term names or ``[(term, params)]``.
+        model: a model specification (:func:`analysis.terms.parse_model`).
         segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
         temperature: temperature in degC at each sample (required with ``temperature``).
         fixed: parameters held at known values (see :func:`fit_allan`).
         ci: confidence level of the curve's ``ci_low``/``ci_high``.
         start: starting point of a refit (see :func:`fit_allan`).
+        memo: a dict shared by fits of one series (the diagnosis's candidates): its Allan
+            curves, spectral line and nested solutions are computed once. A fit with a memo
+            gives exactly the numbers of one without.
+        intervals: see :func:`fit_allan` (intervals never change the parameters or chi2).
 
     Returns:
         ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
@@ -703,21 +928,30 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
     """
     from analysis.allan import oadev
 
+    memo = {} if memo is None else memo
     spec = parse_model(model)
     names = spec.names
     x = np.asarray(values, dtype=np.float64)
     temp_term = None
-    if "temperature" in names:
+    regressed = any(get_term(n).role == "regressor" for n in names)
+    if regressed:
         if temperature is None:
             raise TermError("the temperature term needs a temperature record, and this "
                             "record has none")
-        temp_term, x = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
-    curve = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
+        key = ("temperature", id(values), ci)
+        if key not in memo:
+            memo[key] = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
+        temp_term, x = memo[key]
+    key = ("curve", id(values), regressed, ci)
+    if key not in memo:
+        memo[key] = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
+    curve = memo[key]
     line = None
     if any(get_term(n).role == "line" for n in names):
-        bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
-        k = int(np.argmax(np.diff(bounds)))
-        line = find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
-    result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed)
+        key = ("line", id(values), regressed)
+        if key not in memo:
+            memo[key] = series_line(x, fs_hz, segment_starts)
+        line = memo[key]
+    result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
+                       memo=memo, intervals=intervals)
     return result, curve
-

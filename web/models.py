@@ -110,6 +110,14 @@ class PsdCurve(BaseModel):
     model_psd: list[float | None] | None
 
 
+class Apply(BaseModel):
+    """How to apply a suggestion: the full model specification and extra command-line
+    options of ``imunoise fit``/``diagnose`` (empty when the remedy is a term)."""
+
+    model: str
+    args: list[str] = Field(default_factory=list)
+
+
 class Suggestion(BaseModel):
     term: str
     params: dict[str, float | None]
@@ -120,6 +128,7 @@ class Suggestion(BaseModel):
     p_value: float | None = Field(None, description="corrected for the number of candidates")
     why: str
     evidence: list[str] = Field(default_factory=list)
+    apply: Apply | None = Field(None, description="how to apply it: POST /model {model}")
 
 
 class Finding(BaseModel):

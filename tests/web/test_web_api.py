@@ -104,7 +104,11 @@ def test_diagnosis_then_add_the_suggestion_and_error_falls(client) -> None:
     assert dy["suggestions"] and not [s for s in dy["suggestions"] if s["significant"]]
     m0 = client.get("/model", params={"channel": "gyro_x"}).json()
     assert "sinusoid" in m0["valid_terms"] and "temperature" not in m0["valid_terms"]
-    r = client.post("/model", json={"channel": "gyro_x", "add": "sinusoid"})
+    # the Add button posts the suggestion's apply.model: the full model, the line's
+    # frequency held where the spectrum put it
+    assert top["apply"]["args"] == []
+    assert top["apply"]["model"].startswith("white,bias_instability,random_walk,sinusoid:f=")
+    r = client.post("/model", json={"channel": "gyro_x", "model": top["apply"]["model"]})
     assert r.status_code == 200, r.text
     change = r.json()
     assert change["error_before"]["chi2_per_dof"] == pytest.approx(d["error"]["chi2_per_dof"])
@@ -115,7 +119,7 @@ def test_diagnosis_then_add_the_suggestion_and_error_falls(client) -> None:
     assert sine["params"]["f"] == pytest.approx(SINE_F, rel=0.01)  # Allan fit, octave taus
     assert sine["params"]["A"] == pytest.approx(SINE_A, rel=0.05)
     m = client.get("/model", params={"channel": "gyro_x"}).json()
-    assert "sinusoid" in m["model"] and m["model_revision"] == 1
+    assert m["model"][-1] == top["apply"]["model"].split(",")[-1] and m["model_revision"] == 1
     assert [h["revision"] for h in m["history"]][-2:] == [0, 1]
     r = client.post("/model", json={"channel": "gyro_x", "remove": "sinusoid"})
     assert r.status_code == 200

@@ -178,7 +178,8 @@ function drawModel(m) {
 function drawDiagnosis(d) {
   const items = d.suggestions.map((s) => {
     const ps = Object.entries(s.params).map(([k, v]) => `${k} = ${fmt(v)}`).join(", ");
-    return `<li><button class="add-term" data-term="${s.term}">Add ${s.term}</button>
+    const model = s.apply && s.apply.model ? s.apply.model : "";
+    return `<li><button class="add-term" data-term="${s.term}" data-model="${model}">Add ${s.term}</button>
       <span class="${s.significant ? "sig" : ""}">${s.significant ? "significant" : "not significant"}</span>:
       χ²/dof after ${fmt(s.chi2_per_dof_after)}${s.p_value !== null && s.p_value !== undefined ? `, p = ${fmt(s.p_value, 2)}` : ""} (${ps})<span class="why">${s.why}</span></li>`;
   });
@@ -233,7 +234,9 @@ async function changeModel(body) {
 document.addEventListener("click", (ev) => {
   const b = ev.target.closest("button");
   if (!b) return;
-  if (b.classList.contains("add-term") || b.classList.contains("add-any")) {
+  if (b.classList.contains("add-term") && b.dataset.model) {
+    changeModel({ model: b.dataset.model });  // the suggestion's apply.model, as stated
+  } else if (b.classList.contains("add-term") || b.classList.contains("add-any")) {
     changeModel({ add: b.dataset.term });
   }
   if (b.classList.contains("remove-term")) changeModel({ remove: b.dataset.term });
