@@ -16,6 +16,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from imunoise import SOFTWARE
 from imunoise.errors import RuntimeFailure, UsageError
 
 TOKEN_ENV = "IMUNOISE_TOKEN"
@@ -109,6 +110,9 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     for key, value in wanted:
         if value is not None:
             kwargs[key] = value
+    from analysis.noise_stream import stream_factory
+
+    kwargs["noise"] = stream_factory  # the simulators' seed-paper noise, not white alone
     try:
         acq = open_device(spec, **kwargs)
     except ValueError as exc:
@@ -166,7 +170,7 @@ def open_recorder(out: str, device: str, config: dict[str, str] | None,
     from daq.recorder import McapRecorder
 
     try:
-        return McapRecorder(out, device, config=config, rate_hz=rate_hz)
+        return McapRecorder(out, device, config=config, rate_hz=rate_hz, software=SOFTWARE)
     except OSError as exc:
         raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
 
@@ -188,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from analysis.rolling import RollingAnalyzer, check_terms
-    from imunoise.live import LiveService
+    from live.service import LiveService
     from web.app import LOOPBACK_HOSTS, create_app
 
     token = args.token or os.environ.get(TOKEN_ENV) or None

@@ -10,7 +10,7 @@ import pytest
 
 from analysis.fit import fit_allan
 from imunoise.cli import main
-from imunoise.live import LiveService
+from live.service import LiveService
 from tests.live_helpers import SINE_A, SINE_F, SyntheticImu, running_server
 from web.app import create_app
 

@@ -158,10 +158,13 @@ function drawModel(m) {
   $("error-value").textContent = m.error ? fmt(m.error.chi2_per_dof) : "–";
   $("error-value").dataset.value = m.error ? String(m.error.chi2_per_dof) : "";
   $("error-maxz").textContent = m.error ? `(max |z| ${fmt(m.error.max_abs_z)})` : "";
+  // model entries are specifications ("sinusoid:f=2.7000342"): show held values briefly
+  const shown = (t) => t.replace(/=([-+0-9.eE]+)/g, (_, v) => "=" + fmt(Number(v), 4));
+  const names = m.model.map((t) => t.split(":")[0].split("#")[0]);
   $("model-terms").innerHTML = m.model.map((t) =>
-    `<span class="term">${t} <button class="remove-term" data-term="${t}" title="remove">×</button></span>`
+    `<span class="term">${shown(t)} <button class="remove-term" data-term="${t}" title="remove">×</button></span>`
   ).join("");
-  $("add-any").innerHTML = m.valid_terms.filter((t) => !m.model.includes(t)).map((t) =>
+  $("add-any").innerHTML = m.valid_terms.filter((t) => !names.includes(t)).map((t) =>
     `<button class="add-any" data-term="${t}">+ ${t}</button>`).join("");
   const h = m.history;
   $("history").innerHTML = h.slice(-12).reverse().map((p) =>
