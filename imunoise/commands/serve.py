@@ -112,9 +112,8 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
             kwargs[key] = value
     from analysis.noise_stream import stream_factory
 
-    kwargs["noise"] = stream_factory  # the simulators' seed-paper noise, not white alone
-    try:
-        acq = open_device(spec, **kwargs)
+    try:  # noise: the simulators' seed-paper models, not white noise alone
+        acq = open_device(spec, noise=stream_factory, **kwargs)
     except ValueError as exc:
         raise UsageError(f"serve: {str(exc).replace('--port', '--serial')}") from None
     try:
