@@ -75,9 +75,45 @@ def _from_file(args: argparse.Namespace) -> tuple[str, float, dict[str, Any]]:
                                 "warnings": record.warnings}
 
 
+def _row(p: Any, facts: dict[str, Any]) -> dict[str, Any]:
+    """One target's JSON row, with the recording's state when planning from a file."""
+    row = p.to_dict()
+    recorded = facts.get("recorded_s")
+    if recorded is None:
+        return row
+    name = f"{p.target.label}.{p.target.param}"
+    now = facts["now"].get(name)
+    row["now_relative_halfwidth"] = now if now is not None and math.isfinite(now) else None
+    row["recorded_s"] = recorded
+    row["more_s"] = None if p.record_s is None else max(0.0, p.record_s - recorded)
+    if name in facts["unresolved"]:  # no value to plan from: say so, plan nothing
+        row.update(record_s=None, reachable=False, more_s=None, now_relative_halfwidth=None,
+                   unresolved_upper_bound=facts["unresolved"][name])
+    return row
+
+
+def _line(row: dict[str, Any], p: Any, recorded: float | None) -> str:
+    """One target's text line."""
+    head = f"  {p.target.param} ({p.target.label})"
+    if "unresolved_upper_bound" in row:
+        return (f"{head}: not resolved in this recording (95 % upper bound "
+                f"{row['unresolved_upper_bound']:.4g}): nothing to plan from; state a value "
+                "with --model TERMS-WITH-VALUES --rate HZ")
+    line = f"{head} = {p.value:.4g}: 95 % interval within +-{100 * p.target.relative:g} % "
+    line += (f"after {_duration(p.record_s)}" if p.record_s is not None else
+             "not reachable (not within years of recording)")
+    if recorded is None:
+        return line
+    now = row["now_relative_halfwidth"]
+    line += (f"; now +-{100 * now:.3g} % after {_duration(recorded)}"
+             if now is not None else f"; now unresolved after {_duration(recorded)}")
+    if row["more_s"] is not None:
+        line += ", target met" if row["more_s"] == 0 else f", {_duration(row['more_s'])} more"
+    return line
+
+
 def run(args: argparse.Namespace) -> int:
     from analysis.planning import parse_targets, plan
-    from analysis.terms import TermError
 
     if args.file:
         spec, fs, facts = _from_file(args)
@@ -86,29 +122,11 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("plan: give FILE --channel SEL, or --model TERMS-WITH-VALUES and "
                              "--rate HZ")
         spec, fs, facts = args.model, float(args.rate), {}
-    try:
-        targets = parse_targets(args.target, spec)
-        plans = plan(spec, fs, targets, args.method)
-    except TermError as exc:
-        raise UsageError(f"plan: {exc}") from None
+    try:  # a TermError is a ValueError too: one line, exit 2
+        plans = plan(spec, fs, parse_targets(args.target, spec), args.method)
     except ValueError as exc:
         raise UsageError(f"plan: {exc}") from None
-    recorded = facts.get("recorded_s")
-    rows = []
-    for p in plans:
-        row = p.to_dict()
-        name = f"{p.target.label}.{p.target.param}"
-        if recorded is not None:
-            now = facts["now"].get(name)
-            row["now_relative_halfwidth"] = now if now is not None and math.isfinite(now) else None
-            row["recorded_s"] = recorded
-            row["more_s"] = (None if p.record_s is None
-                             else max(0.0, p.record_s - recorded))
-            if name in facts["unresolved"]:  # no value to plan from: say so, plan nothing
-                row.update(record_s=None, reachable=False, more_s=None,
-                           now_relative_halfwidth=None,
-                           unresolved_upper_bound=facts["unresolved"][name])
-        rows.append(row)
+    rows = [_row(p, facts) for p in plans]
     if args.json:
         from imunoise import report_json
 
@@ -124,23 +142,7 @@ def run(args: argparse.Namespace) -> int:
     where = f"{args.file} {facts['channel']}" if facts else "the model"
     print(f"record length for {where} at {fs:g} Hz ({args.method} method)")
     for row, p in zip(rows, plans, strict=True):
-        head = f"  {p.target.param} ({p.target.label})"
-        if "unresolved_upper_bound" in row:
-            print(f"{head}: not resolved in this recording (95 % upper bound "
-                  f"{row['unresolved_upper_bound']:.4g}): nothing to plan from; state a value "
-                  "with --model TERMS-WITH-VALUES --rate HZ")
-            continue
-        line = f"{head} = {p.value:.4g}: 95 % interval within +-{100 * p.target.relative:g} % "
-        line += (f"after {_duration(p.record_s)}" if p.record_s is not None else
-                 "not reachable (not within years of recording)")
-        if recorded is not None:
-            now = row["now_relative_halfwidth"]
-            line += (f"; now +-{100 * now:.3g} % after {_duration(recorded)}"
-                     if now is not None else f"; now unresolved after {_duration(recorded)}")
-            if row["more_s"] is not None:
-                line += (", target met" if row["more_s"] == 0 else
-                         f", {_duration(row['more_s'])} more")
-        print(line)
+        print(_line(row, p, facts.get("recorded_s")))
     if plans:
         print(f"assumes {plans[0].assumption}")
     return 0
