@@ -33,7 +33,7 @@ import numpy as np
 
 from core.record import TEMPERATURE_KEY, Record
 from core.series import ChannelSeries, channel_units
-from core.timing import analyse_stamps
+from core.timing import Timing, analyse_stamps
 from daq.readers import ReadError
 
 TIME_COLUMN = "t"
@@ -209,6 +209,55 @@ def _drop_incomplete_last_line(data: bytes, body_start: int, delim: str, n_names
     return data
 
 
+def _columns(names: list[str], path: Path) -> list[str]:
+    """The IMU channel columns of a header; duplicates or none at all are a ReadError."""
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ReadError(f"{path}: duplicate column(s) {', '.join(dup)}")
+    channels = [c for c in CHANNEL_COLUMNS if c in names]
+    if not channels:
+        shown = ", ".join(n for n in names[:8] if n) or "(none)"
+        raise ReadError(f"{path}: no IMU channel columns (expected some of "
+                        f"{', '.join(CHANNEL_COLUMNS)}; found {shown})")
+    return channels
+
+
+def _timing(cols: dict[str, np.ndarray], t_offset: float, rate_hz: float | None, path: Path,
+            warnings: list[str]) -> tuple[dict[str, np.ndarray], Timing, float]:
+    """Rows without a valid time dropped, the timing of the rest (:mod:`core.timing`) and the
+    record's start time (s). ``t_offset`` is added to ``t`` for absolute time."""
+    t = cols[TIME_COLUMN]
+    good_t = np.isfinite(t)
+    if not good_t.all():
+        warnings.append(f"{int((~good_t).sum())} row(s) without a valid time dropped")
+        cols = {k: v[good_t] for k, v in cols.items()}
+        t = cols[TIME_COLUMN]
+    if len(t) < 2:
+        raise ReadError(f"{path}: need at least two rows with valid times")
+    try:
+        timing = analyse_stamps(t, rate_hz=rate_hz)
+    except ValueError as exc:
+        raise ReadError(f"{path}: {exc}") from None
+    if rate_hz is None and not _PLAUSIBLE_RATE_HZ[0] <= timing.fs_hz <= _PLAUSIBLE_RATE_HZ[1]:
+        warnings.append(f"sampling rate from 't' is {timing.fs_hz:.6g} Hz: is 't' in seconds?")
+    warnings.extend(timing.notes)
+    return cols, timing, float(t[0]) + t_offset
+
+
+def _series(name: str, values: np.ndarray, seg_flags: np.ndarray, fs: float, t0: float,
+            warnings: list[str]) -> ChannelSeries | None:
+    """One column as a series (non-finite values removed, segments split around them)."""
+    kept, seg_starts, n_bad = _split_channel(values, seg_flags)
+    if n_bad:
+        warnings.append(f"{name}: {n_bad} missing or non-finite value(s) removed; segments "
+                        "split around them")
+    if kept.size == 0:
+        warnings.append(f"{name}: no valid values; channel left out")
+        return None
+    return ChannelSeries(name=name, units=channel_units(name), fs_hz=fs, values=kept,
+                         segment_starts=seg_starts, t0_s=t0)
+
+
 def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
     """Read an IMU CSV file into a :class:`Record` (SI units, gap-free segments).
 
@@ -226,16 +275,8 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{path}: empty file")
     names, delim, body_start = _header(data, path)
     asl = _asl_names(names)
-    if asl is not None:
-        names = asl
-    if len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
-        raise ReadError(f"{path}: duplicate column(s) {', '.join(dup)}")
-    channels = [c for c in CHANNEL_COLUMNS if c in names]
-    if not channels:
-        shown = ", ".join(n for n in names[:8] if n) or "(none)"
-        raise ReadError(f"{path}: no IMU channel columns (expected some of "
-                        f"{', '.join(CHANNEL_COLUMNS)}; found {shown})")
+    names = asl if asl is not None else names
+    channels = _columns(names, path)
     has_t = TIME_COLUMN in names
     if not has_t and rate_hz is None:
         raise ReadError(f"{path}: no time column 't'; give the sampling rate with --rate HZ")
@@ -247,68 +288,33 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{path}: no data rows after the header")
 
     wanted = ([TIME_COLUMN] if has_t else []) + channels + ([TEMPERATURE_KEY] if has_temp else [])
-    usecols = [names.index(c) for c in wanted]
-    table = _load(data, usecols, delim, path)
+    table = _load(data, [names.index(c) for c in wanted], delim, path)
     cols = dict(zip(wanted, np.ascontiguousarray(table.T), strict=True))
-    n_rows = table.shape[0]
 
+    facts: dict = {}
     if has_t:
-        t = cols[TIME_COLUMN]
         t_offset = 0.0  # seconds to add to t for the absolute time of the record's start
         if asl is not None:
-            t_rel, t_offset = _asl_seconds(data, delim, t)
-            t = cols[TIME_COLUMN] = t_rel
-        good_t = np.isfinite(t)
-        if not good_t.all():
-            n_bad = int((~good_t).sum())
-            warnings.append(f"{n_bad} row(s) without a valid time dropped")
-            cols = {k: v[good_t] for k, v in cols.items()}
-            t = cols[TIME_COLUMN]
-        if len(t) < 2:
-            raise ReadError(f"{path}: need at least two rows with valid times")
-        try:
-            timing = analyse_stamps(t, rate_hz=rate_hz)
-        except ValueError as exc:
-            raise ReadError(f"{path}: {exc}") from None
-        fs = timing.fs_hz
-        if rate_hz is None and not _PLAUSIBLE_RATE_HZ[0] <= fs <= _PLAUSIBLE_RATE_HZ[1]:
-            warnings.append(f"sampling rate from 't' is {fs:.6g} Hz: is 't' in seconds?")
-        starts = timing.segment_starts
-        warnings.extend(timing.notes)
-        t0 = float(t[0]) + t_offset
+            cols[TIME_COLUMN], t_offset = _asl_seconds(data, delim, cols[TIME_COLUMN])
+        cols, timing, t0 = _timing(cols, t_offset, rate_hz, path, warnings)
+        fs, starts = timing.fs_hz, timing.segment_starts
+        facts = {"timing": {"csv": timing.facts()}}
     else:
-        fs = float(rate_hz)  # type: ignore[arg-type]
-        starts = np.zeros(1, dtype=np.int64)
-        t0 = 0.0
-    n = len(next(iter(cols.values())))
-    seg_flags = np.zeros(n, dtype=bool)
+        fs, starts, t0 = float(rate_hz), np.zeros(1, dtype=np.int64), 0.0  # type: ignore[arg-type]
+    seg_flags = np.zeros(len(next(iter(cols.values()))), dtype=bool)
     seg_flags[starts] = True
 
-    def series(name: str) -> ChannelSeries | None:
-        values, seg_starts, n_bad = _split_channel(cols[name], seg_flags)
-        if n_bad:
-            warnings.append(f"{name}: {n_bad} missing or non-finite value(s) removed; segments "
-                            "split around them")
-        if values.size == 0:
-            warnings.append(f"{name}: no valid values; channel left out")
-            return None
-        return ChannelSeries(name=name, units=channel_units(name), fs_hz=fs, values=values,
-                             segment_starts=seg_starts, t0_s=t0)
-
-    out: dict[str, ChannelSeries] = {}
-    for name in channels:
-        s = series(name)
-        if s is not None:
-            out[name] = s
+    out = {name: s for name in channels
+           if (s := _series(name, cols[name], seg_flags, fs, t0, warnings)) is not None}
     if not out:
         raise ReadError(f"{path}: no valid values in any IMU channel")
-    temperature = series(TEMPERATURE_KEY) if has_temp else None
-    ignored = [n for n in names if n not in wanted]
-    metadata = {"format": "euroc-asl csv" if asl is not None else "csv", "rows": str(n_rows),
-                "columns": ",".join(wanted), "fs_hz": f"{fs:.9g}"}
+    temperature = (_series(TEMPERATURE_KEY, cols[TEMPERATURE_KEY], seg_flags, fs, t0, warnings)
+                   if has_temp else None)
+    metadata = {"format": "euroc-asl csv" if asl is not None else "csv",
+                "rows": str(table.shape[0]), "columns": ",".join(wanted), "fs_hz": f"{fs:.9g}"}
     if asl is not None:
         metadata.update(_sensor_yaml(path, warnings))
-    facts = {"timing": {"csv": timing.facts()}} if has_t else {}
+    ignored = [n for n in names if n not in wanted]
     if ignored:
         metadata["ignored_columns"] = ",".join(ignored)
     return Record(source=str(path), channels=out, temperature=temperature, metadata=metadata,
