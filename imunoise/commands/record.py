@@ -6,6 +6,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from imunoise import SOFTWARE
 from imunoise.commands.common import positive_rate
@@ -84,23 +85,17 @@ def _status_line(rec, acq, t_start: float) -> str:
             f"{state}  {name}  {size:.2f} MB")
 
 
-def run(args: argparse.Namespace) -> int:
-    duration = parse_duration(args.duration) if args.duration else None
-    rotate_s = None if args.rotate.strip() in ("0", "0s") else parse_duration(args.rotate)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"record: --out {out}: exists and is not a folder")
+def _open(args: argparse.Namespace, out: Path, rotate_s: float | None) -> tuple[Any, Any]:
+    """The opened device and its recorder; usage errors exit 2, device or disk failures 1."""
     try:
         from daq.devices import open_device
     except ImportError as exc:
         raise RuntimeFailure(f"device drivers are not available ({exc})") from exc
-    from daq import ros2_msgs
+    from analysis.noise_stream import stream_factory
     from daq.errors import DeviceError
     from daq.recorder import McapRecorder
 
-    try:
-        from analysis.noise_stream import stream_factory
-
+    try:  # noise: the simulators' seed-paper models, not white noise alone
         acq = open_device(args.device, port=args.port, bus=args.bus, rate_hz=args.rate,
                           seed=args.seed, noise=stream_factory)
     except (ValueError, KeyError) as exc:
@@ -120,12 +115,19 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         acq.close()
         raise RuntimeFailure(f"record: cannot write to {out}: {exc.strerror or exc}") from exc
+    return acq, rec
+
+
+def _record(acq: Any, rec: Any, duration: float | None) -> tuple[bool, str | None]:
+    """Copy blocks to the recorder until the duration, Ctrl-C or a device failure; device
+    state changes become events in the file. Returns (interrupted, failure)."""
+    from daq import ros2_msgs
+    from daq.errors import DeviceError
+
     tty = sys.stderr.isatty()
     t_start = time.monotonic()
     last_print = 0.0
     last_state = None
-    interrupted = False
-    failure = None
     try:
         for block in acq.blocks(duration):
             rec.write(block)
@@ -144,17 +146,28 @@ def run(args: argparse.Namespace) -> int:
                       flush=True)
                 last_print = now
     except KeyboardInterrupt:
-        interrupted = True
+        return True, None
     except DeviceError as exc:
-        failure = str(exc)
+        return False, str(exc)
     finally:
         try:
             acq.stop()
         finally:
             acq.close()
             rec.close()
-    if tty:
-        print(file=sys.stderr)
+            if tty:
+                print(file=sys.stderr)
+    return False, None
+
+
+def run(args: argparse.Namespace) -> int:
+    duration = parse_duration(args.duration) if args.duration else None
+    rotate_s = None if args.rotate.strip() in ("0", "0s") else parse_duration(args.rotate)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"record: --out {out}: exists and is not a folder")
+    acq, rec = _open(args, out, rotate_s)
+    interrupted, failure = _record(acq, rec, duration)
     if rec.error:
         raise RuntimeFailure(f"record: {rec.error}")
     state = str(getattr(getattr(acq, "stats", None), "state", ""))
