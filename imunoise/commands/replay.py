@@ -74,9 +74,48 @@ def _serve(args: argparse.Namespace, speed: float | None) -> int:
     return serve.run(serve_args)
 
 
+def _print_rows(rows: list[dict]) -> None:
+    """The summary table: samples, duration, gaps and white-noise density per channel."""
+    print(f"{'channel':32s} {'samples':>10s} {'duration':>10s} {'gaps':>5s}  white noise")
+    for r in rows:
+        n = r["white_noise_density"]
+        unit = r["units"]
+        head = (f"{r['channel']:32s} {r['samples']:>10d} {r['duration_s']:>9.1f}s "
+                f"{r['gaps']:>5d}  ")
+        if not math.isfinite(n):
+            print(head + "n/a (fewer than two samples in a row)")
+            continue
+        if unit == "rad/s":
+            conv = f"{n * 180 / math.pi * 60:.4g} deg/sqrt(h)"
+        elif unit == "m/s^2":
+            conv = f"{n * 60:.4g} m/s/sqrt(h)"
+        else:
+            conv = ""
+        print(head + f"{n:.4g} {unit}/sqrt(Hz)  {conv}")
+
+
+def _run_replay(blocks, total: int | None, feed, speed: float | None, show: bool) -> None:
+    """Replay the blocks into ``feed``, with a progress bar when ``show``."""
+    from daq.replay import replay
+
+    if not show:
+        replay(blocks, feed, speed)
+        return
+    from rich.progress import Progress
+
+    with Progress(transient=True) as bar:
+        task = bar.add_task("replay", total=total or None)
+
+        def step(block) -> None:
+            if block.stream.endswith("imu") or "gyro_x" in block.channels:
+                bar.advance(task, len(block))
+
+        replay(blocks, feed, speed, progress=step)
+
+
 def run(args: argparse.Namespace) -> int:
     from daq.readers import ReadError
-    from daq.replay import ReplaySummary, open_blocks, replay
+    from daq.replay import ReplaySummary, open_blocks
 
     speed = _speed(args.speed)
     if args.serve:
@@ -92,21 +131,8 @@ def run(args: argparse.Namespace) -> int:
         for c in consumers:
             c(block)
 
-    show = not args.no_progress and sys.stderr.isatty()
     try:
-        if show:
-            from rich.progress import Progress
-
-            with Progress(transient=True) as bar:
-                task = bar.add_task("replay", total=total or None)
-
-                def step(block) -> None:
-                    if block.stream.endswith("imu") or "gyro_x" in block.channels:
-                        bar.advance(task, len(block))
-
-                replay(blocks, feed, speed, progress=step)
-        else:
-            replay(blocks, feed, speed)
+        _run_replay(blocks, total, feed, speed, not args.no_progress and sys.stderr.isatty())
     except ReadError as exc:
         raise UsageError(f"replay: {exc}") from exc
     except ValueError as exc:
@@ -119,21 +145,5 @@ def run(args: argparse.Namespace) -> int:
             r["white_noise_density"] = number(r["white_noise_density"])
         print(dumps({"file": args.file, "channels": rows}))
         return 0
-    print(f"{'channel':32s} {'samples':>10s} {'duration':>10s} {'gaps':>5s}  white noise")
-    for r in rows:
-        n = r["white_noise_density"]
-        unit = r["units"]
-        if not math.isfinite(n):
-            conv = "n/a (fewer than two samples in a row)"
-            print(f"{r['channel']:32s} {r['samples']:>10d} {r['duration_s']:>9.1f}s "
-                  f"{r['gaps']:>5d}  {conv}")
-            continue
-        if unit == "rad/s":
-            conv = f"{n * 180 / math.pi * 60:.4g} deg/sqrt(h)"
-        elif unit == "m/s^2":
-            conv = f"{n * 60:.4g} m/s/sqrt(h)"
-        else:
-            conv = ""
-        print(f"{r['channel']:32s} {r['samples']:>10d} {r['duration_s']:>9.1f}s "
-              f"{r['gaps']:>5d}  {n:.4g} {unit}/sqrt(Hz)  {conv}")
+    _print_rows(rows)
     return 0
