@@ -366,43 +366,9 @@ class BusPirateEmulator:
     def _spi_command(self, buf: bytearray, i: int, out: bytearray) -> int:
         """Execute one raw-SPI command at ``buf[i]``; bytes consumed (0 = need more)."""
         b = buf[i]
-        slave = self.slave
         speed = SPI_SPEEDS_HZ.get(self._speed_index, 125e3)
-        if b == BBIO_RESET:
-            self._state = "bbio"
-            out += BBIO_SIGNATURE
-            return 1
-        if b == 0x01:
-            out += SPI_SIGNATURE
-            return 1
-        if b == SPI_CS_LOW:
-            if slave is not None:
-                slave.select()
-            out.append(ACK)
-            return 1
-        if b == SPI_CS_HIGH:
-            if slave is not None:
-                slave.deselect()
-            out.append(ACK)
-            return 1
         if b in (SPI_WRITE_THEN_READ, SPI_WRITE_THEN_READ + 1):
-            if len(buf) - i < 5:
-                return 0
-            n_w = (buf[i + 1] << 8) | buf[i + 2]
-            n_r = (buf[i + 3] << 8) | buf[i + 4]
-            if len(buf) - i < 5 + n_w:
-                return 0
-            with_cs = b == SPI_WRITE_THEN_READ
-            if slave is not None and with_cs:
-                slave.select()
-            for k in range(n_w):
-                self._xfer(buf[i + 5 + k], speed)
-            read = bytes(self._xfer(0xFF, speed) for _ in range(n_r))
-            if slave is not None and with_cs:
-                slave.deselect()
-            out.append(ACK)
-            out += read
-            return 5 + n_w
+            return self._write_then_read(buf, i, out, speed)
         if SPI_BULK <= b <= SPI_BULK + 0x0F:
             n = (b & 0x0F) + 1
             if len(buf) - i < 1 + n:
@@ -412,19 +378,55 @@ class BusPirateEmulator:
                 out.append(self._xfer(buf[i + 1 + k], speed))
             self.frames += 1
             return 1 + n
-        if SPI_PERIPHERALS <= b <= SPI_PERIPHERALS + 0x0F:
+        self._one_byte_command(b, out)
+        return 1
+
+    def _one_byte_command(self, b: int, out: bytearray) -> None:
+        """The raw-SPI commands of one byte: reset, mode string, chip select, settings."""
+        slave = self.slave
+        if b == BBIO_RESET:
+            self._state = "bbio"
+            out += BBIO_SIGNATURE
+        elif b == 0x01:
+            out += SPI_SIGNATURE
+        elif b == SPI_CS_LOW:
+            if slave is not None:
+                slave.select()
             out.append(ACK)
-            return 1
-        if SPI_SPEED <= b <= SPI_SPEED + 0x07:
+        elif b == SPI_CS_HIGH:
+            if slave is not None:
+                slave.deselect()
+            out.append(ACK)
+        elif SPI_PERIPHERALS <= b <= SPI_PERIPHERALS + 0x0F:
+            out.append(ACK)
+        elif SPI_SPEED <= b <= SPI_SPEED + 0x07:
             self._speed_index = b & 0x07
             out.append(ACK)
-            return 1
-        if SPI_CONFIG <= b <= SPI_CONFIG + 0x0F:
+        elif SPI_CONFIG <= b <= SPI_CONFIG + 0x0F:
             self._mode = _mode_from_config(b)
             out.append(ACK)
-            return 1
-        out.append(0x00)
-        return 1
+        else:
+            out.append(0x00)
+
+    def _write_then_read(self, buf: bytearray, i: int, out: bytearray, speed: float) -> int:
+        """The write-then-read command (with or without chip select); bytes consumed."""
+        if len(buf) - i < 5:
+            return 0
+        n_w = (buf[i + 1] << 8) | buf[i + 2]
+        n_r = (buf[i + 3] << 8) | buf[i + 4]
+        if len(buf) - i < 5 + n_w:
+            return 0
+        with_cs = buf[i] == SPI_WRITE_THEN_READ
+        if self.slave is not None and with_cs:
+            self.slave.select()
+        for k in range(n_w):
+            self._xfer(buf[i + 5 + k], speed)
+        read = bytes(self._xfer(0xFF, speed) for _ in range(n_r))
+        if self.slave is not None and with_cs:
+            self.slave.deselect()
+        out.append(ACK)
+        out += read
+        return 5 + n_w
 
     def _xfer(self, mosi: int, speed: float) -> int:
         if self.slave is None:
