@@ -260,34 +260,18 @@ def scan(buf, size: int | None = None) -> McapLayout:
     file does not start with the MCAP magic and a Header record."""
     size = len(buf) if size is None else size
     layout = McapLayout(size=size)
-    if size < len(MAGIC) + RECORD_PREFIX or bytes(buf[:8]) != MAGIC:
-        raise McapFormatError("not an MCAP file (bad magic)")
-    op, n = _PREFIX.unpack_from(buf, 8)
-    if op != OP_HEADER or 8 + RECORD_PREFIX + n > size:
-        raise McapFormatError("not an MCAP file (no header record)")
-    layout.profile, pos = _string(buf, 8 + RECORD_PREFIX)
-    layout.library, _ = _string(buf, pos)
+    pos = _header(buf, size, layout)
     _read_summary_definitions(buf, size, layout)
-
-    pos = 8 + RECORD_PREFIX + n
     layout.data_end = pos
     chunks = layout.chunks
     channels = layout.channels
     last: ChunkInfo | None = None
     unknown_pending = False
     prefix = _PREFIX.unpack_from
-    chunk_head = _CHUNK_HEAD5.unpack_from
-    u64 = _U64.unpack_from
     mi_head = _MI_HEAD.unpack_from
-    # Drop scanned pages of a memory map as we go, so that scanning a large file does not hold
-    # it all in resident memory.
-    drop = getattr(buf, "madvise", None) if hasattr(mmap, "MADV_DONTNEED") else None
-    dropped = 0
+    drop = _PageDropper(buf)
     while True:
-        if drop is not None and pos - dropped > _DROP_EVERY:
-            upto = pos - pos % mmap.PAGESIZE
-            drop(mmap.MADV_DONTNEED, dropped, upto - dropped)
-            dropped = upto
+        drop(pos)
         if pos + RECORD_PREFIX > size:
             layout.data_end = pos
             if pos < size or not layout.complete:
@@ -317,25 +301,8 @@ def scan(buf, size: int | None = None) -> McapLayout:
                 "complete record")
             break
         if op == OP_CHUNK:
-            t0, t1, usize, crc, clen = chunk_head(buf, body)
-            p = body + 32 + clen
-            comp = _COMPRESSION.get(bytes(buf[body + 32:p])) or \
-                bytes(buf[body + 32:p]).decode("utf-8", "replace")
-            (rlen,) = u64(buf, p)
-            last = ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, {}, end)
+            last = _chunk_info(buf, pos, body, end)
             chunks.append(last)
-        elif op == OP_SCHEMA:
-            s = parse_schema(buf, body)
-            layout.schemas.setdefault(s.id, s)
-        elif op == OP_CHANNEL:
-            c = parse_channel(buf, body)
-            layout.channels.setdefault(c.id, c)
-        elif op == OP_MESSAGE:
-            layout.unchunked_messages += 1
-        elif op == OP_METADATA:
-            name, p = _string(buf, body)
-            data, _ = _map(buf, p)
-            layout.metadata.append(MetadataInfo(name, data, pos, end - pos))
         elif op == OP_DATA_END:
             layout.complete = layout.footer_ok
             if not layout.complete:
@@ -343,9 +310,45 @@ def scan(buf, size: int | None = None) -> McapLayout:
                                        "end of its data section")
             layout.data_end = pos
             break
+        else:
+            _other_record(op, buf, pos, body, end, layout)
         pos = end
     if unknown_pending:
         _discover_channels(buf, layout)
+    _finish_chunks(buf, layout)
+    return layout
+
+
+def _header(buf, size: int, layout: McapLayout) -> int:
+    """Check the magic and the Header record; note profile and library; the offset after."""
+    if size < len(MAGIC) + RECORD_PREFIX or bytes(buf[:8]) != MAGIC:
+        raise McapFormatError("not an MCAP file (bad magic)")
+    op, n = _PREFIX.unpack_from(buf, 8)
+    if op != OP_HEADER or 8 + RECORD_PREFIX + n > size:
+        raise McapFormatError("not an MCAP file (no header record)")
+    layout.profile, pos = _string(buf, 8 + RECORD_PREFIX)
+    layout.library, _ = _string(buf, pos)
+    return 8 + RECORD_PREFIX + n
+
+
+class _PageDropper:
+    """Drops scanned pages of a memory map as the scan goes, so that scanning a large file
+    does not hold it all in resident memory (does nothing for bytes)."""
+
+    def __init__(self, buf) -> None:
+        self._drop = getattr(buf, "madvise", None) if hasattr(mmap, "MADV_DONTNEED") else None
+        self._dropped = 0
+
+    def __call__(self, pos: int) -> None:
+        if self._drop is not None and pos - self._dropped > _DROP_EVERY:
+            upto = pos - pos % mmap.PAGESIZE
+            self._drop(mmap.MADV_DONTNEED, self._dropped, upto - self._dropped)
+            self._dropped = upto
+
+
+def _finish_chunks(buf, layout: McapLayout) -> None:
+    """Chunks without (complete) message indexes are walked to find their messages."""
+    chunks = layout.chunks
     if not layout.complete and chunks and chunks[-1].mi_end >= layout.data_end:
         # The message indexes after the last chunk of a crashed file may be cut short.
         chunks[-1].mi = {}
@@ -353,7 +356,32 @@ def scan(buf, size: int | None = None) -> McapLayout:
     for chunk in chunks:
         if not chunk.mi and not chunk.walked:
             walk_chunk(buf, chunk, layout)
-    return layout
+
+
+def _chunk_info(buf, pos: int, body: int, end: int) -> ChunkInfo:
+    """The place and header of the Chunk record at ``pos`` (message indexes come later)."""
+    t0, t1, usize, crc, clen = _CHUNK_HEAD5.unpack_from(buf, body)
+    p = body + 32 + clen
+    comp = _COMPRESSION.get(bytes(buf[body + 32:p])) or \
+        bytes(buf[body + 32:p]).decode("utf-8", "replace")
+    (rlen,) = _U64.unpack_from(buf, p)
+    return ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, {}, end)
+
+
+def _other_record(op: int, buf, pos: int, body: int, end: int, layout: McapLayout) -> None:
+    """Schema, Channel, Metadata and un-chunked Message records met while scanning."""
+    if op == OP_SCHEMA:
+        s = parse_schema(buf, body)
+        layout.schemas.setdefault(s.id, s)
+    elif op == OP_CHANNEL:
+        c = parse_channel(buf, body)
+        layout.channels.setdefault(c.id, c)
+    elif op == OP_MESSAGE:
+        layout.unchunked_messages += 1
+    elif op == OP_METADATA:
+        name, p = _string(buf, body)
+        data, _ = _map(buf, p)
+        layout.metadata.append(MetadataInfo(name, data, pos, end - pos))
 
 
 def _discover_channels(buf, layout: McapLayout) -> None:
