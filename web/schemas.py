@@ -12,30 +12,30 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
-class Error(BaseModel):
+class ErrorOut(BaseModel):
     chi2_per_dof: float | None = Field(
         None, description="misfit normalised by the estimates' uncertainty (~1 when it fits)")
     max_abs_z: float | None = Field(None, description="largest |z| residual on the Allan curve")
 
 
-class Failure(BaseModel):
+class FailureOut(BaseModel):
     tau_s: list[float] = Field(description="[low, high] averaging times in s")
     max_abs_z: float
     direction: str
 
 
-class ConventionalValue(BaseModel):
+class ConventionalValueOut(BaseModel):
     value: float
     units: str
     ci95: list[float] | None = None
 
 
-class Term(BaseModel):
+class TermOut(BaseModel):
     term: str
     params: dict[str, float] = Field(description="parameters in SI units")
     ci95: dict[str, list[float]] = Field(default_factory=dict, description="95 % intervals")
     units: dict[str, str] = Field(default_factory=dict, description="SI units per parameter")
-    conventional: dict[str, ConventionalValue] = Field(default_factory=dict)
+    conventional: dict[str, ConventionalValueOut] = Field(default_factory=dict)
     relative_halfwidth: dict[str, float | None] = Field(
         default_factory=dict, description="(high - low) / (2 value) of the 95 % interval now; "
                                           "null where the interval reaches zero")
@@ -46,7 +46,7 @@ class Term(BaseModel):
                                           "s (0: met; null: not reachable)")
 
 
-class ChannelCoefficients(BaseModel):
+class ChannelCoefficientsOut(BaseModel):
     channel: str
     units: str
     fs_hz: float
@@ -54,9 +54,9 @@ class ChannelCoefficients(BaseModel):
     duration_s: float = Field(description="record length analysed, gaps excluded, s")
     segments: int
     model_revision: int
-    model: list[Term]
-    error: Error | None
-    failures: list[Failure]
+    model: list[TermOut]
+    error: ErrorOut | None
+    failures: list[FailureOut]
     intervals: str | None = Field(
         None, description="how the 95 % intervals were computed: 'profile' (profile "
                           "likelihood, as imunoise fit) or 'jacobian' (linearised, routine "
@@ -65,13 +65,13 @@ class ChannelCoefficients(BaseModel):
     fitted_at: float | None = Field(None, description="UNIX time of the published fit, s")
 
 
-class Coefficients(BaseModel):
-    channels: dict[str, ChannelCoefficients]
+class CoefficientsOut(BaseModel):
+    channels: dict[str, ChannelCoefficientsOut]
     samples_seen: int
     record_length_s: float = Field(description="longest channel's analysed length, s")
 
 
-class OverboundCurve(BaseModel):
+class OverboundOut(BaseModel):
     """Filter-safe noise model: on or above the measured upper 95 % bound at every tau."""
 
     model_adev: list[float | None]
@@ -82,7 +82,7 @@ class OverboundCurve(BaseModel):
     max_excess: float
 
 
-class AllanCurve(BaseModel):
+class AllanOut(BaseModel):
     channel: str
     units: str
     tau_s: list[float | None]
@@ -93,13 +93,13 @@ class AllanCurve(BaseModel):
     model_adev: list[float | None] | None
     terms: dict[str, list[float | None]] = Field(description="each term's Allan deviation")
     z: list[float | None] | None = Field(description="standardised residual at each tau")
-    failures: list[Failure]
-    error: Error | None
-    overbound: OverboundCurve | None = Field(
+    failures: list[FailureOut]
+    error: ErrorOut | None
+    overbound: OverboundOut | None = Field(
         None, description="over-bounding model for a Kalman filter (after the first fit)")
 
 
-class PsdCurve(BaseModel):
+class PsdOut(BaseModel):
     channel: str
     units: str
     f_hz: list[float | None]
@@ -110,7 +110,7 @@ class PsdCurve(BaseModel):
     model_psd: list[float | None] | None
 
 
-class Apply(BaseModel):
+class ApplyOut(BaseModel):
     """How to apply a suggestion: the full model specification and extra command-line
     options of ``imunoise fit``/``diagnose`` (empty when the remedy is a term)."""
 
@@ -118,7 +118,7 @@ class Apply(BaseModel):
     args: list[str] = Field(default_factory=list)
 
 
-class Suggestion(BaseModel):
+class SuggestionOut(BaseModel):
     term: str
     params: dict[str, float | None]
     ci95: dict[str, list[float | None]] = Field(default_factory=dict)
@@ -128,29 +128,29 @@ class Suggestion(BaseModel):
     p_value: float | None = Field(None, description="corrected for the number of candidates")
     why: str
     evidence: list[str] = Field(default_factory=list)
-    apply: Apply | None = Field(None, description="how to apply it: POST /model {model}")
+    apply: ApplyOut | None = Field(None, description="how to apply it: POST /model {model}")
 
 
-class Finding(BaseModel):
+class FindingOut(BaseModel):
     kind: str
     p_value: float
     why: str
     range: dict[str, list[float]] = Field(default_factory=dict)
 
 
-class Diagnosis(BaseModel):
+class DiagnosisOut(BaseModel):
     channel: str
     model: list[str]
     note: str = Field("", description="why there are no suggestions yet, if so")
     model_revision: int
-    error: Error | None
-    suggestions: list[Suggestion]
-    findings: list[Finding] = Field(
+    error: ErrorOut | None
+    suggestions: list[SuggestionOut]
+    findings: list[FindingOut] = Field(
         default_factory=list, description="outliers, gaps, a changing noise level: why a "
                                           "model can look wrong without a missing term")
 
 
-class HistoryPoint(BaseModel):
+class HistoryPointOut(BaseModel):
     revision: int
     model: list[str]
     chi2_per_dof: float
@@ -158,13 +158,13 @@ class HistoryPoint(BaseModel):
     n_samples: int
 
 
-class ModelState(BaseModel):
+class ModelOut(BaseModel):
     channel: str
     model: list[str]
     model_revision: int
     valid_terms: list[str]
-    error: Error | None
-    history: list[HistoryPoint]
+    error: ErrorOut | None
+    history: list[HistoryPointOut]
 
 
 class ModelChangeRequest(BaseModel):
@@ -194,15 +194,15 @@ class RefitRequest(BaseModel):
     intervals: str = Field("profile", pattern="^(profile|jacobian)$")
 
 
-class ModelChange(BaseModel):
+class ModelChangeOut(BaseModel):
     channel: str
     model: list[str]
     model_revision: int
-    error_before: Error
-    error_after: Error
+    error_before: ErrorOut
+    error_after: ErrorOut
 
 
-class Health(BaseModel):
+class HealthOut(BaseModel):
     status: str
     uptime_s: float
     acquiring: bool

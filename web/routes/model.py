@@ -1,0 +1,61 @@
+"""The model of a channel: its diagnosis, its state, changes to it and refits on demand."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Depends, HTTPException, Request
+
+from analysis.rolling import VALID_TERMS
+from analysis.terms import parse_model
+from web import deps
+from web.schemas import (
+    ChannelCoefficientsOut,
+    DiagnosisOut,
+    ModelChangeOut,
+    ModelChangeRequest,
+    ModelOut,
+    RefitRequest,
+)
+
+router = APIRouter()
+
+
+@router.get("/diagnosis", response_model=DiagnosisOut,
+            summary="missing terms, most significant first, with the error each would leave")
+async def diagnosis(a: deps.AnalyzerDep) -> dict[str, Any]:
+    return a.diagnosis()
+
+
+@router.get("/model", response_model=ModelOut, summary="current model and error history")
+async def get_model(a: deps.AnalyzerDep) -> dict[str, Any]:
+    d = a.diagnosis()
+    return {"channel": a.channel, "model": d["model"], "model_revision": d["model_revision"],
+            "valid_terms": list(VALID_TERMS), "error": d["error"], "history": a.history()}
+
+
+@router.post("/model", response_model=ModelChangeOut, dependencies=[Depends(deps.require_token)],
+             summary="add or remove a term; the reply carries the error before and after")
+def post_model(change: ModelChangeRequest, request: Request) -> dict[str, Any]:
+    a = deps.analyzer_named(request, change.channel)
+    try:
+        if change.add is not None:
+            if change.add in a.model:
+                raise ValueError(f"term {change.add!r} is already in the model")
+            return a.add_term(change.add)
+        if change.remove is not None:
+            return a.remove_term(change.remove)
+        if change.model is not None:
+            return a.set_model([e.text() for e in parse_model(change.model).entries])
+        return a.set_model(change.terms or [])
+    except ValueError as exc:
+        raise HTTPException(400, str(exc)) from None
+
+
+@router.post("/refit", response_model=ChannelCoefficientsOut,
+             dependencies=[Depends(deps.require_token)],
+             summary="refit a channel now; 'profile' gives the intervals of imunoise fit")
+def post_refit(req: RefitRequest, request: Request) -> dict[str, Any]:
+    a = deps.analyzer_named(request, req.channel)
+    a.refit(full=req.intervals == "profile")
+    return a.coefficients()
