@@ -293,18 +293,10 @@ def fit_likelihood(values: np.ndarray, fs_hz: float, names: Sequence[str],
     m = int(block) if block else choose_block(start_model, fs, x.size)
     data = reduce_blocks(x, fs, m, segment_starts)
 
-    keys: list[tuple[int, str]] = []
-    lo: list[float] = []
-    hi: list[float] = []
-    for i, n in enumerate(names):
-        for pname in TERMS[n].param_names:
-            if (i, pname) in fixed:
-                continue
-            keys.append((i, pname))
-            b = _bounds(n, pname, fs, duration, m)
-            lo.append(b[0])
-            hi.append(b[1])
-    lo_a, hi_a = np.array(lo), np.array(hi)
+    keys = [(i, pname) for i, n in enumerate(names) for pname in TERMS[n].param_names
+            if (i, pname) not in fixed]
+    bounds = np.array([_bounds(names[i], k, fs, duration, m) for i, k in keys]).reshape(-1, 2)
+    lo_a, hi_a = bounds[:, 0], bounds[:, 1]
 
     def unpack(theta: np.ndarray) -> list[dict[str, float]]:
         params = [dict(p) for p in start]
