@@ -619,45 +619,54 @@ def term_counts(n_phase: int, ms: np.ndarray, kind: str) -> np.ndarray:
     return np.maximum(n_phase - KINDS[kind].span * ms, 0)
 
 
-def _kind_function(kind: str):
-    def estimator(
-        rate: np.ndarray,
-        fs_hz: float,
-        m: str | int | Sequence[int] | np.ndarray = "octave",
-        segment_starts: np.ndarray | Sequence[int] | None = None,
-        ci: float | None = ONE_SIGMA_CI,
-        alpha: int | Sequence[int] | np.ndarray | None = None,
-        data_type: str = "freq",
-        max_m: int | None = None,
-        workers: int = 1,
-    ) -> AllanCurve:
-        return allan(rate, fs_hz, kind, m, segment_starts, ci, alpha, data_type, max_m, workers)
-
-    estimator.__name__ = kind
-    estimator.__doc__ = (
-        f"{kind.upper()} of rate samples (or phase with ``data_type='phase'``); "
-        "see ``allan`` for the arguments."
-    )
-    return estimator
+_M = str | int | Sequence[int] | np.ndarray
+_SEGMENTS = np.ndarray | Sequence[int] | None
+_ALPHA = int | Sequence[int] | np.ndarray | None
 
 
-def _phase_function(kind: str):
-    def estimator(phase: np.ndarray, tau0_s: float, **kwargs) -> AllanCurve:
-        return allan(phase, 1.0 / tau0_s, kind, data_type="phase", **kwargs)
+def oadev(rate: np.ndarray, fs_hz: float, m: _M = "octave", segment_starts: _SEGMENTS = None,
+          ci: float | None = ONE_SIGMA_CI, alpha: _ALPHA = None, data_type: str = "freq",
+          max_m: int | None = None, workers: int = 1) -> AllanCurve:
+    """Overlapping Allan deviation of rate samples (units of the rate).
 
-    estimator.__name__ = f"{kind}_from_phase"
-    estimator.__doc__ = (
-        f"{kind.upper()} of phase samples spaced ``tau0_s`` seconds (e.g. integrated angle in "
-        "rad); keyword arguments as ``allan``. Deviations are in phase units per second."
-    )
-    return estimator
+    With the phase x (the rate's running sum times tau0) and tau = m tau0,
+    ``sigma^2(tau) = sum_{i=1}^{N-2m} (x_{i+2m} - 2 x_{i+m} + x_i)^2 / (2 tau^2 (N - 2m))``
+    (NIST SP 1065, W. J. Riley 2008, eq. 14). Arguments as :func:`allan`.
+    """
+    return allan(rate, fs_hz, "oadev", m, segment_starts, ci, alpha, data_type, max_m, workers)
 
 
-oadev = _kind_function("oadev")
-adev = _kind_function("adev")
-mdev = _kind_function("mdev")
-ohdev = _kind_function("ohdev")
-oadev_from_phase = _phase_function("oadev")
-adev_from_phase = _phase_function("adev")
-mdev_from_phase = _phase_function("mdev")
-ohdev_from_phase = _phase_function("ohdev")
+def adev(rate: np.ndarray, fs_hz: float, m: _M = "octave", segment_starts: _SEGMENTS = None,
+         ci: float | None = ONE_SIGMA_CI, alpha: _ALPHA = None, data_type: str = "freq",
+         max_m: int | None = None, workers: int = 1) -> AllanCurve:
+    """Non-overlapping (normal) Allan deviation of rate samples (units of the rate).
+
+    Over the M adjacent m-sample averages ybar_k,
+    ``sigma^2(tau) = sum_{k=1}^{M-1} (ybar_{k+1} - ybar_k)^2 / (2 (M - 1))``
+    (NIST SP 1065 eq. 6; D. W. Allan 1966). Arguments as :func:`allan`.
+    """
+    return allan(rate, fs_hz, "adev", m, segment_starts, ci, alpha, data_type, max_m, workers)
+
+
+def mdev(rate: np.ndarray, fs_hz: float, m: _M = "octave", segment_starts: _SEGMENTS = None,
+         ci: float | None = ONE_SIGMA_CI, alpha: _ALPHA = None, data_type: str = "freq",
+         max_m: int | None = None, workers: int = 1) -> AllanCurve:
+    """Modified Allan deviation of rate samples (units of the rate).
+
+    ``Mod sigma^2(tau) = sum_{j=1}^{N-3m+1} (sum_{i=j}^{j+m-1} (x_{i+2m} - 2 x_{i+m} + x_i))^2
+    / (2 m^2 tau^2 (N - 3m + 1))`` (NIST SP 1065 eq. 15; Allan and Barnes 1981). It separates
+    white from flicker phase (angle) noise. Arguments as :func:`allan`.
+    """
+    return allan(rate, fs_hz, "mdev", m, segment_starts, ci, alpha, data_type, max_m, workers)
+
+
+def ohdev(rate: np.ndarray, fs_hz: float, m: _M = "octave", segment_starts: _SEGMENTS = None,
+          ci: float | None = ONE_SIGMA_CI, alpha: _ALPHA = None, data_type: str = "freq",
+          max_m: int | None = None, workers: int = 1) -> AllanCurve:
+    """Overlapping Hadamard deviation of rate samples (units of the rate).
+
+    ``H sigma^2(tau) = sum_{i=1}^{N-3m} (x_{i+3m} - 3 x_{i+2m} + 3 x_{i+m} - x_i)^2
+    / (6 tau^2 (N - 3m))`` (NIST SP 1065 eq. 18). A third difference: insensitive to a linear
+    drift of the rate (a rate ramp). Arguments as :func:`allan`.
+    """
+    return allan(rate, fs_hz, "ohdev", m, segment_starts, ci, alpha, data_type, max_m, workers)

@@ -34,7 +34,7 @@ The result records the states, the tau range and that error.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -320,8 +320,3 @@ def simulate(dm: DiscreteModel, n: int, seed: int | np.random.Generator | None =
             raise ValueError(f"temperature must have {n} samples, got {temp.shape}")
         y += dm.temperature_coef * (temp - temp.mean())
     return y
-
-
-def model_terms(model) -> Sequence[str]:
-    """Term names of a model in either accepted form."""
-    return [t for t, _ in _normalise(model)]

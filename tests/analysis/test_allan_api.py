@@ -109,3 +109,14 @@ def test_bad_input_is_refused_with_a_clear_message():
     tiny = oadev(_white(2), 1.0, m=[1, 5])
     np.testing.assert_array_equal(tiny.m, [1])  # 3 phase points: one term at m = 1
     assert tiny.n_terms[0] == 1 and np.isfinite(tiny.ci_high[0])
+
+
+def test_public_estimators_have_static_signatures_with_formula_and_reference():
+    import inspect
+
+    for fn in (oadev, adev, mdev, ohdev):
+        params = list(inspect.signature(fn).parameters)
+        assert params[:4] == ["rate", "fs_hz", "m", "segment_starts"], fn.__name__
+        assert "NIST SP 1065" in fn.__doc__ and "sigma^2" in fn.__doc__, fn.__name__
+        assert fn.__code__.co_filename.endswith("allan.py") and fn.__name__ in (
+            "oadev", "adev", "mdev", "ohdev")
