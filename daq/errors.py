@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from core.errors import ImunoiseError
+from core.errors import ImunoiseError, InputError
 
 
 class DeviceError(ImunoiseError):
@@ -19,3 +19,8 @@ class PermanentDeviceError(DeviceError):
 
 class AcquisitionFailed(DeviceError):
     """The acquisition loop gave up; ``str()`` is the reason shown to the user."""
+
+
+class ReadError(InputError):
+    """An input file cannot be read: missing, unsupported, empty or malformed. The base of
+    every reader's error (MCAP layout, rosbag2, ROS 1); one-line message."""

@@ -15,19 +15,25 @@ import threading
 from dataclasses import dataclass, field
 
 import zstandard
+from mcap.opcode import Opcode
+from mcap.writer import MCAP0_MAGIC
 
-MAGIC = b"\x89MCAP0\r\n"
+from daq.errors import ReadError
 
-OP_HEADER = 0x01
-OP_FOOTER = 0x02
-OP_SCHEMA = 0x03
-OP_CHANNEL = 0x04
-OP_MESSAGE = 0x05
-OP_CHUNK = 0x06
-OP_MESSAGE_INDEX = 0x07
-OP_METADATA = 0x0C
-OP_DATA_END = 0x0F
-OP_MAX = 0x0F
+MAGIC = MCAP0_MAGIC
+
+# The mcap package's opcodes, as plain ints: the scan compares one per record, and an int
+# comparison is several times cheaper than an IntEnum member's.
+OP_HEADER = int(Opcode.HEADER)
+OP_FOOTER = int(Opcode.FOOTER)
+OP_SCHEMA = int(Opcode.SCHEMA)
+OP_CHANNEL = int(Opcode.CHANNEL)
+OP_MESSAGE = int(Opcode.MESSAGE)
+OP_CHUNK = int(Opcode.CHUNK)
+OP_MESSAGE_INDEX = int(Opcode.MESSAGE_INDEX)
+OP_METADATA = int(Opcode.METADATA)
+OP_DATA_END = int(Opcode.DATA_END)
+OP_MAX = max(int(op) for op in Opcode)
 
 RECORD_PREFIX = 9  # opcode u8 + length u64
 MESSAGE_HEADER = 22  # channel u16, sequence u32, log_time u64, publish_time u64
@@ -44,7 +50,7 @@ _DROP_EVERY = 32 << 20
 _COMPRESSION = {b"": "", b"zstd": "zstd", b"lz4": "lz4"}
 
 
-class McapFormatError(ValueError):
+class McapFormatError(ReadError):
     """The file is not an MCAP file, or its records cannot be parsed."""
 
 

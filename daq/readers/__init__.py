@@ -12,10 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from core.record import Record
+from daq.errors import ReadError
 
-
-class ReadError(ValueError):
-    """The input cannot be read: missing, unsupported, empty or malformed. One-line message."""
+__all__ = ["ReadError", "open_record"]
 
 
 def open_record(path: str | Path, rate_hz: float | None = None) -> Record:

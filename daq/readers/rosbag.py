@@ -14,10 +14,11 @@ import numpy as np
 
 from core.record import Record
 from daq import ros2_msgs as msgs
+from daq.errors import ReadError
 from daq.readers.mcap import ACCEL, GYRO, make_series, topic_timing
 
 
-class RosbagReadError(ValueError):
+class RosbagReadError(ReadError):
     """rosbags could not read the input."""
 
 

@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import InputError
 from core.record import Record
 from core.series import ChannelSeries
 from core.timing import analyse_stamps
+from daq.errors import ReadError
 
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = (
@@ -44,7 +44,7 @@ _IMU_BODY = [("q", "<f8", 4), ("q_cov", "<f8", 9), ("w", "<f8", 3), ("w_cov", "<
 _TEMPERATURE_BODY = [("temperature", "<f8"), ("variance", "<f8")]
 
 
-class Rosbag1Error(InputError):
+class Rosbag1Error(ReadError):
     """Not a ROS 1 bag, or one with no readable Imu or Temperature message."""
 
 
