@@ -1,6 +1,6 @@
 """Input files to :class:`core.record.Record`: one entry point, dispatching on the path.
 
-- ``.csv``: :mod:`daq.readers.csv` (CONTRACT.md's column layout).
+- ``.csv``: :mod:`daq.readers.csv_file` (CONTRACT.md's column layout).
 - ``.mcap``: the bulk numpy reader (:mod:`daq.readers.mcap`), falling back to per-message
   decoding through rosbags (:mod:`daq.readers.rosbag`) for layouts the bulk reader does not take.
 - a rosbag2 folder (``metadata.yaml``): rosbags; a folder holding exactly one ``.mcap`` file is
@@ -43,7 +43,7 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{p}: is a folder but not a rosbag2 bag (no metadata.yaml)")
     suffix = p.suffix.lower()
     if suffix == ".csv":
-        from daq.readers.csv import read_csv
+        from daq.readers.csv_file import read_csv
 
         return read_csv(p, rate_hz=rate_hz)
     if suffix == ".mcap":

@@ -5,7 +5,7 @@ import pytest
 
 from core.record import ChannelSelectionError, Record, select_channels
 from daq.readers import ReadError, open_record
-from daq.readers.csv import read_csv
+from daq.readers.csv_file import read_csv
 
 
 def _write(tmp_path, text, name="rec.csv"):
