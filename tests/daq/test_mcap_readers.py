@@ -5,7 +5,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 from core.blocks import SampleBlock
 from daq import ros2_msgs as m
 from daq.readers import mcap as bulk
-from daq.readers import open_record
+from daq.readers import mcap_decode, open_record
 from daq.readers.mcap import iter_blocks, read_mcap
 from daq.recorder import McapRecorder
 from tests.mcap_helpers import make_blocks, record_blocks
@@ -80,7 +80,7 @@ def test_crashed_file_reads_to_last_complete_chunk(tmp_path):
 def test_streaming_blocks_match_bulk_read_with_small_batches(tmp_path, monkeypatch):
     rec = record_blocks(tmp_path, make_blocks(12, 250, skip={5: 2, 9: 1}))
     path = rec.stats.files[0]
-    monkeypatch.setattr(bulk, "BATCH_BYTES", 50_000)
+    monkeypatch.setattr(mcap_decode, "BATCH_BYTES", 50_000)
     blocks = [b for b in iter_blocks(path) if b.stream.endswith("/imu")]
     assert len(blocks) > 3
     whole = read_mcap(path)
@@ -141,9 +141,9 @@ def _same_record(a, b):
 def test_read_ahead_and_batch_decompression_change_nothing(tmp_path, monkeypatch, ahead):
     rec = record_blocks(tmp_path, make_blocks(40, 100, skip={7: 3}))
     path = rec.stats.files[0]
-    monkeypatch.setattr(bulk, "BATCH_BYTES", 60_000)  # several chunks per batch, many batches
-    monkeypatch.setattr(bulk, "READ_AHEAD", ahead)
-    assert bulk.read_ahead() is ahead
+    monkeypatch.setattr(mcap_decode, "BATCH_BYTES", 60_000)  # many batches of several chunks
+    monkeypatch.setattr(mcap_decode, "READ_AHEAD", ahead)
+    assert mcap_decode.read_ahead() is ahead
     fast = read_mcap(path)
     # reference: every chunk decompressed on its own
     monkeypatch.setattr(bulk.ml, "decompress_zstd_frames", lambda frames, sizes: None)
@@ -157,7 +157,7 @@ def test_chunk_with_wrong_declared_size_is_still_read_whole(tmp_path, monkeypatc
     the chunks are then decompressed one by one and every message is kept."""
     rec = record_blocks(tmp_path, make_blocks(12, 100))
     path = rec.stats.files[0]
-    monkeypatch.setattr(bulk, "BATCH_BYTES", 1 << 20)  # one batch holds every chunk
+    monkeypatch.setattr(mcap_decode, "BATCH_BYTES", 1 << 20)  # one batch holds every chunk
     want = read_mcap(path)
     src = bulk.open_mcap(path)
     chunk = src.layout.chunks[-1]
