@@ -47,7 +47,7 @@ try:  # numba is a declared dependency; the numpy path covers an environment wit
     from numba import njit
 
     _NUMBA_ERROR = ""
-except Exception as exc:  # pragma: no cover - exercised only without numba
+except Exception as exc:  # noqa: BLE001 - numba fails to import in many ways; numpy then
     njit = None
     _NUMBA_ERROR = f"numba unavailable: {exc}"
 
@@ -250,7 +250,7 @@ def _compile(kind: str) -> None:
     t0 = time.perf_counter()
     try:
         _warm_up(kind)
-    except Exception as exc:  # any numba/LLVM failure: fall back to numpy, say why
+    except Exception as exc:  # noqa: BLE001 - any numba/LLVM failure: numpy instead, say why
         _state["compiled"][kind] = False
         _state["error"][kind] = f"compiled {kind} kernels failed: {type(exc).__name__}: {exc}"
     else:

@@ -85,6 +85,12 @@ def simulate(model: Model, n: int, fs_hz: float, rng: int | np.random.Generator 
     return NoiseStream(model, fs_hz, seed).take(n, temperature=temperature)
 
 
-__all__ = ["NoiseStream", "simulate", "flicker_avar", "flicker_times", "flicker_flat_band",
-           "flicker_psd", "BIAS_INSTABILITY_FACTOR", "FLICKER_PER_DECADE",
+def stream_factory(model: Model, fs_hz: float, seed: int):
+    """``take(n)`` of a :class:`NoiseStream`: what a device simulator draws its channels with
+    (``daq.sim.signals.NoiseFactory``)."""
+    return NoiseStream(model, fs_hz, seed).take
+
+
+__all__ = ["NoiseStream", "simulate", "stream_factory", "flicker_avar", "flicker_times",
+           "flicker_flat_band", "flicker_psd", "BIAS_INSTABILITY_FACTOR", "FLICKER_PER_DECADE",
            "DEFAULT_FLICKER_TMAX_S"]

@@ -351,8 +351,12 @@ class ChannelAnalyzer:
                  full_refit_interval_s: float = 60.0, diagnosis_interval_s: float = 60.0,
                  history_interval_s: float = 10.0, history_len: int = 2000,
                  nperseg: int = 256, recent_samples: int = 1 << 18, m0: int = 4096,
-                 runner: Runner = run_inline) -> None:
+                 runner: Runner = run_inline, targets: str | None = None) -> None:
         check_terms(model)
+        self.targets = targets
+        """Wanted 95 % half-widths (``K=20%,B=10%``, see :mod:`analysis.planning`): the
+        coefficients then say how much longer to record for each."""
+        self._plan_cache: tuple[int, dict] | None = None
         self.channel = channel
         self.fs_hz = float(fs_hz)
         self.units = units if units is not None else channel_units(channel)
@@ -751,7 +755,48 @@ class ChannelAnalyzer:
                 out["model"].append(entry)
             out["error"] = _error(fit)
             out["failures"] = fit.failures
-            return out
+        for entry, t in zip(out["model"], fit.terms, strict=True):
+            entry["relative_halfwidth"] = {
+                k: ((hi - lo) / (2 * v) if v > 0 and lo > 0 else None)
+                for k, v in t.params.items() for lo, hi in [t.ci95.get(k, (0.0, 0.0))]}
+        if self.targets:
+            self._add_time_to_target(out, fit)
+        return out
+
+    def _add_time_to_target(self, out: dict[str, Any], fit: FitResult) -> None:
+        """Per targeted parameter: the target and the further recording time (s) until the
+        95 % interval reaches it, from the plan for the fitted model (computed once per fit;
+        None when the parameter is not resolved yet or the target is out of reach)."""
+        from analysis.planning import parse_targets, plan
+        from analysis.terms import labels
+
+        if self._plan_cache is None or self._plan_cache[0] != id(fit):
+            spec = [(t.term, dict(t.params)) for t in fit.terms]
+            resolved = [(lab, p) for t, lab in zip(fit.terms, labels([t.term for t in fit.terms]),
+                                                   strict=True)
+                        for p in t.params if t.ci95.get(p, (0.0, 0.0))[0] > 0]
+            try:
+                targets = [tg for tg in parse_targets(self.targets, spec)
+                           if (tg.label, tg.param) in resolved]
+                plans = {(p.target.label, p.target.param): p for p in
+                         plan(spec, self.fs_hz, targets)}
+            except ValueError:
+                plans = {}
+            self._plan_cache = (id(fit), plans)
+        plans = self._plan_cache[1]
+        recorded = out["duration_s"]
+        for entry, label in zip(out["model"], labels([e["term"] for e in out["model"]]),
+                                strict=True):
+            entry["target"], entry["time_to_target_s"] = {}, {}
+            for k in entry["params"]:
+                p = plans.get((label, k))
+                if p is None:
+                    continue
+                now = entry["relative_halfwidth"].get(k)
+                entry["target"][k] = p.target.relative
+                entry["time_to_target_s"][k] = (
+                    0.0 if now is not None and now <= p.target.relative else
+                    None if p.record_s is None else max(0.0, p.record_s - recorded))
 
     def _z_on_curve(self, fit: FitResult, curve: AllanCurve) -> np.ndarray:
         z_map = dict(zip(np.round(fit.tau_s, 12), fit.z, strict=True))
@@ -783,7 +828,15 @@ class ChannelAnalyzer:
                 out["failures"] = fit.failures
                 out["error"] = _error(fit)
                 out["model"] = [t.term for t in fit.terms]
-            return out
+                # the bound covers the measured band and the fitted model (as analyze does)
+                upper = np.fmax(curve.ci_high[keep], np.sqrt(fit.model_avar(tau)))
+            else:
+                upper = None
+            duration = float(curve.n_terms[0] + 2 * curve.m[0]) / curve.fs_hz \
+                if len(curve.m) else None
+        out["overbound"] = (_overbound(tau, upper, curve.fs_hz, duration)
+                            if upper is not None else None)
+        return out
 
     def psd(self, max_points: int = 400) -> dict[str, Any]:
         """Log-frequency PSD (thinned to ``max_points``) with its band and the model PSD."""
@@ -973,3 +1026,17 @@ class RollingAnalyzer:
     def revision(self) -> int:
         with self._lock:
             return sum(a.revision for a in self._analyzers.values())
+
+
+def _overbound(tau: np.ndarray, upper: np.ndarray, fs_hz: float,
+               duration_s: float | None) -> dict[str, Any] | None:
+    """The over-bounding model of the live curve (:mod:`analysis.overbound`) for ``/allan``."""
+    from analysis.overbound import overbound
+
+    try:
+        ob = overbound(tau, upper, fs_hz, duration_s=duration_s)
+    except ValueError:
+        return None
+    return {"model_adev": _finite(ob.model_adev), "N": ob.N, "K": ob.K,
+            "markov": [{"sigma": s, "T_s": t} for s, t in ob.markov],
+            "median_excess": float(np.median(ob.excess)), "max_excess": float(ob.excess.max())}

@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from analysis import allan_kernels  # noqa: E402
-from analysis.allan import oadev, tau_grid  # noqa: E402
-from analysis.streaming_allan import StreamingAllan  # noqa: E402
+from analysis import allan_kernels
+from analysis.allan import oadev, tau_grid
+from analysis.streaming_allan import StreamingAllan
 
 FS_HZ = 100.0
 N_TAUS = 100

@@ -19,12 +19,12 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-import serial  # noqa: E402
+import serial
 
-from daq.devices import open_device  # noqa: E402
-from daq.sim.buspirate_pty import BusPirateEmulator  # noqa: E402
-from daq.sim.fake_i2c import BITS_PER_BYTE, BITS_START_STOP  # noqa: E402
-from daq.transports.buspirate import encode_frames  # noqa: E402
+from daq.devices import open_device
+from daq.sim.buspirate_pty import BusPirateEmulator
+from daq.sim.fake_i2c import BITS_PER_BYTE, BITS_START_STOP
+from daq.transports.buspirate import encode_frames
 
 BAUD = 115200
 I2C_HZ = 400e3

@@ -45,6 +45,7 @@ class Timing:
         jitter_max_s: largest such distance (s).
         backward: places where time went backwards or repeated a grid position.
         notes: one-line descriptions for the user.
+        gaps: samples missing before each segment start but the first (-1: time went back).
     """
 
     fs_hz: float
@@ -55,6 +56,7 @@ class Timing:
     jitter_max_s: float = 0.0
     backward: int = 0
     notes: list[str] = field(default_factory=list)
+    gaps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def facts(self) -> dict[str, float | int]:
         """JSON-ready summary: rate, samples missing, jitter and backward steps."""
@@ -210,8 +212,9 @@ def analyse_stamps(t: np.ndarray, *, seq: np.ndarray | None = None,
         notes.append(f"{label}time stamps jitter by up to {jitter_max:.3g} s (rms "
                      f"{jitter_rms:.3g} s) around the {fs:.6g} Hz grid: re-timed on the grid, "
                      "not treated as gaps")
+    gaps = np.where(steps[breaks - 1] > 0, steps[breaks - 1], -1).astype(np.int64)
     return Timing(fs, t0, np.concatenate(([0], breaks)).astype(np.int64), missing,
-                  jitter_rms, jitter_max, backward, notes)
+                  jitter_rms, jitter_max, backward, notes, gaps)
 
 
 def estimate_rate(t: np.ndarray) -> float:

@@ -46,7 +46,9 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
         clock: explicit clock (overrides ``realtime``).
         max_outage_s: how long the device may stay unreachable before the run fails.
         options: driver options (``range_dps``, ``taps``, ``range_g``, ``address``...) and
-            simulator options (``gyro``, ``accel``, ``temperature`` sources).
+            simulator options (``gyro``, ``accel``, ``temperature`` sources; ``noise``, the
+            :data:`daq.sim.signals.NoiseFactory` that draws the default sources, e.g.
+            :func:`analysis.noise_stream.stream_factory`; without it they are white noise).
 
     Raises:
         ValueError: unknown spec, or a missing ``port``/``bus``, naming the valid choices.
@@ -55,6 +57,8 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
         raise ValueError(f"unknown device {spec!r}: choose one of {valid_devices()}")
     simulated = spec.startswith("sim:")
     base = spec.removeprefix("sim:")
+    if not simulated:
+        options.pop("noise", None)  # a simulator's option: real hardware makes its own
     rate = float(rate_hz) if rate_hz is not None else DEFAULT_RATES_HZ[base]
     if rate <= 0:
         raise ValueError(f"rate must be positive, got {rate_hz}")
@@ -88,7 +92,7 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
         from daq.sim.signals import default_sources
 
         fs = sample_rate_hz(smpl_prd_for_rate(rate))
-        gyro, accel = default_sources("adis16350", fs, seed)
+        gyro, accel = default_sources("adis16350", fs, seed, options.pop("noise", None))
         chip_clock = ChipClock(clock)
         sim = Adis16350Sim(chip_clock, options.pop("gyro", gyro), options.pop("accel", accel),
                            options.pop("temperature", None), source_rate_hz=fs)

@@ -47,14 +47,6 @@ RESERVE_NAME = ".imunoise-reserve"
 _POLL_S = 0.1
 
 
-def _software_version() -> str:
-    try:
-        from imunoise import __version__
-    except ImportError:  # pragma: no cover - daq used without the CLI package
-        return SOFTWARE
-    return f"{SOFTWARE} {__version__}"
-
-
 class SyncedFile:
     """Unbuffered file with explicit fsync and a record of the last durable offset.
 
@@ -162,6 +154,8 @@ class McapRecorder:
         clock: wall clock in seconds (for log times, flush and rotation timing).
         reserve_bytes: size of the reserve file released on a full disk to finish the file.
         chunk_size: uncompressed chunk size threshold in bytes.
+        software: the writing program and its version (MCAP header and metadata), passed in
+            by the command line (``daq`` does not import it).
     """
 
     def __init__(self, out_dir: str | Path, device: str, *, config: dict[str, str] | None = None,
@@ -171,8 +165,9 @@ class McapRecorder:
                  threaded: bool = True, clock: Callable[[], float] = time.time,
                  reserve_bytes: int = 2 << 20, chunk_size: int = 1 << 20,
                  file_opener: Callable[[Path], SyncedFile] = SyncedFile,
-                 queue_blocks: int = 4096) -> None:
+                 queue_blocks: int = 4096, software: str = SOFTWARE) -> None:
         self.out_dir = Path(out_dir)
+        self.software = software
         self.device = device
         self.name = _safe_name(device)
         self.config = dict(config or {})
@@ -344,7 +339,7 @@ class McapRecorder:
         self._writer = Writer(self._file, chunk_size=self.chunk_size,
                               compression=CompressionType.ZSTD,
                               index_types=IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA)
-        self._writer.start(profile=msgs.PROFILE, library=_software_version())
+        self._writer.start(profile=msgs.PROFILE, library=self.software)
         self._channels.clear()
         self._schemas.clear()
         self._sequence.clear()
@@ -358,7 +353,7 @@ class McapRecorder:
         self.stats.file = str(path)
 
     def _metadata(self, block: SampleBlock | None) -> dict[str, str]:
-        md = {"device": self.device, "software": _software_version(),
+        md = {"device": self.device, "software": self.software,
               "frame_id": self.frame_id, "units.gyro": "rad/s", "units.accel": "m/s^2",
               "units.temp": "degC", "time_base": "header.stamp = sensor sample time (s), "
               "log_time = host receive time"}

@@ -22,6 +22,7 @@ COMMAND_MODULES: list[str] = [
     "replay",
     "repair",
     "export_kalibr",
+    "plan",
 ]
 
 

@@ -37,6 +37,10 @@ from core.errors import InputError
 COMBINE = ("max", "rms", "mean")
 N_FROM_FIT = "Allan fit, white term"
 N_FROM_PSD = "PSD white level of the top band (the Allan fit does not resolve N: {why})"
+K_FROM_FIT = "Allan fit, random_walk term"
+FROM_OVERBOUND = ("over-bounding model (white noise and random walk whose Allan deviation is on "
+                  "or above the measured upper 95 % bound at every tau; excess median {med:.2g} "
+                  "%, max {mx:.2g} %)")
 _AXES = ("x", "y", "z")
 _KIND_KEYS = {
     "gyro": ("gyroscope_noise_density", "gyroscope_random_walk", "rad/s/sqrt(Hz)",
@@ -61,6 +65,7 @@ class AxisValues:
     K_ci: tuple[float, float] | None
     K_from_allan_bound: bool = False
     N_source: str = N_FROM_FIT
+    K_source: str = K_FROM_FIT
 
 
 @dataclass
@@ -89,10 +94,11 @@ class KalibrImu:
                 return ("upper bound: the random walk is not resolved on every axis; largest K "
                         "inside the measured Allan band")
             cis = [a.K_ci for a in axes]
-            sources = ["Allan fit, random_walk term"]
+            sources = sorted({a.K_source.split(" (")[0] for a in axes})
         src = "; ".join(sources)
         if not axes or any(c is None for c in cis):
-            return f"interval unknown; from the {src}"
+            what = "a bound, not an estimate" if src.startswith("over") else "interval unknown"
+            return f"{what}; from the {src}"
         lo = _combine([c[0] for c in cis], self.combine) * self.inflate  # type: ignore[index]
         hi = _combine([c[1] for c in cis], self.combine) * self.inflate  # type: ignore[index]
         return f"95 % [{_f(lo)}, {_f(hi)}]; from the {src}"
@@ -158,6 +164,19 @@ def _psd_white(channel_doc: Mapping) -> tuple[float, tuple[float, float]] | None
     return found[0], (found[1], found[2])
 
 
+def overbound_axis(name: str, channel_doc: Mapping) -> AxisValues:
+    """N and K of one channel from its over-bounding white + random-walk model (no intervals:
+    they are bounds by construction)."""
+    from imunoise.outputs import overbound_for_channel
+
+    ob = overbound_for_channel(channel_doc, markov=False)
+    if ob is None or "error" in ob:
+        why = (ob or {}).get("error", "no Allan curve")
+        raise KalibrError(f"{name}: no over-bounding model ({why})")
+    src = FROM_OVERBOUND.format(med=100 * ob["median_excess"], mx=100 * ob["max_excess"])
+    return AxisValues(name, ob["N"], None, ob["K"], None, False, src, src)
+
+
 def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
     """N and K of one fitted channel (contract JSON ``fit`` keys, plus ``psd`` when present).
 
@@ -213,7 +232,7 @@ def imu_topics(channels: Mapping[str, Mapping]) -> list[str]:
 
 def kalibr_values(channels: Mapping[str, Mapping], *, topic: str | None = None,
                   rostopic: str | None = None, combine: str = "max",
-                  inflate: float = 1.0) -> KalibrImu:
+                  inflate: float = 1.0, overbound: bool = False) -> KalibrImu:
     """Kalibr values from fitted channels (``analyze --json`` ``channels``).
 
     Args:
@@ -222,6 +241,7 @@ def kalibr_values(channels: Mapping[str, Mapping], *, topic: str | None = None,
         rostopic: value of ``rostopic`` (default: the topic, or ``/imu0``).
         combine: ``max``, ``rms`` or ``mean`` over the three axes.
         inflate: factor (>= 1 usually) applied to all four values.
+        overbound: take N and K from each axis' over-bounding model instead of the fit.
 
     Raises:
         KalibrError: missing axes or terms, several topics and none chosen, bad factor.
@@ -249,7 +269,7 @@ def kalibr_values(channels: Mapping[str, Mapping], *, topic: str | None = None,
         if not present:
             raise KalibrError(f"no {kind} channels ({', '.join(names)}): Kalibr needs both "
                               "gyroscope and accelerometer")
-        vals = [axis_values(n, channels[n]) for n in present]
+        vals = [(overbound_axis if overbound else axis_values)(n, channels[n]) for n in present]
         axes[kind] = vals
         combined[kind] = (_combine([v.N for v in vals], combine),
                           _combine([v.K for v in vals], combine))
@@ -272,8 +292,10 @@ def _f(v: float) -> str:
     return f"{v:.6e}"
 
 
-def _ci_text(ci: tuple[float, float] | None) -> str:
-    return "interval unknown" if ci is None else f"95 % [{_f(ci[0])}, {_f(ci[1])}]"
+def _ci_text(ci: tuple[float, float] | None, source: str = "") -> str:
+    if ci is not None:
+        return f"95 % [{_f(ci[0])}, {_f(ci[1])}]"
+    return "a bound, not an estimate" if source.startswith("over") else "interval unknown"
 
 
 def render_yaml(imu: KalibrImu, source: str = "", stated: Mapping | None = None,
@@ -311,13 +333,16 @@ def render_yaml(imu: KalibrImu, source: str = "", stated: Mapping | None = None,
     for kind in ("gyro", "accel"):
         _, _, n_unit, k_unit = _KIND_KEYS[kind]
         for ax in imu.axes.get(kind, []):
-            lines.append(f"#   {ax.channel}: N = {_f(ax.N)} {n_unit} ({_ci_text(ax.N_ci)}; "
+            n_ci = _ci_text(ax.N_ci, ax.N_source)
+            lines.append(f"#   {ax.channel}: N = {_f(ax.N)} {n_unit} ({n_ci}; "
                          f"from the {ax.N_source})")
             if ax.K_from_allan_bound:
                 lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} (random walk not "
                              "resolved: largest K inside the measured Allan band)")
             else:
-                lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} ({_ci_text(ax.K_ci)})")
+                k_ci = _ci_text(ax.K_ci, ax.K_source)
+                lines.append(f"#   {ax.channel}: K = {_f(ax.K)} {k_unit} ({k_ci}; "
+                             f"from the {ax.K_source})")
     if stated:
         lines.append(f"# The dataset's {stated.get('sensor_yaml', 'sensor.yaml')} states (not "
                      "measured):")

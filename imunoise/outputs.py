@@ -123,10 +123,48 @@ def model_psd(doc: Mapping) -> dict[str, list[float]] | None:
     return {"f_hz": f.tolist(), "psd": np.asarray(psd_of(model, f, fs)).tolist()}
 
 
-def extend_channel(doc: dict, full: bool = False, seed: int = 0) -> dict:
-    """Add ``discrete_model`` (and with ``full`` the report's curves) to a channel document."""
+def overbound_for_channel(doc: Mapping, markov: bool = True,
+                          band_hz: tuple[float, float] | None = None) -> dict | None:
+    """The over-bounding model of a channel document (:mod:`analysis.overbound`): on or above
+    the measured Allan deviation's upper 95 % bound at every tau (and the PSD's in
+    ``band_hz``), or None without a curve."""
+    from analysis.overbound import overbound
+
+    al = doc.get("allan") or {}
+    fs = float(doc.get("fs_hz") or 0.0)
+    tau = np.asarray(al.get("tau_s") or [], dtype=np.float64)
+    hi = np.asarray([np.nan if v is None else v for v in al.get("ci_high") or []],
+                    dtype=np.float64)
+    if fs <= 0 or tau.size == 0 or hi.size != tau.size:
+        return None
+    # where the fitted model lies above the measurement's band, bound the model too: a filter
+    # built on the fit must not be safer than the bound
+    fitted = np.asarray([np.nan if v is None else v for v in al.get("model_adev") or []],
+                        dtype=np.float64)
+    if fitted.size == hi.size:
+        hi = np.fmax(hi, fitted)
+    psd = doc.get("psd") or {}
+    upper = None
+    if band_hz is not None and psd.get("f_hz"):
+        upper = (np.asarray(psd["f_hz"], dtype=np.float64),
+                 np.asarray([np.nan if v is None else v for v in psd["ci_high"]],
+                            dtype=np.float64))
+    try:
+        ob = overbound(tau, hi, fs, duration_s=float(doc.get("duration_s") or 0.0) or None,
+                       markov=markov, psd=upper, band_hz=band_hz if upper is not None else None)
+    except ValueError as exc:
+        return {"error": str(exc)}
+    return ob.to_dict()
+
+
+def extend_channel(doc: dict, full: bool = False, seed: int = 0,
+                   band_hz: tuple[float, float] | None = None) -> dict:
+    """Add ``discrete_model`` with its ``overbound`` (and with ``full`` the report's curves)
+    to a channel document."""
     dm = discrete_for_channel(doc)
     doc["discrete_model"] = dm.to_dict() if dm is not None else None
+    if doc["discrete_model"] is not None:
+        doc["discrete_model"]["overbound"] = overbound_for_channel(doc, band_hz=band_hz)
     if full:
         doc["terms_adev"] = term_curves(doc)
         doc["model_psd"] = model_psd(doc)
@@ -182,11 +220,13 @@ def suggestions(record, key: str, model=DEFAULT_MODEL) -> list[dict]:
     return [s.to_dict() for s in dx.suggestions]
 
 
-def complete_document(doc: dict, record, full: bool = False, seed: int = 0) -> dict:
+def complete_document(doc: dict, record, full: bool = False, seed: int = 0,
+                      band_hz: tuple[float, float] | None = None) -> dict:
     """Add ``discrete_model`` (and, with ``full``, the report's curves, the diagnosis and the
-    record's facts) to a fitted ``analyze`` document."""
+    record's facts) to a fitted ``analyze`` document; ``band_hz`` is the PSD band the
+    over-bounding model must also cover."""
     for key, ch in doc.get("channels", {}).items():
-        extend_channel(ch, full=full, seed=seed)
+        extend_channel(ch, full=full, seed=seed, band_hz=band_hz)
         if full and ch.get("model"):
             try:
                 ch["suggestions"] = suggestions(record, key)

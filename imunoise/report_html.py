@@ -273,6 +273,11 @@ def _allan_plot(name: str, ch: Mapping, units: str) -> str:
         if st.size:
             p.line(st, _arr(chk, "adev"), "simulated discrete model", color="#000000",
                    width=1.2, dash="1 3")
+        ob = (ch.get("discrete_model") or {}).get("overbound") or {}
+        ot = _arr(ob, "tau_s")
+        if ot.size:
+            p.line(ot, _arr(ob, "model_adev"), "over-bounding model (filter-safe)",
+                   color="#d62728", width=1.6, dash="8 3")
     return p.svg()
 
 
@@ -353,6 +358,16 @@ def _discrete_block(ch: Mapping, units: str, kind: str) -> str:
                    f"\u03c4 = {_num(fl['tau_range_s'][0], 3)} to {_num(fl['tau_range_s'][1], 3)} s;"
                    f" the whole model's Allan variance is reproduced within "
                    f"{100 * fl['max_rel_avar_error']:.2g} %.</p>")
+    ob = (ch.get("discrete_model") or {}).get("overbound") or {}
+    if ob.get("tau_s"):
+        states = ", ".join([f"white N = {_num(ob['N'])}", f"random walk K = {_num(ob['K'])}"]
+                           + [f"Markov σ = {_num(m['sigma'])}, T = {_num(m['T_s'], 3)} s"
+                              for m in ob.get("markov", [])])
+        out.append(f"<p>Over-bounding model for a Kalman filter (dashed red in the Allan plot): "
+                   f"{escape(states)}. Its Allan deviation lies on or above the measured upper "
+                   f"95 % bound at every τ, by {100 * ob['median_excess']:.2g} % (median) "
+                   f"and at most {100 * ob['max_excess']:.2g} %; filter-ready values in "
+                   "<code>discrete_model.overbound.discrete</code> of the JSON.</p>")
     chk = ch.get("discrete_check") or {}
     if chk.get("total"):
         inside, total = int(chk["inside"]), int(chk["total"])

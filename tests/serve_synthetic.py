@@ -17,10 +17,10 @@ import uvicorn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from analysis.rolling import RollingAnalyzer  # noqa: E402
-from imunoise.live import LiveService  # noqa: E402
-from tests.live_helpers import CountingSink, SyntheticImu  # noqa: E402
-from web.app import create_app  # noqa: E402
+from analysis.rolling import RollingAnalyzer
+from live.service import LiveService
+from tests.live_helpers import CountingSink, SyntheticImu
+from web.app import create_app
 
 
 def main() -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
+import importlib.metadata
 import json
 import threading
 from collections.abc import AsyncIterator
@@ -22,8 +23,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from analysis.rolling import VALID_TERMS, ChannelAnalyzer
 from analysis.terms import parse_model
-from imunoise import __version__
-from imunoise.live import LiveService
+from live.service import LiveService
 from web.models import (
     AllanCurve,
     ChannelCoefficients,
@@ -42,6 +42,15 @@ TOKEN_HEADER = "X-Imunoise-Token"
 
 
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
+
+
+def _version() -> str:
+    """The installed imunoise's version (from its distribution metadata: ``web`` does not
+    import the command-line package)."""
+    try:
+        return importlib.metadata.version("imunoise")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def create_app(service: LiveService, token: str | None = None,
@@ -64,7 +73,7 @@ def create_app(service: LiveService, token: str | None = None,
         yield
         closing.set()  # ends the event streams so the server can stop
 
-    app = FastAPI(title="imunoise", lifespan=lifespan, version=__version__,
+    app = FastAPI(title="imunoise", lifespan=lifespan, version=_version(),
                   description="Live Allan variance, PSD, noise-model fit and diagnosis of an "
                               "inertial sensor. Values in SI units unless labelled.")
     app.state.service = service

@@ -36,6 +36,14 @@ class Term(BaseModel):
     ci95: dict[str, list[float]] = Field(default_factory=dict, description="95 % intervals")
     units: dict[str, str] = Field(default_factory=dict, description="SI units per parameter")
     conventional: dict[str, ConventionalValue] = Field(default_factory=dict)
+    relative_halfwidth: dict[str, float | None] = Field(
+        default_factory=dict, description="(high - low) / (2 value) of the 95 % interval now; "
+                                          "null where the interval reaches zero")
+    target: dict[str, float] = Field(
+        default_factory=dict, description="wanted relative half-width (serve --target)")
+    time_to_target_s: dict[str, float | None] = Field(
+        default_factory=dict, description="further recording time until the target is met, "
+                                          "s (0: met; null: not reachable)")
 
 
 class ChannelCoefficients(BaseModel):
@@ -63,6 +71,17 @@ class Coefficients(BaseModel):
     record_length_s: float = Field(description="longest channel's analysed length, s")
 
 
+class OverboundCurve(BaseModel):
+    """Filter-safe noise model: on or above the measured upper 95 % bound at every tau."""
+
+    model_adev: list[float | None]
+    N: float = Field(description="white-noise density, units/sqrt(Hz)")
+    K: float = Field(description="random-walk density, units/sqrt(s)")
+    markov: list[dict[str, float]] = Field(description="first-order Markov states: sigma, T_s")
+    median_excess: float = Field(description="median of model/upper - 1 over the taus")
+    max_excess: float
+
+
 class AllanCurve(BaseModel):
     channel: str
     units: str
@@ -76,6 +95,8 @@ class AllanCurve(BaseModel):
     z: list[float | None] | None = Field(description="standardised residual at each tau")
     failures: list[Failure]
     error: Error | None
+    overbound: OverboundCurve | None = Field(
+        None, description="over-bounding model for a Kalman filter (after the first fit)")
 
 
 class PsdCurve(BaseModel):

@@ -39,15 +39,16 @@ def build_i2c_acquisition(which: str, *, simulated: bool, bus: int | None, rate:
 
         chips: dict = {}
         itg_sim = adxl_sim = None
+        noise = options.pop("noise", None)
         if which in ("itg3200", "razor"):
             fs = rate_settings(rate)[2]
-            gyro = options.pop("gyro", None) or default_sources("itg3200", fs, seed)[0]
+            gyro = options.pop("gyro", None) or default_sources("itg3200", fs, seed, noise)[0]
             itg_sim = Itg3200Sim(clock, gyro, options.pop("temperature", None),
                                  address=itg_addr)
             chips[itg_addr] = itg_sim
         if which in ("adxl345", "razor"):
             fs = odr_hz(rate_code(accel_rate))
-            accel = options.pop("accel", None) or default_sources("adxl345", fs, seed)[1]
+            accel = options.pop("accel", None) or default_sources("adxl345", fs, seed, noise)[1]
             adxl_sim = Adxl345Sim(clock, accel)
             chips[adxl_addr] = adxl_sim
         adapter = SimulatedI2CAdapter(chips, clock=clock,

@@ -487,13 +487,18 @@ def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[Sam
             cols = _split(data)
             rel, t_first = relative_seconds(ns)
             t = rel + t_first
-            bounds = np.append(segment_starts_from_times(rel, fs), t.size)
+            timing = (analyse_stamps(ns, rate_hz=fs) if ns.size > 1 and np.any(np.diff(ns) > 0)
+                      else None)
+            starts = timing.segment_starts if timing else np.zeros(1, np.int64)
+            inner = dict(zip(starts[1:].tolist(), timing.gaps.tolist(), strict=True)) \
+                if timing else {}
+            bounds = np.append(starts, t.size)  # jitter is no gap here either (core.timing)
             for a, b in zip(bounds[:-1], bounds[1:], strict=True):
                 if b <= a:
                     continue
                 prev = last_t.get(cid)
-                gap = 0
-                if prev is not None:
+                gap = int(inner.get(int(a), 0))
+                if a == 0 and prev is not None:
                     steps = (t[a] - prev) * fs
                     if steps > 1.5:
                         gap = int(round(steps)) - 1

@@ -68,33 +68,39 @@ def white_source(density: float | Sequence[float], fs_hz: float, *,
     return take
 
 
-def model_source(model: list[tuple[str, dict[str, float]]], fs_hz: float, *,
-                 bias: float | Sequence[float] = 0.0, seed: int = 0) -> SignalSource:
-    """Three independent channels of a noise model from ``analysis.noise_stream``.
+NoiseFactory = Callable[[list[tuple[str, dict[str, float]]], float, int],
+                        Callable[[int], np.ndarray]]
+"""Makes one channel's noise stream ``take(n) -> n samples`` of ``model`` at ``fs_hz`` from a
+seed: the caller passes the analysis package's simulator (``daq`` does not import it)."""
 
-    Falls back to the model's white-noise term alone when that library is not installed.
-    """
+
+def model_source(model: list[tuple[str, dict[str, float]]], fs_hz: float, *,
+                 bias: float | Sequence[float] = 0.0, seed: int = 0,
+                 noise: NoiseFactory | None = None) -> SignalSource:
+    """Three independent channels of a noise model, each from ``noise``; without one, the
+    model's white-noise term alone."""
     offset = np.broadcast_to(np.asarray(bias, dtype=np.float64), (3,))
-    try:
-        from analysis.noise_stream import NoiseStream  # type: ignore[import-not-found]
-    except ImportError:
+    if noise is None:
         n_white = sum(p.get("N", 0.0) for term, p in model if term == "white")
         return white_source(n_white, fs_hz, bias=offset, seed=seed)
-    streams = [NoiseStream(model, fs_hz, seed=seed * 3 + axis) for axis in range(3)]
+    streams = [noise(model, fs_hz, seed * 3 + axis) for axis in range(3)]
 
     def take(n: int) -> np.ndarray:
-        return offset + np.column_stack([s.take(n) for s in streams])
+        return offset + np.column_stack([s(n) for s in streams])
 
     return take
 
 
-def default_sources(device: str, fs_hz: float, seed: int = 0
+def default_sources(device: str, fs_hz: float, seed: int = 0,
+                    noise: NoiseFactory | None = None
                     ) -> tuple[SignalSource | None, SignalSource | None]:
-    """(gyro, accel) sources with the seed-paper model of ``device`` (None where absent)."""
+    """(gyro, accel) sources with the seed-paper model of ``device`` (None where absent),
+    drawn by ``noise`` (see :func:`model_source`)."""
     models = SEED_MODELS[device]
-    gyro = model_source(models["gyro"], fs_hz, seed=seed) if "gyro" in models else None
-    accel = (model_source(models["accel"], fs_hz, bias=GRAVITY_AT_REST, seed=seed + 1000)
-             if "accel" in models else None)
+    gyro = (model_source(models["gyro"], fs_hz, seed=seed, noise=noise)
+            if "gyro" in models else None)
+    accel = (model_source(models["accel"], fs_hz, bias=GRAVITY_AT_REST, seed=seed + 1000,
+                          noise=noise) if "accel" in models else None)
     return gyro, accel
 
 

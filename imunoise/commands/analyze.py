@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "default: every IMU channel")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     add_rate_option(p)
+    p.add_argument("--overbound-band", type=_band, metavar="LO:HI",
+                   help="frequency band (Hz) where the over-bounding model must also lie on or "
+                        "above the measured PSD's upper 95 %% bound (default: Allan only)")
     p.add_argument("--report", metavar="OUT.html",
                    help="also write a self-contained HTML report (plots, coefficients, "
                         "discrete-time model, diagnosis) to OUT.html")
@@ -55,6 +58,19 @@ class ChannelAnalysis:
 
 DEFAULT_MODEL = "white,bias_instability,random_walk"
 """The model ``analyze`` fits to every channel."""
+
+
+def _band(text: str) -> tuple[float, float]:
+    """argparse type of ``--overbound-band LO:HI`` (Hz)."""
+    lo, sep, hi = text.partition(":")
+    try:
+        band = (float(lo), float(hi))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad band {text!r}: write LO:HI in Hz, e.g. 0.1:20"
+                                         ) from None
+    if not sep or not 0 <= band[0] < band[1]:
+        raise argparse.ArgumentTypeError(f"bad band {text!r}: need 0 <= LO < HI (Hz)")
+    return band
 
 
 def _fit(out: ChannelAnalysis) -> None:
@@ -182,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
         from imunoise import outputs, report_json
 
         doc = outputs.complete_document(analysis_json(args.file, record, results), record,
-                                        full=bool(args.report))
+                                        full=bool(args.report), band_hz=args.overbound_band)
         if args.report:
             from imunoise.files import write_text_atomically
             from imunoise.report_html import render_report

@@ -32,6 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="how the three axes become one value (default max: conservative)")
     p.add_argument("--topic", default=None, metavar="TOPIC",
                    help="IMU topic to use when the file has several")
+    p.add_argument("--overbound", action="store_true",
+                   help="take N and K from each axis' over-bounding model (white noise and random "
+                        "walk on or above the measured Allan deviation's upper 95 %% bound at "
+                        "every tau): values a filter can use without becoming overconfident")
     p.add_argument("--rostopic", default=None, metavar="NAME",
                    help="value of rostopic in the YAML (default: the recording's IMU topic, "
                         "else /imu0)")
@@ -114,7 +118,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         imu = kalibr_values(channels, topic=args.topic,
                             rostopic=args.rostopic or facts.get("rostopic"),
-                            combine=args.combine, inflate=args.inflate)
+                            combine=args.combine, inflate=args.inflate,
+                            overbound=args.overbound)
     except KalibrError as exc:
         raise UsageError(f"export-kalibr: {exc}") from None
     text = render_yaml(imu, source=os.path.basename(str(args.file).rstrip("/")),

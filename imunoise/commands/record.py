@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+from imunoise import SOFTWARE
 from imunoise.commands.common import positive_rate
 from imunoise.errors import RuntimeFailure, UsageError
 from imunoise.options import parse_duration
@@ -98,8 +99,10 @@ def run(args: argparse.Namespace) -> int:
     from daq.recorder import McapRecorder
 
     try:
+        from analysis.noise_stream import stream_factory
+
         acq = open_device(args.device, port=args.port, bus=args.bus, rate_hz=args.rate,
-                          seed=args.seed)
+                          seed=args.seed, noise=stream_factory)
     except (ValueError, KeyError) as exc:
         raise UsageError(f"record: {exc}") from exc
     except (OSError, DeviceError) as exc:
@@ -111,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         raise RuntimeFailure(f"record: cannot open {args.device}: {exc}") from exc
     config = dict(getattr(acq, "config", {}) or {})
     try:
-        rec = McapRecorder(args.out, args.device, config=config,
+        rec = McapRecorder(args.out, args.device, config=config, software=SOFTWARE,
                            scales=scales_from_config(config),
                            rate_hz=getattr(acq, "rate_hz", None) or args.rate, rotate_s=rotate_s)
     except OSError as exc:

@@ -16,6 +16,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from imunoise import SOFTWARE
 from imunoise.errors import RuntimeFailure, UsageError
 
 TOKEN_ENV = "IMUNOISE_TOKEN"
@@ -44,6 +45,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
     p.add_argument("--out", metavar="DIR", help="record MCAP files here (default: no recording)")
     p.add_argument("--token", help=f"token required by changing requests (or ${TOKEN_ENV})")
+    p.add_argument("--target", metavar="P=X%",
+                   help="wanted 95 %% half-widths, e.g. K=20%%,B=10%%: /coefficients and the "
+                        "dashboard then show how much longer to record for each")
     p.add_argument("--model", default="white,bias_instability,random_walk", metavar="TERMS",
                    help="initial model, comma-separated terms; TERM:P=VALUE holds a "
                         "parameter (SI units), e.g. white,gauss_markov:T=100 "
@@ -106,6 +110,9 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     for key, value in wanted:
         if value is not None:
             kwargs[key] = value
+    from analysis.noise_stream import stream_factory
+
+    kwargs["noise"] = stream_factory  # the simulators' seed-paper noise, not white alone
     try:
         acq = open_device(spec, **kwargs)
     except ValueError as exc:
@@ -163,7 +170,7 @@ def open_recorder(out: str, device: str, config: dict[str, str] | None,
     from daq.recorder import McapRecorder
 
     try:
-        return McapRecorder(out, device, config=config, rate_hz=rate_hz)
+        return McapRecorder(out, device, config=config, rate_hz=rate_hz, software=SOFTWARE)
     except OSError as exc:
         raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
 
@@ -185,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from analysis.rolling import RollingAnalyzer, check_terms
-    from imunoise.live import LiveService
+    from live.service import LiveService
     from web.app import LOOPBACK_HOSTS, create_app
 
     token = args.token or os.environ.get(TOKEN_ENV) or None
@@ -215,7 +222,8 @@ def run(args: argparse.Namespace) -> int:
         sinks.append(RecorderSink(recorder, source))
     service = LiveService(
         source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval,
-                                cpu_budget=args.analysis_cpu, workers="process"), sinks=sinks,
+                                cpu_budget=args.analysis_cpu, workers="process",
+                                targets=args.target), sinks=sinks,
         device=info, realtime=realtime,
         current_file=(lambda: recorder.stats.file or None) if recorder else None)
     app = create_app(service, token=token,

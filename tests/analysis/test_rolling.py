@@ -319,3 +319,25 @@ def test_worker_process_gives_the_inline_numbers_and_its_cpu_is_counted() -> Non
         assert worker.get("gyro_x").coefficients()["intervals"] == "profile"
     finally:
         worker.close()
+
+
+def test_coefficients_say_the_interval_now_and_the_time_to_a_target():
+    """serve --target: each targeted parameter's interval now and the recording still needed,
+    from the plan for the fitted model (analysis.planning)."""
+    from analysis.noise_stream import simulate
+    from analysis.planning import parse_targets, plan
+
+    fs, n = 10.0, 6000  # ten minutes; K to +-20 % needs about 33 (test_planning)
+    y = simulate([("white", {"N": 1e-3}), ("random_walk", {"K": 1e-4})], n, fs, rng=5)
+    a = ChannelAnalyzer("gyro_x", fs, model=["white", "random_walk"],
+                        targets="N=5%,K=20%")
+    a.update(y)
+    assert a.refit(full=True)
+    c = a.coefficients()
+    white, walk = c["model"]
+    assert white["relative_halfwidth"]["N"] < 0.05 and white["time_to_target_s"]["N"] == 0.0
+    assert walk["target"]["K"] == 0.2 and walk["relative_halfwidth"]["K"] > 0.2
+    spec = [(t["term"], t["params"]) for t in c["model"]]
+    (p,) = plan(spec, fs, parse_targets("K=20%", spec))
+    assert walk["time_to_target_s"]["K"] == pytest.approx(p.record_s - 600.0)
+    assert a.coefficients()["model"][1]["time_to_target_s"] == walk["time_to_target_s"]  # cached

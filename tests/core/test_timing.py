@@ -103,3 +103,9 @@ def test_csv_and_mcap_of_the_same_stamps_give_the_same_timing(tmp_path):
     np.testing.assert_array_equal(a.segment_starts, b.segment_starts)
     assert len(a.segment_starts) > 1
     np.testing.assert_array_equal(a.values, b.values)
+    # replaying the file block by block sees the same gaps, not one per late stamp
+    from daq.readers.mcap import iter_blocks
+
+    blocks = [blk for blk in iter_blocks(mcap) if "gyro_x" in blk.channels]
+    assert sum(blk.gap_before != 0 for blk in blocks) == len(b.segment_starts) - 1
+    assert sum(len(blk) for blk in blocks) == b.n_samples

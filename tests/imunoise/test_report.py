@@ -300,7 +300,9 @@ def test_analyze_report_end_to_end(recordings, kind, tmp_path, capsys):
     assert re.search(rf"gaps\s*{1 if kind == 'mcap' else 0}\b", text)
     if kind == "mcap":
         assert "sim:adis16350" in text
-        assert "1 gaps in header.stamp" in text  # the reader's warning is shown
+        from tests.outputs_inputs import GAP_LEN
+
+        assert f"{GAP_LEN} sample(s) missing in 1 gap(s)" in text  # the reader warns
     # temperature 30 +- 2 degC over the record
     assert "28 to 32 \u00b0C (spread 4 \u00b0C)" in text
 

@@ -10,7 +10,7 @@ import pytest
 
 from analysis.fit import fit_allan
 from imunoise.cli import main
-from imunoise.live import LiveService
+from live.service import LiveService
 from tests.live_helpers import SINE_A, SINE_F, SyntheticImu, running_server
 from web.app import create_app
 
@@ -77,6 +77,12 @@ def test_allan_curve_with_band_model_terms_and_z(client) -> None:
     # gyro_x carries a sinusoid the default model lacks: the z strip marks it.
     ax = client.get("/allan", params={"channel": "gyro_x"}).json()
     assert ax["failures"] and max(abs(z) for z in ax["z"]) > 3
+    # the over-bounding model for a filter lies on or above the band and the model everywhere
+    for curve in (a, ax):
+        ob = curve["overbound"]
+        assert len(ob["model_adev"]) == n and ob["N"] > 0 and ob["max_excess"] >= 0
+        assert all(b >= max(hi, m) * (1 - 1e-6) for b, hi, m in
+                   zip(ob["model_adev"], curve["ci_high"], curve["model_adev"], strict=True))
 
 
 def test_psd_shows_the_line_and_the_model(client) -> None:

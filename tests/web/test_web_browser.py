@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from imunoise.live import LiveService
+from live.service import LiveService
 from tests.live_helpers import SyntheticImu, running_server
 from web.app import create_app
 

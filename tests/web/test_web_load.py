@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from imunoise.live import LiveService
+from live.service import LiveService
 from tests.live_helpers import free_port, running_server
 from web.app import create_app
 

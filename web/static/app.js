@@ -120,6 +120,19 @@ function drawPsd(p) {
     axes: [logAxis("frequency (Hz)"), logAxis(p.units)] }, data);
 }
 
+// The interval now (+-% of the value) and, with serve --target, the recording still needed.
+function planText(t, name) {
+  const now = (t.relative_halfwidth || {})[name];
+  let text = now === null || now === undefined ? "unresolved" : `±${fmt(100 * now, 2)} %`;
+  const target = (t.target || {})[name];
+  if (target !== undefined) {
+    const more = t.time_to_target_s[name];
+    text += ` → ±${fmt(100 * target, 2)} %: ` + (more === null ? "out of reach" :
+      more === 0 ? "met" : `${fmt(more / 3600, 2)} h more`);
+  }
+  return text;
+}
+
 function drawCoefficients(c) {
   const rows = [];
   for (const t of c.model) {
@@ -130,7 +143,7 @@ function drawCoefficients(c) {
         <td>${fmt(value)}</td><td>${ci ? `${fmt(ci[0])} … ${fmt(ci[1])}` : ""}</td>
         <td>${(t.units || {})[name] || ""}</td><td>${conv ? fmt(conv.value) : ""}</td>
         <td>${conv && conv.ci95 ? `${fmt(conv.ci95[0])} … ${fmt(conv.ci95[1])}` : ""}</td>
-        <td>${conv ? conv.units : ""}</td></tr>`);
+        <td>${conv ? conv.units : ""}</td><td class="plan">${planText(t, name)}</td></tr>`);
     }
   }
   document.querySelector("#coefficients tbody").innerHTML = rows.join("");
@@ -145,10 +158,13 @@ function drawModel(m) {
   $("error-value").textContent = m.error ? fmt(m.error.chi2_per_dof) : "–";
   $("error-value").dataset.value = m.error ? String(m.error.chi2_per_dof) : "";
   $("error-maxz").textContent = m.error ? `(max |z| ${fmt(m.error.max_abs_z)})` : "";
+  // model entries are specifications ("sinusoid:f=2.7000342"): show held values briefly
+  const shown = (t) => t.replace(/=([-+0-9.eE]+)/g, (_, v) => "=" + fmt(Number(v), 4));
+  const names = m.model.map((t) => t.split(":")[0].split("#")[0]);
   $("model-terms").innerHTML = m.model.map((t) =>
-    `<span class="term">${t} <button class="remove-term" data-term="${t}" title="remove">×</button></span>`
+    `<span class="term">${shown(t)} <button class="remove-term" data-term="${t}" title="remove">×</button></span>`
   ).join("");
-  $("add-any").innerHTML = m.valid_terms.filter((t) => !m.model.includes(t)).map((t) =>
+  $("add-any").innerHTML = m.valid_terms.filter((t) => !names.includes(t)).map((t) =>
     `<button class="add-any" data-term="${t}">+ ${t}</button>`).join("");
   const h = m.history;
   $("history").innerHTML = h.slice(-12).reverse().map((p) =>

@@ -1,0 +1,79 @@
+"""The packages depend on each other in one direction only.
+
+``core`` is below everything; ``analysis`` and ``daq`` sit side by side on it and never import
+each other; the live runtime and the HTTP layer come above them; the command line ``imunoise``
+is the top. Every import counts, also one inside a function.
+"""
+
+from __future__ import annotations
+
+import ast
+
+from tests.shared_paths import REPO
+
+# package -> the project packages it may import
+ALLOWED: dict[str, set[str]] = {
+    "core": set(),
+    "analysis": {"core"},
+    "daq": {"core"},
+    "live": {"core", "analysis", "daq"},
+    "web": {"core", "analysis", "live"},
+    "imunoise": {"core", "analysis", "daq", "live", "web"},
+}
+
+
+def _edges() -> dict[tuple[str, str], list[str]]:
+    """(importer package, imported package) -> the files where that import happens."""
+    edges: dict[tuple[str, str], list[str]] = {}
+    for pkg in ALLOWED:
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            tree = ast.parse(path.read_text(), filename=str(path))
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names = [node.module]
+                else:
+                    continue
+                for name in names:
+                    top = name.split(".")[0]
+                    if top in ALLOWED and top != pkg:
+                        edges.setdefault((pkg, top), []).append(str(path.relative_to(REPO)))
+    return edges
+
+
+def test_no_import_goes_against_the_layers():
+    bad = {f"{a} -> {b}": sorted(set(files)) for (a, b), files in _edges().items()
+           if b not in ALLOWED[a]}
+    assert not bad, f"imports against the layers: {bad}"
+
+
+def test_no_package_cycle():
+    graph: dict[str, set[str]] = {p: set() for p in ALLOWED}
+    for a, b in _edges():
+        graph[a].add(b)
+    state: dict[str, int] = {}
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            assert state.get(nxt) != 1, f"package cycle: {' -> '.join(path + [node, nxt])}"
+            if nxt not in state:
+                visit(nxt, path + [node])
+        state[node] = 2
+
+    for p in graph:
+        if p not in state:
+            visit(p, [])
+
+
+def test_the_layer_check_sees_a_backward_import(tmp_path, monkeypatch):
+    """The walker itself finds an upward import (so the two tests above can fail)."""
+    fake = tmp_path / "analysis"
+    fake.mkdir()
+    (fake / "m.py").write_text("def f():\n    from daq import x\n")
+    for pkg in ALLOWED:
+        if pkg != "analysis":
+            (tmp_path / pkg).mkdir()
+    monkeypatch.setattr(__import__(__name__, fromlist=["REPO"]), "REPO", tmp_path)
+    assert _edges() == {("analysis", "daq"): ["analysis/m.py"]}
