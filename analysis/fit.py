@@ -543,7 +543,8 @@ def _solve_all(prob: _Problem, theta0: np.ndarray) -> _Point:
 
 
 def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
-    """While the shortest tau still used fails, set it aside and refit. A sensor's
+    """While the shortest tau still used lies below the model's band, set it aside and refit.
+    A sensor's
     anti-aliasing and decimation filters make the shortest taus fall below any sum of the
     terms; they are reported as failures without dragging the parameters."""
     lay, tau, m, n_terms = prob.layout, prob.tau, prob.m, prob.n_terms
@@ -557,8 +558,8 @@ def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
         cov = _covariance(_model_terms(lay, params), prob.fs, m[used], n_terms[used])
         z_used = misfit(prob.avar[used], avar_fit[used], cov, prob.n_free,
                         prob.family_rate).z
-        if abs(z_used[0]) <= threshold:
-            break
+        if z_used[0] >= -threshold:
+            break  # a filter pulls the shortest taus below the model, never above it
         used[first] = False
         theta = _solve(lay, theta, prob.y[used], tau[used], m[used], n_terms[used], prob.fs,
                        prob.max_nfev)

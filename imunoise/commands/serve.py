@@ -121,7 +121,8 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     except (DeviceError, OSError) as exc:
         acq.close()
         raise RuntimeFailure(f"serve: cannot open {spec}: {exc}") from None
-    info: dict[str, Any] = {"spec": spec, **{k: v for k, v in kwargs.items() if k != "seed"}}
+    info: dict[str, Any] = {"spec": spec, **{k: v for k, v in kwargs.items()
+                                             if k not in ("seed", "noise")}}
     info["config"] = {str(k): str(v) for k, v in (getattr(acq, "config", {}) or {}).items()}
     return acq, info, True
 
