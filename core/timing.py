@@ -116,6 +116,15 @@ def _period_on_grid(rel: np.ndarray, levels: np.ndarray, idx: np.ndarray) -> flo
     return num / den if den > 0 else float("nan")
 
 
+def _clean(rel: np.ndarray) -> bool:
+    """True when every interval lies within a quarter of the median interval (the stamps of a
+    recorder on the sample clock): no loss and no jitter to sort out, the common case, taken
+    in two passes instead of the grid refinement's dozen."""
+    dt = np.diff(rel)
+    med = float(np.median(dt[:: max(1, dt.size // 100_000)]))
+    return med > 0 and float(np.max(np.abs(dt - med))) < 0.25 * med
+
+
 def _first_period(rel: np.ndarray) -> float:
     """A first period (s): the mean of the intervals within half a median interval of it.
 
@@ -181,6 +190,9 @@ def analyse_stamps(t: np.ndarray, *, seq: np.ndarray | None = None,
     if seq is not None:
         s = np.asarray(seq, dtype=np.int64)
         levels = (s - s[0]) - np.arange(n, dtype=np.int64)
+        period = _period_on_grid(rel, levels, idx)
+    elif _clean(rel):  # every interval within a quarter period of the median: nothing lost
+        levels = np.zeros(n, dtype=np.int64)
         period = _period_on_grid(rel, levels, idx)
     else:
         period, levels = _grid_period(rel, _first_period(rel), idx)
