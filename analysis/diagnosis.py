@@ -142,11 +142,23 @@ def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
     why = (f"The Allan deviation at tau = {tau.min():.3g} .. {tau.max():.3g} s lies "
            f"below every sum of noise terms (|z| up to "
            f"{zmax:.1f}): the sensor's anti-aliasing or decimation filter averages the white "
-           f"noise over a few samples. No noise term describes a filter; these taus are left "
-           f"out of the parameter estimates but still count in chi2/dof.")
+           f"noise over a few samples. Until an output filter term (moving_average, "
+           f"bartlett, lowpass) is in the model, these taus are left out of the parameter "
+           f"estimates but still count in chi2/dof.")
     return Finding("sensor_filter", None, zmax, "max |z|", p, alpha, {},
                    {"tau_s": [float(tau.min()), float(tau.max())]}, why,
                    {"taus_set_aside": [float(t) for t in tau]})
+
+
+_FILTER_Z = 3.0
+"""A shortest tau this many standard scores below the model is an output filter's mark."""
+
+
+def _filter_signature(fit: FitResult, finding: Finding | None) -> bool:
+    """Whether the shortest taus lie below the model, as a sensor's output filter makes them
+    (then the filter terms are candidates; otherwise their refits would be wasted)."""
+    z = np.asarray(fit.z)
+    return finding is not None or bool(z.size and z[0] < -_FILTER_Z)
 
 
 def _in_band(fit: FitResult, line_finding: Finding, index: int) -> bool:
@@ -341,6 +353,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
 
     candidates = [n for n, t in TERMS.items() if n not in names and t.kind == "additive"
                   and (t.needs_record != "temperature" or temperature is not None)]
+    if _filter_signature(base, filt) and not any(get_term(n).kind == "filter" for n in names):
+        candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term, len(candidates))
     suggestions = [_suggest(ctx, term, alpha) for term in candidates]
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its

@@ -137,8 +137,8 @@ class FitResult:
         """Model Allan variance at any ``tau_s`` (the fitted noise terms; temperature, removed
         upstream, contributes nothing)."""
         tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))
-        return sum((_term_avar(t.term, t.params, tau, self.fs_hz) for t in self.terms),
-                   np.zeros_like(tau))
+        return model_avar([(t.term, t.params) for t in self.terms
+                           if get_term(t.term).role != "regressor"], tau, self.fs_hz)
 
     def term_avar_at(self, tau_s: np.ndarray | float) -> dict[str, np.ndarray]:
         """Per-term Allan variance at ``tau_s`` keyed ``term`` (``term#2`` for repeats)."""
@@ -231,6 +231,11 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
         shapes[i] = {k: float(v) for k, v in best[1].items()}
     coef, _ = solve(extra_cols)
     start: list[dict[str, float]] = [dict() for _ in names]
+    for i, n in enumerate(names):
+        term = get_term(n)
+        if term.kind == "filter":
+            start[i] = {**term.small_default,
+                        **{k: fixed[(i, k)] for k in term.param_names if (i, k) in fixed}}
     all_owners = owners + extra_owner
     all_cols = list(base.T) + extra_cols
     for c, owner, col in zip(coef, all_owners, all_cols, strict=True):
@@ -269,7 +274,7 @@ def _layout(names: list[str], fs: float, duration_s: float,
             if (i, p.name) in fixed:
                 continue
             keys.append((i, p.name))
-            a, b = p.log_fit_bounds(fs, duration_s)
+            a, b = term.log_fit_bounds(p, fs, duration_s)
             lo.append(a)
             hi.append(b)
     return _Layout(names, keys, np.array(lo), np.array(hi), dict(fixed))

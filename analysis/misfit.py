@@ -33,11 +33,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from analysis.bin_average import SIN4, bin_avg_cos, sin4_factor
 from analysis.terms import get_term, model_psd
 
 Model = Sequence[tuple[str, dict[str, float]]]
 
-_SIN4 = (3.0 / 8.0, -0.5, 1.0 / 8.0)  # sin^4 x = 3/8 - cos(2x)/2 + cos(4x)/8
 _POINTS_PER_DECADE = 100
 Z_CLIP = 1.0e4
 """Largest |z| reported (a measurement 1e4 standard scores from the model)."""
@@ -51,26 +51,8 @@ def _two_sided_psd(model: Model, u: np.ndarray, fs_hz: float) -> np.ndarray:
     return 0.5 * model_psd(noise, u * fs_hz, fs_hz)
 
 
-def _bin_avg_cos(nu: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
-    """Average of cos(pi nu u) over u in [ua, ub] (nu may be 0)."""
-    if nu == 0:
-        return np.ones_like(ua)
-    x = np.pi * nu
-    return (np.sin(x * ub) - np.sin(x * ua)) / (x * (ub - ua))
-
-
-def _sin4_factor(m: float, um: np.ndarray, ua: np.ndarray, ub: np.ndarray,
-                 fast: np.ndarray) -> np.ndarray:
-    """sin^4(pi u m): exact bin average where ``fast``, mid-point value elsewhere."""
-    out = np.sin(np.pi * um * m) ** 4
-    if np.any(fast):
-        a, b = ua[fast], ub[fast]
-        out[fast] = sum(c * _bin_avg_cos(2.0 * p * m, a, b) for p, c in enumerate(_SIN4))
-    return out
-
-
 _P, _Q = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-_PQ_COEF = np.tile(0.5 * np.outer(_SIN4, _SIN4).ravel(), 2)
+_PQ_COEF = np.tile(0.5 * np.outer(SIN4, SIN4).ravel(), 2)
 
 
 def _pair_sin4_both_fast(mi: float, mj: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
@@ -105,7 +87,7 @@ def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarr
     # times 2 fs^2 for both signs of f and the change of variable f = u fs
     smooth = 2.0 * fs_hz**2 * s2 * s2 * 16.0 / np.sin(np.pi * um) ** 4 * width
     fast = width[None, :] * m[:, None] > 0.05
-    factors = np.stack([_sin4_factor(m[i], um, ua, ub, fast[i]) for i in range(n)])
+    factors = np.stack([sin4_factor(m[i], um, ua, ub, fast[i]) for i in range(n)])
     sum_gamma2 = (factors * smooth) @ factors.T
     # where both filters oscillate within a bin, the two factors of equal or double m are
     # not independent: average their product exactly (for larger ratios the cross terms of
@@ -162,9 +144,9 @@ def _deterministic_terms(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.
         d = np.empty(n)
         for i in range(n):
             span = float(n_terms[i] - 1 + m[i])  # distance between the two end averages
-            sin2_span = 0.5 * (1.0 - _bin_avg_cos(2.0 * span, ua, ub))
+            sin2_span = 0.5 * (1.0 - bin_avg_cos(2.0 * span, ua, ub))
             fast = width * m[i] > 0.05
-            sin2_m = np.where(fast, 0.5 * (1.0 - _bin_avg_cos(2.0 * m[i], ua, ub)),
+            sin2_m = np.where(fast, 0.5 * (1.0 - bin_avg_cos(2.0 * m[i], ua, ub)),
                               np.sin(np.pi * um * m[i]) ** 2)
             avg2 = sin2_m / (m[i] ** 2 * np.sin(np.pi * um) ** 2)
             d[i] = 2.0 * fs_hz * float(np.sum(s2 * avg2 * 4.0 * sin2_span * width))

@@ -62,11 +62,22 @@ class NoiseStream:
         n = int(n)
         if n < 0:
             raise ValueError("n must be >= 0")
-        out = np.zeros(n)
-        for sim in self._sims:
-            out += sim.take(n, temperature)
+        noise = np.zeros(n)
+        other = np.zeros(n)
+        filters = []
+        for (name, _), sim in zip(self.model, self._sims, strict=True):
+            term = get_term(name)
+            if term.kind == "filter":
+                filters.append(sim)
+            elif term.role == "noise":
+                noise += sim.take(n, temperature)
+            else:
+                other += sim.take(n, temperature)
+        for sim in filters:
+            # an output filter acts on the Gaussian noise (see analysis.terms.output_filter)
+            noise = sim.apply(noise)
         self.samples_taken += n
-        return out
+        return noise + other
 
     def take_terms(self, n: int, temperature: np.ndarray | None = None) -> np.ndarray:
         """Like :meth:`take` but one row per term (shape ``(len(model), n)``)."""

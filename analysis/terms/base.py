@@ -37,7 +37,8 @@ class Param:
     """One parameter of a term.
 
     ``kind`` selects its unit for a channel (see :func:`param_unit`): ``"rate/sqrt(Hz)"``,
-    ``"angle"``, ``"rate"``, ``"rate/sqrt(s)"``, ``"rate/s"``, ``"s"``, ``"Hz"``, ``"rate/degC"``.
+    ``"angle"``, ``"rate"``, ``"rate/sqrt(s)"``, ``"rate/s"``, ``"s"``, ``"Hz"``, ``"rate/degC"``,
+    ``"samples"`` (a filter length in samples).
     ``lo``/``hi`` bound physically meaningful values in SI units (``lo`` exclusive when
     ``lo_open``); a frequency (kind ``"Hz"``) is further limited to the Nyquist frequency.
     """
@@ -57,18 +58,22 @@ class Param:
 
     def log_fit_bounds(self, fs_hz: float, duration_s: float) -> tuple[float, float]:
         """Bounds of ``ln(value)`` in the Allan fit: a time between a fifth of a sample and
-        50 record lengths, a frequency between half a cycle per record and Nyquist, any other
+        50 record lengths, a frequency between half a cycle per record and Nyquist, a length in
+        samples between 1 and its upper limit, any other
         (amplitude-like) parameter between 1e-30 and 1e6 channel units."""
         if self.kind == "s":
             return math.log(0.2 / fs_hz), math.log(max(50.0 * duration_s, 1.0 / fs_hz))
         if self.kind == "Hz":
             return math.log(0.5 / duration_s), math.log(0.5 * fs_hz)
+        if self.kind == "samples":
+            return 0.0, math.log(self.hi)
         return math.log(1e-30), math.log(1e6)
 
     @property
     def is_scale(self) -> bool:
-        """True for a time or frequency (a shape parameter, never "consistent with zero")."""
-        return self.kind in ("s", "Hz")
+        """True for a time, frequency or length (a shape parameter, never "consistent with
+        zero")."""
+        return self.kind in ("s", "Hz", "samples")
 
 
 _RATE_UNITS = {"rad/s": ("rad", "rad/s^2"), "m/s^2": ("m/s", "m/s^3"), "deg/s": ("deg",
@@ -86,6 +91,7 @@ def param_unit(param: Param, channel_units: str = "rad/s") -> str:
         "rate/s": ramp,
         "s": "s",
         "Hz": "Hz",
+        "samples": "samples",
         "rate/degC": f"{channel_units}/degC",
     }[param.kind]
 
@@ -197,6 +203,12 @@ class Term:
                 raise TermError(f"{self.name}.{p.name} = {v:g} outside its physical range "
                                 f"{lo_txt}, {hi:g}]")
 
+    def log_fit_bounds(self, param: Param, fs_hz: float, duration_s: float
+                       ) -> tuple[float, float]:
+        """Bounds of ``ln(value)`` of ``param`` in the Allan fit (see
+        :meth:`Param.log_fit_bounds`; a term may narrow them)."""
+        return param.log_fit_bounds(fs_hz, duration_s)
+
     # --- Allan variance and spectrum ---------------------------------------------------------
     def avar(self, tau_s: np.ndarray | float, fs_hz: float, **params: Any) -> np.ndarray:
         """Allan variance (units^2) at averaging times ``tau_s`` (s) for data sampled at
@@ -220,6 +232,12 @@ class Term:
 
     def _avar(self, tau: np.ndarray, fs: float, **params: Any) -> np.ndarray:
         raise NotImplementedError
+
+    def autocovariance(self, fs_hz: float, params: dict[str, float]) -> np.ndarray | None:
+        """Autocovariance ``R(0), R(1), ...`` (units^2) of the sampled term when it vanishes
+        beyond a few lags (white noise: one lag; quantization: two), else None. An output
+        filter uses it to filter the term exactly in the time domain."""
+        return None
 
     def _psd(self, f: np.ndarray, fs: float, **params: Any) -> np.ndarray:
         raise NotImplementedError

@@ -45,6 +45,11 @@ class Quantization(Term):
         # rate = first difference of a white angle error of variance Q^2, times fs
         return 8.0 * Q * Q * fs * np.sin(np.pi * f / fs) ** 2
 
+    def autocovariance(self, fs_hz, params):
+        # (e_k - e_{k-1}) fs: variance 2 Q^2 fs^2, lag-one covariance -Q^2 fs^2
+        v = (params["Q"] * fs_hz) ** 2
+        return np.array([2.0 * v, -v])
+
     def simulator(self, params, fs_hz, rng, **options):
         return _QuantizationSim(float(params["Q"]), fs_hz, rng)
 

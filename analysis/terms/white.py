@@ -42,6 +42,9 @@ class White(Term):
     def _psd(self, f: np.ndarray, fs: float, N: float) -> np.ndarray:
         return np.full_like(f, 2.0 * N * N)
 
+    def autocovariance(self, fs_hz, params):
+        return np.array([params["N"] ** 2 * fs_hz])
+
     def simulator(self, params, fs_hz, rng, **options):
         return _WhiteSim(float(params["N"]), fs_hz, rng)
 

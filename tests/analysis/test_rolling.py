@@ -108,8 +108,10 @@ def test_dashboard_coefficients_equal_imunoise_fit_on_the_same_samples(tmp_path,
             # from there with a few bisections, so its last digits follow the exact start.
             live_lo, live_hi = _cis(live["model"])[key]
             assert live_lo == 0 and hi / 2 < live_hi < 2 * hi, key
+    # the same solution to the solver's tolerance (its parameters agree to 1e-6 above); a
+    # term left at the bottom of its range still moves chi2/dof in the sixth digit
     assert live["error"]["chi2_per_dof"] == pytest.approx(cli["error"]["chi2_per_dof"],
-                                                          rel=1e-6)
+                                                          rel=1e-5)
     assert live["failures"] == cli["failures"]
     allan = rs.get("gyro_x").allan()
     np.testing.assert_allclose(allan["adev"], cli["allan"]["adev"], rtol=1e-9)

@@ -1,0 +1,32 @@
+"""Averages of the Allan filter's oscillating factor over frequency bins.
+
+Integrals over frequency of ``S(f) |H_m(f)|^2`` (the Allan variance, its covariance, the
+effect of an output filter) run on a grid in ``u = f/fs``. The factor ``sin^4(pi u m)`` of the
+Allan filter oscillates faster than any affordable grid at large ``m``; over a bin where it
+does, it is replaced by its exact average, from ``sin^4 x = 3/8 - cos(2x)/2 + cos(4x)/8``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SIN4 = (3.0 / 8.0, -0.5, 1.0 / 8.0)
+"""Fourier coefficients of sin^4 x on 1, cos 2x, cos 4x."""
+
+
+def bin_avg_cos(nu: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Average of ``cos(pi nu u)`` over each bin ``[ua, ub]`` (``nu`` may be 0)."""
+    if nu == 0:
+        return np.ones_like(ua)
+    x = np.pi * nu
+    return (np.sin(x * ub) - np.sin(x * ua)) / (x * (ub - ua))
+
+
+def sin4_factor(m: float, um: np.ndarray, ua: np.ndarray, ub: np.ndarray,
+                fast: np.ndarray) -> np.ndarray:
+    """``sin^4(pi u m)``: its exact bin average where ``fast``, its mid-point value elsewhere."""
+    out = np.sin(np.pi * um * m) ** 4
+    if np.any(fast):
+        a, b = ua[fast], ub[fast]
+        out[fast] = sum(c * bin_avg_cos(2.0 * p * m, a, b) for p, c in enumerate(SIN4))
+    return out

@@ -1,0 +1,60 @@
+"""Moving-average output filter: the mean of the last L samples (``taps``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from analysis.terms.base import Param
+from analysis.terms.output_filter import OutputFilter
+
+MAX_TAPS = 1024.0
+
+
+def boxcar(taps: float) -> np.ndarray:
+    """Weights of an L-tap moving average with unit sum. A non-integer L (the fit moves it
+    continuously) weights its last tap by the fraction, so the filter, its response and its
+    Allan variance pass smoothly through every integer L."""
+    whole = int(math.floor(taps))
+    frac = taps - whole
+    g = np.ones(whole + (1 if frac > 1e-12 else 0))
+    if frac > 1e-12:
+        g[-1] = frac
+    return g / taps
+
+
+class MovingAverage(OutputFilter):
+    name = "moving_average"
+    order = 200
+    params = (Param("taps", "samples", 1.0, MAX_TAPS, "number of samples averaged (L)",
+                    lo_open=False),)
+    amplitude = "taps"
+    allan_signature = ("Allan deviation below the white-noise line at tau < L/fs: "
+                       "N^2/tau - N^2 (L^2-1)/(2 L fs tau^2) once tau >= L/fs")
+    effect = "averaging output filter (moving average)"
+    explanation = (
+        "The sensor outputs the mean of its last L internal samples (a FIR moving average, "
+        "what an averaging or decimation setting does). White noise is averaged over L "
+        "samples, so the Allan deviation at the shortest averaging times falls below the "
+        "slope -1/2 line and joins it near tau = L/fs; the spectrum rolls off as "
+        "sin^2(pi f L/fs)/(L sin(pi f/fs))^2 with its first zero at fs/L.")
+    small_default = {"taps": 2.0}
+
+    def impulse_response(self, fs_hz, params):
+        return boxcar(float(params["taps"]))
+
+    def response(self, f, fs_hz, params):
+        taps = float(params["taps"])
+        if abs(taps - round(taps)) > 1e-12:
+            return super().response(f, fs_hz, params)
+        u = np.atleast_1d(np.asarray(f, dtype=np.float64)) / fs_hz
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = (np.sin(np.pi * u * taps) / (taps * np.sin(np.pi * u))) ** 2
+        return np.where(np.abs(np.sin(np.pi * u)) < 1e-12, 1.0, out)
+
+    def length(self, fs_hz, params):
+        return float(params["taps"])
+
+
+TERM = MovingAverage()

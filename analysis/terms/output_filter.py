@@ -1,0 +1,234 @@
+"""What an output filter term is, and its exact effect on the Allan variance.
+
+Most MEMS sensors average their samples before they leave the part: the ADIS16350/16405
+``SENS_AVG`` Bartlett filter, the ITG-3200 digital low-pass, the ADXL345 bandwidth setting, a
+phone's decimation. The filter pulls the Allan deviation at the shortest averaging times below
+every sum of noise terms. A filter term (``kind == "filter"``) describes it by its impulse
+response ``g`` (unit DC gain) at the sample rate: the PSD of every Gaussian noise term
+(``role == "noise"``) is multiplied by ``|G(f)|^2``; deterministic terms pass unchanged.
+
+Filtered Allan variance, exact where it matters:
+
+* Terms whose sampled autocovariance ends after a few lags (white noise, quantization; see
+  :meth:`Term.autocovariance`) are filtered in the time domain: the output autocovariance is
+  ``R_out = R_in * r_g`` (``r_g`` the autocorrelation of ``g``) and the Allan variance of a
+  stationary sequence with autocovariance ``R`` at ``m`` samples is
+  ``[sum_{|k|<m} (m-|k|) R(k) - sum_{k=1}^{2m-1} (m-|k-m|) R(k)] / m^2``, which beyond the last
+  lag ``K`` is ``(m sum_k R(k) - 3 sum_{k>0} k R(k)) / m^2``.
+* The other noise terms (random walk, flicker, Markov) hold their power where ``|G|^2`` is 1
+  to within ``(f L/fs)^2``; their filtered Allan variance is their own plus
+  ``(fs/2) int_0^{1/2} S(u fs) (|G(u)|^2 - 1) 4 sin^4(pi u m) / (m^2 sin^2(pi u)) du``, summed
+  on a grid in ``u = f/fs`` with the ``sin^4`` factor bin-averaged where it oscillates faster
+  than the grid (:mod:`analysis.bin_average`). The correction relative to the term's own
+  Allan variance shrinks as ``(L/m)^2`` (``L`` the filter length); beyond ``m = 300 L`` it is
+  below 1e-5 and left out.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+from scipy.signal import lfilter
+
+from analysis.bin_average import sin4_factor
+from analysis.terms.base import Term, TermSimulator
+
+_CORRECTION_REACH = 300.0
+"""Multiples of the filter length beyond which the non-white correction is left out."""
+_CACHE_SIZE = 256
+
+
+def avar_from_autocovariance(r: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Allan variance (units^2) at averaging factors ``m`` (samples, >= 1) of a stationary
+    sequence with autocovariance ``r[k]``, ``k = 0..K`` (zero beyond ``K``).
+
+    Exact for integer ``m``; a non-integer ``m`` above ``K`` uses the closed form, below it
+    the nearest integer."""
+    r = np.asarray(r, dtype=np.float64)
+    m = np.atleast_1d(np.asarray(m, dtype=np.float64))
+    k_last = len(r) - 1
+    lags = np.arange(1, k_last + 1, dtype=np.float64)
+    p0 = np.concatenate(([0.0], np.cumsum(r[1:])))          # sum_{k=1}^{n} r(k)
+    p1 = np.concatenate(([0.0], np.cumsum(lags * r[1:])))   # sum_{k=1}^{n} k r(k)
+    total = r[0] + 2.0 * p0[-1]
+    out = (m * total - 3.0 * p1[-1]) / (m * m)
+    near = m <= k_last
+    if np.any(near):
+        mi = np.maximum(np.rint(m[near]).astype(np.int64), 1)
+
+        def at(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+            return p[np.clip(n, 0, k_last)]
+
+        a = mi * r[0] + 2.0 * (mi * at(p0, mi - 1) - at(p1, mi - 1))
+        b = at(p1, mi) + 2.0 * mi * (at(p0, 2 * mi - 1) - at(p0, mi)) \
+            - (at(p1, 2 * mi - 1) - at(p1, mi))
+        out[near] = (a - b) / (mi * mi).astype(np.float64)
+    return out
+
+
+def _symmetric(r: np.ndarray) -> np.ndarray:
+    """``r[-K..K]`` from ``r[0..K]``."""
+    return np.concatenate((r[:0:-1], r))
+
+
+class FilterSimulator(TermSimulator):
+    """Applies the filter to the sum of the noise terms, keeping its state across blocks."""
+
+    def __init__(self, b: np.ndarray, a: np.ndarray) -> None:
+        self.b, self.a = np.asarray(b, float), np.asarray(a, float)
+        self.zi = np.zeros(max(len(self.a), len(self.b)) - 1)
+        self.started = False
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """The next block of filter output for the input block ``x``."""
+        if x.size == 0:
+            return x
+        if not self.started:
+            # start in the steady state of the first input value (no turn-on transient)
+            from scipy.signal import lfilter_zi
+            self.zi = lfilter_zi(self.b, self.a) * x[0] if len(self.zi) else self.zi
+            self.started = True
+        if not len(self.zi):
+            return self.b[0] / self.a[0] * x
+        y, self.zi = lfilter(self.b, self.a, x, zi=self.zi)
+        return y
+
+    def take(self, n: int, temperature: np.ndarray | None = None) -> np.ndarray:
+        return np.zeros(int(n))
+
+
+class OutputFilter(Term):
+    """Base class of the filter terms. Subclasses give :meth:`impulse_response` (``g``, unit
+    sum; an infinite response cut where it has decayed below 1e-12) and may give
+    :meth:`response` in closed form and :meth:`coefficients` for simulation."""
+
+    kind = "filter"
+    role = "filter"
+    continuous_psd = False
+    live = False
+    filter_signature: str = ""
+
+    def __init__(self) -> None:
+        self._cache: OrderedDict[tuple, Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    # no Allan variance or spectrum of its own: it acts on the noise terms
+    def _avar(self, tau: np.ndarray, fs: float, **params: Any) -> np.ndarray:
+        return np.zeros_like(tau)
+
+    def _psd(self, f: np.ndarray, fs: float, **params: Any) -> np.ndarray:
+        return np.zeros_like(f)
+
+    def impulse_response(self, fs_hz: float, params: dict[str, float]) -> np.ndarray:
+        raise NotImplementedError
+
+    def coefficients(self, fs_hz: float, params: dict[str, float]
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """``(b, a)`` of the filter as a difference equation (default: the FIR ``g``)."""
+        return self.impulse_response(fs_hz, params), np.array([1.0])
+
+    def length(self, fs_hz: float, params: dict[str, float]) -> float:
+        """Effective length in samples (sets the grids and the reach of the correction)."""
+        g = self.impulse_response(fs_hz, params)
+        return float(1.0 / np.sum(g * g))
+
+    def response(self, f: np.ndarray, fs_hz: float, params: dict[str, float]) -> np.ndarray:
+        g = self.impulse_response(fs_hz, params)
+        w = 2.0 * np.pi * np.atleast_1d(np.asarray(f, dtype=np.float64)) / fs_hz
+        k = np.arange(len(g), dtype=np.float64)
+        phase = np.outer(w, k)
+        return (np.cos(phase) @ g) ** 2 + (np.sin(phase) @ g) ** 2
+
+    def _remember(self, key: tuple, make: Any) -> Any:
+        """``make()`` remembered under ``key`` (a fit asks again for the same filter while it
+        moves only the noise amplitudes)."""
+        with self._lock:
+            hit = self._cache.get(key)
+            if hit is not None:
+                self._cache.move_to_end(key)
+                return hit
+        hit = make()
+        with self._lock:
+            self._cache[key] = hit
+            while len(self._cache) > _CACHE_SIZE:
+                self._cache.popitem(last=False)
+        return hit
+
+    def _autocorrelation(self, fs_hz: float, params: dict[str, float]) -> np.ndarray:
+        """``r_g[-K..K]`` of the impulse response."""
+        def make() -> np.ndarray:
+            g = self.impulse_response(fs_hz, params)
+            return np.correlate(g, g, mode="full")
+        return self._remember(("acf", fs_hz, tuple(sorted(params.items()))), make)
+
+    def filtered_avar(self, noise: list[tuple[Term, dict[str, float]]], tau: np.ndarray,
+                      fs_hz: float, params: dict[str, float]) -> np.ndarray:
+        tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
+        m = tau * fs_hz
+        out = np.zeros_like(tau)
+        r_g = self._autocorrelation(fs_hz, params)
+        for term, p in noise:
+            r_in = term.autocovariance(fs_hz, p)
+            if r_in is not None:
+                full = np.convolve(_symmetric(np.asarray(r_in, float)), r_g)
+                out += avar_from_autocovariance(full[len(full) // 2:], m)
+            else:
+                out += term.avar_fast(tau, fs_hz, p) + self._correction(term, p, m, fs_hz,
+                                                                        params)
+        return out
+
+    def _correction(self, term: Term, p: dict[str, float], m: np.ndarray, fs_hz: float,
+                    params: dict[str, float]) -> np.ndarray:
+        """Filtered minus unfiltered Allan variance of one noise term (see the module)."""
+        length = self.length(fs_hz, params)
+        near = m <= _CORRECTION_REACH * max(length, 1.0)
+        out = np.zeros_like(m)
+        if not np.any(near):
+            return out
+        key = ("corr", term.name, fs_hz, tuple(sorted(p.items())),
+               tuple(sorted(params.items())), m[near].tobytes())
+
+        def make() -> np.ndarray:
+            ua, ub, um, gain = self._grid(fs_hz, params, float(m[near].max()))
+            width = ub - ua
+            s = term.psd(um * fs_hz, fs_hz, **p)
+            smooth = 0.5 * fs_hz * s * (gain - 1.0) * 4.0 / np.sin(np.pi * um) ** 2 * width
+            vals = np.empty(int(np.count_nonzero(near)))
+            for i, mi in enumerate(m[near]):
+                fast = width * mi > 0.05
+                vals[i] = float(np.sum(smooth * sin4_factor(mi, um, ua, ub, fast))) / (mi * mi)
+            return vals
+
+        out[near] = self._remember(key, make)
+        return out
+
+    def _grid(self, fs_hz: float, params: dict[str, float], m_max: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Bins in ``u = f/fs`` (log-spaced from well below ``1/m_max``, linear and fine enough
+        for the response's ripple near Nyquist) and ``|G|^2`` at their mid-points."""
+        def make() -> tuple[np.ndarray, ...]:
+            length = max(self.length(fs_hz, params), 1.0)
+            u_lo = 1e-3 / max(m_max, 1.0)
+            decades = math.log10(0.5 / u_lo)
+            log_edges = np.geomspace(u_lo, 0.5, int(decades * 100) + 2)
+            n_lin = int(min(max(64.0 * length, 512.0), 16384.0))
+            edges = np.unique(np.concatenate((log_edges, np.linspace(0.0, 0.5, n_lin + 1)
+                                              [np.linspace(0.0, 0.5, n_lin + 1) > u_lo])))
+            ua, ub = edges[:-1], edges[1:]
+            um = 0.5 * (ua + ub)
+            return ua, ub, um, self.response(um * fs_hz, fs_hz, params)
+        return self._remember(("grid", fs_hz, tuple(sorted(params.items())),
+                               round(math.log2(max(m_max, 1.0)), 1)), make)
+
+    def simulator(self, params, fs_hz, rng, **options):
+        b, a = self.coefficients(fs_hz, params)
+        return FilterSimulator(b, a)
+
+    def add_discrete(self, dm, params):
+        from analysis.terms.base import TermError
+        raise TermError(f"{self.name}: the block likelihood has no output-filter states; use "
+                        f"the Allan estimator")

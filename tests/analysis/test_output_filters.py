@@ -1,0 +1,119 @@
+"""Output filter terms (moving_average, bartlett, lowpass): their Allan variance against the
+closed forms and against simulated filtered records, the fit recovering a filter, and the
+diagnosis naming it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from analysis.diagnosis import diagnose
+from analysis.fit import fit_series
+from analysis.noise_stream import NoiseStream
+from analysis.terms import TermError, get_term, model_avar, parse_model
+from analysis.terms.output_filter import avar_from_autocovariance
+
+FS = 100.0
+NOISE = [("white", {"N": 1e-3}), ("quantization", {"Q": 2e-5}), ("random_walk", {"K": 1e-4})]
+FILTERS = [("moving_average", {"taps": 4.0}), ("bartlett", {"taps": 4.0}),
+           ("lowpass", {"fc": 5.0})]
+
+
+def _oavar(x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    c = np.concatenate(([0.0], np.cumsum(x)))
+    out = []
+    for k in m:
+        d = (c[2 * k:] - 2.0 * c[k:-k] + c[:-2 * k]) / k
+        out.append(0.5 * np.mean(d * d))
+    return np.array(out)
+
+
+def test_autocovariance_formula_reproduces_white_and_quantization() -> None:
+    m = np.array([1, 2, 3, 5, 17, 400, 1e4 + 0.5])
+    for name, p in [("white", {"N": 2e-3}), ("quantization", {"Q": 3e-5})]:
+        term = get_term(name)
+        got = avar_from_autocovariance(term.autocovariance(FS, p), m)
+        np.testing.assert_allclose(got, term.avar(m / FS, FS, **p), rtol=1e-12)
+
+
+def test_moving_average_of_white_noise_has_the_closed_form() -> None:
+    # N^2/tau - N^2 (L^2-1)/(2 L fs tau^2) once tau >= L/fs; at m = 1, sigma^2/L^2
+    n, taps = 1e-3, 8
+    tau = np.array([8, 9, 20, 1000]) / FS
+    got = model_avar([("white", {"N": n}), ("moving_average", {"taps": taps})], tau, FS)
+    want = n**2 / tau - n**2 * (taps**2 - 1) / (2 * taps * FS * tau**2)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    one = model_avar([("white", {"N": n}), ("moving_average", {"taps": taps})], 1 / FS, FS)
+    assert one[0] == pytest.approx(n**2 * FS / taps**2, rel=1e-12)
+
+
+@pytest.mark.parametrize("filt", FILTERS, ids=[f[0] for f in FILTERS])
+def test_numeric_route_agrees_with_the_time_domain(filt) -> None:
+    # the grid integral used for random walk and flicker, checked on white noise where the
+    # time-domain result is exact
+    name, p = filt
+    term, white = get_term(name), get_term("white")
+    m = np.array([1, 2, 3, 4, 8, 16, 64, 1000], dtype=float)
+    exact = model_avar([("white", {"N": 1.0}), (name, p)], m / FS, FS)
+    numeric = white.avar(m / FS, FS, N=1.0) + term._correction(white, {"N": 1.0}, m, FS, p)
+    np.testing.assert_allclose(numeric, exact, rtol=2e-3)
+
+
+@pytest.mark.parametrize("filt", FILTERS, ids=[f[0] for f in FILTERS])
+def test_filtered_model_matches_a_simulated_filtered_record(filt) -> None:
+    n = 1 << 20
+    x = NoiseStream(NOISE + [filt], FS, seed=11).take(n)
+    m = np.array([1, 2, 3, 4, 8, 16, 64])
+    measured = _oavar(x, m)
+    model = model_avar(NOISE + [filt], m / FS, FS)
+    # the overlapping estimate's relative spread is below sqrt(4 m / n): 5 of them
+    tol = 5.0 * np.sqrt(4.0 * m / n)
+    assert np.all(np.abs(measured / model - 1.0) < tol), (measured / model - 1.0, tol)
+    unfiltered = model_avar(NOISE, m / FS, FS)
+    assert measured[0] < 0.5 * unfiltered[0]  # the filter really acted
+
+
+def test_filter_parameters_are_checked() -> None:
+    with pytest.raises(TermError, match="below fs/1000"):
+        get_term("lowpass").validate({"fc": 0.01}, FS)
+    with pytest.raises(TermError, match="taps = 0.5 outside"):
+        get_term("moving_average").validate({"taps": 0.5}, FS)
+    spec = parse_model("white,moving_average:taps=4")
+    assert spec.names == ["white", "moving_average"] and spec.fixed == {1: {"taps": 4.0}}
+    with pytest.raises(TermError, match="at most one output filter"):
+        model_avar([("white", {"N": 1.0}), ("lowpass", {"fc": 5.0}),
+                    ("bartlett", {"taps": 2.0})], np.array([1.0]), FS)
+
+
+def test_fit_recovers_a_four_tap_moving_average() -> None:
+    model = [("white", {"N": 1e-3}), ("random_walk", {"K": 1e-5}),
+             ("moving_average", {"taps": 4.0})]
+    x = NoiseStream(model, FS, seed=3).take(1 << 20)
+    with_filter, _ = fit_series(x, FS, "white,random_walk,moving_average")
+    without, _ = fit_series(x, FS, "white,random_walk")
+    taps = with_filter.terms[2]
+    lo, hi = taps.ci95["taps"]
+    assert lo <= 4.0 <= hi and hi - lo < 1.0, taps
+    n_lo, n_hi = with_filter.terms[0].ci95["N"]
+    assert n_lo <= 1e-3 <= n_hi
+    assert with_filter.chi2_per_dof < 2.0 < 10.0 < without.chi2_per_dof
+
+
+def test_diagnosis_names_the_filter_of_a_filtered_record() -> None:
+    x = NoiseStream([("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4}),
+                     ("random_walk", {"K": 1e-5}), ("moving_average", {"taps": 4.0})],
+                    FS, seed=5).take(200_000)
+    d = diagnose(x, FS, "white,bias_instability,random_walk")
+    top = d.suggestions[0]
+    assert top.significant and get_term(top.term).kind == "filter", top
+    assert top.chi2_per_dof_after < 2.0 < d.fit.chi2_per_dof
+    assert top.apply["model"] == f"white,bias_instability,random_walk,{top.term}"
+    refit, _ = fit_series(x, FS, top.apply["model"], intervals="jacobian")
+    assert refit.chi2_per_dof == pytest.approx(top.chi2_per_dof_after, rel=1e-6)
+
+
+def test_no_filter_is_offered_for_an_unfiltered_record() -> None:
+    x = NoiseStream([("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4}),
+                     ("random_walk", {"K": 1e-5})], FS, seed=6).take(200_000)
+    d = diagnose(x, FS, "white,bias_instability,random_walk")
+    assert not [s for s in d.suggestions if get_term(s.term).kind == "filter" and s.significant]
