@@ -38,7 +38,8 @@ class Param:
 
     ``kind`` selects its unit for a channel (see :func:`param_unit`): ``"rate/sqrt(Hz)"``,
     ``"angle"``, ``"rate"``, ``"rate/sqrt(s)"``, ``"rate/s"``, ``"s"``, ``"Hz"``, ``"rate/degC"``,
-    ``"samples"`` (a filter length in samples).
+    ``"samples"`` (a filter length in samples), ``"ratio"`` (dimensionless, e.g. a quality
+    factor).
     ``lo``/``hi`` bound physically meaningful values in SI units (``lo`` exclusive when
     ``lo_open``); a frequency (kind ``"Hz"``) is further limited to the Nyquist frequency.
     """
@@ -65,15 +66,15 @@ class Param:
             return math.log(0.2 / fs_hz), math.log(max(50.0 * duration_s, 1.0 / fs_hz))
         if self.kind == "Hz":
             return math.log(0.5 / duration_s), math.log(0.5 * fs_hz)
-        if self.kind == "samples":
-            return 0.0, math.log(self.hi)
+        if self.kind in ("samples", "ratio"):
+            return math.log(max(self.lo, 1e-300)), math.log(self.hi)
         return math.log(1e-30), math.log(1e6)
 
     @property
     def is_scale(self) -> bool:
         """True for a time, frequency or length (a shape parameter, never "consistent with
         zero")."""
-        return self.kind in ("s", "Hz", "samples")
+        return self.kind in ("s", "Hz", "samples", "ratio")
 
 
 _RATE_UNITS = {"rad/s": ("rad", "rad/s^2"), "m/s^2": ("m/s", "m/s^3"), "deg/s": ("deg",
@@ -92,6 +93,7 @@ def param_unit(param: Param, channel_units: str = "rad/s") -> str:
         "s": "s",
         "Hz": "Hz",
         "samples": "samples",
+        "ratio": "1",
         "rate/degC": f"{channel_units}/degC",
     }[param.kind]
 

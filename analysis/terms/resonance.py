@@ -1,0 +1,119 @@
+"""Narrowband random vibration: a second-order resonance with centre frequency f0, quality
+factor Q and standard deviation sigma.
+
+Defined in discrete time, so its Allan variance and PSD are exact at every tau = m/fs: the
+AR(2) process ``x_k = 2 r cos(w0) x_{k-1} - r^2 x_{k-2} + e_k`` with ``w0 = 2 pi f0/fs`` and
+pole radius ``r = exp(-pi f0/(Q fs))`` (half-power bandwidth f0/Q), scaled to stationary
+standard deviation sigma. Its autocorrelation is ``rho(k) = 2 Re(c p^|k|)`` with the pole
+``p = r e^{i w0}``, so its Allan variance is the first-order Markov formula
+(:func:`analysis.terms.gauss_markov.ar1_avar_shape`'s closed form) evaluated at the complex
+pole and weighted by ``c``. A pure sinusoid is the limit Q -> infinity; the diagnosis tells
+the two apart by the width of the spectral peak.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.signal import lfilter
+
+from analysis.terms.base import Param, Term, TermSimulator
+
+_MAX_Q = 1.0e4
+
+
+def _poles(fs: float, f0: float, q: float) -> tuple[complex, float, float]:
+    """The pole ``p`` and the AR coefficients ``(phi1, phi2)``."""
+    r = math.exp(-math.pi * f0 / (q * fs))
+    w0 = 2.0 * math.pi * f0 / fs
+    return complex(r * math.cos(w0), r * math.sin(w0)), 2.0 * r * math.cos(w0), -r * r
+
+
+def _innovation_var(phi1: float, phi2: float) -> float:
+    """Variance of ``e_k`` giving the AR(2) process unit variance."""
+    return (1.0 + phi2) * ((1.0 - phi2) ** 2 - phi1 * phi1) / (1.0 - phi2)
+
+
+def resonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float) -> np.ndarray:
+    """Allan variance of the unit-variance resonance at averaging factors ``m``."""
+    p, phi1, phi2 = _poles(fs, f0, q)
+    rho1 = phi1 / (1.0 - phi2)
+    # rho(k) = 2 Re(c p^k): rho(0) = 1 and rho(1) = rho1 fix c
+    c = complex(0.5, (p.real - rho1) / (2.0 * p.imag)) if p.imag != 0 else complex(0.5, 0.0)
+    mm = np.asarray(m, dtype=np.complex128)
+    pm = np.exp(mm * np.log(p))
+    one_minus_pm = 1.0 - pm
+    num = mm * (1.0 - p * p) - 2.0 * p * one_minus_pm - p * one_minus_pm**2
+    shape = num / (mm * mm * (1.0 - p) ** 2)
+    return np.maximum(2.0 * np.real(c * shape), 0.0)
+
+
+class _ResonanceSim(TermSimulator):
+    def __init__(self, sigma: float, fs: float, f0: float, q: float,
+                 rng: np.random.Generator) -> None:
+        _, phi1, phi2 = _poles(fs, f0, q)
+        self.a = np.array([1.0, -phi1, -phi2])
+        self.e_sd = sigma * math.sqrt(_innovation_var(phi1, phi2))
+        self.rng = rng
+        # start in the stationary law: run the recursion over its settling time first
+        burn = int(min(50.0 * q * fs / (math.pi * f0), 2e6)) + 10
+        _, self.zi = lfilter([1.0], self.a, rng.standard_normal(burn) * self.e_sd,
+                             zi=np.zeros(2))
+
+    def take(self, n: int, temperature: np.ndarray | None = None) -> np.ndarray:
+        if n <= 0:
+            return np.zeros(0)
+        y, self.zi = lfilter([1.0], self.a, self.rng.standard_normal(n) * self.e_sd,
+                             zi=self.zi)
+        return y
+
+
+class Resonance(Term):
+    name = "resonance"
+    order = 75
+    params = (Param("sigma", "rate", 0.0, 1.0e3, "standard deviation of the vibration"),
+              Param("f0", "Hz", 0.0, 1.0e9, "centre frequency"),
+              Param("Q", "ratio", 0.5, _MAX_Q, "quality factor (centre frequency over the "
+                    "half-power bandwidth)", lo_open=False))
+    amplitude = "sigma"
+    repeatable = True
+    allan_signature = ("a bump near tau = 1/(2 f0) whose ripples decay faster the lower Q; "
+                       "sigma^2/tau falling beyond it")
+    effect = "narrowband random vibration (second-order resonance)"
+    explanation = (
+        "Vibration within a band: a mount, fan or structural mode, or the sensor's own proof "
+        "mass ringing, excited at random. Unlike a pure sinusoid its phase wanders, so its "
+        "spectral peak at f0 has a width f0/Q; on the Allan deviation it makes a bump near "
+        "tau = 1/(2 f0) with fewer ripples than a sinusoid's.")
+    small_default = {"sigma": 1e-6, "f0": 1.0, "Q": 10.0}
+
+    def log_fit_bounds(self, param, fs_hz, duration_s):
+        if param.name == "f0":
+            return math.log(20.0 / duration_s), math.log(0.49 * fs_hz)
+        return param.log_fit_bounds(fs_hz, duration_s)
+
+    def _avar(self, tau: np.ndarray, fs: float, sigma: float, f0: float, Q: float
+              ) -> np.ndarray:
+        return sigma * sigma * resonance_avar_shape(tau * fs, fs, f0, Q)
+
+    def _psd(self, f: np.ndarray, fs: float, sigma: float, f0: float, Q: float) -> np.ndarray:
+        _, phi1, phi2 = _poles(fs, f0, Q)
+        w = 2.0 * np.pi * f / fs
+        z1, z2 = np.exp(-1j * w), np.exp(-2j * w)
+        den = np.abs(1.0 - phi1 * z1 - phi2 * z2) ** 2
+        return 2.0 * sigma * sigma * _innovation_var(phi1, phi2) / (fs * den)
+
+    def start_shapes(self, fs_hz, duration_s, line):
+        f_lo = 40.0 / duration_s
+        freqs = list(np.geomspace(f_lo, 0.45 * fs_hz, 20)) if f_lo < 0.45 * fs_hz else []
+        if line is not None:
+            freqs.append(float(line[0]))
+        return [{"f0": float(f), "Q": q} for f in freqs for q in (3.0, 30.0)]
+
+    def simulator(self, params, fs_hz, rng, **options):
+        return _ResonanceSim(float(params["sigma"]), fs_hz, float(params["f0"]),
+                             float(params["Q"]), rng)
+
+
+TERM = Resonance()
