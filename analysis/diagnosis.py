@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import special, stats
 
 from analysis import evidence
 from analysis.evidence.finding import Finding, family_p
@@ -122,8 +122,13 @@ def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
     if not np.isfinite(drop) or drop <= 0:
         return 0.0
     logp = float(stats.chi2.logsf(drop, k))
-    # Far in the tail scipy returns -inf; the tail's leading term keeps the ranking meaningful.
-    return logp if np.isfinite(logp) else -0.5 * drop
+    if np.isfinite(logp):
+        return logp
+    # Far in the tail scipy returns -inf; the tail's leading terms keep the ranking meaningful,
+    # including its charge for each added parameter:
+    # ln P(chi2_k > x) ~ -x/2 + (k/2 - 1) ln(x/2) - ln Gamma(k/2).
+    return -0.5 * drop + (0.5 * k - 1.0) * float(np.log(0.5 * drop)) \
+        - float(special.gammaln(0.5 * k))
 
 
 def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
