@@ -356,7 +356,9 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             t_rate, x, temperature[0], temperature[1], alpha=alpha, units=units)
     findings.extend(by_term.values())
 
-    candidates = [n for n, t in TERMS.items() if n not in names and t.kind == "additive"
+    # a repeatable term (a second Markov time constant, a second resonance) stays a candidate
+    candidates = [n for n, t in TERMS.items() if (n not in names or t.repeatable)
+                  and t.kind == "additive"
                   and (t.needs_record != "temperature" or temperature is not None)]
     if _filter_signature(base, filt) and not any(get_term(n).kind == "filter" for n in names):
         candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
