@@ -71,7 +71,7 @@ class _ResonanceSim(TermSimulator):
 
 class Resonance(Term):
     name = "resonance"
-    order = 75
+    order = 150
     params = (Param("sigma", "rate", 0.0, 1.0e3, "standard deviation of the vibration"),
               Param("f0", "Hz", 0.0, 1.0e9, "centre frequency"),
               Param("Q", "ratio", 0.5, _MAX_Q, "quality factor (centre frequency over the "

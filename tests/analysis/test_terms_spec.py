@@ -40,9 +40,14 @@ def test_every_registered_term_carries_its_whole_description():
     for name, term in TERMS.items():
         assert isinstance(term, Term) and term.name == name
         assert term.amplitude in term.param_names
+        assert set(term.small_default) == set(term.param_names)
+        if term.kind == "filter":
+            # an output filter shapes the noise terms: no Allan variance of its own
+            assert term.role == "filter" and not term.live
+            assert np.all(term.avar(np.array([0.1, 1.0]), 100.0, **term.small_default) == 0)
+            continue
         assert term.role in ("noise", "line", "ramp", "regressor")
         assert term.kind == "additive"
-        assert set(term.small_default) == set(term.param_names)
         if term.linear:
             assert term.param_names == (term.amplitude,)
         # a doubled amplitude quadruples the Allan variance (white: N^2/tau, ...)
@@ -52,7 +57,8 @@ def test_every_registered_term_carries_its_whole_description():
             one = term.avar(tau, 100.0, **p)
             p[term.amplitude] *= 2
             np.testing.assert_allclose(term.avar(tau, 100.0, **p), 4 * one, rtol=1e-12)
-    assert term_names(live=True) == tuple(n for n in TERMS if n != "temperature")
+    assert term_names(live=True) == tuple(n for n, t in TERMS.items()
+                                          if n != "temperature" and t.kind == "additive")
     assert get_term("gauss_markov").repeatable and not get_term("white").repeatable
 
 

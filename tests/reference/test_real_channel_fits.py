@@ -27,14 +27,20 @@ def test_galaxy_gyro_x_closes_the_first_round_with_the_markov_hump(galaxy_gyro_x
     d = diagnose(x, fs, DEFAULT)
     top = d.suggestions[0]
     # the measurement climbs to 4.2e-4 near 3 s and falls to 8.3e-5 near 800 s: a correlated
-    # bias with a time constant of about 2 s, which no sum of the default terms can follow
-    assert top.term == "gauss_markov" and top.significant
-    assert 1.0 < top.params["T"] < 4.0
+    # bias with a time scale of about 1-2 s, which no sum of the default terms can follow. A
+    # heavily damped resonance (a second-order Markov bias) follows it better than a
+    # first-order one; either names the same hump
+    assert top.term in ("gauss_markov", "resonance") and top.significant, top.term
+    scale = top.params["T"] if top.term == "gauss_markov" \
+        else 1.0 / (2.0 * np.pi * top.params["f0"])
+    assert 0.5 < scale < 4.0
     assert top.chi2_per_dof_after < top.chi2_per_dof_before / 5
     res, curve = fit_series(x, fs, top.apply["model"])
     assert res.chi2_per_dof == pytest.approx(top.chi2_per_dof_after, rel=1e-12)
-    ratio = np.sqrt(res.avar_fit) / curve.dev
-    assert np.all((ratio > 0.75) & (ratio < 1.3)), ratio
+    # the hump itself is followed closely (the long taus, a few degrees of freedom each, are
+    # left to the next round)
+    ratio = (np.sqrt(res.avar_fit) / curve.dev)[res.tau_s <= 10.0]
+    assert np.all((ratio > 0.9) & (ratio < 1.1)), ratio
     # the default model alone is the best compromise the fit can find from every start,
     # never worse than the models nested in it
     for sub in ("white", "white,bias_instability"):
