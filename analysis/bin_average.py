@@ -30,3 +30,19 @@ def sin4_factor(m: float, um: np.ndarray, ua: np.ndarray, ub: np.ndarray,
         a, b = ua[fast], ub[fast]
         out[fast] = sum(c * bin_avg_cos(2.0 * p * m, a, b) for p, c in enumerate(SIN4))
     return out
+
+
+def sin4_table(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """:func:`sin4_factor` for a column of averaging factors ``m`` (shape ``(k, 1)``) at once:
+    a ``(k, bins)`` table, bin-averaged where ``m`` times the bin width exceeds 0.05."""
+    out = np.sin(np.pi * um * m) ** 4
+    fast = (ub - ua) * m > 0.05
+    if np.any(fast):
+        mf = np.broadcast_to(m, out.shape)[fast]
+        a = np.broadcast_to(ua, out.shape)[fast]
+        b = np.broadcast_to(ub, out.shape)[fast]
+        x2, x4 = 2.0 * np.pi * mf, 4.0 * np.pi * mf
+        w = b - a
+        out[fast] = (SIN4[0] + SIN4[1] * (np.sin(x2 * b) - np.sin(x2 * a)) / (x2 * w)
+                     + SIN4[2] * (np.sin(x4 * b) - np.sin(x4 * a)) / (x4 * w))
+    return out

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy import stats
 
@@ -59,5 +57,3 @@ def expected_variance(density: float, fs_hz: float, lsb: float) -> float:
     return density ** 2 * fs_hz + lsb ** 2 / 12.0
 
 
-DEG = math.pi / 180.0
-G0 = 9.80665

@@ -24,6 +24,7 @@ class Lowpass(OutputFilter):
     order = 220
     params = (Param("fc", "Hz", 0.0, 1.0e9, "cutoff (-3 dB) frequency of the pole"),)
     amplitude = "fc"
+    ripple = False
     allan_signature = "Allan deviation below the white-noise line at tau < 1/(2 pi fc)"
     effect = "low-pass output filter (first order)"
     explanation = (

@@ -21,7 +21,8 @@ Filtered Allan variance, exact where it matters:
   on a grid in ``u = f/fs`` with the ``sin^4`` factor bin-averaged where it oscillates faster
   than the grid (:mod:`analysis.bin_average`). The correction relative to the term's own
   Allan variance shrinks as ``(L/m)^2`` (``L`` the filter length); beyond ``m = 300 L`` it is
-  below 1e-5 and left out.
+  below 1e-5 and left out. As ``0 <= |G|^2 <= 1`` it is also smaller than the term's own
+  Allan variance, and is left out where that is below 1e-4 of the model's.
 """
 
 from __future__ import annotations
@@ -34,12 +35,14 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from analysis.bin_average import sin4_factor
+from analysis.bin_average import sin4_table
 from analysis.terms.base import Term, TermSimulator
 
 _CORRECTION_REACH = 300.0
 """Multiples of the filter length beyond which the non-white correction is left out."""
 _CACHE_SIZE = 256
+_NEGLIGIBLE = 1.0e-4
+"""Relative size below which a term's filter correction is left out."""
 
 
 def avar_from_autocovariance(r: np.ndarray, m: np.ndarray) -> np.ndarray:
@@ -110,7 +113,8 @@ class OutputFilter(Term):
     role = "filter"
     continuous_psd = False
     live = False
-    filter_signature: str = ""
+    ripple = True
+    """Whether the power response has sidelobes (sets the frequency grid's density)."""
 
     def __init__(self) -> None:
         self._cache: OrderedDict[tuple, Any] = OrderedDict()
@@ -171,14 +175,21 @@ class OutputFilter(Term):
         m = tau * fs_hz
         out = np.zeros_like(tau)
         r_g = self._autocorrelation(fs_hz, params)
+        own: list[tuple[Term, dict[str, float], np.ndarray]] = []
         for term, p in noise:
             r_in = term.autocovariance(fs_hz, p)
             if r_in is not None:
                 full = np.convolve(_symmetric(np.asarray(r_in, float)), r_g)
                 out += avar_from_autocovariance(full[len(full) // 2:], m)
             else:
-                out += term.avar_fast(tau, fs_hz, p) + self._correction(term, p, m, fs_hz,
-                                                                        params)
+                own.append((term, p, term.avar_fast(tau, fs_hz, p)))
+        total = out + sum((a for _, _, a in own), np.zeros_like(tau))
+        for term, p, a in own:
+            # 0 <= |G|^2 <= 1, so the correction is smaller than the term's own Allan variance:
+            # where that is below 1e-4 of the model's, it is left out
+            matters = a > _NEGLIGIBLE * total
+            corr = self._correction(term, p, np.where(matters, m, np.inf), fs_hz, params)
+            out += a + corr
         return out
 
     def _correction(self, term: Term, p: dict[str, float], m: np.ndarray, fs_hz: float,
@@ -189,21 +200,21 @@ class OutputFilter(Term):
         out = np.zeros_like(m)
         if not np.any(near):
             return out
-        key = ("corr", term.name, fs_hz, tuple(sorted(p.items())),
+        # computed at unit amplitude (a noise term's spectrum scales with its square), so a
+        # fit that moves only amplitudes finds it remembered
+        shape = {k: v for k, v in p.items() if k != term.amplitude}
+        key = ("corr", term.name, fs_hz, tuple(sorted(shape.items())),
                tuple(sorted(params.items())), m[near].tobytes())
 
         def make() -> np.ndarray:
             ua, ub, um, gain = self._grid(fs_hz, params, float(m[near].max()))
             width = ub - ua
-            s = term.psd(um * fs_hz, fs_hz, **p)
+            s = term.psd(um * fs_hz, fs_hz, **{**shape, term.amplitude: 1.0})
             smooth = 0.5 * fs_hz * s * (gain - 1.0) * 4.0 / np.sin(np.pi * um) ** 2 * width
-            vals = np.empty(int(np.count_nonzero(near)))
-            for i, mi in enumerate(m[near]):
-                fast = width * mi > 0.05
-                vals[i] = float(np.sum(smooth * sin4_factor(mi, um, ua, ub, fast))) / (mi * mi)
-            return vals
+            mm = m[near][:, None]
+            return np.sum(sin4_table(mm, um, ua, ub) * smooth, axis=1) / (m[near] ** 2)
 
-        out[near] = self._remember(key, make)
+        out[near] = self._remember(key, make) * float(p[term.amplitude]) ** 2
         return out
 
     def _grid(self, fs_hz: float, params: dict[str, float], m_max: float
@@ -214,8 +225,10 @@ class OutputFilter(Term):
             length = max(self.length(fs_hz, params), 1.0)
             u_lo = 1e-3 / max(m_max, 1.0)
             decades = math.log10(0.5 / u_lo)
-            log_edges = np.geomspace(u_lo, 0.5, int(decades * 100) + 2)
-            n_lin = int(min(max(64.0 * length, 512.0), 16384.0))
+            log_edges = np.geomspace(u_lo, 0.5, int(decades * 60) + 2)
+            # a response with ripple (a moving average's sidelobes, period fs/L) needs a
+            # few dozen points per lobe; a smooth one only the log grid and a coarse cover
+            n_lin = int(min(max(32.0 * length, 512.0), 8192.0)) if self.ripple else 256
             edges = np.unique(np.concatenate((log_edges, np.linspace(0.0, 0.5, n_lin + 1)
                                               [np.linspace(0.0, 0.5, n_lin + 1) > u_lo])))
             ua, ub = edges[:-1], edges[1:]

@@ -9,66 +9,16 @@ is read with pipelined 16-bit frames (the reply to frame n arrives in frame n+1)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
+from core.units import DEG, G0
 from daq.clock import Clock, RealClock
-from daq.drivers.common import PolledSampleClock, StreamBuffer, sign_extend
+from daq.drivers.common import PolledSampleClock, StreamBuffer
 from daq.errors import PermanentDeviceError, TransientDeviceError
+from daq.registers import Field, RegisterMap
 from daq.transports.buspirate import SPI_SPEEDS_HZ, BusPirateSPI, speed_index
 
-DEG = math.pi / 180.0
-G0 = 9.80665
-
-
-@dataclass(frozen=True)
-class Register:
-    """One 16-bit register: lower byte address, data bits, signedness, LSB size and unit."""
-
-    name: str
-    addr: int
-    bits: int = 16
-    signed: bool = False
-    lsb: float = 1.0
-    unit: str = ""
-
-
-# Datasheet Table 6 / Table 9.
-REGISTERS: dict[str, Register] = {r.name: r for r in [
-    Register("ENDURANCE", 0x00),
-    Register("SUPPLY_OUT", 0x02, 12, False, 1.8315e-3, "V"),
-    Register("XGYRO_OUT", 0x04, 14, True, 0.07326, "deg/s"),
-    Register("YGYRO_OUT", 0x06, 14, True, 0.07326, "deg/s"),
-    Register("ZGYRO_OUT", 0x08, 14, True, 0.07326, "deg/s"),
-    Register("XACCL_OUT", 0x0A, 14, True, 2.522e-3, "g"),
-    Register("YACCL_OUT", 0x0C, 14, True, 2.522e-3, "g"),
-    Register("ZACCL_OUT", 0x0E, 14, True, 2.522e-3, "g"),
-    Register("XTEMP_OUT", 0x10, 12, True, 0.1453, "degC"),
-    Register("YTEMP_OUT", 0x12, 12, True, 0.1453, "degC"),
-    Register("ZTEMP_OUT", 0x14, 12, True, 0.1453, "degC"),
-    Register("AUX_ADC", 0x16, 12, False, 0.6105e-3, "V"),
-    Register("XGYRO_OFF", 0x1A, 13, True, 0.018315, "deg/s"),
-    Register("YGYRO_OFF", 0x1C, 13, True, 0.018315, "deg/s"),
-    Register("ZGYRO_OFF", 0x1E, 13, True, 0.018315, "deg/s"),
-    Register("XACCL_OFF", 0x20, 12, True, 2.522e-3, "g"),
-    Register("YACCL_OFF", 0x22, 12, True, 2.522e-3, "g"),
-    Register("ZACCL_OFF", 0x24, 12, True, 2.522e-3, "g"),
-    Register("ALM_MAG1", 0x26),
-    Register("ALM_MAG2", 0x28),
-    Register("ALM_SMPL1", 0x2A),
-    Register("ALM_SMPL2", 0x2C),
-    Register("ALM_CTRL", 0x2E),
-    Register("AUX_DAC", 0x30, 12),
-    Register("GPIO_CTRL", 0x32),
-    Register("MSC_CTRL", 0x34),
-    Register("SMPL_PRD", 0x36),
-    Register("SENS_AVG", 0x38),
-    Register("SLP_CNT", 0x3A),
-    Register("STATUS", 0x3C),
-    Register("COMMAND", 0x3E),
-]}
-ADDR = {name: r.addr for name, r in REGISTERS.items()}
 OUTPUT_REGISTERS = ("SUPPLY_OUT", "XGYRO_OUT", "YGYRO_OUT", "ZGYRO_OUT", "XACCL_OUT",
                     "YACCL_OUT", "ZACCL_OUT", "XTEMP_OUT", "YTEMP_OUT", "ZTEMP_OUT", "AUX_ADC")
 IMU_REGISTERS = ("XGYRO_OUT", "YGYRO_OUT", "ZGYRO_OUT", "XACCL_OUT", "YACCL_OUT", "ZACCL_OUT")
@@ -129,7 +79,38 @@ ACCEL_LSB_G = 2.522e-3
 TEMP_LSB_C = 0.1453
 TEMP_OFFSET_C = 25.0
 SUPPLY_LSB_V = 1.8315e-3
+AUX_ADC_LSB_V = 0.6105e-3
 SUPPLY_PLAUSIBLE_V = (4.5, 5.5)
+
+# Datasheet Table 6 / Table 9: the register map, one field per register (data bits [13:0]
+# or [11:0]; bits 15 and 14 of an output register are its ND and EA flags).
+REGISTERS = RegisterMap([
+    Field("ENDURANCE", 0x00),
+    Field("SUPPLY_OUT", 0x02, 12, scale=SUPPLY_LSB_V, unit="V"),
+    *(Field(f"{a}GYRO_OUT", 0x04 + 2 * k, 14, signed=True, scale=GYRO_LSB_DPS[300] * DEG,
+            unit="rad/s") for k, a in enumerate("XYZ")),
+    *(Field(f"{a}ACCL_OUT", 0x0A + 2 * k, 14, signed=True, scale=ACCEL_LSB_G * G0,
+            unit="m/s^2") for k, a in enumerate("XYZ")),
+    *(Field(f"{a}TEMP_OUT", 0x10 + 2 * k, 12, signed=True, scale=TEMP_LSB_C,
+            offset=TEMP_OFFSET_C, unit="degC") for k, a in enumerate("XYZ")),
+    Field("AUX_ADC", 0x16, 12, scale=AUX_ADC_LSB_V, unit="V"),
+    *(Field(f"{a}GYRO_OFF", 0x1A + 2 * k, 13, signed=True, scale=GYRO_LSB_DPS[75] * DEG,
+            unit="rad/s") for k, a in enumerate("XYZ")),
+    *(Field(f"{a}ACCL_OFF", 0x20 + 2 * k, 12, signed=True, scale=ACCEL_LSB_G * G0,
+            unit="m/s^2") for k, a in enumerate("XYZ")),
+    Field("ALM_MAG1", 0x26), Field("ALM_MAG2", 0x28), Field("ALM_SMPL1", 0x2A),
+    Field("ALM_SMPL2", 0x2C), Field("ALM_CTRL", 0x2E), Field("AUX_DAC", 0x30, 12),
+    Field("GPIO_CTRL", 0x32), Field("MSC_CTRL", 0x34), Field("SMPL_PRD", 0x36),
+    Field("SENS_AVG", 0x38), Field("SLP_CNT", 0x3A), Field("STATUS", 0x3C),
+    Field("COMMAND", 0x3E),
+])
+ADDR = {name: f.addr for name, f in REGISTERS.items()}
+
+
+def gyro_field(name: str, range_dps: int) -> Field:
+    """Gyro output field ``name`` at the range SENS/AVG selects."""
+    return REGISTERS[name].rescaled(GYRO_LSB_DPS[range_dps] * DEG)
+
 
 STARTUP_S = 0.150
 RESET_WAIT_S = 0.290
@@ -185,41 +166,6 @@ def decode_sens_avg(value: int) -> tuple[int, int]:
     raise ValueError(f"SENS/AVG 0x{value:04X}: no valid range code")
 
 
-def data14(words: np.ndarray | int) -> np.ndarray:
-    """Signed 14-bit data field of output words (ND/EA flags stripped)."""
-    return sign_extend(words, 14)
-
-
-def data12s(words: np.ndarray | int) -> np.ndarray:
-    """Signed 12-bit data field (temperatures)."""
-    return sign_extend(words, 12)
-
-
-def data12u(words: np.ndarray | int) -> np.ndarray:
-    """Unsigned 12-bit data field (supply, AUX ADC)."""
-    return np.asarray(words, dtype=np.int64) & 0x0FFF
-
-
-def gyro_rad_s(counts: np.ndarray, range_dps: int = 300) -> np.ndarray:
-    """Gyro counts to rad/s at the configured range."""
-    return np.asarray(counts, dtype=np.float64) * (GYRO_LSB_DPS[range_dps] * DEG)
-
-
-def accel_m_s2(counts: np.ndarray) -> np.ndarray:
-    """Accelerometer counts to m/s^2 (2.522 mg per LSB)."""
-    return np.asarray(counts, dtype=np.float64) * (ACCEL_LSB_G * G0)
-
-
-def temp_c(counts: np.ndarray) -> np.ndarray:
-    """Temperature counts to degC (0 LSB = 25 degC, 0.1453 degC per LSB)."""
-    return TEMP_OFFSET_C + np.asarray(counts, dtype=np.float64) * TEMP_LSB_C
-
-
-def supply_v(counts: np.ndarray | int) -> np.ndarray:
-    """SUPPLY_OUT counts to volts."""
-    return np.asarray(counts, dtype=np.float64) * SUPPLY_LSB_V
-
-
 def decode_status(value: int) -> list[str]:
     """Names of the STATUS flags that are set."""
     return [text for bit, text in STATUS_BITS.items() if value & (1 << bit)]
@@ -270,14 +216,15 @@ class Adis16350:
         self.clock = clock or RealClock()
         self.temp_every = max(1, int(round(temp_period_s * self.rate_hz)))
         self.poll_period_s = 1.0 / (self.rate_hz * 1.02)
-        gyro_lsb = GYRO_LSB_DPS[range_dps] * DEG
-        scale = np.array([gyro_lsb] * 3 + [ACCEL_LSB_G * G0] * 3)
+        self.imu_fields = [gyro_field(n, range_dps) if "GYRO" in n else REGISTERS[n]
+                           for n in IMU_REGISTERS]
+        scale = np.array([f.scale for f in self.imu_fields])
         self.imu = StreamBuffer(f"/{self.name}/imu",
                                 ["gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"],
                                 self.rate_hz, lambda raw: raw * scale)
         self.temperature = StreamBuffer(
             f"/{self.name}/temperature", ["temp"], self.rate_hz / self.temp_every,
-            lambda raw: temp_c(raw[:, :3].mean(axis=1, keepdims=True)),
+            lambda raw: REGISTERS["XTEMP_OUT"].to_si(raw[:, :3].mean(axis=1, keepdims=True)),
             raw_names=["temp_x", "temp_y", "temp_z", "supply"])
         self.status_seen: dict[str, int] = {}
         self.stale_reads = 0
@@ -350,7 +297,7 @@ class Adis16350:
         if all(w == 0xFFFF for w in words) or all(w == 0 for w in words):
             raise PermanentDeviceError(f"{where}: no answer on SPI (MISO reads "
                                        f"0x{words[0]:04X}; check wiring and sensor power)")
-        volts = float(supply_v(data12u(regs["SUPPLY_OUT"])))
+        volts = float(REGISTERS["SUPPLY_OUT"].decode(regs["SUPPLY_OUT"]))
         lo, hi = SUPPLY_PLAUSIBLE_V
         if not (lo <= volts <= hi) or regs["SUPPLY_OUT"] & 0x3000:
             raise PermanentDeviceError(f"{where}: not an ADIS16350 (SUPPLY_OUT "
@@ -393,7 +340,7 @@ class Adis16350:
 
     def _describe(self) -> dict[str, str]:
         """Configuration for the recording's metadata (device answers filled in by open)."""
-        gyro_lsb = GYRO_LSB_DPS[self.range_dps] * DEG
+        gyro_lsb = gyro_field("XGYRO_OUT", self.range_dps).scale
         sclk = min(sclk_max_hz(self.smpl_prd), 1.0e6)
         return {
             "device": self.name, "model": self.model,
@@ -403,7 +350,7 @@ class Adis16350:
             "gyro_range_dps": str(self.range_dps), "filter_taps": str(self.taps),
             "sens_avg": f"0x{self.sens_avg:04X}",
             "scale_gyro_rad_s_per_lsb": f"{gyro_lsb:.9g}",
-            "scale_accel_m_s2_per_lsb": f"{ACCEL_LSB_G * G0:.9g}",
+            "scale_accel_m_s2_per_lsb": f"{REGISTERS['XACCL_OUT'].scale:.9g}",
             "scale_temp_degc_per_lsb": f"{TEMP_LSB_C}", "temp_offset_degc": f"{TEMP_OFFSET_C}",
             "supply_v": f"{self.supply_v:.3f}" if self.supply_v is not None else "",
             "flash_endurance": str(self.endurance),
@@ -440,10 +387,12 @@ class Adis16350:
         else:
             missed = self._phase.fresh(now, self.imu.next_index)
         self._last_fresh_host = now
-        self.imu.add(data14(miso[:6]).tolist(), missed=missed, host_time=self.clock.wall())
+        counts = [int(f.counts(w)) for f, w in zip(self.imu_fields, miso[:6], strict=True)]
+        self.imu.add(counts, missed=missed, host_time=self.clock.wall())
         if with_temp:
-            t = data12s(miso[6:9]).tolist()
-            self.temperature_add(t + [int(data12u(miso[9]))], self.imu.next_index - 1)
+            row = [int(REGISTERS[n].counts(w)) for n, w in zip(TEMP_REGISTERS, miso[6:10],
+                                                              strict=True)]
+            self.temperature_add(row, self.imu.next_index - 1)
         return 1
 
     def temperature_add(self, row: list[int], imu_index: int) -> None:

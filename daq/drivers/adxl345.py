@@ -3,45 +3,64 @@
 Register table, pure conversions, and a driver: DEVID check, BW_RATE from the requested rate,
 FULL_RES and range in DATA_FORMAT, the FIFO in stream mode with a watermark, measurement mode;
 each poll reads INT_SOURCE (overrun) and FIFO_STATUS, then drains the FIFO with one 6-byte
-little-endian read of DATAX0..DATAZ1 per entry (each such read pops one entry).
+little-endian read of DATAX..DATAZ per entry (each such read pops one entry).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
+from core.units import G0
 from daq.clock import Clock, RealClock
-from daq.drivers.common import StreamBuffer, sign_extend
+from daq.drivers.common import StreamBuffer
 from daq.errors import PermanentDeviceError, TransientDeviceError
+from daq.registers import Field, RegisterMap
 from daq.transports.i2c import I2CBus
 
-G0 = 9.80665
 ADDRESSES = (0x53, 0x1D)  # ALT ADDRESS low / high
-REG: dict[str, int] = {
-    "DEVID": 0x00, "OFSX": 0x1E, "OFSY": 0x1F, "OFSZ": 0x20, "BW_RATE": 0x2C,
-    "POWER_CTL": 0x2D, "INT_ENABLE": 0x2E, "INT_MAP": 0x2F, "INT_SOURCE": 0x30,
-    "DATA_FORMAT": 0x31, "DATAX0": 0x32, "DATAX1": 0x33, "DATAY0": 0x34, "DATAY1": 0x35,
-    "DATAZ0": 0x36, "DATAZ1": 0x37, "FIFO_CTL": 0x38, "FIFO_STATUS": 0x39,
-}
+LSB_PER_G = 256.0  # FULL_RES, any range (3.9 mg/LSB typical)
+OFFSET_LSB_G = 15.6e-3
+
+# Data sheet Table 19: register map. Data registers are 16-bit little-endian.
+REGISTERS = RegisterMap([
+    Field("DEVID", 0x00, bits=8, nbytes=1),
+    *(Field(f"OFS{a}", 0x1E + k, bits=8, signed=True, scale=OFFSET_LSB_G * G0, unit="m/s^2",
+            nbytes=1) for k, a in enumerate("XYZ")),
+    Field("BW_RATE", 0x2C, bits=8, nbytes=1),
+    Field("RATE", 0x2C, bits=4, nbytes=1),
+    Field("POWER_CTL", 0x2D, bits=8, nbytes=1),
+    Field("INT_ENABLE", 0x2E, bits=8, nbytes=1),
+    Field("INT_MAP", 0x2F, bits=8, nbytes=1),
+    Field("INT_SOURCE", 0x30, bits=8, nbytes=1),
+    Field("DATA_FORMAT", 0x31, bits=8, nbytes=1),
+    Field("RANGE", 0x31, bits=2, nbytes=1),
+    *(Field(f"DATA{a}", 0x32 + 2 * k, signed=True, scale=G0 / LSB_PER_G, unit="m/s^2",
+            big_endian=False) for k, a in enumerate("XYZ")),
+    Field("FIFO_CTL", 0x38, bits=8, nbytes=1),
+    Field("FIFO_MODE", 0x38, bits=2, shift=6, nbytes=1),
+    Field("FIFO_SAMPLES", 0x38, bits=5, nbytes=1),
+    Field("FIFO_STATUS", 0x39, bits=8, nbytes=1),
+    Field("FIFO_ENTRIES", 0x39, bits=6, nbytes=1),
+])
+REG: dict[str, int] = {name: f.addr for name, f in REGISTERS.items()}
+DATA_FIELDS = ("DATAX", "DATAY", "DATAZ")  # one burst, in this order
 DEVID = 0xE5
-DATA_BYTES = 6
+DATA_BYTES = sum(REGISTERS[n].nbytes for n in DATA_FIELDS)
 BW_RATE_RESET = 0x0A
 BW_LOW_POWER = 1 << 4
 POWER_MEASURE = 1 << 3
 FORMAT_FULL_RES = 1 << 3
 FORMAT_JUSTIFY = 1 << 2
 RANGE_CODES_G: dict[int, int] = {2: 0b00, 4: 0b01, 8: 0b10, 16: 0b11}
-FIFO_MODE_SHIFT = 6
 FIFO_BYPASS, FIFO_FIFO, FIFO_STREAM, FIFO_TRIGGER = 0, 1, 2, 3
 FIFO_DEPTH = 32
 FIFO_AVAILABLE = 33  # 32 in the FIFO and one in the output registers
-FIFO_ENTRIES_MASK = 0x3F
 INT_DATA_READY = 1 << 7
 INT_WATERMARK = 1 << 1
 INT_OVERRUN = 1 << 0
-LSB_PER_G = 256.0  # FULL_RES, any range (3.9 mg/LSB typical)
 MAX_RATE_CODE = 0x0F
 TURN_ON_S = 0.0011  # plus one output period
 
@@ -71,14 +90,18 @@ def full_res_bits(range_g: int) -> int:
 
 
 def decode_data(block: np.ndarray) -> np.ndarray:
-    """Rows of 6 little-endian bytes (X0 X1 Y0 Y1 Z0 Z1) to signed counts."""
-    b = np.asarray(block, dtype=np.int64).reshape(-1, 3, 2)
-    return sign_extend(b[..., 0] | (b[..., 1] << 8), 16)
+    """Rows of the 6-byte data burst (X0 X1 Y0 Y1 Z0 Z1) to signed counts."""
+    return REGISTERS.block_counts(DATA_FIELDS, block)
 
 
-def accel_m_s2(counts: np.ndarray) -> np.ndarray:
-    """Full-resolution counts to m/s^2 (256 LSB per g)."""
-    return np.asarray(counts, dtype=np.float64) * (G0 / LSB_PER_G)
+def data_field(name: str, fmt: int) -> Field:
+    """The data field ``name`` as DATA_FORMAT ``fmt`` sets it: 10 bits at 3.9 mg, or at full
+    resolution 10 to 13 bits at 3.9 mg; otherwise the LSB doubles with each range step."""
+    rng = int(REGISTERS["RANGE"].counts(fmt))
+    f = REGISTERS[name]
+    if fmt & FORMAT_FULL_RES:
+        return replace(f, bits=10 + rng)
+    return replace(f, bits=10, scale=f.scale * 2**rng)
 
 
 class Adxl345:
@@ -111,7 +134,7 @@ class Adxl345:
         self.clock = clock or RealClock()
         # Drain when the FIFO is about half full, at least ten times a second.
         self.poll_period_s = min(0.1, watermark / self.rate_hz)
-        scale = G0 / LSB_PER_G
+        scale = np.array([REGISTERS[n].scale for n in DATA_FIELDS])
         self.imu = StreamBuffer(f"{prefix}/imu", ["accel_x", "accel_y", "accel_z"],
                                 self.rate_hz, lambda raw: raw * scale)
         self.overruns = 0
@@ -134,8 +157,9 @@ class Adxl345:
         self.bus.write_u8(a, REG["BW_RATE"], self.code)
         self.bus.write_u8(a, REG["DATA_FORMAT"], self.format)
         self.bus.write_u8(a, REG["INT_ENABLE"], 0)
-        self.bus.write_u8(a, REG["FIFO_CTL"], FIFO_BYPASS << FIFO_MODE_SHIFT)  # flush
-        fifo = (FIFO_STREAM << FIFO_MODE_SHIFT) | self.watermark
+        mode, samples = REGISTERS["FIFO_MODE"], REGISTERS["FIFO_SAMPLES"]
+        self.bus.write_u8(a, REG["FIFO_CTL"], int(mode.encode(FIFO_BYPASS)))  # flush
+        fifo = int(mode.encode(FIFO_STREAM, samples.encode(self.watermark)))
         self.bus.write_u8(a, REG["FIFO_CTL"], fifo)
         self.bus.write_u8(a, REG["POWER_CTL"], POWER_MEASURE)
         back = {name: self.bus.read_u8(a, REG[name])
@@ -160,7 +184,7 @@ class Adxl345:
             "data_format": f"0x{self.format:02X}", "full_res": "1",
             "resolution_bits": str(full_res_bits(self.range_g)),
             "fifo": f"stream, watermark {self.watermark}",
-            "scale_accel_m_s2_per_lsb": f"{G0 / LSB_PER_G:.9g}",
+            "scale_accel_m_s2_per_lsb": f"{REGISTERS['DATAX'].scale:.9g}",
         }
 
     def close(self) -> None:
@@ -170,9 +194,9 @@ class Adxl345:
         """Drain the FIFO; the number of samples read."""
         a = self.address
         source = self.bus.read_u8(a, REG["INT_SOURCE"])
-        entries = self.bus.read_u8(a, REG["FIFO_STATUS"]) & FIFO_ENTRIES_MASK
+        entries = int(REGISTERS["FIFO_ENTRIES"].counts(self.bus.read_u8(a, REG["FIFO_STATUS"])))
         now = self.clock.now()
-        rows = [self.bus.read_block(a, REG["DATAX0"], DATA_BYTES) for _ in range(entries)]
+        rows = [self.bus.read_block(a, REG["DATAX"], DATA_BYTES) for _ in range(entries)]
         missed = 0
         if self._last_drain is None:
             if not rows:

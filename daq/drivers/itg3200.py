@@ -7,30 +7,45 @@ polls INT_STATUS for data-ready before one 8-byte big-endian read of temperature
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from core.units import DEG
 from daq.clock import Clock, RealClock
-from daq.drivers.common import PolledSampleClock, StreamBuffer, sign_extend
+from daq.drivers.common import PolledSampleClock, StreamBuffer
 from daq.errors import PermanentDeviceError, TransientDeviceError
+from daq.registers import Field, RegisterMap
 from daq.transports.i2c import I2CBus
 
-DEG = math.pi / 180.0
-
 ADDRESSES = (0x68, 0x69)  # AD0 low / high
-REG: dict[str, int] = {
-    "WHO_AM_I": 0x00, "SMPLRT_DIV": 0x15, "DLPF_FS": 0x16, "INT_CFG": 0x17,
-    "INT_STATUS": 0x1A, "TEMP_OUT_H": 0x1B, "TEMP_OUT_L": 0x1C, "GYRO_XOUT_H": 0x1D,
-    "GYRO_XOUT_L": 0x1E, "GYRO_YOUT_H": 0x1F, "GYRO_YOUT_L": 0x20, "GYRO_ZOUT_H": 0x21,
-    "GYRO_ZOUT_L": 0x22, "PWR_MGM": 0x3E,
-}
 WHO_AM_I_ID = 0x34  # bits [6:1]
-DATA_BYTES = 8  # temperature, x, y, z; 16-bit big-endian each
+LSB_PER_DPS = 14.375  # FS_SEL = 3
+TEMP_LSB_PER_C = 280.0
+TEMP_REF_C = 35.0
+TEMP_REF_LSB = -13200.0
 
-# DLPF_FS fields.
+# Product specification section 8: register map. Data registers are 16-bit big-endian.
+REGISTERS = RegisterMap([
+    Field("WHO_AM_I", 0x00, bits=6, shift=1, nbytes=1),
+    Field("SMPLRT_DIV", 0x15, bits=8, nbytes=1),
+    Field("DLPF_FS", 0x16, bits=8, nbytes=1),
+    Field("DLPF_CFG", 0x16, bits=3, nbytes=1),
+    Field("FS_SEL", 0x16, bits=2, shift=3, nbytes=1),
+    Field("INT_CFG", 0x17, bits=8, nbytes=1),
+    Field("INT_STATUS", 0x1A, bits=8, nbytes=1),
+    Field("TEMP_OUT", 0x1B, signed=True, scale=1.0 / TEMP_LSB_PER_C,
+          offset=TEMP_REF_C - TEMP_REF_LSB / TEMP_LSB_PER_C, unit="degC"),
+    Field("GYRO_XOUT", 0x1D, signed=True, scale=DEG / LSB_PER_DPS, unit="rad/s"),
+    Field("GYRO_YOUT", 0x1F, signed=True, scale=DEG / LSB_PER_DPS, unit="rad/s"),
+    Field("GYRO_ZOUT", 0x21, signed=True, scale=DEG / LSB_PER_DPS, unit="rad/s"),
+    Field("PWR_MGM", 0x3E, bits=8, nbytes=1),
+    Field("CLK_SEL", 0x3E, bits=3, nbytes=1),
+])
+REG: dict[str, int] = {name: f.addr for name, f in REGISTERS.items()}
+DATA_FIELDS = ("TEMP_OUT", "GYRO_XOUT", "GYRO_YOUT", "GYRO_ZOUT")  # one burst, in this order
+GYRO_FIELDS = DATA_FIELDS[1:]
+DATA_BYTES = sum(REGISTERS[n].nbytes for n in DATA_FIELDS)
+
 FS_SEL_2000DPS = 3
-FS_SEL_SHIFT = 3
 # DLPF_CFG -> (low-pass bandwidth Hz, internal sample rate Hz); 7 is reserved.
 DLPF_CFG: dict[int, tuple[float, float]] = {
     0: (256.0, 8000.0), 1: (188.0, 1000.0), 2: (98.0, 1000.0), 3: (42.0, 1000.0),
@@ -45,15 +60,10 @@ INT_CFG_RAW_RDY_EN = 1 << 0
 # INT_STATUS bits.
 INT_ITG_RDY = 1 << 2
 INT_RAW_DATA_RDY = 1 << 0
-# PWR_MGM bits and clock sources.
+# PWR_MGM bits and clock sources (CLK_SEL).
 PWR_H_RESET = 1 << 7
 PWR_SLEEP = 1 << 6
 CLK_INTERNAL, CLK_PLL_X, CLK_PLL_Y, CLK_PLL_Z = 0, 1, 2, 3
-
-LSB_PER_DPS = 14.375
-TEMP_LSB_PER_C = 280.0
-TEMP_REF_C = 35.0
-TEMP_REF_LSB = -13200.0
 
 STARTUP_S = 0.020
 RESET_WAIT_S = 0.0015
@@ -62,18 +72,8 @@ ZRO_SETTLE_S = 0.050
 FROZEN_REPEATS = 200  # identical samples in a row that mean "data-ready stuck high"
 
 
-def gyro_rad_s(counts: np.ndarray) -> np.ndarray:
-    """Gyro counts (FS_SEL = 3) to rad/s: 14.375 LSB per deg/s."""
-    return np.asarray(counts, dtype=np.float64) * (DEG / LSB_PER_DPS)
-
-
-def temp_c(counts: np.ndarray) -> np.ndarray:
-    """TEMP_OUT counts to degC: -13200 LSB at 35 degC, 280 LSB per degC."""
-    return TEMP_REF_C + (np.asarray(counts, dtype=np.float64) - TEMP_REF_LSB) / TEMP_LSB_PER_C
-
-
 def is_itg3200_id(who_am_i: int) -> bool:
-    return (who_am_i >> 1) & 0x3F == WHO_AM_I_ID
+    return int(REGISTERS["WHO_AM_I"].counts(who_am_i)) == WHO_AM_I_ID
 
 
 def rate_settings(rate_hz: float) -> tuple[int, int, float]:
@@ -95,9 +95,14 @@ def rate_settings(rate_hz: float) -> tuple[int, int, float]:
 
 
 def decode_data(block: np.ndarray) -> np.ndarray:
-    """Rows of 8 big-endian bytes to signed counts (temp, x, y, z)."""
-    b = np.asarray(block, dtype=np.int64).reshape(-1, 4, 2)
-    return sign_extend((b[..., 0] << 8) | b[..., 1], 16)
+    """Rows of the 8-byte data burst to signed counts (temp, x, y, z)."""
+    return REGISTERS.block_counts(DATA_FIELDS, block)
+
+
+def dlpf_fs_value(dlpf_cfg: int) -> int:
+    """DLPF_FS for FS_SEL = 3 (the only specified range) and a low-pass setting."""
+    return int(REGISTERS["FS_SEL"].encode(FS_SEL_2000DPS,
+                                          REGISTERS["DLPF_CFG"].encode(dlpf_cfg)))
 
 
 class Itg3200:
@@ -124,11 +129,12 @@ class Itg3200:
         self.clock = clock or RealClock()
         self.poll_period_s = 1.0 / (self.rate_hz * 1.02)
         self.temp_every = max(1, int(round(temp_period_s * self.rate_hz)))
-        lsb = DEG / LSB_PER_DPS
+        scale = np.array([REGISTERS[n].scale for n in GYRO_FIELDS])
         self.imu = StreamBuffer(f"{prefix}/imu", ["gyro_x", "gyro_y", "gyro_z"], self.rate_hz,
-                                lambda raw: raw * lsb)
+                                lambda raw: raw * scale)
         self.temperature = StreamBuffer(f"{prefix}/temperature", ["temp"],
-                                        self.rate_hz / self.temp_every, temp_c)
+                                        self.rate_hz / self.temp_every,
+                                        REGISTERS["TEMP_OUT"].to_si)
         self.stale_reads = 0
         self.frozen_reads = 0
         self._last_row: list[int] | None = None
@@ -159,7 +165,7 @@ class Itg3200:
                 raise TransientDeviceError(f"{self.where}: PLL not ready after "
                                            f"{PLL_TIMEOUT_S * 1e3:g} ms")
             self.clock.sleep(0.001)
-        dlpf_fs = (FS_SEL_2000DPS << FS_SEL_SHIFT) | self.dlpf_cfg
+        dlpf_fs = dlpf_fs_value(self.dlpf_cfg)
         self.bus.write_u8(self.address, REG["DLPF_FS"], dlpf_fs)
         self.bus.write_u8(self.address, REG["SMPLRT_DIV"], self.div)
         back = self.bus.read_block(self.address, REG["SMPLRT_DIV"], 2)
@@ -184,7 +190,7 @@ class Itg3200:
             "dlpf_bandwidth_hz": f"{DLPF_CFG[self.dlpf_cfg][0]:g}",
             "internal_rate_hz": f"{DLPF_CFG[self.dlpf_cfg][1]:g}",
             "gyro_range_dps": "2000", "fs_sel": "3", "clock_source": "PLL, X gyro reference",
-            "scale_gyro_rad_s_per_lsb": f"{DEG / LSB_PER_DPS:.9g}",
+            "scale_gyro_rad_s_per_lsb": f"{REGISTERS['GYRO_XOUT'].scale:.9g}",
             "temp_formula": "35 + (raw + 13200) / 280 degC",
             "temperature_rate_hz": f"{self.rate_hz / self.temp_every:.6g}",
         }
@@ -203,7 +209,7 @@ class Itg3200:
                 raise TransientDeviceError(f"{self.where}: no data-ready for "
                                            f"{now - since:.2f} s (stuck)")
             return 0
-        row = decode_data(self.bus.read_block(self.address, REG["TEMP_OUT_H"], DATA_BYTES))[0]
+        row = decode_data(self.bus.read_block(self.address, REG["TEMP_OUT"], DATA_BYTES))[0]
         self._check_frozen(row.tolist())
         missed = 0
         if self._last_fresh is None:

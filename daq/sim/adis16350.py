@@ -17,8 +17,6 @@ from daq.clock import Clock
 from daq.drivers import adis16350 as reg
 from daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
 
-DEG = math.pi / 180.0
-G0 = 9.80665
 CHUNK = 4096  # samples generated per call of a signal source
 SELF_TEST_S = 0.035
 TEMP_AXIS_OFFSET_C = (0.0, 0.4, -0.3)  # the three sensors do not sit at one temperature
@@ -103,23 +101,21 @@ class Adis16350Sim:
 
     def _latch(self, x: np.ndarray) -> None:
         rng = reg.decode_sens_avg(self.words[reg.ADDR["SENS_AVG"]])[0]
-        g = np.round(x[:3] / (reg.GYRO_LSB_DPS[rng] * DEG))
-        a = np.round(x[3:] / (reg.ACCEL_LSB_G * G0))
-        counts = np.concatenate([g, a])
-        clipped = np.clip(counts, -8192, 8191)
-        if np.any(clipped != counts):
-            self._status |= reg.STATUS_OVER_RANGE
-        for name, v in zip(reg.IMU_REGISTERS, clipped.astype(np.int64), strict=True):
-            self.words[reg.ADDR[name]] = int(v) & 0x3FFF
+        fields = [reg.gyro_field(n, rng) if "GYRO" in n else reg.REGISTERS[n]
+                  for n in reg.IMU_REGISTERS]
+        for f, v in zip(fields, x, strict=True):
+            c = int(f.from_si(v))
+            if abs(c - v / f.scale) > 0.5 + 1e-9:  # saturated at 14 bits
+                self._status |= reg.STATUS_OVER_RANGE
+            self.words[f.addr] = int(f.encode(c))
         t = self.clock.now() - self._power_on
         temp = float(self.temperature(np.array([t]))[0])
         for name, off in zip(("XTEMP_OUT", "YTEMP_OUT", "ZTEMP_OUT"), TEMP_AXIS_OFFSET_C,
                              strict=True):
-            c = int(np.clip(round((temp + off - reg.TEMP_OFFSET_C) / reg.TEMP_LSB_C),
-                            -2048, 2047))
-            self.words[reg.ADDR[name]] = c & 0x0FFF
-        self.words[reg.ADDR["SUPPLY_OUT"]] = int(round(self.supply_v / reg.SUPPLY_LSB_V)) \
-            & 0x0FFF
+            f = reg.REGISTERS[name]
+            self.words[f.addr] = int(f.encode(f.from_si(temp + off)))
+        supply = reg.REGISTERS["SUPPLY_OUT"]
+        self.words[supply.addr] = int(supply.encode(supply.from_si(self.supply_v)))
         if self.supply_v < 4.75:
             self._status |= 1 << 0
         elif self.supply_v > 5.25:

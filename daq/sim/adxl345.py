@@ -23,6 +23,13 @@ from daq.sim.signals import SignalSource
 MAX_CATCH_UP = 1 << 16  # samples produced at once after a long pause (older ones are lost)
 
 
+_ENTRIES = ax.REGISTERS["FIFO_ENTRIES"]
+
+
+def _mode(fifo_ctl: int) -> int:
+    return int(ax.REGISTERS["FIFO_MODE"].counts(fifo_ctl))
+
+
 class Adxl345Sim(RegisterChip):
     """An ADXL345 driven by a specific-force source in m/s^2 (shape (n, 3))."""
 
@@ -48,7 +55,7 @@ class Adxl345Sim(RegisterChip):
 
     @property
     def fifo_mode(self) -> int:
-        return self.regs[ax.REG["FIFO_CTL"]] >> ax.FIFO_MODE_SHIFT
+        return _mode(self.regs[ax.REG["FIFO_CTL"]])
 
     def _capacity(self) -> int:
         return 1 if self.fifo_mode == ax.FIFO_BYPASS else ax.FIFO_AVAILABLE
@@ -91,20 +98,13 @@ class Adxl345Sim(RegisterChip):
 
     def _quantize(self, x: np.ndarray) -> np.ndarray:
         fmt = self.regs[ax.REG["DATA_FORMAT"]]
-        rng = fmt & 0x03
-        lsb_g = 1.0 / ax.LSB_PER_G
-        bits = 10
-        if fmt & ax.FORMAT_FULL_RES:
-            bits = 10 + rng
-        else:
-            lsb_g *= 2 ** rng
-        offsets = np.frombuffer(bytes(self.regs[ax.REG["OFSX"]:ax.REG["OFSZ"] + 1]),
-                                dtype=np.int8).astype(np.float64) * 15.6e-3
-        g = x / ax.G0 + offsets
-        counts = np.round(g / lsb_g)
-        lim = 2 ** (bits - 1)
-        counts = np.clip(counts, -lim, lim - 1).astype(np.int64)
-        if (self.regs[ax.REG["BW_RATE"]] & 0x0F) >= 0x0E and fmt & ax.FORMAT_FULL_RES:
+        x = np.atleast_2d(x)
+        offsets = [float(ax.REGISTERS[f"OFS{a}"].decode(self.regs[ax.REG[f"OFS{a}"]]))
+                   for a in "XYZ"]
+        counts = np.stack([ax.data_field(n, fmt).from_si(x[:, k] + offsets[k])
+                           for k, n in enumerate(ax.DATA_FIELDS)], axis=1)
+        if int(ax.REGISTERS["RATE"].counts(self.regs[ax.REG["BW_RATE"]])) >= 0x0E \
+                and fmt & ax.FORMAT_FULL_RES:
             counts &= ~1  # the LSB is always 0 at 1600 and 3200 Hz
         return counts
 
@@ -112,7 +112,7 @@ class Adxl345Sim(RegisterChip):
     def _on_write(self, reg: int, value: int) -> None:
         r = ax.REG
         if reg in (r["DEVID"], r["INT_SOURCE"], r["FIFO_STATUS"]) or \
-                r["DATAX0"] <= reg <= r["DATAZ1"]:
+                r["DATAX"] <= reg <= (r["DATAZ"] + 1):
             return  # read-only
         old = self.regs[reg]
         self.regs[reg] = value
@@ -120,8 +120,8 @@ class Adxl345Sim(RegisterChip):
             self._restart()
         elif reg == r["BW_RATE"] and (old ^ value) & 0x0F:
             self._restart()
-        elif reg == r["FIFO_CTL"] and (old >> ax.FIFO_MODE_SHIFT) != (value >> ax.FIFO_MODE_SHIFT):
-            if value >> ax.FIFO_MODE_SHIFT == ax.FIFO_BYPASS:
+        elif reg == r["FIFO_CTL"] and _mode(old) != _mode(value):
+            if _mode(value) == ax.FIFO_BYPASS:
                 while len(self.fifo) > 1:
                     self.fifo.popleft()
             self._overrun = False
@@ -143,18 +143,18 @@ class Adxl345Sim(RegisterChip):
         if reg == r["INT_SOURCE"]:
             return self._int_source()
         if reg == r["FIFO_STATUS"]:
-            return min(len(self.fifo), ax.FIFO_AVAILABLE) & ax.FIFO_ENTRIES_MASK
-        if r["DATAX0"] <= reg <= r["DATAZ1"]:
+            return int(_ENTRIES.encode(min(len(self.fifo), ax.FIFO_AVAILABLE)))
+        if r["DATAX"] <= reg <= (r["DATAZ"] + 1):
             row = self.fifo[0] if self.fifo else self._last_row
-            k = reg - r["DATAX0"]
-            word = row[k // 2] & 0xFFFF
-            return (word >> 8) if k % 2 else (word & 0xFF)
+            k = reg - r["DATAX"]
+            field = ax.REGISTERS[ax.DATA_FIELDS[k // 2]]
+            return field.bytes_of(int(field.encode(row[k // 2])))[k % 2]
         return self.regs[reg]
 
     _last_row: tuple[int, int, int] = (0, 0, 0)
 
     def _after_read(self, start: int, n: int) -> None:
         r = ax.REG
-        if start <= r["DATAZ1"] and start + n > r["DATAX0"] and self.fifo:
+        if start <= (r["DATAZ"] + 1) and start + n > r["DATAX"] and self.fifo:
             self._last_row = self.fifo.popleft()
             self._overrun = False

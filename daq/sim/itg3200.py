@@ -18,10 +18,10 @@ from daq.drivers import itg3200 as itg
 from daq.sim.i2c_chip import RegisterChip, SourceBuffer
 from daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
 
-DEG = math.pi / 180.0
 INTERNAL_OSC_ERROR = -0.03  # the datasheet allows -15..+10 % over temperature
 PLL_LOCK_S = 0.001
-REG_END = itg.REG["GYRO_ZOUT_L"]
+_REGS = itg.REGISTERS
+REG_END = _REGS.addr("GYRO_ZOUT") + 1  # last data byte
 
 
 class Itg3200Sim(RegisterChip):
@@ -55,9 +55,9 @@ class Itg3200Sim(RegisterChip):
 
     @property
     def rate_hz(self) -> float:
-        dlpf = self.regs[itg.REG["DLPF_FS"]] & 0x07
+        dlpf = int(_REGS["DLPF_CFG"].counts(self.regs[itg.REG["DLPF_CFG"]]))
         f_int = itg.DLPF_CFG.get(dlpf, (0.0, 1000.0))[1]
-        clk = self.regs[itg.REG["PWR_MGM"]] & 0x07
+        clk = int(_REGS["CLK_SEL"].counts(self.regs[itg.REG["CLK_SEL"]]))
         if clk == itg.CLK_INTERNAL:
             f_int *= 1.0 + INTERNAL_OSC_ERROR
         else:
@@ -77,18 +77,16 @@ class Itg3200Sim(RegisterChip):
         x = self.gyro.skip_take_last(index - self._index)
         self.samples_made += index - self._index
         self._index = index
-        fs_sel = (self.regs[itg.REG["DLPF_FS"]] >> itg.FS_SEL_SHIFT) & 0x03
+        fs_sel = int(_REGS["FS_SEL"].counts(self.regs[itg.REG["FS_SEL"]]))
         # FS_SEL 0..2 are reserved; the part is only specified at 3.
-        lsb_per_rad_s = itg.LSB_PER_DPS / DEG * (1.0 if fs_sel == 3 else 1.3)
-        counts = np.clip(np.round(x * lsb_per_rad_s), -32768, 32767).astype(np.int64)
+        gain = 1.0 if fs_sel == itg.FS_SEL_2000DPS else 1.3
+        counts = [int(_REGS[n].from_si(v * gain)) for n, v in zip(itg.GYRO_FIELDS, x,
+                                                                       strict=True)]
         temp = float(self.temperature(np.array([now - self.power_on]))[0])
-        t_counts = int(round(itg.TEMP_REF_LSB + (temp - itg.TEMP_REF_C) * itg.TEMP_LSB_PER_C))
-        words = [t_counts, *counts.tolist()]
-        base = itg.REG["TEMP_OUT_H"]
-        for k, w in enumerate(words):
-            w &= 0xFFFF
-            self.regs[base + 2 * k] = w >> 8
-            self.regs[base + 2 * k + 1] = w & 0xFF
+        t_counts = int(_REGS["TEMP_OUT"].from_si(temp))
+        data = _REGS.block_bytes(itg.DATA_FIELDS, [t_counts, *counts])
+        base = _REGS.addr("TEMP_OUT")
+        self.regs[base:base + len(data)] = bytes(data)
         self._int_status |= itg.INT_RAW_DATA_RDY
 
     def _next(self, pointer: int) -> int:

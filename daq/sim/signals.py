@@ -14,11 +14,11 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from core.units import DEG, G0
+
 SignalSource = Callable[[int], np.ndarray]
 TemperatureSource = Callable[[np.ndarray], np.ndarray]
 
-DEG = math.pi / 180.0
-G0 = 9.80665  # standard gravity, m/s^2
 SQRT_HOUR = 60.0  # sqrt(3600 s)
 
 # Seed-paper noise models per device, in SI units per channel (see docs/devices.md).

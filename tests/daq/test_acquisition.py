@@ -13,6 +13,7 @@ import pytest
 
 from analysis.allan import oadev
 from core.blocks import SampleBlock
+from core.units import DEG, G0
 from daq.acquisition import Acquisition
 from daq.clock import RealClock, VirtualClock
 from daq.devices import DEVICES, open_device
@@ -21,7 +22,7 @@ from daq.drivers import adxl345 as ax
 from daq.drivers import itg3200 as itg
 from daq.drivers.common import StreamBuffer
 from daq.sim.signals import white_source
-from tests.daq_testing import DEG, G0, expected_variance, record, white_level_interval
+from tests.daq_testing import expected_variance, record, white_level_interval
 
 
 def test_unknown_device_and_missing_port_or_bus():
@@ -186,8 +187,8 @@ def test_sixty_seconds_adis_white_noise_level():
     imu = rec["/adis16350/imu"]
     assert len(imu["t"]) == pytest.approx(60 * fs, abs=2) and acq.stats.dropped == 0
     for axis in "xyz":
-        _check_white(imu["ch"][f"gyro_{axis}"], n_gyro, fs, adis.GYRO_LSB_DPS[300] * DEG)
-        _check_white(imu["ch"][f"accel_{axis}"], n_accel, fs, adis.ACCEL_LSB_G * G0)
+        _check_white(imu["ch"][f"gyro_{axis}"], n_gyro, fs, adis.REGISTERS["XGYRO_OUT"].scale)
+        _check_white(imu["ch"][f"accel_{axis}"], n_accel, fs, adis.REGISTERS["XACCL_OUT"].scale)
 
 
 def test_sixty_seconds_razor_white_noise_level():
@@ -204,8 +205,8 @@ def test_sixty_seconds_razor_white_noise_level():
     assert len(gyro["t"]) == pytest.approx(6000, abs=3)
     assert len(accel["t"]) == pytest.approx(6000, abs=35)  # up to a FIFO's worth in flight
     for axis in "xyz":
-        _check_white(gyro["ch"][f"gyro_{axis}"], n_gyro, fs, DEG / itg.LSB_PER_DPS)
-        _check_white(accel["ch"][f"accel_{axis}"], n_accel, fs, G0 / ax.LSB_PER_G)
+        _check_white(gyro["ch"][f"gyro_{axis}"], n_gyro, fs, itg.REGISTERS["GYRO_XOUT"].scale)
+        _check_white(accel["ch"][f"accel_{axis}"], n_accel, fs, ax.REGISTERS["DATAX"].scale)
 
 
 def test_sixty_seconds_adxl_at_800hz_white_noise_level():
@@ -218,7 +219,7 @@ def test_sixty_seconds_adxl_at_800hz_white_noise_level():
     assert acq.stats.dropped == 0
     assert len(accel["t"]) == pytest.approx(48000, abs=35)
     for axis in "xyz":
-        _check_white(accel["ch"][f"accel_{axis}"], n_accel, fs, G0 / ax.LSB_PER_G)
+        _check_white(accel["ch"][f"accel_{axis}"], n_accel, fs, ax.REGISTERS["DATAX"].scale)
 
 
 def test_default_models_run_without_injected_sources():

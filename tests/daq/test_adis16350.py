@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from core.units import DEG, G0
 from daq.clock import VirtualClock
 from daq.devices import open_device
 from daq.drivers import adis16350 as adis
@@ -15,25 +16,31 @@ from daq.errors import PermanentDeviceError
 from daq.sim.adis16350 import Adis16350Sim
 from daq.sim.buspirate_pty import BusPirateEmulator
 from daq.transports.buspirate import BusPirateSPI
-from tests.daq_testing import DEG, G0, constant, record
+from tests.daq_testing import constant, record
 
 
 def test_gyro_scale_datasheet_example():
     # +80 deg/s = 0x0444 at +-300 deg/s; ND and EA flags do not leak into the value.
-    assert adis.data14(0x0444) == 1092
-    assert adis.data14(0xC444) == 1092
-    assert adis.gyro_rad_s(1092, 300) / DEG == pytest.approx(80.0, abs=0.01)
-    assert adis.data14(0x3FFF) == -1 and adis.data14(0x2000) == -8192
-    assert adis.GYRO_LSB_DPS[150] == pytest.approx(0.07326 / 2, rel=1e-3)
-    assert adis.GYRO_LSB_DPS[75] == pytest.approx(0.07326 / 4, rel=1e-3)
+    gyro = adis.REGISTERS["XGYRO_OUT"]
+    assert gyro.counts(0x0444) == 1092
+    assert gyro.counts(0xC444) == 1092
+    assert gyro.decode(0x0444) / DEG == pytest.approx(80.0, abs=0.01)
+    assert gyro.counts(0x3FFF) == -1 and gyro.counts(0x2000) == -8192
+    assert adis.gyro_field("YGYRO_OUT", 150).scale / DEG == pytest.approx(0.07326 / 2, rel=1e-3)
+    assert adis.gyro_field("ZGYRO_OUT", 75).scale / DEG == pytest.approx(0.07326 / 4, rel=1e-3)
+    # what the simulator presents decodes back: encode and counts are inverses
+    assert gyro.encode(gyro.from_si(80.0 * DEG)) == 0x0444
+    assert gyro.from_si(1e3) == 8191  # saturates at 14 bits
 
 
 def test_accel_temperature_supply_scales():
     # 1 g = 397 LSB (0x018D).
-    assert adis.accel_m_s2(0x018D) / G0 == pytest.approx(1.0, abs=0.0025)
-    assert adis.temp_c(adis.data12s(0x0000)) == 25.0
-    assert adis.temp_c(adis.data12s(0x0FFF)) == pytest.approx(25.0 - 0.1453)
-    assert adis.supply_v(2730) == pytest.approx(5.0, abs=0.002)
+    r = adis.REGISTERS
+    assert r["XACCL_OUT"].decode(0x018D) / G0 == pytest.approx(1.0, abs=0.0025)
+    assert r["XTEMP_OUT"].decode(0x0000) == 25.0
+    assert r["YTEMP_OUT"].decode(0x0FFF) == pytest.approx(25.0 - 0.1453)
+    assert r["SUPPLY_OUT"].decode(2730) == pytest.approx(5.0, abs=0.002)
+    assert r["SUPPLY_OUT"].decode(0xF000 | 2730) == r["SUPPLY_OUT"].decode(2730)
 
 
 def test_command_words_match_datasheet_examples():
@@ -107,11 +114,11 @@ def test_driver_against_simulator(smpl_prd, range_dps):
     assert float(acq.config["transport"].split(",")[-1].split()[0]) * 1e3 <= \
         adis.sclk_max_hz(smpl_prd)
     # Values: quantized to this range's LSB.
-    lsb = adis.GYRO_LSB_DPS[range_dps] * DEG
+    lsb = adis.gyro_field("XGYRO_OUT", range_dps).scale
     for k, axis in enumerate("xyz"):
         assert np.allclose(imu["ch"][f"gyro_{axis}"], GYRO[k], atol=lsb / 2 + 1e-12)
         assert np.allclose(imu["ch"][f"accel_{axis}"], ACCEL[k],
-                           atol=adis.ACCEL_LSB_G * G0 / 2 + 1e-12)
+                           atol=adis.REGISTERS["XACCL_OUT"].scale / 2 + 1e-12)
     assert np.allclose(np.diff(imu["t"]), 1 / rate, rtol=0, atol=1e-6)
     assert sim.undefined_writes == 0  # never clocked 0xFFFF
     assert sim.frames >= 7 * len(imu["t"])  # pipelined single reads, no burst
@@ -206,7 +213,8 @@ def test_model_new_data_flag_pipelining_and_status_clear():
         miso = drv.spi.transfer_frames([x, x, adis.read_command("STATUS"), 0x0000])
         # Frame 1 answers the command before it; frame 2 carries ND, frame 3 has it cleared.
         assert miso[1] & adis.FLAG_ND and not miso[2] & adis.FLAG_ND
-        assert adis.data14(miso[1]) == adis.data14(miso[2])
+        gyro = adis.REGISTERS["XGYRO_OUT"]
+        assert gyro.counts(miso[1]) == gyro.counts(miso[2])
         assert miso[3] == 0  # STATUS clean
         sim.supply_v = 5.4  # over-voltage: STATUS bit 1 and EA on the outputs
         clock.advance(1 / 102.4)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.units import G0
 from daq.clock import VirtualClock
 from daq.devices import open_device
 from daq.drivers import adxl345 as ax
@@ -13,12 +14,12 @@ from daq.errors import PermanentDeviceError
 from daq.sim.adxl345 import Adxl345Sim
 from daq.sim.fake_i2c import SimulatedI2CAdapter
 from daq.transports.i2c import I2CBus
-from tests.daq_testing import G0, constant, record
+from tests.daq_testing import constant, record
 
 
 def test_scaling_and_byte_order():
-    assert ax.accel_m_s2(256) == pytest.approx(G0)  # 256 LSB/g
-    assert ax.accel_m_s2(1) / G0 * 1e3 == pytest.approx(3.9, abs=0.01)  # 3.9 mg/LSB
+    assert ax.REGISTERS["DATAX"].to_si(256) == pytest.approx(G0)  # 256 LSB/g
+    assert ax.REGISTERS["DATAZ"].to_si(1) / G0 * 1e3 == pytest.approx(3.9, abs=0.01)  # 3.9 mg/LSB
     b = np.array([0x00, 0x01, 0x00, 0xFF, 0x01, 0x00])  # little-endian
     assert ax.decode_data(b).tolist() == [[256, -256, 1]]
 
@@ -58,14 +59,14 @@ def test_fifo_stream_mode_overrun_and_pop():
     assert bus.read_byte_data(0x53, ax.REG["FIFO_STATUS"]) & 0x3F == 10
     src = bus.read_byte_data(0x53, ax.REG["INT_SOURCE"])
     assert src & ax.INT_DATA_READY and not src & ax.INT_WATERMARK
-    row = bus.read_i2c_block_data(0x53, ax.REG["DATAX0"], 6)
+    row = bus.read_i2c_block_data(0x53, ax.REG["DATAX"], 6)
     assert ax.decode_data(np.array(row)).tolist() == [[0, 0, 256]]
     assert bus.read_byte_data(0x53, ax.REG["FIFO_STATUS"]) & 0x3F == 9  # popped one
     clock.advance(1.0)  # 100 more: stream mode keeps the newest 33
     assert bus.read_byte_data(0x53, ax.REG["FIFO_STATUS"]) & 0x3F == 33
     assert bus.read_byte_data(0x53, ax.REG["INT_SOURCE"]) & ax.INT_OVERRUN
     assert sim.samples_lost == 109 - 33
-    bus.read_i2c_block_data(0x53, ax.REG["DATAX0"], 6)
+    bus.read_i2c_block_data(0x53, ax.REG["DATAX"], 6)
     assert not bus.read_byte_data(0x53, ax.REG["INT_SOURCE"]) & ax.INT_OVERRUN
 
 

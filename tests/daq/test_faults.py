@@ -9,11 +9,12 @@ import math
 import numpy as np
 import pytest
 
+from core.units import G0
 from daq.devices import open_device
 from daq.drivers.common import PolledSampleClock
 from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
 from daq.transports.i2c import I2CBus
-from tests.daq_testing import G0, constant
+from tests.daq_testing import constant
 
 GYRO = (0.01, 0.02, -0.03)
 ACCEL = (0.0, 0.0, G0)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import smbus2
 
+from core.units import DEG
 from daq.clock import VirtualClock
 from daq.devices import open_device
 from daq.drivers import itg3200 as itg
@@ -14,16 +15,17 @@ from daq.errors import PermanentDeviceError
 from daq.sim.fake_i2c import SimulatedI2CAdapter, SimulatedSMBus
 from daq.sim.itg3200 import Itg3200Sim
 from daq.transports.i2c import I2CBus
-from tests.daq_testing import DEG, constant, record
+from tests.daq_testing import constant, record
 
 
 def test_scaling_datasheet_values():
-    assert itg.gyro_rad_s(14.375) / DEG == pytest.approx(1.0)
-    assert itg.gyro_rad_s(-28.75) / DEG == pytest.approx(-2.0)
+    assert itg.REGISTERS["GYRO_XOUT"].to_si(14.375) / DEG == pytest.approx(1.0)
+    assert itg.REGISTERS["GYRO_YOUT"].to_si(-28.75) / DEG == pytest.approx(-2.0)
     # -13200 LSB at 35 degC, 280 LSB per degC.
-    assert itg.temp_c(-13200) == pytest.approx(35.0)
-    assert itg.temp_c(-13200 + 280) == pytest.approx(36.0)
-    assert itg.temp_c(-23000) == pytest.approx(0.0)  # Linux's (raw + 23000) / 280 form
+    assert itg.REGISTERS["TEMP_OUT"].to_si(-13200) == pytest.approx(35.0)
+    assert itg.REGISTERS["TEMP_OUT"].to_si(-13200 + 280) == pytest.approx(36.0)
+    # Linux's (raw + 23000) / 280 form
+    assert itg.REGISTERS["TEMP_OUT"].to_si(-23000) == pytest.approx(0.0)
     b = np.array([0xCC, 0x70, 0x00, 0x0E, 0xFF, 0xF2, 0x80, 0x00])
     assert itg.decode_data(b).tolist() == [[-13200, 14, -14, -32768]]
 
@@ -82,7 +84,7 @@ def test_driver_against_simulator(rate):
     assert sim.regs[itg.REG["PWR_MGM"]] & 0x07 == itg.CLK_PLL_X
     assert sim.regs[itg.REG["DLPF_FS"]] >> 3 == 3
     assert float(acq.config["rate_hz"]) == pytest.approx(rate)
-    lsb = DEG / itg.LSB_PER_DPS
+    lsb = itg.REGISTERS["GYRO_ZOUT"].scale
     for k, axis in enumerate("xyz"):
         assert np.allclose(imu["ch"][f"gyro_{axis}"], gyro[k], atol=lsb / 2)
     # Every sample the chip made since acquisition started is either delivered or counted
@@ -134,14 +136,14 @@ def test_model_power_up_state_and_data_ready_rules():
     assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == itg.INT_RAW_DATA_RDY
     assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == 0  # cleared by reading it
     clock.advance(0.002)
-    bus.read_i2c_block_data(0x68, itg.REG["TEMP_OUT_H"], 8)  # a data read does not clear
+    bus.read_i2c_block_data(0x68, itg.REG["TEMP_OUT"], 8)  # a data read does not clear
     assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == itg.INT_RAW_DATA_RDY
     bus.write_byte_data(0x68, itg.REG["INT_CFG"],
                         itg.INT_CFG_RAW_RDY_EN | itg.INT_CFG_ANYRD_2CLEAR)
     clock.advance(0.002)
-    bus.read_i2c_block_data(0x68, itg.REG["TEMP_OUT_H"], 8)  # now any read clears
+    bus.read_i2c_block_data(0x68, itg.REG["TEMP_OUT"], 8)  # now any read clears
     assert bus.read_byte_data(0x68, itg.REG["INT_STATUS"]) == 0
     # Burst reads stop in the reserved area after GYRO_ZOUT_L.
-    tail = bus.read_i2c_block_data(0x68, itg.REG["GYRO_ZOUT_L"], 4)
+    tail = bus.read_i2c_block_data(0x68, itg.REG["GYRO_ZOUT"] + 1, 4)
     assert tail[1:] == [0, 0, 0]
     bus.close()

@@ -1,0 +1,53 @@
+"""The register field descriptor shared by drivers and simulators."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from daq.drivers import adis16350 as adis
+from daq.drivers import adxl345 as ax
+from daq.drivers import itg3200 as itg
+from daq.registers import Field, RegisterMap
+
+
+def test_signed_field_with_flags_above_it() -> None:
+    f = Field("X", 0x04, bits=14, signed=True, scale=0.5, unit="u")
+    assert f.count_range == (-8192, 8191)
+    assert f.counts(np.array([0x3FFF, 0xC001, 0x2000])).tolist() == [-1, 1, -8192]
+    assert f.decode(0x8002) == pytest.approx(1.0)  # flag bits 15, 14 ignored
+    assert f.from_si(np.array([-1e9, 0.24, 0.26, 1e9])).tolist() == [-8192, 0, 1, 8191]
+    assert f.encode(-1, word=0xC000) == 0xFFFF  # flags kept, data two's complement
+
+
+def test_sub_register_fields_share_an_address() -> None:
+    fs_sel = itg.REGISTERS["FS_SEL"]
+    dlpf = itg.REGISTERS["DLPF_CFG"]
+    word = int(fs_sel.encode(3, dlpf.encode(5)))
+    assert word == 0x1D and itg.dlpf_fs_value(5) == word
+    assert fs_sel.counts(word) == 3 and dlpf.counts(word) == 5
+    assert itg.is_itg3200_id(0x69) and not itg.is_itg3200_id(0xE5)
+
+
+@pytest.mark.parametrize(("regs", "names"), [(itg.REGISTERS, itg.DATA_FIELDS),
+                                             (ax.REGISTERS, ax.DATA_FIELDS)])
+def test_bursts_round_trip_in_bus_byte_order(regs: RegisterMap, names: tuple) -> None:
+    counts = [-32768, -1, 0, 32767][:len(names)]
+    data = regs.block_bytes(names, counts)
+    assert regs.block_counts(names, np.array(data)).tolist() == [counts]
+    first = regs[names[0]]
+    low_first = data[0] == (counts[0] & 0xFF)
+    assert low_first == (not first.big_endian)
+
+
+def test_scales_are_the_datasheets() -> None:
+    deg, g0 = np.pi / 180.0, 9.80665
+    assert itg.REGISTERS["GYRO_XOUT"].scale == pytest.approx(deg / 14.375)
+    assert itg.REGISTERS["TEMP_OUT"].decode(0xCC70) == pytest.approx(35.0)  # -13200 LSB
+    assert ax.REGISTERS["DATAY"].scale == pytest.approx(g0 / 256.0)
+    assert ax.data_field("DATAX", ax.data_format(2)).count_range == (-512, 511)
+    assert ax.data_field("DATAX", 0x00).scale == pytest.approx(g0 / 256.0)
+    assert ax.data_field("DATAX", 0x03).scale == pytest.approx(8 * g0 / 256.0)  # 10-bit, 16 g
+    assert adis.REGISTERS["XACCL_OUT"].scale == pytest.approx(2.522e-3 * g0)
+    assert adis.gyro_field("XGYRO_OUT", 75).scale == pytest.approx(0.018315 * deg)
+    assert adis.ADDR["COMMAND"] == 0x3E and len(adis.REGISTERS) == 31
