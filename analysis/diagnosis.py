@@ -221,12 +221,16 @@ class _Context:
     spec: ModelSpec
     by_term: dict[str, Finding]
     n_candidates: int
+    sensor_filter: tuple[str, dict[str, float]] | None = None
 
 
 def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[str, float]]:
     """The model with ``term`` appended, fitted exactly as ``imunoise fit --model`` fits it
     (its ``apply.model``): ``(fit or None, model, parameters the evidence pinned)``."""
     pinned: dict[str, float] = {}
+    if ctx.sensor_filter is not None and term == ctx.sensor_filter[0]:
+        # the device's configuration states the filter: it is not fitted
+        pinned = dict(ctx.sensor_filter[1])
     f_ev = ctx.by_term.get(term)
     if get_term(term).role == "line" and f_ev is not None and f_ev.significant \
             and "f" in f_ev.params:
@@ -282,12 +286,17 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         params = dict(ev.params)
     rng = _z_range(base, after) if after is not None and not regressor else None
     supporting = [ev] if ev is not None else []
+    why = _why(term, rng, before, chi_after, supporting)
+    if pinned and get_term(term).kind == "filter":
+        held = ", ".join(f"{k} = {v:g}" for k, v in pinned.items())
+        why += f" The recording's device configuration states this filter ({held}), so it " \
+               f"is held, not fitted."
     return Suggestion(
         term=term, params=params, ci95=ci, chi2_per_dof_before=before,
         chi2_per_dof_after=chi_after, p_value=float(np.exp(logp)), log_p=logp,
         # significant only when applying it really lowers the error the fit reports
         significant=bool(logp < np.log(alpha) and falls),
-        why=_why(term, rng, before, chi_after, supporting),
+        why=why,
         evidence=[f.kind for f in supporting if f.significant], fit=after,
         apply={"model": spec.text(), "args": []})
 
@@ -296,7 +305,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              segment_starts: np.ndarray | None = None, t0_s: float = 0.0,
              temperature: tuple[np.ndarray, np.ndarray] | None = None,
              units: str = "rad/s", alpha: float = DEFAULT_ALPHA,
-             fixed: dict | None = None) -> Diagnosis:
+             fixed: dict | None = None,
+             sensor_filter: tuple[str, dict[str, float]] | None = None) -> Diagnosis:
     """Fit ``model`` to a rate series and rank the terms it is missing.
 
     Args:
@@ -310,6 +320,10 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         units: units of ``values`` (for explanations).
         alpha: family-wise significance level over all candidates.
         fixed: parameters held fixed in the given model (see :func:`analysis.fit.fit_allan`).
+        sensor_filter: the output filter the device's configuration states, ``(term,
+            params)`` (e.g. ``("bartlett", {"taps": 4})``); it is then the one filter
+            offered, with those parameters held. Without it the filter terms are offered,
+            fitted, when the shortest taus lie below the model.
 
     Returns:
         A :class:`Diagnosis` with suggestions best first.
@@ -360,9 +374,13 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     candidates = [n for n, t in TERMS.items() if (n not in names or t.repeatable)
                   and t.kind == "additive"
                   and (t.needs_record != "temperature" or temperature is not None)]
-    if _filter_signature(base, filt) and not any(get_term(n).kind == "filter" for n in names):
-        candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
-    ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term, len(candidates))
+    if not any(get_term(n).kind == "filter" for n in names):
+        if sensor_filter is not None:
+            candidates.append(get_term(sensor_filter[0]).name)
+        elif _filter_signature(base, filt):
+            candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
+    ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term, len(candidates),
+                   sensor_filter)
     suggestions = [_suggest(ctx, term, alpha) for term in candidates]
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
     # parameters, so a two-parameter Markov term does not win merely by being flexible.

@@ -19,6 +19,9 @@ from core.record import Record
 from imunoise.commands.common import add_rate_option, fit_errors, open_imu_channel, parse_model
 from imunoise.commands.fit import fit_json, fit_text
 
+ADIS_INTERNAL_RATE_HZ = 819.2
+"""Internal sample rate of the ADIS16350, at which its Bartlett filter runs (Hz)."""
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("diagnose", help="fit, then rank the missing effects",
@@ -49,7 +52,34 @@ def diagnose_channel(record: Record, key: str, model_text: str) -> Any:
     with fit_errors(key):
         return diagnose(series.values, series.fs_hz, names,
                         segment_starts=series.segment_starts, t0_s=series.t0_s,
-                        temperature=temperature, units=series.units, fixed=fixed)
+                        temperature=temperature, units=series.units, fixed=fixed,
+                        sensor_filter=device_filter(record.metadata, key))
+
+
+def device_filter(metadata: dict[str, str], key: str) -> tuple[str, dict[str, float]] | None:
+    """The output filter an imunoise recording's device configuration states for channel
+    ``key``, or None for other files and devices:
+
+    * ADIS16350: the Bartlett window of ``filter_taps`` taps per stage runs at the internal
+      819.2 Hz; at the output rate it spans ``taps * rate / 819.2`` output samples, stated
+      when that is at least one sample (shorter, it averages within one output sample);
+    * ITG-3200: the digital low-pass (``dlpf_bandwidth_hz``), modelled as one pole at that
+      bandwidth, when it lies below the output Nyquist frequency.
+    """
+    device = metadata.get("config.device", "")
+    rate = float(metadata.get("config.rate_hz", "nan"))
+    channel = key.split(":")[-1]
+    if not np.isfinite(rate):
+        return None
+    if device == "adis16350" and "config.filter_taps" in metadata:
+        taps = float(metadata["config.filter_taps"]) * rate / ADIS_INTERNAL_RATE_HZ
+        return ("bartlett", {"taps": taps}) if taps >= 1.0 else None
+    if device == "itg3200" and channel.startswith("gyro") \
+            and "config.dlpf_bandwidth_hz" in metadata:
+        fc = float(metadata["config.dlpf_bandwidth_hz"])
+        if fc < 0.5 * rate:
+            return "lowpass", {"fc": fc}
+    return None
 
 
 def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:

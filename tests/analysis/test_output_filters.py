@@ -117,3 +117,15 @@ def test_no_filter_is_offered_for_an_unfiltered_record() -> None:
                      ("random_walk", {"K": 1e-5})], FS, seed=6).take(200_000)
     d = diagnose(x, FS, "white,bias_instability,random_walk")
     assert not [s for s in d.suggestions if get_term(s.term).kind == "filter" and s.significant]
+
+
+def test_a_filter_the_device_states_is_offered_with_its_parameters_held() -> None:
+    x = NoiseStream([("white", {"N": 1e-3}), ("random_walk", {"K": 1e-5}),
+                     ("moving_average", {"taps": 4.0})], FS, seed=8).take(200_000)
+    d = diagnose(x, FS, "white,random_walk", sensor_filter=("moving_average", {"taps": 4.0}))
+    filters = [s for s in d.suggestions if get_term(s.term).kind == "filter"]
+    assert [s.term for s in filters] == ["moving_average"]  # the stated one only
+    (s,) = filters
+    assert s.significant and s.params == {"taps": 4.0}
+    assert s.apply["model"] == "white,random_walk,moving_average:taps=4"
+    assert "device configuration states this filter" in s.why
