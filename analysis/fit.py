@@ -234,7 +234,7 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
     for i, n in enumerate(names):
         term = get_term(n)
         if term.kind == "filter":
-            start[i] = {**term.small_default,
+            start[i] = {**term.start_params(fs),
                         **{k: fixed[(i, k)] for k in term.param_names if (i, k) in fixed}}
     all_owners = owners + extra_owner
     all_cols = list(base.T) + extra_cols
@@ -632,10 +632,13 @@ def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
     sub_params = _unpack(sub_prob.layout, sub_point.theta)
     params = sub_params[:last] + [dict(cold[last])] + sub_params[last:]
     term = get_term(prob.names[last])
+    own = _theta_of(prob, params)  # the new term at its own cold start
     params[last] = {**params[last], term.amplitude: 1e-300}
     at_zero = _theta_of(prob, params)
     exact = _Point(at_zero, sub_point.used.copy(), _chi2(prob, at_zero))
-    return [at_zero], exact
+    # at zero amplitude a term has no gradient in log form: the solver grows it only from
+    # its own start
+    return [at_zero, own], exact
 
 
 def _memo_point(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None,
@@ -670,7 +673,12 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
     # chi2 differences below the solver's tolerance do not count: the first start among the
     # near-best wins (the order of the starts is fixed, so equal curves give equal models)
     low = min(p.chi2 for p in points)
-    best = _trim(prob, next(p for p in points if p.chi2 <= low + _CHI2_TIE).theta)
+    best = next(p for p in points if p.chi2 <= low + _CHI2_TIE)
+    trimmed = _trim(prob, best.theta)
+    # setting the shortest taus aside must not raise the reported error: where it does, the
+    # model's other terms are fighting an effect it lacks, and the whole curve is kept
+    if trimmed.chi2 <= best.chi2 + _CHI2_TIE:
+        best = trimmed
     # the smaller model's solution itself when every solve does worse: adding a term never
     # raises chi2 (by more than the solver's tolerance)
     if exact is not None and exact.chi2 < best.chi2 - _CHI2_TIE:

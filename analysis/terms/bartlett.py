@@ -25,7 +25,7 @@ class Bartlett(OutputFilter):
         "SENS_AVG setting. White noise is averaged, so the Allan deviation at the shortest "
         "averaging times falls below the slope -1/2 line; the spectrum rolls off as the "
         "square of the moving average's, (sin(pi f L/fs)/(L sin(pi f/fs)))^4.")
-    small_default = {"taps": 2.0}
+    small_default = {"taps": 1.5}
 
     def impulse_response(self, fs_hz, params):
         g = boxcar(float(params["taps"]))

@@ -48,6 +48,9 @@ class Lowpass(OutputFilter):
         # fs/1000 to Nyquist: a slower pole is a Markov bias
         return math.log(_MIN_CUTOFF_OVER_FS * fs_hz), math.log(0.5 * fs_hz)
 
+    def start_params(self, fs_hz):
+        return {"fc": 0.3 * fs_hz}
+
     def coefficients(self, fs_hz, params):
         a = _pole(fs_hz, float(params["fc"]))
         return np.array([1.0 - a]), np.array([1.0, -a])

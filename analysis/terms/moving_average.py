@@ -39,7 +39,7 @@ class MovingAverage(OutputFilter):
         "samples, so the Allan deviation at the shortest averaging times falls below the "
         "slope -1/2 line and joins it near tau = L/fs; the spectrum rolls off as "
         "sin^2(pi f L/fs)/(L sin(pi f/fs))^2 with its first zero at fs/L.")
-    small_default = {"taps": 2.0}
+    small_default = {"taps": 1.5}
 
     def impulse_response(self, fs_hz, params):
         return boxcar(float(params["taps"]))

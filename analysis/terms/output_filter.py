@@ -130,6 +130,10 @@ class OutputFilter(Term):
     def impulse_response(self, fs_hz: float, params: dict[str, float]) -> np.ndarray:
         raise NotImplementedError
 
+    def start_params(self, fs_hz: float) -> dict[str, float]:
+        """Starting parameters of a fit: a mild filter (a real sensor's is short)."""
+        return dict(self.small_default)
+
     def coefficients(self, fs_hz: float, params: dict[str, float]
                      ) -> tuple[np.ndarray, np.ndarray]:
         """``(b, a)`` of the filter as a difference equation (default: the FIR ``g``)."""
