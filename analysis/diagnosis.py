@@ -31,6 +31,7 @@ from analysis import evidence
 from analysis.evidence.finding import Finding, family_p
 from analysis.fit import FitResult, fit_series
 from analysis.terms import TERMS, Entry, ModelSpec, TermError, get_term, parse_model
+from core.series import ChannelSeries
 
 DEFAULT_ALPHA = 0.05
 """Family-wise probability that a correctly specified model gets any significant suggestion."""
@@ -301,12 +302,45 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         apply={"model": spec.text(), "args": []})
 
 
+def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Suggestion:
+    """A warm-up or bias step as a suggestion: not a term but a cut of the record (its
+    ``apply.args``), refitted exactly as ``imunoise fit --model M ARGS`` fits it."""
+    if finding.kind == "bias_step":
+        args = ["--split", f"{finding.params['t_s']:.10g}"]
+        series = ChannelSeries("x", units, ctx.fs_hz, ctx.x, ctx.starts).windowed(
+            split_s=[float(args[1])])
+    else:
+        args = ["--skip", f"{finding.details['skip_s']:.10g}"]
+        series = ChannelSeries("x", units, ctx.fs_hz, ctx.x, ctx.starts).windowed(
+            skip_s=float(args[1]))
+    before = ctx.base.chi2_per_dof
+    try:
+        after, _ = fit_series(series.values, ctx.fs_hz, ctx.spec,
+                              segment_starts=series.segment_starts, intervals="jacobian")
+        chi_after = after.chi2_per_dof
+    except (ValueError, np.linalg.LinAlgError):
+        after, chi_after = None, float("nan")
+    falls = bool(np.isfinite(chi_after) and chi_after < before)
+    logp = min(0.0, _logp(finding.p_value) + float(np.log(ctx.n_candidates)))
+    why = finding.why
+    if np.isfinite(chi_after):
+        why += f" Doing so brings chi2/dof from {before:.3g} to {chi_after:.3g}."
+    return Suggestion(
+        term=finding.kind, params=dict(finding.params), ci95={},
+        chi2_per_dof_before=before, chi2_per_dof_after=chi_after,
+        p_value=float(np.exp(logp)), log_p=logp,
+        significant=bool(logp < np.log(alpha) and falls), why=why,
+        evidence=[finding.kind] if finding.significant else [], fit=after,
+        apply={"model": ctx.spec.text(), "args": args})
+
+
 def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              segment_starts: np.ndarray | None = None, t0_s: float = 0.0,
              temperature: tuple[np.ndarray, np.ndarray] | None = None,
              units: str = "rad/s", alpha: float = DEFAULT_ALPHA,
              fixed: dict | None = None,
-             sensor_filter: tuple[str, dict[str, float]] | None = None) -> Diagnosis:
+             sensor_filter: tuple[str, dict[str, float]] | None = None,
+             transients: bool = True) -> Diagnosis:
     """Fit ``model`` to a rate series and rank the terms it is missing.
 
     Args:
@@ -324,6 +358,10 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             params)`` (e.g. ``("bartlett", {"taps": 4})``); it is then the one filter
             offered, with those parameters held. Without it the filter terms are offered,
             fitted, when the shortest taus lie below the model.
+        transients: test for a bias step and a warm-up against the fitted model
+            (:func:`analysis.evidence.transients`); their remedies are cuts of the record
+            (``apply.args``: ``--split T``, ``--skip S``), so a caller that cannot cut (the
+            live service) leaves them out.
 
     Returns:
         A :class:`Diagnosis` with suggestions best first.
@@ -379,9 +417,22 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             candidates.append(get_term(sensor_filter[0]).name)
         elif _filter_signature(base, filt):
             candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
-    ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term, len(candidates),
-                   sensor_filter)
+    cuts: list[Finding] = []
+    if transients and "temperature" not in names:
+        bounds = np.append(starts, x.size)
+        longest = int(np.argmax(np.diff(bounds)))
+        cuts = [f for f in evidence.transients(segments, fs_hz, base.params, alpha=alpha,
+                                               units=units,
+                                               t0_s=float(bounds[longest]) / fs_hz)]
+        findings.extend(cuts)
+    ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
+                   len(candidates) + len(cuts), sensor_filter)
     suggestions = [_suggest(ctx, term, alpha) for term in candidates]
+    if not any(s.significant for s in suggestions):
+        # the step and warm-up tests take the fitted model as the sensor's noise: only once
+        # no term is missing is that a fair null (a model without its random walk sees
+        # steps everywhere); until then they stay findings
+        suggestions += [_remedy(ctx, f, units, alpha) for f in cuts if f.significant]
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
     # parameters, so a two-parameter Markov term does not win merely by being flexible.
     suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))

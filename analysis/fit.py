@@ -52,6 +52,7 @@ _LOSS = "soft_l1"
 _MAX_SHORT_TRIM = 4
 _F_SCALE = 3.0
 _CHI2_TIE = 0.05  # chi2 differences below this are the solver's tolerance
+_WHOLE_WINS = 0.5
 
 
 class CurveLike(Protocol):
@@ -632,13 +633,10 @@ def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
     sub_params = _unpack(sub_prob.layout, sub_point.theta)
     params = sub_params[:last] + [dict(cold[last])] + sub_params[last:]
     term = get_term(prob.names[last])
-    own = _theta_of(prob, params)  # the new term at its own cold start
     params[last] = {**params[last], term.amplitude: 1e-300}
     at_zero = _theta_of(prob, params)
     exact = _Point(at_zero, sub_point.used.copy(), _chi2(prob, at_zero))
-    # at zero amplitude a term has no gradient in log form: the solver grows it only from
-    # its own start
-    return [at_zero, own], exact
+    return [at_zero], exact
 
 
 def _memo_point(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None,
@@ -673,16 +671,15 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
     # chi2 differences below the solver's tolerance do not count: the first start among the
     # near-best wins (the order of the starts is fixed, so equal curves give equal models)
     low = min(p.chi2 for p in points)
-    best = next(p for p in points if p.chi2 <= low + _CHI2_TIE)
-    trimmed = _trim(prob, best.theta)
-    # setting the shortest taus aside must not raise the reported error: where it does, the
-    # model's other terms are fighting an effect it lacks, and the whole curve is kept
-    if trimmed.chi2 <= best.chi2 + _CHI2_TIE:
-        best = trimmed
+    whole = next(p for p in points if p.chi2 <= low + _CHI2_TIE)
+    best = _trim(prob, whole.theta)
     # the smaller model's solution itself when every solve does worse: adding a term never
-    # raises chi2 (by more than the solver's tolerance)
+    # raises chi2 (by more than the solver's tolerance). Setting the shortest taus aside costs
+    # chi2 (the parameters then rest on the taus the model can follow); when the new term's
+    # solution on the whole curve has less than half the smaller model's chi2, the term
+    # explains most of the misfit and that solution is kept instead
     if exact is not None and exact.chi2 < best.chi2 - _CHI2_TIE:
-        best = exact
+        best = whole if whole.chi2 < _WHOLE_WINS * exact.chi2 else exact
     assert best is not None
     return best
 

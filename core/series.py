@@ -60,6 +60,27 @@ class ChannelSeries:
                              segment_starts=np.asarray(starts, dtype=np.int64),
                              t0_s=self.t0_s + first / self.fs_hz)
 
+    def windowed(self, skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = ()
+                 ) -> ChannelSeries:
+        """The series without its first ``skip_s`` seconds (a warm-up) and cut into separate
+        segments at ``split_s`` (seconds from the first sample; a bias step). Times count
+        samples (``round(t * fs_hz)``), as the diagnosis states them.
+
+        Raises:
+            ValueError: nothing left after the skip.
+        """
+        n = self.n_samples
+        first = int(round(max(float(skip_s), 0.0) * self.fs_hz))
+        if first >= n:
+            raise ValueError(f"{self.name}: --skip {skip_s:g} s leaves no samples (the channel "
+                             f"has {n / self.fs_hz:.6g} s)")
+        cuts = sorted({int(round(float(t) * self.fs_hz)) for t in split_s} - {first})
+        cuts = [c for c in cuts if first < c < n]
+        edges = [first, *cuts, n]
+        if first == 0 and not cuts:
+            return self
+        return self.restricted(list(zip(edges[:-1], edges[1:], strict=True)))
+
     @property
     def n_samples(self) -> int:
         return int(len(self.values))

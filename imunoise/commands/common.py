@@ -47,6 +47,45 @@ def add_rate_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--static", choices=STATIC_CHOICES, default="auto", help=STATIC_HELP)
 
 
+def nonnegative_seconds(text: str) -> float:
+    """argparse type: a time in seconds, zero or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not (value >= 0 and np.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
+
+
+def split_times(text: str) -> list[float]:
+    """argparse type: comma-separated times in seconds."""
+    return [nonnegative_seconds(t) for t in text.split(",") if t.strip()]
+
+
+def add_window_options(parser: argparse.ArgumentParser) -> None:
+    """``--skip S`` and ``--split T[,T...]``: the remedies the diagnosis states for a warm-up
+    and a bias step (its ``apply.args``)."""
+    parser.add_argument("--skip", type=nonnegative_seconds, default=0.0, metavar="S",
+                        help="leave out the first S seconds of the channel, counted in samples "
+                             "from its first one (a warm-up transient; default 0)")
+    parser.add_argument("--split", type=split_times, default=[], metavar="T[,T...]",
+                        help="cut the channel into separate segments at these times (s from "
+                             "its first sample): no Allan difference spans a bias step "
+                             "(default: no cut)")
+
+
+def apply_window(record: Record, key: str, skip_s: float, split_s: list[float]) -> None:
+    """Channel ``key`` of ``record`` cut by ``--skip`` and ``--split`` (in place); a skip that
+    leaves nothing is a usage error."""
+    if not skip_s and not split_s:
+        return
+    try:
+        record.channels[key] = record.channels[key].windowed(skip_s, split_s)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def read_record(path: str, rate_hz: float | None = None, static: str = "all") -> Record:
     """:func:`daq.readers.open_record`, a read error becoming a usage error (exit 2); with
     ``static="auto"`` the IMU channels keep only the stretches where the sensor rested

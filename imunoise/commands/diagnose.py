@@ -16,7 +16,14 @@ from typing import Any
 import numpy as np
 
 from core.record import Record
-from imunoise.commands.common import add_rate_option, fit_errors, open_imu_channel, parse_model
+from imunoise.commands.common import (
+    add_rate_option,
+    add_window_options,
+    apply_window,
+    fit_errors,
+    open_imu_channel,
+    parse_model,
+)
 from imunoise.commands.fit import fit_json, fit_text
 
 ADIS_INTERNAL_RATE_HZ = 819.2
@@ -34,6 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "white,bias_instability,random_walk")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     add_rate_option(p)
+    add_window_options(p)
     p.set_defaults(func=run)
 
 
@@ -130,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
     parse_model(args.model)  # a misspelt term fails before a long read
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
                                    args.static)
+    apply_window(record, key, args.skip, args.split)
     diag = diagnose_channel(record, key, args.model)
     if args.json:
         from imunoise import report_json

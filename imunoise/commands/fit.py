@@ -17,6 +17,8 @@ from core.record import Record
 from core.units import CI95
 from imunoise.commands.common import (
     add_rate_option,
+    add_window_options,
+    apply_window,
     failure_lines,
     fit_errors,
     model_lines,
@@ -35,6 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated terms, e.g. white,bias_instability,random_walk")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     add_rate_option(p)
+    add_window_options(p)
     p.set_defaults(func=run)
 
 
@@ -126,6 +129,7 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
 def run(args: argparse.Namespace) -> int:
     parse_model(args.model)  # a misspelt term fails before a long read
     record, key = open_imu_channel(args.file, args.rate, args.channel, "fit", args.static)
+    apply_window(record, key, args.skip, args.split)
     result, curve = fit_channel(record, key, args.model)
     if args.json:
         from imunoise import report_json

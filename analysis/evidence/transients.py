@@ -1,0 +1,207 @@
+"""Bias steps and warm-up transients, tested against the fitted noise model.
+
+A knock that shifts the bias, or a bias that settles exponentially after power-on, bends the
+Allan curve much as rate random walk or flicker do, and those also wander: a test that ignores
+them calls every random walk a step. Here the record is cut into about ``BLOCKS`` blocks and
+the block means ``ybar_i`` are examined through zero-sum contrasts ``w . ybar``: for each
+split point, the mean after minus the mean before, over the whole record and over two blocks
+on each side (a step), and for each time constant, the
+least-squares amplitude of ``exp(-t/T)`` beside a constant (a warm-up). Under the fitted noise
+model (no step, no warm-up) the contrasts are jointly Gaussian with covariance
+``-sum_ij w_i w'_j V(|i-j|)``, where ``V(k) = E[(ybar_{i+k} - ybar_i)^2] / 2`` is the model's
+block-mean variogram, ``V(k) = 2 int_0^{fs/2} S(f) |M_b(f)|^2 sin^2(pi f k b / fs) df`` with
+``|M_b|^2`` the power response of a b-sample mean. The statistic is the largest standardised
+contrast; its p-value is the probability of a larger one under the model, estimated from
+``DRAWS`` draws of the contrasts (exact in distribution, not a bound), with a Bonferroni
+normal tail where the draws run out. So the false-alarm rate holds for records with random
+walk and flicker when the model holds them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import stats
+
+from analysis.evidence.finding import Finding
+from analysis.terms import get_term, model_psd
+
+BLOCKS = 120
+"""Number of blocks the longest segment is cut into."""
+MIN_BLOCK_SAMPLES = 16
+DRAWS = 4000
+_SEED = 20261125
+
+
+def _exact_variogram(r: np.ndarray, b: int, lags: np.ndarray) -> np.ndarray:
+    """``V(k)`` of b-sample block means of a stationary sequence whose autocovariance ``r``
+    ends before ``b`` lags: ``var(ybar) - cov(ybar_0, ybar_k)``."""
+    r = np.asarray(r, dtype=np.float64)
+    lag = np.arange(len(r), dtype=np.float64)
+    var = (b * r[0] + 2.0 * float(np.sum((b - lag[1:]) * r[1:]))) / (b * b)
+    cov1 = float(np.sum(lag[1:] * r[1:])) / (b * b)  # pairs straddling one boundary
+    return np.where(lags == 0, 0.0, var - np.where(lags == 1, cov1, 0.0))
+
+
+def _variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: int,
+               lags: np.ndarray) -> np.ndarray:
+    """``V(k)`` of b-sample block means of the model's Gaussian noise (units^2): white noise
+    and quantization exactly in the time domain (unless a filter shapes them), the other
+    terms by the spectral integral of the module's docstring."""
+    filtered = any(get_term(n).kind == "filter" for n, _ in model)
+    out = np.zeros(len(lags))
+    spectral = []
+    for n, p in model:
+        term = get_term(n)
+        if term.kind == "filter":
+            spectral.append((n, p))
+            continue
+        if term.role != "noise":
+            continue
+        r = None if filtered else term.autocovariance(fs_hz, p)
+        if r is not None and len(r) < b:
+            out += _exact_variogram(r, b, lags)
+        else:
+            spectral.append((n, p))
+    if not any(get_term(n).kind != "filter" for n, _ in spectral):
+        return out
+    k_max = float(max(lags.max(), 1))
+    u_lo = 1e-3 / (k_max * b)
+    n_lin = int(min(max(16 * b, 512), 65536)) if filtered else 2048
+    edges = np.unique(np.concatenate((
+        np.geomspace(u_lo, 0.5, int(np.log10(0.5 / u_lo) * 200) + 2),
+        np.linspace(0.0, 0.5, n_lin + 1)[1:])))
+    ua, ub = edges[:-1], edges[1:]
+    um = 0.5 * (ua + ub)
+    s = model_psd(spectral, um * fs_hz, fs_hz)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean_gain = (np.sin(np.pi * um * b) / (b * np.sin(np.pi * um))) ** 2
+    base = 2.0 * s * mean_gain * (ub - ua) * fs_hz
+    x = 2.0 * np.pi * np.asarray(lags, dtype=np.float64)[:, None] * b
+    width = (ub - ua)[None, :]
+    # sin^2(pi u k b) averaged over each bin: (1 - <cos(2 pi u k b)>) / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        avg_cos = np.where(x * width > 0.05,
+                           (np.sin(x * ub) - np.sin(x * ua)) / (x * width),
+                           np.cos(x * um))
+    return out + (0.5 * (1.0 - avg_cos)) @ base
+
+
+def _contrast_cov(w: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Covariance of zero-sum contrasts ``w`` (rows) of block means with variogram ``v``."""
+    n = w.shape[1]
+    idx = np.abs(np.subtract.outer(np.arange(n), np.arange(n)))
+    gamma = v[idx]
+    return -(w @ gamma @ w.T)
+
+
+def _family(n: int, t_blocks: np.ndarray) -> tuple[np.ndarray, list[tuple[str, float]]]:
+    """Zero-sum contrast rows: a step at each split (mean after minus mean before), and the
+    least-squares amplitude of exp(-t/T) beside a constant for T from 1 block to a third of
+    the record."""
+    rows, labels = [], []
+    for c in range(2, n - 1):
+        w = np.zeros(n)
+        w[:c] = -1.0 / c
+        w[c:] = 1.0 / (n - c)
+        rows.append(w)
+        labels.append(("step", float(c)))
+    # the same split seen locally, two blocks on each side: rate random walk spreads its
+    # wander over the record, a knock puts it in one place (and an Allan fit that absorbed
+    # the knock as random walk leaves this contrast its power)
+    for c in range(2, n - 1):
+        w = np.zeros(n)
+        w[c - 2:c] = -0.5
+        w[c:c + 2] = 0.5
+        rows.append(w)
+        labels.append(("step", float(c)))
+    for tb in np.geomspace(1.0, n / 3.0, 16):
+        e = np.exp(-t_blocks / tb)
+        e = e - e.mean()
+        rows.append(e / float(e @ e))
+        labels.append(("warmup", float(tb)))
+    return np.array(rows), labels
+
+
+def transients(segments: Sequence[np.ndarray], fs_hz: float,
+               model: Sequence[tuple[str, dict[str, float]]], alpha: float = 0.05,
+               units: str = "rad/s", t0_s: float = 0.0) -> tuple[Finding, Finding]:
+    """Test the longest segment for one bias step and for a warm-up transient.
+
+    Args:
+        segments: gap-free rate segments (SI units); the longest is tested.
+        fs_hz: sampling rate (Hz).
+        model: the fitted noise model ``[(term, params)]`` (its Gaussian terms make the null).
+        t0_s: time of the longest segment's first sample relative to the record start (s).
+
+    Returns:
+        ``(step, warmup)`` findings (kinds ``"bias_step"`` and ``"warmup"``), each with its
+        time and size (``params``: ``t_s`` and ``size`` for a step, ``tau_s`` and
+        ``amplitude`` for a warm-up) and a Monte Carlo p-value, both tests sharing one search
+        (the p-value covers every split and time constant).
+    """
+    x = max(segments, key=len) if segments else np.zeros(0)
+    b = max(len(x) // BLOCKS, MIN_BLOCK_SAMPLES)
+    n = len(x) // b
+    if n < 12:
+        empty = Finding("bias_step", None, 0.0, "max |z|", 1.0, alpha,
+                        why="Too short for a step test.")
+        return empty, Finding("warmup", None, 0.0, "max |z|", 1.0, alpha,
+                              why="Too short for a warm-up test.")
+    ybar = x[: n * b].reshape(n, b).mean(axis=1)
+    t_blocks = np.arange(n) + 0.5
+    w, labels = _family(n, t_blocks)
+    v = _variogram(model, fs_hz, b, np.arange(n))
+    cov = _contrast_cov(w, v)
+    sd = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    z = (w @ ybar) / sd
+    # the null distribution of the largest standardised contrast, by drawing the contrasts
+    corr = cov / np.outer(sd, sd)
+    vals, vecs = np.linalg.eigh(corr)
+    root = vecs * np.sqrt(np.clip(vals, 0.0, None))
+    draws = np.random.default_rng(_SEED).standard_normal((DRAWS, len(vals))) @ root.T
+    out = []
+    for kind in ("step", "warmup"):
+        sel = np.array([lab[0] == kind for lab in labels])
+        k = int(np.flatnonzero(sel)[np.argmax(np.abs(z[sel]))])
+        zmax = float(abs(z[k]))
+        p_mc = (1.0 + float(np.sum(np.max(np.abs(draws[:, sel]), axis=1) >= zmax))) / (DRAWS + 1)
+        p_tail = min(1.0, float(sel.sum()) * 2.0 * float(stats.norm.sf(zmax)))
+        p = min(p_mc, p_tail) if p_mc <= 2.0 / (DRAWS + 1) else p_mc
+        size = float(w[k] @ ybar)
+        half = 1.959963984540054 * float(sd[k])
+        if kind == "step":
+            # the size from up to five blocks on each side of the split
+            c = int(labels[k][1])
+            local = np.zeros(n)
+            lo, hi = max(0, c - 5), min(n, c + 5)
+            local[lo:c] = -1.0 / (c - lo)
+            local[c:hi] = 1.0 / (hi - c)
+            size = float(local @ ybar)
+            half = 1.959963984540054 * float(np.sqrt(max(float(
+                _contrast_cov(local[None, :], v)[0, 0]), 0.0)))
+        if kind == "step":
+            t_s = t0_s + labels[k][1] * b / fs_hz
+            params = {"t_s": t_s, "size": size}
+            why = (f"The bias steps by {size:.3g} {units} near t = {t_s:.0f} s "
+                   f"(95 % interval {size - half:.3g} .. {size + half:.3g}), more than the "
+                   f"fitted noise model's random wander allows (|z| = {zmax:.1f}): a knock or "
+                   f"a change of state. Analyse the two sides as separate segments.")
+            out.append(Finding("bias_step", None, zmax, "max |z|", p, alpha, params,
+                               {"t_s": [t_s, t_s]}, why if p < alpha else
+                               f"No bias step beyond the model's wander (largest |z| = "
+                               f"{zmax:.1f}).", {"size_ci95": [size - half, size + half],
+                                                  "block_s": b / fs_hz}))
+        else:
+            tau_s = labels[k][1] * b / fs_hz
+            params = {"tau_s": tau_s, "amplitude": size}
+            skip = min(5.0 * tau_s, 0.5 * n * b / fs_hz)
+            why = (f"The bias settles after the start: an exponential of {size:.3g} {units} "
+                   f"with a time constant near {tau_s:.0f} s (|z| = {zmax:.1f}), beyond the "
+                   f"fitted noise model's wander: a warm-up. Skip the first {skip:.0f} s.")
+            out.append(Finding("warmup", None, zmax, "max |z|", p, alpha, params,
+                               {"t_s": [t0_s, t0_s + skip]}, why if p < alpha else
+                               f"No warm-up transient beyond the model's wander (largest |z| "
+                               f"= {zmax:.1f}).", {"skip_s": skip, "block_s": b / fs_hz}))
+    return out[0], out[1]
