@@ -110,11 +110,24 @@ class Motion:
                 f"{total:.0f} s: {'; '.join(parts)}{more}")
 
 
-def _spread(win: np.ndarray) -> np.ndarray:
-    """Robust standard deviation of each window, largest over the axes: 1.4826 times the median
-    absolute deviation, which a single spike (a knock, an outlier) does not move."""
-    dev = np.abs(win - np.median(win, axis=1, keepdims=True))
-    return 1.4826 * np.median(dev, axis=1).max(axis=1)
+_CHUNK_WINDOWS = 2048
+"""Windows handled at once: the medians copy their input, so a long record is taken in pieces
+(bounded memory whatever its length)."""
+
+
+def _spread_and_centre(win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per window: the robust standard deviation, largest over the axes (1.4826 times the
+    median absolute deviation, which a single spike, a knock or an outlier, does not move),
+    and the median of each axis."""
+    spread = np.empty(win.shape[0])
+    centre = np.empty((win.shape[0], win.shape[2]))
+    for a in range(0, win.shape[0], _CHUNK_WINDOWS):
+        part = win[a:a + _CHUNK_WINDOWS]
+        med = np.median(part, axis=1, keepdims=True)
+        dev = np.abs(part - med)
+        spread[a:a + len(part)] = 1.4826 * np.median(dev, axis=1).max(axis=1)
+        centre[a:a + len(part)] = med[:, 0, :]
+    return spread, centre
 
 
 def _windows(x: np.ndarray, w: int) -> np.ndarray:
@@ -131,24 +144,20 @@ def _moving_windows(gyro: np.ndarray | None, accel: np.ndarray | None, w: int
     rate = np.full(n_win, np.nan)
     force = np.full(n_win, np.nan)
     if gyro is not None:
-        win = _windows(gyro, w)
-        std = _spread(win)
+        std, mean = _spread_and_centre(_windows(gyro, w))
         quiet = float(np.median(std))
         moving |= ((std > SPREAD_FACTOR * quiet) & (std > GYRO_MOTION_SPREAD)) \
             | (std > GYRO_STD_FLOOR)
-        mean = np.median(win, axis=1)
         rest = mean[~moving] if np.any(~moving) else mean
         level = np.median(rest, axis=0)
         rate = np.abs(mean - level).max(axis=1)
         limit = max(MEAN_SIGMAS * quiet / np.sqrt(w), GYRO_MEAN_FLOOR)
         moving |= rate > limit
     if accel is not None:
-        win = _windows(accel, w)
-        std = _spread(win)
+        std, mean = _spread_and_centre(_windows(accel, w))
         quiet = float(np.median(std))
         moving |= ((std > SPREAD_FACTOR * quiet) & (std > ACCEL_MOTION_SPREAD)) \
             | (std > ACCEL_STD_FLOOR)
-        mean = np.median(win, axis=1)
         step = np.zeros(n_win)
         step[1:] = np.abs(np.diff(mean, axis=0)).max(axis=1)
         force = step

@@ -116,8 +116,15 @@ def _detect(record: Record, keys: list[str]):
         return None
 
     def stack(kind: str) -> np.ndarray | None:
+        # single precision: the motion thresholds lie far above its resolution, and a long
+        # record's copy takes half the memory
         cols = [record.channels[k].values for k in keys if k.split(":")[-1].startswith(kind)]
-        return np.column_stack(cols) if cols else None
+        if not cols:
+            return None
+        out = np.empty((n, len(cols)), dtype=np.float32)
+        for j, c in enumerate(cols):
+            out[:, j] = c
+        return out
 
     return detect_motion(series[0].fs_hz, stack("gyro"), stack("accel"))
 
