@@ -8,6 +8,7 @@ import numpy as np
 
 from analysis.terms.base import Param
 from analysis.terms.moving_average import MAX_TAPS, boxcar
+from analysis.terms.moving_average import TERM as MOVING_AVERAGE
 from analysis.terms.output_filter import OutputFilter
 
 
@@ -32,8 +33,7 @@ class Bartlett(OutputFilter):
         return np.convolve(g, g)
 
     def response(self, f, fs_hz, params):
-        from analysis.terms.moving_average import TERM as moving_average
-        return moving_average.response(f, fs_hz, params) ** 2
+        return MOVING_AVERAGE.response(f, fs_hz, params) ** 2
 
     def length(self, fs_hz, params):
         return 2.0 * float(params["taps"])

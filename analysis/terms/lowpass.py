@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from analysis.terms.base import Param
+from analysis.terms.base import Param, TermError
 from analysis.terms.output_filter import OutputFilter
 
 _MIN_CUTOFF_OVER_FS = 1.0e-3
@@ -39,7 +39,6 @@ class Lowpass(OutputFilter):
         super().validate(params, fs_hz, partial)
         fc = params.get("fc")
         if fs_hz is not None and fc is not None and float(fc) < _MIN_CUTOFF_OVER_FS * fs_hz:
-            from analysis.terms.base import TermError
             raise TermError(f"lowpass.fc = {float(fc):g} Hz is below fs/1000 "
                             f"({_MIN_CUTOFF_OVER_FS * fs_hz:g} Hz): such a slow pole is a "
                             f"Markov bias, not an output filter (use gauss_markov)")

@@ -33,10 +33,10 @@ from collections import OrderedDict
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
+from scipy.signal import lfilter, lfilter_zi
 
 from analysis.bin_average import sin4_table
-from analysis.terms.base import Term, TermSimulator
+from analysis.terms.base import Term, TermError, TermSimulator
 
 _CORRECTION_REACH = 300.0
 """Multiples of the filter length beyond which the non-white correction is left out."""
@@ -92,7 +92,6 @@ class FilterSimulator(TermSimulator):
             return x
         if not self.started:
             # start in the steady state of the first input value (no turn-on transient)
-            from scipy.signal import lfilter_zi
             self.zi = lfilter_zi(self.b, self.a) * x[0] if len(self.zi) else self.zi
             self.started = True
         if not len(self.zi):
@@ -246,6 +245,5 @@ class OutputFilter(Term):
         return FilterSimulator(b, a)
 
     def add_discrete(self, dm, params):
-        from analysis.terms.base import TermError
         raise TermError(f"{self.name}: the block likelihood has no output-filter states; use "
                         f"the Allan estimator")
