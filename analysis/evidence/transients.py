@@ -196,7 +196,8 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
         else:
             tau_s = labels[k][1] * b / fs_hz
             params = {"tau_s": tau_s, "amplitude": size}
-            skip = min(5.0 * tau_s, 0.5 * n * b / fs_hz)
+            # five time constants, in whole samples (the remedy's --skip counts samples)
+            skip = round(min(5.0 * tau_s, 0.5 * n * b / fs_hz) * fs_hz) / fs_hz
             why = (f"The bias settles after the start: an exponential of {size:.3g} {units} "
                    f"with a time constant near {tau_s:.0f} s (|z| = {zmax:.1f}), beyond the "
                    f"fitted noise model's wander: a warm-up. Skip the first {skip:.0f} s.")

@@ -64,6 +64,24 @@ def diagnose_channel(record: Record, key: str, model_text: str) -> Any:
                         sensor_filter=device_filter(record.metadata, key))
 
 
+def full_window_args(own: list[str], skip_s: float, split_s: list[float]) -> list[str]:
+    """A suggestion's ``apply.args`` for the whole command: the ``--skip``/``--split`` this
+    diagnosis ran with, joined with the suggestion's own cut (whose times count from the
+    first sample the diagnosis saw, i.e. after ``skip_s``), so that applying it keeps the
+    cuts already made."""
+    skip, splits = float(skip_s), [float(t) for t in split_s]
+    if len(own) == 2 and own[0] == "--skip":
+        skip += float(own[1])
+    elif len(own) == 2 and own[0] == "--split":
+        splits.append(float(skip_s) + float(own[1]))
+    out: list[str] = []
+    if skip:
+        out += ["--skip", f"{skip:.10g}"]
+    if splits:
+        out += ["--split", ",".join(f"{t:.10g}" for t in sorted(set(splits)))]
+    return out
+
+
 def device_filter(metadata: dict[str, str], key: str) -> tuple[str, dict[str, float]] | None:
     """The output filter an imunoise recording's device configuration states for channel
     ``key``, or None for other files and devices:
@@ -140,6 +158,8 @@ def run(args: argparse.Namespace) -> int:
                                    args.static)
     apply_window(record, key, args.skip, args.split)
     diag = diagnose_channel(record, key, args.model)
+    for sug in diag.suggestions:
+        sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     if args.json:
         from imunoise import report_json
 

@@ -23,3 +23,14 @@ def test_itg3200_low_pass_below_nyquist_only() -> None:
     md["config.dlpf_bandwidth_hz"] = "98"
     assert device_filter(md, "gyro_y") is None
     assert device_filter({}, "gyro_x") is None
+
+
+def test_apply_args_keep_the_cuts_already_made() -> None:
+    from imunoise.commands.diagnose import full_window_args
+
+    assert full_window_args([], 0.0, []) == []
+    assert full_window_args([], 300.0, [5000.0]) == ["--skip", "300", "--split", "5000"]
+    # a step found 1000 s into a channel already cut at 300 s lies at 1300 s of the original
+    assert full_window_args(["--split", "1000"], 300.0, [5000.0]) == \
+        ["--skip", "300", "--split", "1300,5000"]
+    assert full_window_args(["--skip", "120"], 300.0, []) == ["--skip", "420"]
