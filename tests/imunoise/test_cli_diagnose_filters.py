@@ -34,3 +34,26 @@ def test_apply_args_keep_the_cuts_already_made() -> None:
     assert full_window_args(["--split", "1000"], 300.0, [5000.0]) == \
         ["--skip", "300", "--split", "1300,5000"]
     assert full_window_args(["--skip", "120"], 300.0, []) == ["--skip", "420"]
+
+
+def test_skip_and_split_on_the_command_line(tmp_path, capsys) -> None:
+    import json
+
+    import numpy as np
+
+    from imunoise.cli import main
+
+    rng = np.random.default_rng(4)
+    n, fs = 60_000, 50.0
+    x = rng.normal(0, 1e-2, n) + np.cumsum(rng.normal(0, 1e-5, n))
+    x[30_000:] += 0.05
+    path = tmp_path / "step.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) / fs, x]), delimiter=",",
+               header="t,gyro_x", comments="", fmt="%.10g")
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "white,random_walk",
+                 "--skip", "1e9"]) == 2
+    assert "leaves no samples" in capsys.readouterr().err
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "white,random_walk",
+                 "--split", "600", "--skip", "10", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["n_segments"] == 2 and doc["n_samples"] == n - 500
