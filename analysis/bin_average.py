@@ -22,19 +22,10 @@ def bin_avg_cos(nu: float, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
     return (np.sin(x * ub) - np.sin(x * ua)) / (x * (ub - ua))
 
 
-def sin4_factor(m: float, um: np.ndarray, ua: np.ndarray, ub: np.ndarray,
-                fast: np.ndarray) -> np.ndarray:
-    """``sin^4(pi u m)``: its exact bin average where ``fast``, its mid-point value elsewhere."""
-    out = np.sin(np.pi * um * m) ** 4
-    if np.any(fast):
-        a, b = ua[fast], ub[fast]
-        out[fast] = sum(c * bin_avg_cos(2.0 * p * m, a, b) for p, c in enumerate(SIN4))
-    return out
-
-
 def sin4_table(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
-    """:func:`sin4_factor` for a column of averaging factors ``m`` (shape ``(k, 1)``) at once:
-    a ``(k, bins)`` table, bin-averaged where ``m`` times the bin width exceeds 0.05."""
+    """``sin^4(pi u m)`` for a column of averaging factors ``m`` (shape ``(k, 1)``): a
+    ``(k, bins)`` table, its exact bin average where ``m`` times the bin width exceeds 0.05,
+    its mid-point value elsewhere."""
     out = np.sin(np.pi * um * m) ** 4
     fast = (ub - ua) * m > 0.05
     if np.any(fast):

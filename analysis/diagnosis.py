@@ -305,14 +305,11 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
 def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Suggestion:
     """A warm-up or bias step as a suggestion: not a term but a cut of the record (its
     ``apply.args``), refitted exactly as ``imunoise fit --model M ARGS`` fits it."""
-    if finding.kind == "bias_step":
-        args = ["--split", f"{finding.params['t_s']:.10g}"]
-        series = ChannelSeries("x", units, ctx.fs_hz, ctx.x, ctx.starts).windowed(
-            split_s=[float(args[1])])
-    else:
-        args = ["--skip", f"{finding.details['skip_s']:.10g}"]
-        series = ChannelSeries("x", units, ctx.fs_hz, ctx.x, ctx.starts).windowed(
-            skip_s=float(args[1]))
+    step = finding.kind == "bias_step"
+    at = float(finding.params["t_s"] if step else finding.details["skip_s"])
+    args = ["--split" if step else "--skip", f"{at:.10g}"]
+    series = ChannelSeries("x", units, ctx.fs_hz, ctx.x, ctx.starts).windowed(
+        skip_s=0.0 if step else float(args[1]), split_s=[float(args[1])] if step else [])
     before = ctx.base.chi2_per_dof
     try:
         after, _ = fit_series(series.values, ctx.fs_hz, ctx.spec,
@@ -421,9 +418,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     if transients and "temperature" not in names:
         bounds = np.append(starts, x.size)
         longest = int(np.argmax(np.diff(bounds)))
-        cuts = [f for f in evidence.transients(segments, fs_hz, base.params, alpha=alpha,
-                                               units=units,
-                                               t0_s=float(bounds[longest]) / fs_hz)]
+        cuts = list(evidence.transients(segments, fs_hz, base.params, alpha=alpha,
+                                        units=units, t0_s=float(bounds[longest]) / fs_hz))
         findings.extend(cuts)
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
                    len(candidates) + len(cuts), sensor_filter)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from analysis.bin_average import SIN4, bin_avg_cos, sin4_factor
+from analysis.bin_average import SIN4, bin_avg_cos, sin4_table
 from analysis.terms import get_term, model_psd
 
 Model = Sequence[tuple[str, dict[str, float]]]
@@ -87,7 +87,7 @@ def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarr
     # times 2 fs^2 for both signs of f and the change of variable f = u fs
     smooth = 2.0 * fs_hz**2 * s2 * s2 * 16.0 / np.sin(np.pi * um) ** 4 * width
     fast = width[None, :] * m[:, None] > 0.05
-    factors = np.stack([sin4_factor(m[i], um, ua, ub, fast[i]) for i in range(n)])
+    factors = sin4_table(m[:, None], um, ua, ub)
     sum_gamma2 = (factors * smooth) @ factors.T
     # where both filters oscillate within a bin, the two factors of equal or double m are
     # not independent: average their product exactly (for larger ratios the cross terms of

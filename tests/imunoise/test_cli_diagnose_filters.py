@@ -57,3 +57,32 @@ def test_skip_and_split_on_the_command_line(tmp_path, capsys) -> None:
                  "--split", "600", "--skip", "10", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["n_segments"] == 2 and doc["n_samples"] == n - 500
+
+
+def test_a_cut_suggestion_applies_as_stated(tmp_path, capsys) -> None:
+    # CONTRACT: fit with apply.model and apply.args reports the suggestion's chi2_per_dof_after
+    import json
+
+    import numpy as np
+
+    from imunoise.cli import main
+
+    rng = np.random.default_rng(4)
+    n, fs = 180_000, 50.0
+    x = rng.normal(0, 1e-2, n) + np.cumsum(rng.normal(0, 2e-5, n))
+    x[90_000:] += 0.05
+    path = tmp_path / "knock.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) / fs, x]), delimiter=",",
+               header="t,gyro_x", comments="", fmt="%.10g")
+    common = [str(path), "--channel", "gyro_x", "--json"]
+    assert main(["diagnose", *common, "--model", "white,random_walk", "--skip", "10"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    cuts = [s for s in doc["suggestions"] if s["term"] == "bias_step"]
+    assert cuts and cuts[0]["apply"]["args"][:2] == ["--skip", "10"]
+    assert cuts[0]["apply"]["args"][2] == "--split"
+    assert abs(float(cuts[0]["apply"]["args"][3]) - 1800.0) <= 30.0  # within a block
+    for s in cuts:
+        assert main(["fit", *common, "--model", s["apply"]["model"], *s["apply"]["args"]]) == 0
+        fitted = json.loads(capsys.readouterr().out)
+        assert fitted["error"]["chi2_per_dof"] == pytest.approx(s["chi2_per_dof_after"],
+                                                                rel=1e-9)
