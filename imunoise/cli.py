@@ -23,6 +23,8 @@ COMMAND_MODULES: list[str] = [
     "repair",
     "export_kalibr",
     "plan",
+    "fleet",
+    "fleet_report",
 ]
 
 

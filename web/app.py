@@ -18,7 +18,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from live.service import LiveService
 from web.deps import TOKEN_HEADER
-from web.routes import curves, model, pages, status
+from web.routes import curves, fleet, model, pages, status
 from web.routes.pages import STATIC_DIR
 
 __all__ = ["LOOPBACK_HOSTS", "STATIC_DIR", "TOKEN_HEADER", "create_app"]
@@ -37,7 +37,8 @@ def _version() -> str:
 
 def create_app(service: LiveService, token: str | None = None,
                event_interval_s: float = 0.5,
-               allowed_hosts: tuple[str, ...] | None = LOOPBACK_HOSTS) -> FastAPI:
+               allowed_hosts: tuple[str, ...] | None = LOOPBACK_HOSTS,
+               catalog: str | None = None) -> FastAPI:
     """Build the app around a running :class:`LiveService`: the routers of ``web.routes``,
     what they depend on in ``app.state`` (``web.deps``), the static files.
 
@@ -48,6 +49,7 @@ def create_app(service: LiveService, token: str | None = None,
         event_interval_s: how often the event stream checks for new results, s.
         allowed_hosts: accepted ``Host`` headers (None: any). The loopback default stops a
             web page from reaching the service through DNS rebinding.
+        catalog: fleet catalogue folder shown at ``/fleet`` (None: ``/fleet`` is 404).
     """
     closing = asyncio.Event()
 
@@ -61,12 +63,13 @@ def create_app(service: LiveService, token: str | None = None,
                               "inertial sensor. Values in SI units unless labelled.")
     app.state.service = service
     app.state.token = token
+    app.state.catalog = catalog
     app.state.event_interval_s = event_interval_s
     app.state.closing = closing
     # Set by the server when a stop is requested: the event streams end at once instead of
     # holding the graceful shutdown open (the lifespan's ``closing`` comes only after it).
     app.state.stop_streams = threading.Event()
-    for module in (pages, status, curves, model):
+    for module in (pages, status, curves, model, fleet):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     if allowed_hosts is not None:

@@ -44,6 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="address to bind (default 127.0.0.1; any other needs a token)")
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
     p.add_argument("--out", metavar="DIR", help="record MCAP files here (default: no recording)")
+    p.add_argument("--catalog", metavar="DIR",
+                   help="fleet catalogue (imunoise fleet --catalog DIR) shown at /fleet")
     p.add_argument("--token", help=f"token required by changing requests (or ${TOKEN_ENV})")
     p.add_argument("--target", metavar="P=X%",
                    help="wanted 95 %% half-widths, e.g. K=20%%,B=10%%: /coefficients and the "
@@ -226,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
                                 targets=args.target), sinks=sinks,
         device=info, realtime=realtime,
         current_file=(lambda: recorder.stats.file or None) if recorder else None)
-    app = create_app(service, token=token,
+    app = create_app(service, token=token, catalog=args.catalog,
                      allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
                             timeout_graceful_shutdown=2, lifespan="on")

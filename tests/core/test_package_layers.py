@@ -1,8 +1,8 @@
 """The packages depend on each other in one direction only.
 
 ``core`` is below everything; ``analysis`` and ``daq`` sit side by side on it and never import
-each other; the live runtime and the HTTP layer come above them; the command line ``imunoise``
-is the top. Every import counts, also one inside a function.
+each other; the live runtime, the fleet catalogue and the HTTP layer come above them; the
+command line ``imunoise`` is the top. Every import counts, also one inside a function.
 """
 
 from __future__ import annotations
@@ -17,8 +17,9 @@ ALLOWED: dict[str, set[str]] = {
     "analysis": {"core"},
     "daq": {"core"},
     "live": {"core", "analysis", "daq"},
-    "web": {"core", "analysis", "live"},
-    "imunoise": {"core", "analysis", "daq", "live", "web"},
+    "fleet": {"core", "analysis"},
+    "web": {"core", "analysis", "live", "fleet"},
+    "imunoise": {"core", "analysis", "daq", "live", "web", "fleet"},
 }
 
 
