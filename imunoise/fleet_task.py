@@ -134,9 +134,11 @@ def _coefficient_columns(model: list[dict], kind: str) -> dict[str, Any]:
             out[f"{p}_resolved"] = bool(resolved)
             out[f"{p}_hi95"] = hi
             out[f"{p}_conv_hi95"] = hi * factor if hi is not None else None
-            if resolved:
-                out[p], out[f"{p}_lo95"] = v, lo
-                out[f"{p}_conv"], out[f"{p}_conv_lo95"] = v * factor, lo * factor
+            # an interval reaching zero is no measurement: no value, only the upper bound
+            out[p] = v if resolved else None
+            out[f"{p}_lo95"] = lo if resolved else None
+            out[f"{p}_conv"] = v * factor if resolved else None
+            out[f"{p}_conv_lo95"] = lo * factor if resolved else None
     return out
 
 

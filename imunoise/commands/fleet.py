@@ -44,6 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scheduler", metavar="ADDR",
                    help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 "
                         "(default: a local cluster)")
+    p.add_argument("--connect-timeout", type=float, default=20.0, metavar="S",
+                   help="seconds to wait for the scheduler (default 20)")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="local cluster size in processes (default: one per core)")
     p.add_argument("--unit", metavar="REGEX",
@@ -121,7 +123,7 @@ def _client(args: argparse.Namespace):
 
     if args.scheduler:
         try:
-            return Client(args.scheduler, timeout="20s")
+            return Client(args.scheduler, timeout=f"{args.connect_timeout}s")
         except (OSError, TimeoutError) as exc:
             raise UsageError(f"fleet: cannot reach the Dask scheduler {args.scheduler}: "
                              f"{exc}") from None
