@@ -15,7 +15,7 @@ from typing import Any
 
 from fleet.catalog import COEFFICIENTS
 
-_W, _H, _PAD_L, _PAD_B, _PAD_T, _PAD_R = 680, 230, 70, 60, 14, 14
+_W, _H, _PAD_L, _PAD_B, _PAD_T, _PAD_R = 340, 220, 62, 60, 14, 10
 _RED, _BLUE, _GREY = "#c62828", "#1f5fa8", "#9e9e9e"
 
 _CSS = """
@@ -25,6 +25,8 @@ h3{font-size:15px;margin:18px 0 4px} table{border-collapse:collapse;margin:8px 0
 td,th{border:1px solid #ddd;padding:3px 8px;text-align:left;font-variant-numeric:tabular-nums}
 th{background:#f4f4f4} .bad{color:#c62828;font-weight:600} .ok{color:#2e7d32}
 .marginal{color:#e65100} .note{color:#555;font-size:13px} svg{display:block}
+.row{display:flex;flex-wrap:wrap;gap:8px} .empty{width:340px;height:220px;display:flex;
+align-items:center;justify-content:center;color:#777;border:1px dashed #ccc;font-size:13px}
 """
 
 
@@ -94,20 +96,29 @@ def _points_svg(labels: list[str], values: list[float | None], ci: list[Sequence
     return "".join(parts)
 
 
+def _empty(coef: str, unit: str) -> str:
+    return (f'<div class="empty">{coef} [{html.escape(unit)}]: not resolved in any '
+            'recording</div>')
+
+
 def _population_html(p: dict) -> str:
     out = [f'<h3>{html.escape(p["sensor_model"])} / {html.escape(p["channel"])} '
-           f'({p["units"]} unit(s))</h3>']
+           f'({p["units"]} unit(s))</h3><div class="row">']
     for coef in COEFFICIENTS:
         d = p["coefficients"][coef]
         us = d["units"]
+        if not any(u["value"] for u in us):
+            out.append(_empty(coef, d["si_unit"]))
+            continue
         out.append(_points_svg([u["unit"] for u in us], [u["value"] for u in us],
                                [u["ci95"] for u in us], [u["outlier"] for u in us],
                                f'{coef} [{d["si_unit"]}]'))
-    return "".join(out)
+    return "".join(out) + "</div>"
 
 
 def _history_html(u: dict) -> str:
-    out = [f'<h3>unit {html.escape(u["unit"])}, {html.escape(u["channel"])}</h3>']
+    out = [f'<h3>unit {html.escape(u["unit"])}, {html.escape(u["channel"])}</h3>'
+           '<div class="row">']
     for coef in COEFFICIENTS:
         d = u["coefficients"][coef]
         h = d["history"]
@@ -121,11 +132,14 @@ def _history_html(u: dict) -> str:
                        "single") + f' (p = {_fmt(pooled["p_value"])})')
         if d["grew"]:
             note += ' <span class="bad">grew beyond its intervals</span>'
-        out.append(f'<p class="note">{coef}: {note}</p>')
+        if not any(e["value"] for e in h):
+            out.append(_empty(coef, d["si_unit"]))
+            continue
+        out.append(f'<div><p class="note" style="width:{_W}px">{coef}: {note}</p>')
         out.append(_points_svg([(e["start_time"] or "?")[:10] for e in h],
                                [e["value"] for e in h], [e["ci95"] for e in h],
-                               [False] * len(h), f'{coef} [{d["si_unit"]}]'))
-    return "".join(out)
+                               [False] * len(h), f'{coef} [{d["si_unit"]}]') + "</div>")
+    return "".join(out) + "</div>"
 
 
 def _table(head: list[str], rows: list[list[str]]) -> str:
