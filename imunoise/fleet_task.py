@@ -14,6 +14,7 @@ import contextlib
 import hashlib
 import os
 import re
+import resource
 import tempfile
 import time
 from collections.abc import Iterator
@@ -43,6 +44,8 @@ class FileOutcome:
     rows: list[dict[str, Any]] = field(default_factory=list)
     seconds: float = 0.0
     error: str | None = None
+    worker_peak_mb: float = 0.0
+    """Peak resident memory of the worker process so far (MB)."""
 
 
 def is_url(location: str) -> bool:
@@ -208,10 +211,21 @@ def channel_rows(location: str, path: str, digest: str, version: str,
     return rows
 
 
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def analyse_file(location: str, *, version: str, unit_pattern: str | None = None,
                  static: str = "auto", diagnose: bool = True,
                  known_hashes: frozenset[str] = frozenset()) -> FileOutcome:
     """Analyse one recording into catalogue rows; never raises for a bad file."""
+    out = _analyse(location, version, unit_pattern, static, diagnose, known_hashes)
+    out.worker_peak_mb = _peak_mb()
+    return out
+
+
+def _analyse(location: str, version: str, unit_pattern: str | None, static: str,
+             diagnose: bool, known_hashes: frozenset[str]) -> FileOutcome:
     t = time.perf_counter()
     digest = None
     try:

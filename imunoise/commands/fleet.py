@@ -183,7 +183,7 @@ def _run_on(client: Any, todo: list[str], args: argparse.Namespace, known: froze
     workers = max(1, len(client.scheduler_info().get("workers", {})))
     window = IN_FLIGHT_PER_WORKER * workers
     known_f = client.scatter([known], broadcast=True)[0]  # one object, not its items
-    counts = {"ok": 0, "failed": 0, "skipped": 0}
+    counts = {"ok": 0, "failed": 0, "skipped": 0, "worker_peak_mb": 0}
     queue = iter(todo)
 
     where: dict[str, str] = {}  # future key -> location, for a task that is lost
@@ -203,6 +203,8 @@ def _run_on(client: Any, todo: list[str], args: argparse.Namespace, known: froze
             try:
                 out = fut.result()
                 rows, status = out.rows, out.status
+                counts["worker_peak_mb"] = max(counts["worker_peak_mb"],
+                                               int(out.worker_peak_mb))
             except Exception as exc:  # noqa: BLE001 - a lost task (killed worker) is a row
                 loc = where.get(fut.key, "unknown file (task lost)")
                 rows = [failed_row(loc, None, f"{type(exc).__name__}: {exc}", __version__)]
@@ -246,6 +248,9 @@ def run(args: argparse.Namespace) -> int:
             if cluster is not None and not args.scheduler:
                 cluster.close()
     counts["skipped"] += skipped
+    peak = f"; worker peak memory {counts['worker_peak_mb']} MB" \
+        if counts.get("worker_peak_mb") else ""
     print(f"{len(locations)} recording(s): {counts['ok']} analysed, {counts['failed']} failed, "
-          f"{counts['skipped']} already in the catalogue -> {args.catalog}", file=sys.stderr)
+          f"{counts['skipped']} already in the catalogue -> {args.catalog}{peak}",
+          file=sys.stderr)
     return 0
