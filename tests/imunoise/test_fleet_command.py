@@ -186,3 +186,39 @@ def test_unreachable_scheduler_is_one_line(tmp_path, recordings):
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].startswith("imunoise: fleet: cannot reach")
     assert "Traceback" not in r.stderr
+
+
+def test_a_url_is_read_where_it_lies(recordings):
+    """An fsspec URL (here the in-memory file system) is expanded by glob and analysed from a
+    temporary copy on the worker, with the same hash and numbers as the local file."""
+    import fsspec
+
+    from imunoise.commands.fleet import expand_inputs
+
+    local = sorted(recordings.glob("U2_*.mcap"))[0]
+    fs = fsspec.filesystem("memory")
+    fs.pipe("/fleet-test/night.mcap", local.read_bytes())
+    (url,) = expand_inputs(["memory://fleet-test/*.mcap"])
+    assert url.startswith("memory://") and url.endswith("/fleet-test/night.mcap")
+    remote = analyse_file(url, version="t", diagnose=False)
+    here = analyse_file(str(local), version="t", diagnose=False)
+    assert remote.status == "ok" and remote.file_hash == here.file_hash
+    assert [r["N"] for r in remote.rows] == [r["N"] for r in here.rows]
+    assert remote.rows[0]["file"] == url and remote.rows[0]["file_size"] is None
+
+
+def test_folder_recordings_hash_and_expand(tmp_path):
+    """A rosbag2 folder is one recording whose hash covers its files' names and bytes."""
+    from imunoise.commands.fleet import expand_inputs
+
+    bag = tmp_path / "logs" / "run1"
+    bag.mkdir(parents=True)
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (bag / "run1_0.mcap").write_bytes(b"abc")
+    (tmp_path / "logs" / "other.csv").write_text("t,gyro_x\n")
+    (tmp_path / "logs" / "notes.txt").write_text("x")
+    found = expand_inputs([str(tmp_path / "logs")])
+    assert found == [str(tmp_path / "logs" / "other.csv"), str(bag)]
+    h1 = content_hash(bag)
+    (bag / "run1_0.mcap").write_bytes(b"abd")
+    assert content_hash(bag) != h1
