@@ -222,3 +222,14 @@ def test_folder_recordings_hash_and_expand(tmp_path):
     h1 = content_hash(bag)
     (bag / "run1_0.mcap").write_bytes(b"abd")
     assert content_hash(bag) != h1
+
+
+def test_a_copied_file_is_known_by_its_hash(recordings, tmp_path):
+    """The same bytes under another name are skipped on the worker, before any analysis."""
+    import shutil
+
+    original = sorted(recordings.glob("U3_*.mcap"))[0]
+    copy = tmp_path / "renamed.mcap"
+    shutil.copy(original, copy)
+    out = analyse_file(str(copy), version="t", known_hashes=frozenset({content_hash(original)}))
+    assert out.status == "skipped" and out.rows == [] and out.seconds < 5
