@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Mapping
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +39,9 @@ OUTLIER_TEST = (f"modified z-score (Iglewicz and Hoaglin 1993) of log values aga
                 f"{MIN_POPULATION} units")
 AGREEMENT_TEST = "Cochran's Q on log values (chi-square, k-1 dof); agree when p >= 0.05"
 
-_COLUMNS = ["file", "status", "error", "unit", "sensor_model", "channel", "kind", "start_time",
-            "duration_s", "chi2_per_dof", "significant_suggestions"] + [
+_COLUMNS = ["file", "file_hash", "analysed_at", "topic", "status", "error", "unit",
+            "sensor_model", "channel", "kind", "start_time", "duration_s", "chi2_per_dof",
+            "significant_suggestions"] + [
     f"{p}{s}" for p in COEFFICIENTS for s in ("", "_lo95", "_hi95", "_resolved")]
 
 
@@ -187,10 +188,19 @@ def _limit_rows(rows: list[dict], limits: Mapping) -> list[dict]:
     return out
 
 
+def _latest(rows: list[dict]) -> list[dict]:
+    """One row per recording and channel: the latest analysis of the same content (two runs
+    over the same files, or a copy under another name, count once)."""
+    by_key: dict[tuple, dict] = {}
+    for r in sorted(rows, key=lambda r: r["analysed_at"] or datetime.min.replace(tzinfo=UTC)):
+        by_key[(r["file_hash"] or r["file"], r["topic"], r["channel"])] = r
+    return list(by_key.values())
+
+
 def fleet_summary(folder: str | Path, limits: Mapping | None = None) -> dict[str, Any]:
     """The fleet document of a catalogue folder (see the module notes)."""
     rows = read_catalog(folder, _COLUMNS).to_pylist()
-    ok = [r for r in rows if r["status"] == "ok" and r["channel"]]
+    ok = _latest([r for r in rows if r["status"] == "ok" and r["channel"]])
     failed = {r["file"]: r["error"] for r in rows if r["status"] == "failed"}
     good_files = {r["file"] for r in ok}
     groups: dict[tuple[str, str, str], dict[str, list[dict]]] = defaultdict(

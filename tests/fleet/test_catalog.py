@@ -109,3 +109,16 @@ def test_summary_verdicts_and_failed_files(tmp_path):
     assert (doc["files"], doc["files_ok"], doc["files_failed"]) == (3, 2, 1)
     # two units are too few for an outlier test: nothing is flagged
     assert doc["outliers"] == []
+
+
+def test_the_same_recording_twice_counts_once(tmp_path):
+    """Two runs over the same file (or a copy): the view keeps the latest analysis only."""
+    early = datetime(2026, 1, 1, tzinfo=UTC)
+    late = datetime(2026, 2, 1, tzinfo=UTC)
+    write_part(tmp_path, [_row("a.mcap", n=1e-3, analysed_at=early)])
+    write_part(tmp_path, [_row("copy-of-a.mcap", n=2e-3, analysed_at=late,
+                               file_hash="h-a.mcap")])
+    doc = fleet_summary(tmp_path)
+    (unit,) = doc["units"]
+    assert unit["recordings"] == 1
+    assert unit["coefficients"]["N"]["history"][0]["value"] == 2e-3
