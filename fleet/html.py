@@ -16,7 +16,9 @@ from typing import Any
 from fleet.catalog import COEFFICIENTS
 
 _W, _H, _PAD_L, _PAD_B, _PAD_T, _PAD_R = 340, 220, 62, 60, 14, 10
-_RED, _BLUE, _GREY = "#c62828", "#1f5fa8", "#9e9e9e"
+_RED, _BLUE = "#c62828", "#1f5fa8"
+_SHOW_ALL_UNITS = 12
+"""Up to this many unit x channel pairs, every history is drawn; beyond, the flagged ones."""
 
 _CSS = """
 body{font:14px/1.4 system-ui,sans-serif;margin:24px;color:#222;max-width:1100px}
@@ -186,10 +188,11 @@ def render_fleet(doc: dict[str, Any]) -> str:
     parts += [_population_html(p) for p in doc["populations"]]
     flagged = {(o["unit"], o["channel"]) for o in doc["outliers"] + doc["grew"]
                + doc["disagree"]}
-    shown = [u for u in doc["units"] if (u["unit"], u["channel"]) in flagged
-             and u["recordings"] >= 1]
+    few = len(doc["units"]) <= _SHOW_ALL_UNITS
+    shown = [u for u in doc["units"] if few or (u["unit"], u["channel"]) in flagged]
     parts.append("<h2>Units over time</h2><p class='note'>" + html.escape(doc["agreement_test"])
-                 + ". Shown: units flagged as outliers, grown or disagreeing.</p>")
+                 + (". Every unit." if few else
+                    ". Shown: units flagged as outliers, grown or disagreeing.") + "</p>")
     parts += [_history_html(u) for u in shown] or ["<p>No unit is flagged.</p>"]
     parts.append("<h2>Pooled values of every unit</h2>")
     parts.append(_table(

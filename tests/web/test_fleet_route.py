@@ -46,7 +46,7 @@ def test_fleet_page_and_json(service, tmp_path):
             assert doc["files"] == 7 and doc["files_failed"] == 1
             assert [(o["unit"], o["coefficient"]) for o in doc["outliers"]] == [("U5", "N")]
         # a new part is seen on the next request
-        write_part(tmp_path, [dict(_rows()[0], file="/d/late.mcap", unit="U9")])
+        write_part(tmp_path, [dict(_rows()[0], file="/d/late.mcap", file_hash="h9", unit="U9")])
         doc = httpx.get(f"{base}/fleet", params={"format": "json"}, timeout=30).json()
         assert doc["files"] == 8
 
