@@ -1,6 +1,6 @@
 """Replay benchmark: an 8 h, 100 Hz, 6-axis recording (2.88 M Imu messages) read three ways.
 
-    python bench/replay.py [--hours 8] [--rate 100] [--reuse]
+    python bench/replay.py [--hours 8] [--rate 100] [--reuse] [--memory-hours 2,8,32]
 
 Writes the file once with the recorder (1 s chunks, as a live recording has), then times in the
 same run:
@@ -8,6 +8,8 @@ same run:
   (b) the ``mcap`` library's own reader merely iterating the messages (a separate process),
   (c) the bulk reader alone (``daq.readers.open_record``) in this process: messages per second.
 Targets: (a) <= half of (b), peak memory of (a) under 400 MB, (c) >= 3 million messages/s.
+With ``--memory-hours``, (a)'s peak memory is also measured for recordings of those lengths
+(written once each, kept in ``bench/out/memory``), to show how it grows with the length.
 If ``analyze`` is not available, (a) is reported as missing and the bulk load in a separate
 process (``open_record`` to arrays) is timed in its place.
 """
@@ -35,16 +37,16 @@ GYRO_LSB = 0.07326 * np.pi / 180
 ACCEL_LSB = 2.522e-3 * 9.80665
 
 
-def write_recording(hours: float, rate: float) -> Path:
+def write_recording(hours: float, rate: float, out: Path = OUT) -> Path:
     """Quantized white noise plus a slow random walk, written as a live recorder would."""
-    OUT.mkdir(parents=True, exist_ok=True)
-    for old in OUT.glob("bench_*.mcap"):
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("bench_*.mcap"):
         old.unlink()
     rng = np.random.default_rng(42)
     n_total = int(round(hours * 3600 * rate))
     block = int(rate)  # one second per block, as a live acquisition hands them over
     t0 = 1.7e9
-    rec = McapRecorder(OUT, "bench", threaded=False, fsync=False, rotate_s=None,
+    rec = McapRecorder(out, "bench", threaded=False, fsync=False, rotate_s=None,
                        rate_hz=rate, reserve_bytes=0)
     walk = np.zeros(6)
     names = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
@@ -64,8 +66,25 @@ def write_recording(hours: float, rate: float) -> Path:
         rec.write(SampleBlock("/bench/temperature", ts,
                               {"temp": 25.0 + 0.001 * np.arange(len(ts))}, 1.0))
     rec.close()
-    (path,) = OUT.glob("bench_*.mcap")
+    (path,) = out.glob("bench_*.mcap")
     return path
+
+
+def memory_by_length(hours_list: list[float], rate: float) -> None:
+    """Peak memory of ``imunoise analyze FILE --json`` for recordings of each length."""
+    rows = []
+    for hours in hours_list:
+        folder = OUT / "memory" / f"{hours:g}h_{rate:g}hz"
+        existing = sorted(folder.glob("bench_*.mcap"))
+        path = existing[0] if existing else write_recording(hours, rate, folder)
+        wall, rss, code, _cpu = run_child([sys.executable, "-m", "imunoise", "analyze",
+                                           str(path), "--json"])
+        rows.append((hours, rss, wall, code))
+        print(f"    {hours:5g} h: analyze peak {rss:6.0f} MB, {wall:6.1f} s"
+              + ("" if code == 0 else f" (exit {code})"))
+    if len(rows) >= 2:
+        (h0, m0, _, _), (h1, m1, _, _) = rows[0], rows[-1]
+        print(f"    growth: {(m1 - m0) / (h1 - h0):.1f} MB per hour of {rate:g} Hz, six channels")
 
 
 def run_child(argv: list[str], stdout_path: Path | None = None
@@ -111,6 +130,8 @@ def main() -> int:
     ap.add_argument("--hours", type=float, default=8.0)
     ap.add_argument("--rate", type=float, default=100.0)
     ap.add_argument("--reuse", action="store_true", help="reuse bench/out/bench_*.mcap")
+    ap.add_argument("--memory-hours", default="", metavar="H1,H2,...",
+                    help="also measure analyze's peak memory at these lengths, e.g. 2,8,32")
     args = ap.parse_args()
     existing = sorted(OUT.glob("bench_*.mcap"))
     if args.reuse and existing:
@@ -155,6 +176,9 @@ def main() -> int:
     print(f"{label}: {t_an:.2f} s wall ({cpu_an:.2f} s CPU), peak {rss_an:.0f} MB "
           f"-> {ratio:.3f} of (b) wall, {cpu_an / cpu_mcap:.3f} in CPU (target <= 0.5), "
           "memory target < 400 MB")
+    if args.memory_hours:
+        print("analyze peak memory by record length:")
+        memory_by_length([float(h) for h in args.memory_hours.split(",")], args.rate)
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     ok = ratio <= 0.5 and rss_an < 400 and rate_read >= 3e6
     print("all targets met" if ok else "TARGET MISSED")
