@@ -22,6 +22,7 @@ dropped too (settling), and still stretches shorter than ``MIN_STILL_S`` are not
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,37 +115,45 @@ _CHUNK_WINDOWS = 2048
 """Windows handled at once: the medians copy their input, so a long record is taken in pieces
 (bounded memory whatever its length)."""
 
+Axes = np.ndarray | Sequence[np.ndarray]
+"""Samples of several axes: a (samples x axes) array, or one 1-D array per axis (not copied)."""
 
-def _spread_and_centre(win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per window: the robust standard deviation, largest over the axes (1.4826 times the
-    median absolute deviation, which a single spike, a knock or an outlier, does not move),
-    and the median of each axis."""
-    spread = np.empty(win.shape[0])
-    centre = np.empty((win.shape[0], win.shape[2]))
-    for a in range(0, win.shape[0], _CHUNK_WINDOWS):
-        part = win[a:a + _CHUNK_WINDOWS]
-        med = np.median(part, axis=1, keepdims=True)
-        dev = np.abs(part - med)
-        spread[a:a + len(part)] = 1.4826 * np.median(dev, axis=1).max(axis=1)
-        centre[a:a + len(part)] = med[:, 0, :]
+
+def _columns(x: Axes) -> list[np.ndarray]:
+    if isinstance(x, np.ndarray):
+        return [x] if x.ndim == 1 else [x[:, j] for j in range(x.shape[1])]
+    return [np.asarray(c) for c in x]
+
+
+def _spread_and_centre(cols: list[np.ndarray], w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per whole window of ``w`` samples: the robust standard deviation, largest over the axes
+    (1.4826 times the median absolute deviation, which a single spike, a knock or an outlier,
+    does not move), and the median of each axis. The windows are gathered a chunk at a time,
+    so no copy of the whole record is made."""
+    n_win = cols[0].shape[0] // w
+    spread = np.empty(n_win)
+    centre = np.empty((n_win, len(cols)))
+    part = np.empty((min(n_win, _CHUNK_WINDOWS), w, len(cols)))
+    for a in range(0, n_win, _CHUNK_WINDOWS):
+        k = min(_CHUNK_WINDOWS, n_win - a)
+        for j, c in enumerate(cols):
+            part[:k, :, j] = c[a * w:(a + k) * w].reshape(k, w)
+        med = np.median(part[:k], axis=1, keepdims=True)
+        dev = np.abs(part[:k] - med)
+        spread[a:a + k] = 1.4826 * np.median(dev, axis=1).max(axis=1)
+        centre[a:a + k] = med[:, 0, :]
     return spread, centre
 
 
-def _windows(x: np.ndarray, w: int) -> np.ndarray:
-    """(n_windows, w, axes) view of the whole windows of ``x`` (samples x axes)."""
-    n = (x.shape[0] // w) * w
-    return x[:n].reshape(-1, w, x.shape[1])
-
-
-def _moving_windows(gyro: np.ndarray | None, accel: np.ndarray | None, w: int
+def _moving_windows(gyro: list[np.ndarray] | None, accel: list[np.ndarray] | None, w: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window: moving flag, rate departure (rad/s) and force change (m/s^2)."""
-    n_win = (gyro if gyro is not None else accel).shape[0] // w  # type: ignore[union-attr]
+    n_win = (gyro if gyro is not None else accel)[0].shape[0] // w  # type: ignore[index]
     moving = np.zeros(n_win, bool)
     rate = np.full(n_win, np.nan)
     force = np.full(n_win, np.nan)
     if gyro is not None:
-        std, mean = _spread_and_centre(_windows(gyro, w))
+        std, mean = _spread_and_centre(gyro, w)
         quiet = float(np.median(std))
         moving |= ((std > SPREAD_FACTOR * quiet) & (std > GYRO_MOTION_SPREAD)) \
             | (std > GYRO_STD_FLOOR)
@@ -154,7 +163,7 @@ def _moving_windows(gyro: np.ndarray | None, accel: np.ndarray | None, w: int
         limit = max(MEAN_SIGMAS * quiet / np.sqrt(w), GYRO_MEAN_FLOOR)
         moving |= rate > limit
     if accel is not None:
-        std, mean = _spread_and_centre(_windows(accel, w))
+        std, mean = _spread_and_centre(accel, w)
         quiet = float(np.median(std))
         moving |= ((std > SPREAD_FACTOR * quiet) & (std > ACCEL_MOTION_SPREAD)) \
             | (std > ACCEL_STD_FLOOR)
@@ -168,18 +177,19 @@ def _moving_windows(gyro: np.ndarray | None, accel: np.ndarray | None, w: int
     return moving, rate, force
 
 
-def detect_motion(fs_hz: float, gyro: np.ndarray | None = None,
-                  accel: np.ndarray | None = None) -> Motion:
+def detect_motion(fs_hz: float, gyro: Axes | None = None, accel: Axes | None = None) -> Motion:
     """Still and moving stretches of a record.
 
     Args:
         fs_hz: sampling rate (Hz).
-        gyro: rates, samples x axes (rad/s), or None.
-        accel: specific force, samples x axes (m/s^2), or None.
+        gyro: rates (rad/s): samples x axes, or one array per axis; or None.
+        accel: specific force (m/s^2), likewise; or None.
     """
     if gyro is None and accel is None:
         raise ValueError("motion detection needs gyro or accelerometer samples")
-    n = (gyro if gyro is not None else accel).shape[0]  # type: ignore[union-attr]
+    gyro = _columns(gyro) if gyro is not None else None
+    accel = _columns(accel) if accel is not None else None
+    n = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]
     w = max(MIN_WINDOW_SAMPLES, int(round(WINDOW_S * fs_hz)))
     if n < 3 * w:
         return Motion(fs_hz, n, (Stretch(0, n, False, np.nan, np.nan),))

@@ -115,18 +115,12 @@ def _detect(record: Record, keys: list[str]):
     if any(s.n_samples != n for s in series) or n == 0:
         return None
 
-    def stack(kind: str) -> np.ndarray | None:
-        # single precision: the motion thresholds lie far above its resolution, and a long
-        # record's copy takes half the memory
+    def axes(kind: str) -> list[np.ndarray] | None:
+        # the channels' own arrays: motion detection gathers its windows a chunk at a time
         cols = [record.channels[k].values for k in keys if k.split(":")[-1].startswith(kind)]
-        if not cols:
-            return None
-        out = np.empty((n, len(cols)), dtype=np.float32)
-        for j, c in enumerate(cols):
-            out[:, j] = c
-        return out
+        return cols or None
 
-    return detect_motion(series[0].fs_hz, stack("gyro"), stack("accel"))
+    return detect_motion(series[0].fs_hz, axes("gyro"), axes("accel"))
 
 
 def _motion_doc(motion, static: str) -> dict[str, Any]:
