@@ -69,11 +69,13 @@ class Cluster:
                 raise RuntimeError("scheduler did not start")
             time.sleep(0.1)
         self.address = json.loads(sched.read_text())["address"]
+        # as imunoise fleet's own local cluster: no statistical profiler (it grows per task)
+        env = dict(os.environ, DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED="False")
         for i in range(n):
             self.procs.append(subprocess.Popen(
                 [str(DASK), "worker", self.address, "--nthreads", "1", "--no-dashboard",
                  "--host", "127.0.0.1", "--name", f"w{i}"],
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT))
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT, env=env))
         from distributed import Client
 
         with Client(self.address, timeout="60s") as c:

@@ -29,6 +29,11 @@ RECORDING_SUFFIXES = (".mcap", ".bag", ".csv")
 IN_FLIGHT_PER_WORKER = 4
 """Futures kept submitted per worker: enough to keep workers busy, few enough that the client's
 memory does not grow with the number of files."""
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+"""Dask settings of the local cluster's workers. Dask's statistical profiler keeps the stack
+samples of every task; with tasks of ten seconds it held about 3 MB more per file analysed
+(a worker at 630 MB after 100 files, 357 MB without it). Workers of an existing cluster should
+be started with ``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` for the same reason."""
 FLUSH_ROWS = 2000
 FLUSH_SECONDS = 30.0
 
@@ -127,9 +132,12 @@ def _client(args: argparse.Namespace):
         except (OSError, TimeoutError) as exc:
             raise UsageError(f"fleet: cannot reach the Dask scheduler {args.scheduler}: "
                              f"{exc}") from None
+    import dask
+
     n = args.workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           silence_logs=logging.ERROR, dashboard_address=":0")
+    with dask.config.set(WORKER_CONFIG):
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                               silence_logs=logging.ERROR, dashboard_address=":0")
     return Client(cluster)
 
 
