@@ -21,7 +21,8 @@ N_BLOCKS = 300  # of 1000 samples: 300,000 samples per channel at 100 Hz, 50 min
 def service():
     svc = LiveService(SyntheticImu(block=1000, n_blocks=N_BLOCKS), realtime=False).start()
     assert svc.wait(60)
-    svc.stop()  # joins the analysis thread after its final forced refit
+    # joins the analysis thread after its final forced refit (slow on a loaded machine)
+    svc.stop(timeout=180)
     return svc
 
 
