@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from core.units import channel_kind, conventional
+from core.units import channel_kind, conventional, si_unit
 
 HASH_CHUNK = 1 << 20
 UNIT_KEYS = ("unit", "unit_id", "serial", "serial_number", "device_serial")
@@ -132,7 +132,7 @@ def _coefficient_columns(model: list[dict], kind: str) -> dict[str, Any]:
             lo, hi = (term.get("ci95") or {}).get(p, [None, None])
             resolved = v is not None and lo is not None and lo > 0.0
             unit, factor = conventional(p, kind)
-            out[f"{p}_si_unit"] = _si_unit(p, kind)
+            out[f"{p}_si_unit"] = si_unit(p, kind)
             out[f"{p}_conv_unit"] = unit
             out[f"{p}_resolved"] = bool(resolved)
             out[f"{p}_hi95"] = hi
@@ -143,12 +143,6 @@ def _coefficient_columns(model: list[dict], kind: str) -> dict[str, Any]:
             out[f"{p}_conv"] = v * factor if resolved else None
             out[f"{p}_conv_lo95"] = lo * factor if resolved else None
     return out
-
-
-def _si_unit(p: str, kind: str) -> str:
-    from core.units import si_unit
-
-    return si_unit(p, kind)
 
 
 def _base_row(location: str, digest: str | None, version: str) -> dict[str, Any]:
