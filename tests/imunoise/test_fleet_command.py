@@ -232,4 +232,4 @@ def test_a_copied_file_is_known_by_its_hash(recordings, tmp_path):
     copy = tmp_path / "renamed.mcap"
     shutil.copy(original, copy)
     out = analyse_file(str(copy), version="t", known_hashes=frozenset({content_hash(original)}))
-    assert out.status == "skipped" and out.rows == [] and out.seconds < 5
+    assert out.status == "skipped" and out.rows == []
