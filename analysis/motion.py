@@ -145,15 +145,17 @@ def _spread_and_centre(cols: list[np.ndarray], w: int) -> tuple[np.ndarray, np.n
     return spread, centre
 
 
-def _moving_windows(gyro: list[np.ndarray] | None, accel: list[np.ndarray] | None, w: int
+def _moving_windows(gyro: tuple[np.ndarray, np.ndarray] | None,
+                    accel: tuple[np.ndarray, np.ndarray] | None, w: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per window: moving flag, rate departure (rad/s) and force change (m/s^2)."""
-    n_win = (gyro if gyro is not None else accel)[0].shape[0] // w  # type: ignore[index]
+    """Per window: moving flag, rate departure (rad/s) and force change (m/s^2), from each
+    sensor's per-window (spread, centre) as :func:`_spread_and_centre` gives them."""
+    n_win = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]
     moving = np.zeros(n_win, bool)
     rate = np.full(n_win, np.nan)
     force = np.full(n_win, np.nan)
     if gyro is not None:
-        std, mean = _spread_and_centre(gyro, w)
+        std, mean = gyro
         quiet = float(np.median(std))
         moving |= ((std > SPREAD_FACTOR * quiet) & (std > GYRO_MOTION_SPREAD)) \
             | (std > GYRO_STD_FLOOR)
@@ -163,7 +165,7 @@ def _moving_windows(gyro: list[np.ndarray] | None, accel: list[np.ndarray] | Non
         limit = max(MEAN_SIGMAS * quiet / np.sqrt(w), GYRO_MEAN_FLOOR)
         moving |= rate > limit
     if accel is not None:
-        std, mean = _spread_and_centre(accel, w)
+        std, mean = accel
         quiet = float(np.median(std))
         moving |= ((std > SPREAD_FACTOR * quiet) & (std > ACCEL_MOTION_SPREAD)) \
             | (std > ACCEL_STD_FLOOR)
@@ -175,6 +177,61 @@ def _moving_windows(gyro: list[np.ndarray] | None, accel: list[np.ndarray] | Non
         moving |= jump
         moving[:-1] |= jump[1:]  # the change happened across both windows
     return moving, rate, force
+
+
+def window_samples(fs_hz: float) -> int:
+    """Samples per motion window at ``fs_hz``."""
+    return max(MIN_WINDOW_SAMPLES, int(round(WINDOW_S * fs_hz)))
+
+
+class MotionWindows:
+    """The per-window statistics of :func:`detect_motion`, gathered from blocks of samples as
+    they are read, so that a record too long to hold is judged exactly as a loaded one.
+
+    Feed each block's axes in record order with :meth:`update` (all axes the same length; a
+    partial window is carried to the next block), then call :meth:`motion`. Memory: two
+    floats per axis and window (about 1 MB for a day at 100 Hz) plus one window of samples.
+    """
+
+    def __init__(self, fs_hz: float, n_gyro: int, n_accel: int) -> None:
+        if n_gyro == 0 and n_accel == 0:
+            raise ValueError("motion detection needs gyro or accelerometer samples")
+        self.fs_hz = float(fs_hz)
+        self.w = window_samples(fs_hz)
+        self.n_samples = 0
+        self._n = (n_gyro, n_accel)
+        self._carry = [np.empty((0, k)) for k in self._n]
+        self._stats: list[list[tuple[np.ndarray, np.ndarray]]] = [[], []]
+
+    def update(self, gyro: Sequence[np.ndarray] = (), accel: Sequence[np.ndarray] = ()) -> None:
+        """Add the next samples of every axis (gyro in rad/s, accelerometer in m/s^2)."""
+        n_new = None
+        for j, axes in enumerate((gyro, accel)):
+            if not self._n[j]:
+                continue
+            block = np.column_stack([np.asarray(a, dtype=np.float64) for a in axes])
+            n_new = block.shape[0]
+            data = np.concatenate((self._carry[j], block)) if self._carry[j].size else block
+            whole = data.shape[0] // self.w * self.w
+            if whole:
+                cols = [data[:whole, i] for i in range(data.shape[1])]
+                self._stats[j].append(_spread_and_centre(cols, self.w))
+            self._carry[j] = data[whole:].copy()
+        self.n_samples += int(n_new or 0)
+
+    def motion(self) -> Motion:
+        """The still and moving stretches of everything fed."""
+        pairs = []
+        for j in range(2):
+            if not self._n[j]:
+                pairs.append(None)
+                continue
+            parts = self._stats[j]
+            std = np.concatenate([p[0] for p in parts]) if parts else np.empty(0)
+            mean = (np.concatenate([p[1] for p in parts]) if parts
+                    else np.empty((0, self._n[j])))
+            pairs.append((std, mean))
+        return _stretches(self.fs_hz, self.n_samples, self.w, pairs[0], pairs[1])
 
 
 def detect_motion(fs_hz: float, gyro: Axes | None = None, accel: Axes | None = None) -> Motion:
@@ -190,8 +247,16 @@ def detect_motion(fs_hz: float, gyro: Axes | None = None, accel: Axes | None = N
     gyro = _columns(gyro) if gyro is not None else None
     accel = _columns(accel) if accel is not None else None
     n = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]
-    w = max(MIN_WINDOW_SAMPLES, int(round(WINDOW_S * fs_hz)))
-    if n < 3 * w:
+    w = window_samples(fs_hz)
+    return _stretches(fs_hz, n, w,
+                      _spread_and_centre(gyro, w) if gyro is not None and n >= 3 * w else None,
+                      _spread_and_centre(accel, w) if accel is not None and n >= 3 * w else None)
+
+
+def _stretches(fs_hz: float, n: int, w: int, gyro: tuple[np.ndarray, np.ndarray] | None,
+               accel: tuple[np.ndarray, np.ndarray] | None) -> Motion:
+    """Stretches of ``n`` samples from the per-window statistics of each sensor."""
+    if n < 3 * w or (gyro is None and accel is None):
         return Motion(fs_hz, n, (Stretch(0, n, False, np.nan, np.nan),))
     moving, rate, force = _moving_windows(gyro, accel, w)
     # settling: a still window next to a moving one is not used either

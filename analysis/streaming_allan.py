@@ -18,8 +18,10 @@ Exact and strided parts
   smaller than ``m`` they carry nearly all the information of the full set. The averaging
   factor is rounded to a multiple of ``d`` (the reported ``m`` is the one used; with the
   default grid and settings no rounding happens below about 2e8 samples).
-  ``n_terms`` reports the number of terms actually averaged; ``edf`` is that of the full
-  overlapping estimate, which the strided one approximates.
+  ``n_terms`` reports the number of terms of the full overlapping estimate: the strided mean
+  of a segment is weighted by that count when segments are pooled, as the batch estimator
+  weights them; ``edf`` is likewise that of the full estimate, which the strided one
+  approximates.
 
 Gaps: ``new_segment()`` closes the current segment. Nothing spans a gap: exact sums simply
 continue with a fresh tail, and the strided sums of the closed segment are frozen at that
@@ -27,16 +29,18 @@ moment and pooled with the others (sum and count).
 
 Noise identification (lag-1 ACF, as the batch estimator) uses bounded state only: for
 ``m <= noise_window / 30`` the last ``noise_window`` samples, and beyond that the strided
-phase history (averages over ``m`` are phase differences over ``m``), both of the current
-segment. Where neither has 30 averages the alpha of the next shorter tau is used.
+phase history (averages over ``m`` are phase differences over ``m``), both of the longest
+segment (as the batch estimator; a copy is kept when a segment longer than the current one
+closes). Where neither has 30 averages the alpha of the next shorter tau is used.
 
-Memory: ``8 * (noise_window + history_points + flush_samples)`` bytes plus a few kB of sums,
-about 3.5 MB with the defaults, independent of the record length (``state_nbytes``).
+Memory: ``8 * (2 * (noise_window + history_points) + flush_samples)`` bytes plus a few kB of
+sums, about 6.8 MB with the defaults, independent of the record length (``state_nbytes``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -49,7 +53,6 @@ from analysis.allan import (
     edf_for,
     normalise,
     segment_sums,
-    term_counts,
 )
 from analysis.blas import single_thread_blas
 from analysis.edf import LAG1_MIN_POINTS, chi2_interval, noise_id_b1_rn, noise_id_lag1_series
@@ -70,6 +73,18 @@ def default_streaming_grid(max_m: int = 1 << 40) -> np.ndarray:
         j += 1
     arr = np.array(grid, dtype=np.int64)
     return arr[arr <= max_m]
+
+
+@dataclass(frozen=True)
+class _NoiseState:
+    """What noise identification reads of one segment: its last samples (rate units), its
+    strided phase history (None before any sample), the history's stride and the segment's
+    length in samples."""
+
+    recent: np.ndarray
+    hist: np.ndarray | None
+    stride: int
+    seg_n: int
 
 
 class StreamingAllan:
@@ -140,6 +155,7 @@ class StreamingAllan:
         self._hist = np.zeros(self.history_points)
         self._hist_n = 0
         self._stride = 1
+        self._longest_closed: _NoiseState | None = None  # noise-id data, longest closed segment
 
     # ------------------------------------------------------------------ feeding
 
@@ -154,15 +170,21 @@ class StreamingAllan:
         arrays = [self._recent, self._hist, self.m_grid, self._exact_m, self._long_m]
         for k in self.kinds:
             arrays += [self._sum[k], self._count[k], self._closed_sum[k], self._closed_count[k]]
+        if self._longest_closed is not None:
+            arrays.append(self._longest_closed.recent)
+            if self._longest_closed.hist is not None:
+                arrays.append(self._longest_closed.hist)
         pending = sum(a.nbytes for a in self._pending)
         return int(sum(a.nbytes for a in arrays) + pending + 16 * len(self._closed_lengths))
 
     @property
     def state_bound_nbytes(self) -> int:
         """Upper bound on ``state_nbytes`` (without closed-segment bookkeeping, 16 bytes per
-        distinct closed-segment length): recent window + phase history + flush buffer + sums."""
+        distinct closed-segment length): recent window and phase history (twice: the current
+        segment's and the longest closed one's, for noise identification) + flush buffer +
+        sums."""
         sums = 8 * (3 + 4 * len(self.kinds)) * self.m_grid.size
-        return 8 * (self.noise_window + self.history_points + self.flush_samples) + sums
+        return 8 * (2 * (self.noise_window + self.history_points) + self.flush_samples) + sums
 
     def update(self, block: np.ndarray) -> None:
         """Feed rate samples (1-D, finite; units of the channel). Any block size."""
@@ -196,6 +218,10 @@ class StreamingAllan:
             self._closed_sum[k] += s
             self._closed_count[k] += c
         n_phase = self._seg_n + 1
+        if self._longest_closed is None or self._seg_n > self._longest_closed.seg_n:
+            now = self._noise_state()
+            self._longest_closed = _NoiseState(now.recent.copy(), None if now.hist is None
+                                               else now.hist.copy(), now.stride, now.seg_n)
         self._closed_lengths[n_phase] = self._closed_lengths.get(n_phase, 0) + 1
         self._seg_n = 0
         self._base = np.longdouble(0.0)
@@ -274,19 +300,24 @@ class StreamingAllan:
         return np.maximum(d, np.round(self._long_m / d).astype(np.int64) * d)
 
     def _strided_sums(self, kind: str) -> tuple[np.ndarray, np.ndarray]:
-        """Strided sums over the current segment's phase history, per long m."""
+        """Sums over the current segment's phase history per long m, scaled to the number of
+        terms the full overlapping estimate has there (returned as the count). Each strided
+        term stands for ``stride`` of them, so that segments of different strides are pooled
+        with the weights the batch estimator gives them (its own term counts)."""
         span = KINDS[kind].span
         kernel = OVERLAP_KERNELS[kind]
         h = self._hist[: self._hist_n]
         sums = np.zeros(self._long_m.size)
         counts = np.zeros(self._long_m.size, dtype=np.int64)
+        n_phase = self._seg_n + 1
         with single_thread_blas():
             for j, m in enumerate(self._long_effective_m()):
                 s = int(m) // self._stride
                 stop = h.size - span * s
-                if stop > 0:
-                    sums[j] = kernel(h, s, 0, stop)
-                    counts[j] = stop
+                full = n_phase - span * int(m)
+                if stop > 0 and full > 0:
+                    sums[j] = kernel(h, s, 0, stop) * (full / stop)
+                    counts[j] = full
         return sums, counts
 
     def curve(
@@ -318,7 +349,7 @@ class StreamingAllan:
         keep = (counts > 0) & (ms <= max_m)
         ms, sums, counts = ms[keep], sums[keep], counts[keep]
         dev = np.sqrt(normalise(sums, counts, ms, kind))
-        alpha = self._noise_alpha(ms, kind)
+        alpha = self._noise_alpha(ms, kind, counts)
         edf = edf_for(kind, alpha, ms, seg_points)
         lo, hi = chi2_interval(dev, edf, ci)
         return AllanCurve(
@@ -344,24 +375,35 @@ class StreamingAllan:
             points.append(self._seg_n + 1)
         return points
 
-    def _noise_alpha(self, ms: np.ndarray, kind: str) -> np.ndarray:
-        """Noise alpha per m from the recent window and the strided history: the lag-1 ACF
-        where 30 or more averages exist, the B1 ratio and R(n) below that (as the batch
-        ``identify_noise``; R(n) comes from the strided history, which is enough to tell
-        phase noise from rate noise)."""
+    def _noise_state(self) -> _NoiseState:
+        """The current segment's recent samples and phase history (views, not copies)."""
+        n_recent = min(self._recent_n, self._seg_n) if self._seg_n else self._recent_n
+        return _NoiseState(self._recent[self.noise_window - n_recent :],
+                           self._hist[: self._hist_n] if self._seg_n else None,
+                           self._stride, self._seg_n)
+
+    def _noise_alpha(self, ms: np.ndarray, kind: str, n_terms: np.ndarray) -> np.ndarray:
+        """Noise alpha per m from the longest segment's recent window and strided history (as
+        the batch ``identify_noise`` looks at the longest segment): the lag-1 ACF where 30 or
+        more averages exist, the B1 ratio and R(n) below that, at ``n_terms`` terms (R(n) comes
+        from the strided history, which is enough to tell phase noise from rate noise)."""
         lo, hi = alpha_range(kind)
         dmax = KINDS[kind].d
-        n_recent = min(self._recent_n, self._seg_n) if self._seg_n else self._recent_n
-        recent = self._recent[self.noise_window - n_recent :]
+        state = self._noise_state()
+        if self._longest_closed is not None and self._longest_closed.seg_n > state.seg_n:
+            state = self._longest_closed
+        n_recent = state.recent.size
+        recent = state.recent
         u_recent = np.concatenate(([0.0], np.cumsum(recent - recent.mean()))) if n_recent else None
-        hist = self._hist[: self._hist_n] if self._seg_n else None
-        n_terms = term_counts(self._seg_n + 1, ms, kind) if self._seg_n else None
+        hist = state.hist
+        if not state.seg_n:
+            n_terms = None
         out = np.zeros(ms.size, dtype=np.int64)
         last: int | None = None
         with single_thread_blas():
             for j in np.argsort(ms, kind="stable"):
                 m = int(ms[j])
-                z, step = self._averages(m, u_recent, n_recent, hist)
+                z, step = self._averages(m, u_recent, n_recent, hist, state.stride)
                 res = noise_id_lag1_series(z, "freq", dmax) if z is not None else None
                 found = res[0] if res is not None else None
                 if found is None and z is not None and n_terms is not None:
@@ -372,16 +414,18 @@ class StreamingAllan:
                 out[j] = last if last is not None else 0
         return np.clip(out, lo, hi)
 
-    def _averages(self, m: int, u_recent: np.ndarray | None, n_recent: int,
-                  hist: np.ndarray | None) -> tuple[np.ndarray | None, int]:
+    @staticmethod
+    def _averages(m: int, u_recent: np.ndarray | None, n_recent: int,
+                  hist: np.ndarray | None, stride: int) -> tuple[np.ndarray | None, int]:
         """The m-sample averages of the rate from the recent window when it holds 30 of them,
-        else from the strided history (and the history step that spans m)."""
+        else from the strided history of ``stride`` samples per point (and the history step
+        that spans m)."""
         if u_recent is not None and n_recent // m >= LAG1_MIN_POINTS:
             return np.diff(u_recent[::m]) / m, 0
-        if hist is not None and m >= self._stride:
-            step = max(1, round(m / self._stride))
+        if hist is not None and m >= stride:
+            step = max(1, round(m / stride))
             if (hist.size - 1) // step >= 3:
-                return np.diff(hist[::step]) / (step * self._stride), step
+                return np.diff(hist[::step]) / (step * stride), step
         return None, 0
 
 

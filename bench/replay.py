@@ -9,7 +9,8 @@ same run:
   (c) the bulk reader alone (``daq.readers.open_record``) in this process: messages per second.
 Targets: (a) <= half of (b), peak memory of (a) under 400 MB, (c) >= 3 million messages/s.
 With ``--memory-hours``, (a)'s peak memory is also measured for recordings of those lengths
-(written once each, kept in ``bench/out/memory``), to show how it grows with the length.
+(written once each, kept in ``bench/out/memory``), as users run it and with ``--stream
+always`` / ``never``, to show how it grows with the length (target: flat).
 If ``analyze`` is not available, (a) is reported as missing and the bulk load in a separate
 process (``open_record`` to arrays) is timed in its place.
 """
@@ -71,20 +72,29 @@ def write_recording(hours: float, rate: float, out: Path = OUT) -> Path:
 
 
 def memory_by_length(hours_list: list[float], rate: float) -> None:
-    """Peak memory of ``imunoise analyze FILE --json`` for recordings of each length."""
+    """Peak memory of ``imunoise analyze FILE --json`` for recordings of each length: as users
+    run it (``--stream auto``: loaded below about 9 h, streamed above), always streamed, and
+    always loaded (what it was before streaming existed)."""
+    modes = ("auto", "always", "never")
     rows = []
+    print(f"    {'hours':>5}  " + "  ".join(f"{'--stream ' + m:>22}" for m in modes))
     for hours in hours_list:
         folder = OUT / "memory" / f"{hours:g}h_{rate:g}hz"
         existing = sorted(folder.glob("bench_*.mcap"))
         path = existing[0] if existing else write_recording(hours, rate, folder)
-        wall, rss, code, _cpu = run_child([sys.executable, "-m", "imunoise", "analyze",
-                                           str(path), "--json"])
-        rows.append((hours, rss, wall, code))
-        print(f"    {hours:5g} h: analyze peak {rss:6.0f} MB, {wall:6.1f} s"
-              + ("" if code == 0 else f" (exit {code})"))
+        cells, peaks = [], []
+        for mode in modes:
+            wall, rss, code, _cpu = run_child([sys.executable, "-m", "imunoise", "analyze",
+                                               str(path), "--json", "--stream", mode])
+            peaks.append(rss)
+            cells.append(f"{rss:6.0f} MB {wall:6.1f} s" + ("" if code == 0 else f" (exit {code})"))
+        rows.append((hours, peaks))
+        print(f"    {hours:5g}  " + "  ".join(f"{c:>22}" for c in cells))
     if len(rows) >= 2:
-        (h0, m0, _, _), (h1, m1, _, _) = rows[0], rows[-1]
-        print(f"    growth: {(m1 - m0) / (h1 - h0):.1f} MB per hour of {rate:g} Hz, six channels")
+        (h0, m0), (h1, m1) = rows[0], rows[-1]
+        growth = "  ".join(f"{m:>9}: {(b - a) / (h1 - h0):5.1f} MB/h"
+                           for m, a, b in zip(modes, m0, m1, strict=True))
+        print(f"    growth per hour of {rate:g} Hz, six channels: {growth}")
 
 
 def run_child(argv: list[str], stdout_path: Path | None = None

@@ -14,6 +14,7 @@ import struct
 import threading
 from dataclasses import dataclass, field
 
+import numpy as np
 import zstandard
 from mcap.opcode import Opcode
 from mcap.writer import MCAP0_MAGIC
@@ -97,6 +98,110 @@ class ChunkInfo:
         return bool(self.mi)
 
 
+class ChunkTable:
+    """The chunks of a file as a sequence of :class:`ChunkInfo`, held in compact arrays.
+
+    A day-long recording has about 10^5 chunks; as Python objects (a dataclass, a dict of
+    message indexes and a dozen large ints each) they took about 0.9 kB apiece, so the index
+    alone made a reader's memory grow with the file. Here a chunk takes about 0.15 kB. The
+    last chunk appended stays a live object (the scan and the repair complete its message
+    indexes in place); earlier ones are frozen into the arrays and read back as fresh
+    :class:`ChunkInfo` objects, so a change to one of those must be stored back with
+    ``table[i] = chunk``.
+    """
+
+    _COLS = ("start", "end", "message_start_time", "message_end_time", "uncompressed_size",
+             "uncompressed_crc", "data_offset", "data_length", "mi_end", "walked")
+
+    def __init__(self) -> None:
+        self._rows = np.zeros((0, len(self._COLS) + 3), np.int64)  # + compression, mi at, mi n
+        self._mi = np.zeros((0, 3), np.int64)  # channel id, offset, count
+        self._n = 0
+        self._n_mi = 0
+        self._compressions: list[str] = []
+        self._live: ChunkInfo | None = None
+
+    def __len__(self) -> int:
+        return self._n + (self._live is not None)
+
+    def append(self, chunk: ChunkInfo) -> None:
+        """Add the next chunk (it stays live until the following one is appended)."""
+        if self._live is not None:
+            self._freeze(self._n, self._live)
+            self._n += 1
+        self._live = chunk
+
+    def _freeze(self, i: int, c: ChunkInfo) -> None:
+        if i >= self._rows.shape[0]:
+            grown = np.zeros((max(1024, 2 * self._rows.shape[0]), self._rows.shape[1]), np.int64)
+            grown[:self._rows.shape[0]] = self._rows
+            self._rows = grown
+        if c.compression not in self._compressions:
+            self._compressions.append(c.compression)
+        at = self._n_mi
+        if self._n_mi + len(c.mi) > self._mi.shape[0]:
+            grown = np.zeros((max(1024, 2 * self._mi.shape[0] + len(c.mi)), 3), np.int64)
+            grown[:self._n_mi] = self._mi[:self._n_mi]
+            self._mi = grown
+        for k, (cid, (pos, n)) in enumerate(c.mi.items()):
+            self._mi[at + k] = (cid, pos, n)
+        self._n_mi += len(c.mi)
+        self._rows[i] = (c.start, c.end, c.message_start_time, c.message_end_time,
+                         c.uncompressed_size, c.uncompressed_crc, c.data_offset, c.data_length,
+                         c.mi_end, int(c.walked), self._compressions.index(c.compression), at,
+                         len(c.mi))
+
+    def _thaw(self, i: int) -> ChunkInfo:
+        r = self._rows[i].tolist()
+        at, k = r[11], r[12]
+        mi = {int(cid): (int(pos), int(n)) for cid, pos, n in self._mi[at:at + k].tolist()}
+        return ChunkInfo(r[0], r[1], r[2], r[3], r[4], r[5], self._compressions[r[10]], r[6],
+                         r[7], mi, r[8], bool(r[9]))
+
+    def _index(self, i: int) -> int:
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError("chunk index out of range")
+        return i
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        i = self._index(i)
+        return self._live if i == self._n else self._thaw(i)  # type: ignore[return-value]
+
+    def __setitem__(self, i: int, chunk: ChunkInfo) -> None:
+        i = self._index(i)
+        if i == self._n:
+            self._live = chunk
+        else:
+            self._freeze(i, chunk)
+
+    def __iter__(self):
+        for i in range(self._n):
+            yield self._thaw(i)
+        if self._live is not None:
+            yield self._live
+
+    def __reversed__(self):
+        if self._live is not None:
+            yield self._live
+        for i in range(self._n - 1, -1, -1):
+            yield self._thaw(i)
+
+    def __bool__(self) -> bool:
+        return len(self) > 0
+
+    def uncompressed_sizes(self) -> list[int]:
+        """Every chunk's uncompressed size in bytes, in file order."""
+        sizes = self._rows[:self._n, 4].tolist()
+        if self._live is not None:
+            sizes.append(self._live.uncompressed_size)
+        return sizes
+
+
 @dataclass
 class MetadataInfo:
     name: str
@@ -116,7 +221,7 @@ class McapLayout:
     library: str = ""
     schemas: dict[int, SchemaInfo] = field(default_factory=dict)
     channels: dict[int, ChannelInfo] = field(default_factory=dict)
-    chunks: list[ChunkInfo] = field(default_factory=list)
+    chunks: ChunkTable = field(default_factory=ChunkTable)
     metadata: list[MetadataInfo] = field(default_factory=list)
     unchunked_messages: int = 0
     data_end: int = 0
@@ -359,9 +464,10 @@ def _finish_chunks(buf, layout: McapLayout) -> None:
         # The message indexes after the last chunk of a crashed file may be cut short.
         chunks[-1].mi = {}
         chunks[-1].mi_end = chunks[-1].end
-    for chunk in chunks:
+    for i, chunk in enumerate(chunks):
         if not chunk.mi and not chunk.walked:
             walk_chunk(buf, chunk, layout)
+            chunks[i] = chunk
 
 
 def _chunk_info(buf, pos: int, body: int, end: int) -> ChunkInfo:
@@ -394,10 +500,13 @@ def _discover_channels(buf, layout: McapLayout) -> None:
     """Find Channel/Schema records of channel ids named by message indexes, walking chunks
     backwards from the newest (a channel record precedes its first message)."""
     wanted = {cid for c in layout.chunks for cid in c.mi if cid not in layout.channels}
-    for chunk in reversed(layout.chunks):
+    chunks = layout.chunks
+    for i in range(len(chunks) - 1, -1, -1):
         if not wanted:
             return
+        chunk = chunks[i]
         if chunk.walked:
             continue
         walk_chunk(buf, chunk, layout)
+        chunks[i] = chunk
         wanted = {cid for cid in wanted if cid not in layout.channels}

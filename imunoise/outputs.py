@@ -221,13 +221,18 @@ def suggestions(record, key: str, model=DEFAULT_MODEL) -> list[dict]:
 
 
 def complete_document(doc: dict, record, full: bool = False, seed: int = 0,
-                      band_hz: tuple[float, float] | None = None) -> dict:
+                      band_hz: tuple[float, float] | None = None, diagnose: bool = True) -> dict:
     """Add ``discrete_model`` (and, with ``full``, the report's curves, the diagnosis and the
     record's facts) to a fitted ``analyze`` document; ``band_hz`` is the PSD band the
-    over-bounding model must also cover."""
+    over-bounding model must also cover; ``diagnose=False`` leaves the diagnosis out (a record
+    analysed without holding its samples)."""
     for key, ch in doc.get("channels", {}).items():
         extend_channel(ch, full=full, seed=seed, band_hz=band_hz)
-        if full and ch.get("model"):
+        if full and ch.get("model") and not diagnose:
+            ch.setdefault("warnings", []).append(
+                "no diagnosis: the record was analysed without holding its samples (too long); "
+                "imunoise diagnose on the channel gives it")
+        elif full and ch.get("model"):
             try:
                 ch["suggestions"] = suggestions(record, key)
             except ValueError as exc:  # a record too short for a refit with one more term

@@ -19,17 +19,18 @@ ACCEL = ("accel_x", "accel_y", "accel_z")
 BATCH_BYTES = 1 << 20  # uncompressed bytes decoded per batch (cache-sized: gathers stay hot)
 _PAYLOAD = ml.RECORD_PREFIX + ml.MESSAGE_HEADER  # record start -> CDR payload
 
-def _batches(chunks: list[ml.ChunkInfo]) -> Iterator[list[ml.ChunkInfo]]:
-    batch: list[ml.ChunkInfo] = []
-    nbytes = 0
-    for c in chunks:
-        batch.append(c)
-        nbytes += c.uncompressed_size
+def _batch_bounds(sizes: list[int]) -> list[tuple[int, int]]:
+    """``[start, stop)`` chunk indices of each batch: chunks are added until a batch holds
+    ``BATCH_BYTES`` of uncompressed data."""
+    bounds, start, nbytes = [], 0, 0
+    for i, size in enumerate(sizes):
+        nbytes += size
         if nbytes >= BATCH_BYTES:
-            yield batch
-            batch, nbytes = [], 0
-    if batch:
-        yield batch
+            bounds.append((start, i + 1))
+            start, nbytes = i + 1, 0
+    if start < len(sizes):
+        bounds.append((start, len(sizes)))
+    return bounds
 
 
 def _overlapping(buf: np.ndarray, dtype: str) -> np.ndarray:
@@ -231,10 +232,15 @@ def iter_decoded(src: McapSource, sink: Sink | None = None
     """Decoded batches of the source's topics, in file order. With :func:`read_ahead`, the
     next batch is read and decompressed on a second thread (zstd and pread release the GIL)
     while this one is decoded; at most two batches are in memory."""
-    batches = list(_batches(src.layout.chunks))
-    if not batches:
+    # batches are taken from the chunk table one at a time: the table is compact, its rows
+    # as objects are not (see daq.mcap_layout.ChunkTable)
+    chunks = src.layout.chunks
+    sizes = chunks.uncompressed_sizes()
+    bounds = _batch_bounds(sizes)
+    if not bounds:
         return
-    size = max(sum(c.uncompressed_size for c in b) for b in batches)
+    size = max(sum(sizes[a:b]) for a, b in bounds)
+    batches = (chunks[a:b] for a, b in bounds)
     if not read_ahead():
         scratch = np.empty(size, np.uint8)
         with open(src.path, "rb") as f:
@@ -246,12 +252,15 @@ def iter_decoded(src: McapSource, sink: Sink | None = None
     buffers = [np.empty(size, np.uint8), np.empty(size, np.uint8)]
     with open(src.path, "rb") as f, ThreadPoolExecutor(max_workers=1) as pool:
         fd = f.fileno()
-        pending = pool.submit(_load_batch, fd, batches[0], buffers[0])
-        for i, batch in enumerate(batches):
+        batch = next(batches)
+        pending = pool.submit(_load_batch, fd, batch, buffers[0])
+        for i in range(len(bounds)):
             loaded = pending.result()
-            if i + 1 < len(batches):
-                pending = pool.submit(_load_batch, fd, batches[i + 1], buffers[(i + 1) % 2])
+            following = next(batches, None)
+            if following is not None:
+                pending = pool.submit(_load_batch, fd, following, buffers[(i + 1) % 2])
             yield _decode_batch(src, batch, loaded, sink)
             del loaded
+            batch = following
 
 

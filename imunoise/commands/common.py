@@ -94,7 +94,7 @@ def read_record(path: str, rate_hz: float | None = None, static: str = "all") ->
         record = open_record(path, rate_hz=rate_hz)
     except ReadError as exc:
         raise UsageError(str(exc)) from None
-    return keep_still(record) if static == "auto" else _motion_all(record)
+    return keep_still(record, static)
 
 
 def _topics(record: Record) -> dict[str, list[str]]:
@@ -135,49 +135,50 @@ def _motion_doc(motion, static: str) -> dict[str, Any]:
                           for st in motion.stretches]}
 
 
-def keep_still(record: Record) -> Record:
+def motion_verdict(prefix: str, motion, static: str, warnings: list[str]
+                   ) -> tuple[dict[str, Any], list[tuple[int, int]] | None]:
+    """What one topic's motion means for the analysis: its ``facts["motion"]`` entry and the
+    still ``[start, stop)`` sample ranges to keep (None: keep everything). A warning is
+    appended when the topic moved."""
+    name = prefix.rstrip(":") or "the IMU"
+    if static != "auto":
+        if motion.moved:
+            warnings.append(f"{prefix.rstrip(':') or 'the IMU'}: {motion.describe()}; "
+                            "analysing everything as asked (--static all): numbers from "
+                            "moving stretches are not noise")
+        return {**_motion_doc(motion, "all"), "used": "all"}, None
+    doc = _motion_doc(motion, "auto")
+    if not motion.moved:
+        return doc, None
+    still = [(st.start, st.stop) for st in motion.still]
+    if not still:
+        doc["used"] = "all (no still stretch)"
+        warnings.append(f"{name}: {motion.describe()}; there is no still stretch, "
+                        "so the noise numbers below come from moving data and are "
+                        "not the sensor's noise")
+        return doc, None
+    doc["used"] = f"{len(still)} still stretch(es), {motion.still_seconds():.0f} s"
+    warnings.append(f"{name}: {motion.describe()}; analysing the {len(still)} still "
+                    f"stretch(es), {motion.still_seconds():.0f} s (--static all for "
+                    "everything)")
+    return doc, still
+
+
+def keep_still(record: Record, static: str = "auto") -> Record:
     """The record with each topic's IMU channels cut to its still stretches (each a segment),
     and ``facts["motion"]`` saying what was found. When a topic never rests, its channels are
-    kept whole and a warning says that their numbers are not noise."""
+    kept whole and a warning says that their numbers are not noise. With ``static="all"``
+    nothing is cut; the motion is still found and reported."""
     facts: dict[str, Any] = {}
     for prefix, keys in _topics(record).items():
         motion = _detect(record, keys)
         if motion is None:
             continue
-        doc = facts[prefix.rstrip(":") or "imu"] = _motion_doc(motion, "auto")
-        if not motion.moved:
-            continue
-        name = prefix.rstrip(":") or "the IMU"
-        still = [(st.start, st.stop) for st in motion.still]
-        if not still:
-            doc["used"] = "all (no still stretch)"
-            record.warnings.append(f"{name}: {motion.describe()}; there is no still stretch, "
-                                   "so the noise numbers below come from moving data and are "
-                                   "not the sensor's noise")
-            continue
-        for k in keys:
-            record.channels[k] = record.channels[k].restricted(still)
-        doc["used"] = f"{len(still)} still stretch(es), {motion.still_seconds():.0f} s"
-        record.warnings.append(f"{name}: {motion.describe()}; analysing the {len(still)} still "
-                               f"stretch(es), {motion.still_seconds():.0f} s (--static all for "
-                               "everything)")
-    if facts:
-        record.facts["motion"] = facts
-    return record
-
-
-def _motion_all(record: Record) -> Record:
-    """``--static all``: nothing cut; the motion is still found and reported."""
-    facts: dict[str, Any] = {}
-    for prefix, keys in _topics(record).items():
-        motion = _detect(record, keys)
-        if motion is None:
-            continue
-        facts[prefix.rstrip(":") or "imu"] = {**_motion_doc(motion, "all"), "used": "all"}
-        if motion.moved:
-            record.warnings.append(f"{prefix.rstrip(':') or 'the IMU'}: {motion.describe()}; "
-                                   "analysing everything as asked (--static all): numbers from "
-                                   "moving stretches are not noise")
+        doc, still = motion_verdict(prefix, motion, static, record.warnings)
+        facts[prefix.rstrip(":") or "imu"] = doc
+        if still is not None:
+            for k in keys:
+                record.channels[k] = record.channels[k].restricted(still)
     if facts:
         record.facts["motion"] = facts
     return record
