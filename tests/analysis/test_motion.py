@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.motion import detect_motion
+from analysis.motion import MotionWindows, detect_motion
 from analysis.noise_stream import simulate
 
 FS = 100.0
@@ -56,6 +56,13 @@ def test_a_robot_that_turns_rests_tilted_and_drives_is_found():
     # 60 s of motion, each stretch widened by its settling windows
     assert len(m.still) == 3 and m.still_seconds() == pytest.approx(300 - 60 - 4, abs=3)
     assert "moved in 2 stretch(es)" in m.describe()
+
+    # fed in blocks of any size (a file read a batch at a time), the same stretches exactly
+    for size in (1, 37, 100, 4096, g.shape[0]):
+        acc = MotionWindows(FS, 3, 3)
+        for i in range(0, g.shape[0], size):
+            acc.update(list(g[i:i + size].T), list(a[i:i + size].T))
+        assert acc.motion() == m, size
 
 
 def test_a_record_that_never_rests_has_no_still_stretch():
