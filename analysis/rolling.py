@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing as mp
+import signal
 import threading
 import time
 from collections import OrderedDict, deque
@@ -213,6 +214,12 @@ def _job_diagnose(values: np.ndarray, fs_hz: float, model: list[str], starts: np
             [{k: f[k] for k in ("kind", "p_value", "why", "range")} for f in findings])
 
 
+def _ignore_sigint() -> None:
+    """Fit workers leave Ctrl-C to the service, which stops them (a terminal sends SIGINT to
+    every process of the foreground group)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     """``fn(*args)`` and the CPU seconds of the thread that ran it."""
     t0 = time.thread_time()
@@ -247,7 +254,8 @@ class WorkerProcess:
         with self._lock:
             if self._pool is None:
                 # spawn, not fork: the parent runs threads (acquisition, HTTP) holding locks
-                self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+                self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"),
+                                                 initializer=_ignore_sigint)
             return self._pool
 
     def __call__(self, fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:

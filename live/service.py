@@ -243,15 +243,30 @@ class LiveService:
             state = "streaming" if self.running else ("finished" if self._acq_done.is_set()
                                                       else "starting")
         now = time.time()
+        process = stats.pop("process", None)
+        rec_stats = stats.pop("recording", None)
+        losses = {"device": counts["dropped"],
+                  "handover": int(stats.get("handover_lost_samples", 0) or 0),
+                  "analysis": counts["not_analysed"]}
+        recording: dict[str, Any] = {"file": self.current_file(), "sink_errors": self.sink_errors}
+        if rec_stats:
+            recording.update(samples=rec_stats.get("samples"), files=rec_stats.get("files"),
+                             blocks_dropped=rec_stats.get("blocks_dropped"),
+                             error=rec_stats.get("error"))
+        status = "ok" if self.error is None else "degraded"
+        if process is not None and not process.get("alive") and self.running:
+            status = "degraded"
         return {
-            "status": "ok" if self.error is None else "degraded",
+            "status": status,
             "uptime_s": now - self.started_at,
             "acquiring": self.running,
             "device": dict(self.device, state=str(state), stats=stats),
             "samples": counts,
             "gaps": gaps,
             "last_block_age_s": (now - last) if last else None,
-            "recording": {"file": self.current_file(), "sink_errors": self.sink_errors},
+            "losses": losses,
+            "acquisition_process": process,
+            "recording": recording,
             "channels": self.analyzers.channels,
             "analysis": _jsonable(self.analyzers.stats()),
             "error": self.error,

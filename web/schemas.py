@@ -210,6 +210,15 @@ class HealthOut(BaseModel):
     samples: dict[str, int] = Field(description="received, analysed, not_analysed, dropped")
     gaps: int
     last_block_age_s: float | None
+    losses: dict[str, int] = Field(
+        default_factory=dict,
+        description="samples lost by stage: 'device' (FIFO overrun, data-ready missed, reads "
+                    "too late: gaps in the recording), 'handover' (not passed from the "
+                    "acquisition process to the analysis: the recording has them), 'analysis' "
+                    "(not analysed: queue full)")
+    acquisition_process: dict[str, Any] | None = Field(
+        None, description="the acquisition process: pid, alive, restarts, last_exit, priority "
+                          "(policy granted and what was refused); null when acquiring in-process")
     recording: dict[str, Any]
     channels: list[str]
     analysis: dict[str, Any] | None = Field(

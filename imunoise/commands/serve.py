@@ -18,6 +18,7 @@ from typing import Any
 
 from imunoise import SOFTWARE
 from imunoise.errors import RuntimeFailure, UsageError
+from live.recorder_sink import RecorderSink
 
 TOKEN_ENV = "IMUNOISE_TOKEN"
 DEVICES = ("adis16350", "itg3200", "adxl345", "razor", "sim:adis16350", "sim:razor")
@@ -56,6 +57,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default white,bias_instability,random_walk)")
     p.add_argument("--refit-interval", type=float, default=2.0, metavar="S",
                    help="least time between refits, s (default 2)")
+    p.add_argument("--acquisition", choices=("process", "thread"), default="process",
+                   help="where a device is read and recorded: 'process' (default), a process of "
+                        "its own at the highest priority the system grants, handing blocks to "
+                        "the analysis through shared memory; 'thread', inside this process")
+    p.add_argument("--priority", choices=("realtime", "nice", "normal"), default="realtime",
+                   help="scheduling of the acquisition process: 'realtime' (SCHED_FIFO where "
+                        "permitted, else nice -10 where permitted; /health says what was "
+                        "granted), 'nice' or 'normal'")
     p.add_argument("--analysis-cpu", type=float, default=0.3, metavar="F",
                    help="fraction of one core the fits and diagnoses may use on average; "
                         "their cadence adapts to it (default 0.3)")
@@ -112,6 +121,8 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     for key, value in wanted:
         if value is not None:
             kwargs[key] = value
+    if getattr(args, "acquisition", "thread") == "process":
+        return _open_process(args, spec, kwargs)
     from analysis.noise_stream import stream_factory
 
     try:  # noise: the simulators' seed-paper models, not white noise alone
@@ -129,42 +140,28 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     return acq, info, True
 
 
-class RecorderSink:
-    """Feeds the MCAP recorder and records device state changes as status events."""
+def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
+                  ) -> tuple[Any, dict[str, Any], bool]:
+    """The device read and recorded by an acquisition process (``live.acquisition_process``)."""
+    from daq.errors import DeviceError
+    from live.acquisition_process import AcquisitionConfig, AcquisitionProcess
 
-    def __init__(self, recorder: Any, acquisition: Any) -> None:
-        self.recorder = recorder
-        self.acquisition = acquisition
-        self._state: str | None = None
-        self._reconnects = 0
-
-    def write(self, block: Any) -> None:
-        self.recorder.write(block)
-        stats = getattr(self.acquisition, "stats", None)
-        state = str(getattr(stats, "state", ""))
-        reconnects = int(getattr(stats, "reconnects", 0) or 0)
-        t = float(block.t[-1]) if len(block) else None
-        # States are sampled when a block arrives; an outage that ended between two blocks
-        # shows only in the reconnect count, and is recorded as the change it was.
-        if (self._state is not None and reconnects > self._reconnects
-                and state == self._state == "running"):
-            reason = str(getattr(stats, "last_error", "") or "")
-            self._event("reconnecting" + (f" ({reason})" if reason else ""), t)
-            self._state = "reconnecting"
-        if self._state is not None and state != self._state:
-            self._event(state, t)
-        self._state = state
-        self._reconnects = reconnects
-
-    def _event(self, state: str, t: float | None) -> None:
-        from daq import ros2_msgs
-
-        level = ros2_msgs.OK if state in ("running", "ok") else ros2_msgs.WARN
-        self.recorder.event(level, f"device state: {state}", {"event": "state", "state": state},
-                            t=t)
-
-    def close(self) -> None:
-        self.recorder.close()
+    config = AcquisitionConfig(spec, dict(kwargs), out=args.out, record_rate_hz=args.rate,
+                               software=SOFTWARE, priority=getattr(args, "priority", "realtime"))
+    if args.out:
+        try:
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RuntimeFailure(f"serve: cannot record to {args.out}: {exc}") from None
+    source = AcquisitionProcess(config)
+    try:
+        source.open()
+    except DeviceError as exc:
+        raise RuntimeFailure(f"serve: {exc}") from None
+    info: dict[str, Any] = {"spec": spec, "acquisition": "process",
+                            **{k: v for k, v in kwargs.items() if k != "seed"}}
+    info["config"] = source.config_reported
+    return source, info, True
 
 
 def open_recorder(out: str, device: str, config: dict[str, str] | None,
@@ -215,7 +212,8 @@ def run(args: argparse.Namespace) -> int:
     source, info, realtime = open_source(args)
     sinks = []
     recorder = None
-    if args.out and realtime:
+    in_process = hasattr(source, "recording")  # an acquisition process records by itself
+    if args.out and realtime and not in_process:
         try:
             recorder = open_recorder(args.out, info["spec"], info.get("config"), args.rate)
         except RuntimeFailure:
@@ -227,7 +225,9 @@ def run(args: argparse.Namespace) -> int:
                                 cpu_budget=args.analysis_cpu, workers="process",
                                 targets=args.target), sinks=sinks,
         device=info, realtime=realtime,
-        current_file=(lambda: recorder.stats.file or None) if recorder else None)
+        current_file=((lambda: recorder.stats.file or None) if recorder else
+                      (lambda: source.recording().get("file") or None) if in_process and args.out
+                      else None))
     app = create_app(service, token=token, catalog=args.catalog,
                      allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
@@ -253,7 +253,8 @@ def run(args: argparse.Namespace) -> int:
         service.stop()
         if recorder is not None and getattr(recorder, "error", None):
             print(f"imunoise: recording: {recorder.error}", file=sys.stderr)
-        files = getattr(getattr(recorder, "stats", None), "files", None)
+        files = getattr(getattr(recorder, "stats", None), "files", None) or (
+            source.recording().get("files") if in_process else None)
         if files:
             print(f"imunoise: recorded {', '.join(map(str, files))}", file=sys.stderr)
     if not server.started:

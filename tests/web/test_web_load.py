@@ -110,7 +110,7 @@ def test_unplug_and_replug_of_a_simulated_adis_shows_in_health_and_recording_goe
 
     from daq.devices import open_device
     from daq.recorder import McapRecorder
-    from imunoise.commands.serve import RecorderSink
+    from live.recorder_sink import RecorderSink
 
     acq = open_device("sim:adis16350", rate_hz=102.4, seed=3, timeout_s=0.1)
     acq.open()

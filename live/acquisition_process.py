@@ -1,0 +1,349 @@
+"""Acquisition and recording in a process of their own, apart from analysis and HTTP.
+
+A sensor without a FIFO (ADIS16350, ITG-3200) must be read on time; in one interpreter with
+the rolling analysis, the HTTP server and the event stream, any stall there (a long numpy
+call, JSON encoding of a curve, garbage collection) delays the reads, and samples are lost.
+So ``serve`` runs the device driver and the MCAP recorder in a child process started here,
+at the highest scheduling priority the system grants, doing nothing per sample but read,
+stamp and write. Blocks reach the analysis side through a :class:`live.block_ring.BlockRing`
+in shared memory that never makes the child wait: when the analysis side falls behind, the
+block is not handed over (a counted hand-over loss, and a gap for the analysis), while the
+recording has it.
+
+The parent's :class:`AcquisitionProcess` is the live service's source: it iterates the
+blocks from the ring, reports the child's counters (``stats``) and restarts the child when it
+dies (the new child writes a new file whose first event says what happened; the analysis sees
+a gap). Ctrl-C and SIGTERM reach the parent, which asks the child to stop; the child ignores
+SIGINT itself so that its file is always closed by its own hand, and closes it as well when
+its parent disappears.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from live.block_ring import DEFAULT_CAPACITY, BlockRing
+
+STATUS_EVERY_S = 0.25
+"""How often the child publishes its counters."""
+START_TIMEOUT_S = 60.0
+"""How long the parent waits for the child to open the device."""
+
+
+@dataclass
+class AcquisitionConfig:
+    """What the child needs to open the device and the recorder (picklable).
+
+    Attributes:
+        spec: device name (``daq.devices.DEVICES``).
+        device_kwargs: ``port``, ``bus``, ``rate_hz``, ``seed`` for ``open_device``.
+        out: folder for the MCAP files, or None (no recording).
+        record_rate_hz: nominal rate written to the file's metadata (None: the device's).
+        software: the writing program and its version.
+        priority: ``"realtime"`` (SCHED_FIFO if permitted, else the lowest nice value
+            permitted), ``"nice"`` (nice value only) or ``"normal"``.
+    """
+
+    spec: str
+    device_kwargs: dict[str, Any] = field(default_factory=dict)
+    out: str | None = None
+    record_rate_hz: float | None = None
+    software: str = ""
+    priority: str = "realtime"
+
+
+# ----------------------------------------------------------------------------- the child
+
+def raise_priority(mode: str) -> dict[str, Any]:
+    """Raise this process's scheduling priority as far as ``mode`` asks and the system
+    allows; what was granted and what was refused (for /health)."""
+    out: dict[str, Any] = {"asked": mode}
+    if mode == "realtime" and hasattr(os, "sched_setscheduler"):
+        try:
+            prio = min(20, os.sched_get_priority_max(os.SCHED_FIFO))
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            out["policy"] = f"SCHED_FIFO {prio}"
+        except OSError as exc:
+            out["refused"] = f"SCHED_FIFO: {exc.strerror or exc}"
+    if "policy" not in out and mode in ("realtime", "nice"):
+        try:
+            os.nice(-10)
+        except OSError as exc:
+            out["refused"] = "; ".join(filter(None, [out.get("refused"),
+                                                    f"nice -10: {exc.strerror or exc}"]))
+        out["policy"] = "SCHED_OTHER"
+    out.setdefault("policy", "SCHED_OTHER")
+    out["nice"] = os.nice(0)
+    return out
+
+
+def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None = None,
+            error: str | None = None) -> dict[str, Any]:
+    stats = getattr(acq, "stats", None)
+    acq_stats = stats.as_dict() if stats is not None and hasattr(stats, "as_dict") else {}
+    if state is not None:
+        acq_stats["state"] = state
+    rec = getattr(recorder, "stats", None)
+    return {
+        "pid": os.getpid(),
+        "priority": priority,
+        "acquisition": acq_stats,
+        "config": {str(k): str(v) for k, v in (getattr(acq, "config", {}) or {}).items()},
+        "recording": None if rec is None else {
+            "file": rec.file, "files": list(rec.files), "samples": rec.samples,
+            "blocks_dropped": rec.blocks_dropped,
+            "error": str(getattr(recorder, "error", "") or "") or None},
+        "error": error,
+        "time": time.time(),
+    }
+
+
+def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid: int,
+               note: str | None = None) -> None:
+    """Entry point of the acquisition process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    priority = raise_priority(config.priority)
+    ring = BlockRing(ring_name)
+    acq = recorder = sink = None
+    try:
+        from analysis.noise_stream import stream_factory
+        from daq.devices import open_device
+        from daq.recorder import McapRecorder
+        from live.recorder_sink import RecorderSink
+
+        acq = open_device(config.spec, noise=stream_factory, **config.device_kwargs)
+        acq.open()
+        if config.out:
+            recorder = McapRecorder(config.out, config.spec, config=getattr(acq, "config", None),
+                                    rate_hz=config.record_rate_hz, software=config.software)
+            sink = RecorderSink(recorder, acq)
+            if note:
+                sink.note("warn", note, {"event": "acquisition_restart"})
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which says why
+        ring.publish_status(_status(acq, recorder, priority, state="failed",
+                                    error=f"cannot open {config.spec}: {exc}"))
+        if acq is not None:
+            acq.close()
+        ring.close()
+        return
+
+    def watch() -> None:  # stop when asked, or when the parent is gone
+        while not stop.wait(0.2):
+            if os.getppid() != parent_pid:
+                break
+        acq.stop()
+
+    threading.Thread(target=watch, name="imunoise-acq-watch", daemon=True).start()
+    ring.publish_status(_status(acq, recorder, priority))
+    next_status = time.monotonic() + STATUS_EVERY_S
+    error = None
+    try:
+        for block in acq.blocks():
+            if sink is not None:
+                sink.write(block)
+            ring.put(block, len(block))
+            now = time.monotonic()
+            if now >= next_status:
+                ring.publish_status(_status(acq, recorder, priority))
+                next_status = now + STATUS_EVERY_S
+            if stop.is_set():
+                break
+    except Exception as exc:  # noqa: BLE001
+        error = f"acquisition stopped: {type(exc).__name__}: {exc}"
+    finally:
+        acq.close()
+        if sink is not None:
+            counts = acq.stats.as_dict()
+            sink.note("ok", "acquisition ended", {
+                "event": "losses", "device_dropped": str(counts.get("dropped", 0)),
+                "device_gaps": str(counts.get("gaps", 0)),
+                "handover_lost": str(ring.lost_samples)})
+            sink.close()
+        ring.publish_status(_status(acq, recorder, priority, error=error))
+        ring.close()
+
+
+# ----------------------------------------------------------------------------- the parent
+
+class AcquisitionProcess:
+    """The live service's source: blocks from the acquisition process.
+
+    Args:
+        config: the device and recording to run.
+        ring_bytes: capacity of the hand-over ring.
+        restart: start a new child when one dies (up to ``max_restarts`` times).
+    """
+
+    def __init__(self, config: AcquisitionConfig, ring_bytes: int = DEFAULT_CAPACITY,
+                 restart: bool = True, max_restarts: int = 100) -> None:
+        self.config = config
+        self.ring = BlockRing(create=True, capacity=ring_bytes)
+        self.restart = restart
+        self.max_restarts = max_restarts
+        self.restarts = 0
+        self.last_exit: str | None = None
+        self._ctx = mp.get_context("spawn")  # never fork a process that runs threads
+        self._stop = self._ctx.Event()
+        self._proc: Any = None
+        self._stopping = False
+        self._gap_next = False
+        self._files: list[str] = []
+        self._lock = threading.Lock()
+        self._status: dict[str, Any] = {}
+        self.config_reported: dict[str, str] = {}
+        self._final: dict[str, Any] | None = None  # the last status, once the ring is released
+
+    # -- life cycle
+    def _spawn(self, note: str | None = None) -> None:
+        self._stop = self._ctx.Event()
+        self._proc = self._ctx.Process(
+            target=child_main, name="imunoise-acquisition",
+            args=(self.config, self.ring.name, self._stop, os.getpid(), note), daemon=False)
+        self._proc.start()
+
+    def open(self, timeout_s: float = START_TIMEOUT_S) -> None:
+        """Start the child and wait until it has opened the device (or failed to: raises
+        ``daq.errors.DeviceError`` with its reason)."""
+        from daq.errors import DeviceError
+
+        self._spawn()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            st = self.ring.status()
+            if st:
+                if st.get("error"):
+                    self._proc.join(5)
+                    self.close()
+                    raise DeviceError(st["error"])
+                self.config_reported = dict(st.get("config") or {})
+                return
+            if not self._proc.is_alive():
+                code = self._proc.exitcode
+                self.close()
+                raise DeviceError(f"the acquisition process ended at start (exit code {code})")
+            time.sleep(0.02)
+        self.stop()
+        self.close()
+        raise DeviceError(f"the acquisition process did not open {self.config.spec} "
+                          f"within {timeout_s:g} s")
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def stop(self) -> None:
+        """Ask the child to finish its file and end; :meth:`blocks` then ends."""
+        self._stopping = True
+        self._stop.set()
+
+    def close(self, timeout_s: float = 15.0) -> None:
+        """Wait for the child (terminating it if it hangs) and release the ring."""
+        self._stopping = True
+        self._stop.set()
+        if self._proc is not None:
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(5)
+        self._remember_files()
+        if self._final is None:
+            self._final = self.ring.status() or {}
+            self._final_lost = (self.ring.lost_samples, self.ring.lost_blocks)
+            self.ring.close()
+            self.ring.unlink()
+
+    def _read_status(self) -> dict[str, Any]:
+        return self._final if self._final is not None else (self.ring.status() or {})
+
+    def _lost(self) -> tuple[int, int]:
+        if self._final is not None:
+            return self._final_lost
+        return self.ring.lost_samples, self.ring.lost_blocks
+
+    def _remember_files(self) -> None:
+        rec = self._read_status().get("recording") or {}
+        with self._lock:
+            for f in rec.get("files") or []:
+                if f not in self._files:
+                    self._files.append(f)
+
+    # -- blocks
+    def _check_child(self) -> bool:
+        """True while blocks may still come: restart a dead child unless stopping."""
+        if self._proc.is_alive():
+            return True
+        if self._stopping:
+            return False
+        code = self._proc.exitcode
+        self.last_exit = f"exit code {code}" + (f" (signal {-code})" if code and code < 0 else "")
+        self._remember_files()
+        if not self.restart or self.restarts >= self.max_restarts:
+            return False
+        self.restarts += 1
+        self._gap_next = True
+        self._spawn(note=f"acquisition restarted: the previous acquisition process ended "
+                         f"({self.last_exit}); samples between the files are lost")
+        return True
+
+    def blocks(self):
+        """Blocks as the child hands them over, with ``gap_before`` set where the hand-over
+        or a restart lost samples; ends when the child has stopped and the ring is empty."""
+        idle = 0.0
+        while True:
+            got = self.ring.get()
+            if got is None:
+                if not self._check_child():
+                    got = self.ring.get()
+                    if got is None:
+                        return
+                else:
+                    time.sleep(0.005)
+                    idle += 0.005
+                    continue
+            block, lost = got
+            if self._gap_next:
+                block.gap_before = -1  # a new process: how much was lost is not known
+                self._gap_next = False
+            elif lost and block.gap_before >= 0:
+                block.gap_before += lost
+            yield block
+
+    # -- status
+    @property
+    def stats(self) -> dict[str, Any]:
+        """The child's acquisition counters, the hand-over losses and the process state."""
+        st = self._read_status()
+        out = dict(st.get("acquisition") or {})
+        if not self.alive and not self._stopping:
+            out["state"] = "acquisition process down" + (f" ({self.last_exit})"
+                                                         if self.last_exit else "")
+        out["process"] = {"pid": st.get("pid"), "alive": self.alive, "restarts": self.restarts,
+                          "last_exit": self.last_exit, "priority": st.get("priority")}
+        out["handover_lost_samples"], out["handover_lost_blocks"] = self._lost()
+        out["recording"] = st.get("recording")
+        if st.get("error"):
+            out["last_error"] = st["error"]
+        return out
+
+    def recording(self) -> dict[str, Any]:
+        """The child's recorder counters (file, files, samples), files of earlier children
+        included."""
+        rec = dict(self._read_status().get("recording") or {})
+        with self._lock:
+            files = list(self._files)
+        for f in rec.get("files") or []:
+            if f not in files:
+                files.append(f)
+        rec["files"] = files
+        return rec
