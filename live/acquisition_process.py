@@ -48,6 +48,9 @@ class AcquisitionConfig:
         software: the writing program and its version.
         priority: ``"realtime"`` (SCHED_FIFO if permitted, else the lowest nice value
             permitted), ``"nice"`` (nice value only) or ``"normal"``.
+        simulator_process: run ``sim:adis16350`` in a process of its own behind its
+            pseudo-terminal (``live.simulator_process``), opened like real hardware; the I2C
+            simulators live under smbus2's ioctl layer and stay in the acquisition process.
     """
 
     spec: str
@@ -56,6 +59,7 @@ class AcquisitionConfig:
     record_rate_hz: float | None = None
     software: str = ""
     priority: str = "realtime"
+    simulator_process: bool = True
 
 
 # ----------------------------------------------------------------------------- the child
@@ -104,21 +108,24 @@ def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None
     }
 
 
-def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid: int,
-               note: str | None = None) -> None:
-    """Entry point of the acquisition process."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    priority = raise_priority(config.priority)
-    ring = BlockRing(ring_name)
-    acq = recorder = sink = None
-    try:
-        from analysis.noise_stream import stream_factory
-        from daq.devices import open_device
-        from daq.recorder import McapRecorder
-        from live.recorder_sink import RecorderSink
+def _open(config: AcquisitionConfig, note: str | None):
+    """The device (and its simulator process), the recorder and its sink of one child."""
+    from analysis.noise_stream import stream_factory
+    from daq.devices import open_device
+    from daq.recorder import McapRecorder
+    from live.recorder_sink import RecorderSink
 
-        acq = open_device(config.spec, noise=stream_factory, **config.device_kwargs)
+    acq = recorder = sink = simulator = None
+    try:
+        if config.spec == "sim:adis16350" and config.simulator_process:
+            from live.simulator_process import SimulatorProcess
+
+            kw = dict(config.device_kwargs)
+            simulator = SimulatorProcess(kw.get("rate_hz") or 102.4, kw.pop("seed", 0) or 0,
+                                         config.priority)
+            acq = open_device("adis16350", port=simulator.start(), **kw)
+        else:
+            acq = open_device(config.spec, noise=stream_factory, **config.device_kwargs)
         acq.open()
         if config.out:
             recorder = McapRecorder(config.out, config.spec, config=getattr(acq, "config", None),
@@ -126,11 +133,27 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
             sink = RecorderSink(recorder, acq)
             if note:
                 sink.note("warn", note, {"event": "acquisition_restart"})
-    except Exception as exc:  # noqa: BLE001 - reported to the parent, which says why
-        ring.publish_status(_status(acq, recorder, priority, state="failed",
-                                    error=f"cannot open {config.spec}: {exc}"))
+    except Exception:
         if acq is not None:
             acq.close()
+        if simulator is not None:
+            simulator.stop()
+        raise
+    return acq, recorder, sink, simulator
+
+
+def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid: int,
+               note: str | None = None) -> None:
+    """Entry point of the acquisition process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    priority = raise_priority(config.priority)
+    ring = BlockRing(ring_name)
+    try:
+        acq, recorder, sink, simulator = _open(config, note)
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which says why
+        ring.publish_status(_status(None, None, priority, state="failed",
+                                    error=f"cannot open {config.spec}: {exc}"))
         ring.close()
         return
 
@@ -166,6 +189,8 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
                 "device_gaps": str(counts.get("gaps", 0)),
                 "handover_lost": str(ring.lost_samples)})
             sink.close()
+        if simulator is not None:
+            simulator.stop()
         ring.publish_status(_status(acq, recorder, priority, error=error))
         ring.close()
 

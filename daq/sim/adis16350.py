@@ -17,7 +17,7 @@ from daq.clock import Clock
 from daq.drivers import adis16350 as reg
 from daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
 
-CHUNK = 4096  # samples generated per call of a signal source
+CHUNK = 256  # samples generated per call of a signal source (see daq.sim.i2c_chip.CHUNK)
 SELF_TEST_S = 0.035
 TEMP_AXIS_OFFSET_C = (0.0, 0.4, -0.3)  # the three sensors do not sit at one temperature
 

@@ -6,7 +6,10 @@ import numpy as np
 
 from daq.clock import Clock
 
-CHUNK = 4096
+CHUNK = 256
+"""Samples drawn from a signal source at a time. A real chip never stalls; drawing 4096 samples
+of the seed-paper noise models at once took about 7 ms, longer than a sample period of a part
+without a FIFO at 200 Hz and up, so the simulation itself lost samples. 256 take 0.8 ms."""
 
 
 class RegisterChip:

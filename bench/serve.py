@@ -1,0 +1,257 @@
+"""Serve benchmark: does ``imunoise serve`` lose samples under dashboard and API load?
+
+    python bench/serve.py [--minutes 10] [--runs adis204,razor100,razor1000] [--load idle,busy]
+
+For each simulated device configuration and each load, starts ``imunoise serve --device ...
+--out DIR`` (acquisition in its own process, the default), and while it runs keeps
+  * a dashboard open: the event stream ``/events``, and on each update (at most once a second)
+    the requests the page makes: ``/allan``, ``/psd``, ``/model``, ``/diagnosis`` of a channel
+    and ``/coefficients``;
+  * 50 API clients, each fetching ``/coefficients``, ``/allan`` or ``/psd`` every 0.2 s;
+  * with ``busy``, two CPU-bound processes beside it (on a 2-core machine: both cores).
+Then stops serve with SIGTERM and reads the recording back. Prints per run: samples expected
+(from the recording's first and last stamps at the device rate), recorded, lost at each stage
+(device: missing in the file; hand-over and analysis: from ``/health``), and the CPU used by
+each process (serve's HTTP/analysis side, the acquisition process, the fit worker, the
+clients, the hogs) as a percentage of one core.
+
+Configurations: ``adis204`` is the ADIS16350 at 204.8 Hz (the highest rate a Bus Pirate link
+carries, docs/devices.md); ``razorN`` the ITG-3200 + ADXL345 on one simulated 400 kHz bus with
+the gyro at N Hz.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from daq.readers.mcap import read_mcap  # noqa: E402
+
+CONFIGS = {
+    "adis204": ("sim:adis16350", 204.8),
+    "adis102": ("sim:adis16350", 102.4),
+}
+CLIENTS = 50
+CLIENT_PERIOD_S = 0.2
+_HOG = "while True: pass"
+
+
+def config_of(name: str) -> tuple[str, float]:
+    if name in CONFIGS:
+        return CONFIGS[name]
+    if name.startswith("razor"):
+        return "sim:razor", float(name.removeprefix("razor"))
+    raise SystemExit(f"unknown run {name!r}: adis204, adis102 or razorN (N in Hz)")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def get(url: str, timeout: float = 10.0) -> bytes | None:
+    try:
+        with urllib.request.urlopen(url, timeout=timeout) as r:
+            return r.read()
+    except OSError:
+        return None
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (s), 0 when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(x) for x in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def client_main(base: str, channel: str, n: int, period: float, stop_after: float) -> None:
+    """The load: ``n`` API client threads and one dashboard, until ``stop_after`` seconds."""
+    end = time.monotonic() + stop_after
+    paths = ["/coefficients", f"/allan?channel={channel}", f"/psd?channel={channel}"]
+
+    def api(i: int) -> None:
+        k = i
+        while time.monotonic() < end:
+            get(base + paths[k % len(paths)])
+            k += 1
+            time.sleep(period)
+
+    def dashboard() -> None:
+        q = f"?channel={channel}"
+        last = 0.0
+        while time.monotonic() < end:
+            try:
+                with urllib.request.urlopen(base + "/events", timeout=30) as stream:
+                    for line in stream:
+                        if time.monotonic() >= end:
+                            return
+                        if line.startswith(b"event:") or line.startswith(b"data:"):
+                            if time.monotonic() - last >= 1.0:
+                                last = time.monotonic()
+                                for p in (f"/allan{q}", f"/psd{q}", "/coefficients",
+                                          f"/model{q}", f"/diagnosis{q}"):
+                                    get(base + p)
+            except OSError:
+                time.sleep(0.5)
+
+    threads = [threading.Thread(target=api, args=(i,), daemon=True) for i in range(n)]
+    threads.append(threading.Thread(target=dashboard, daemon=True))
+    for t in threads:
+        t.start()
+    while time.monotonic() < end:
+        time.sleep(0.5)
+
+
+def recorded(out: Path) -> dict[str, dict[str, float]]:
+    """Per IMU stream of the recording: samples, missing samples, expected samples."""
+    rows: dict[str, dict[str, float]] = {}
+    for path in sorted(out.glob("*.mcap")):
+        rec = read_mcap(path)
+        for topic, facts in rec.facts.get("timing", {}).items():
+            key = next((k for k in rec.channels if k.startswith(topic + ":")),
+                       None) or next(iter(rec.channels))
+            n = rec.channels[key].n_samples
+            row = rows.setdefault(topic, {"recorded": 0, "missing": 0, "fs_hz": facts["fs_hz"]})
+            row["recorded"] += n
+            row["missing"] += facts["missing_samples"]
+    for row in rows.values():
+        row["expected"] = row["recorded"] + row["missing"]
+    return rows
+
+
+def run_one(name: str, load: str, seconds: float) -> dict:
+    spec, rate = config_of(name)
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    out = Path(tempfile.mkdtemp(prefix=f"bench_serve_{name}_"))
+    hogs = [subprocess.Popen([sys.executable, "-c", _HOG]) for _ in range(2 if load == "busy"
+                                                                          else 0)]
+    serve = subprocess.Popen([sys.executable, "-m", "imunoise", "serve", "--device", spec,
+                              "--rate", f"{rate:g}", "--port", str(port), "--out", str(out)],
+                             cwd=ROOT, stderr=subprocess.PIPE, text=True,
+                             env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        health = None
+        for _ in range(240):
+            raw = get(base + "/health", timeout=5)
+            if raw:
+                health = json.loads(raw)
+                if health.get("channels"):
+                    break
+            time.sleep(0.5)
+        if not health or not health.get("channels"):
+            raise SystemExit(f"{name}: serve did not come up: {serve.stderr.read()[-2000:]}")
+        acq_pid = (health.get("acquisition_process") or {}).get("pid")
+        channel = health["channels"][0]
+        code = (f"import sys; sys.path.insert(0, {str(ROOT)!r}); import bench.serve as b; "
+                f"b.client_main({base!r}, {channel!r}, {CLIENTS}, {CLIENT_PERIOD_S!r}, "
+                f"{seconds!r})")
+        client = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
+        procs = {"serve": serve.pid, "acquisition": acq_pid, "clients": client.pid}
+        workers = [p for p in children(serve.pid) if p != acq_pid]
+        cpu0 = {k: cpu_seconds(p) for k, p in procs.items() if p}
+        hog0 = [cpu_seconds(h.pid) for h in hogs]
+        t0 = time.monotonic()
+        time.sleep(seconds)
+        wall = time.monotonic() - t0
+        workers = [p for p in children(serve.pid) if p != acq_pid] or workers
+        cpu = {k: (cpu_seconds(p) - cpu0.get(k, 0.0)) / wall for k, p in procs.items() if p}
+        cpu["fit_worker"] = sum(cpu_seconds(p) for p in workers) / wall
+        cpu["hogs"] = sum(cpu_seconds(h.pid) - c for h, c in zip(hogs, hog0, strict=True)) / wall
+        health = json.loads(get(base + "/health") or b"{}")
+        client.wait(60)
+        serve.send_signal(signal.SIGTERM)
+        serve.wait(120)
+    finally:
+        for h in hogs:
+            h.kill()
+        if serve.poll() is None:
+            serve.kill()
+    streams = recorded(out)
+    return {"run": name, "load": load, "seconds": wall, "streams": streams,
+            "losses": health.get("losses", {}), "process": health.get("acquisition_process"),
+            "cpu": cpu, "serve_exit": serve.returncode, "out": str(out)}
+
+
+def report(r: dict) -> None:
+    pr = r["process"] or {}
+    prio = (pr.get("priority") or {})
+    print(f"{r['run']:>10} {r['load']:>5}  {r['seconds']:5.0f} s  exit {r['serve_exit']}  "
+          f"acquisition priority {prio.get('policy')}"
+          + (f" (refused: {prio['refused']})" if prio.get("refused") else ""))
+    for topic, s in r["streams"].items():
+        print(f"{'':17}{topic:24} expected {s['expected']:9.0f}  recorded {s['recorded']:9.0f}"
+              f"  lost at the device {s['missing']:6.0f}")
+    lo = r["losses"]
+    print(f"{'':17}losses from /health: device {lo.get('device')}, hand-over "
+          f"{lo.get('handover')}, analysis {lo.get('analysis')}; restarts "
+          f"{pr.get('restarts')}")
+    cpu = r["cpu"]
+    print(f"{'':17}CPU (% of a core): " + ", ".join(f"{k} {100 * v:.0f}"
+                                                     for k, v in cpu.items()))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--runs", default="adis204,razor100,razor500")
+    ap.add_argument("--load", default="idle,busy")
+    ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    args = ap.parse_args()
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = float("nan")
+    print(f"load average before: {load:.1f} on {os.cpu_count()} cores; {args.minutes:g} min "
+          f"per run, {CLIENTS} API clients + a dashboard")
+    results = []
+    for load_kind in args.load.split(","):
+        for name in args.runs.split(","):
+            r = run_one(name, load_kind, 60.0 * args.minutes)
+            report(r)
+            results.append(r)
+            sys.stdout.flush()
+    lost = sum(s["missing"] for r in results if r["load"] == "idle"
+               for s in r["streams"].values())
+    lost += sum(int(r["losses"].get("handover", 0) or 0) + int(r["losses"].get("analysis", 0)
+                                                               or 0)
+                for r in results if r["load"] == "idle")
+    print(f"idle runs: {lost} samples lost anywhere (target 0)")
+    for r in results:
+        if r["load"] == "busy":
+            exp = sum(s["expected"] for s in r["streams"].values())
+            miss = sum(s["missing"] for s in r["streams"].values())
+            print(f"busy {r['run']}: recording lost {miss} of {exp:.0f} samples "
+                  f"({100 * miss / max(exp, 1):.4f} %, target <= 0.01 %)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()

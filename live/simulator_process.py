@@ -1,0 +1,90 @@
+"""A simulated ADIS16350 behind its emulated Bus Pirate, in a process of its own.
+
+In one process with the driver, the simulated chip and bridge share the driver's interpreter
+and clock: a stall of the driver's process stalls the "hardware" too, and the simulation can
+hide (or cause) losses a real device would not. Here the chip model and the emulated bridge
+run in their own process on the real clock, behind a pseudo-terminal, and the acquisition
+process opens that terminal with the real driver and the real pyserial, exactly as it opens
+a Bus Pirate on ``/dev/ttyUSB0``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from typing import Any
+
+START_TIMEOUT_S = 60.0
+
+
+def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid: int,
+                    priority: str) -> None:
+    import signal
+
+    from live.acquisition_process import raise_priority
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    raise_priority(priority)
+    from analysis.noise_stream import stream_factory
+    from daq.clock import RealClock
+    from daq.drivers.adis16350 import sample_rate_hz, smpl_prd_for_rate
+    from daq.sim.adis16350 import Adis16350Sim
+    from daq.sim.buspirate_pty import BusPirateEmulator, ChipClock
+    from daq.sim.signals import default_sources
+
+    fs = sample_rate_hz(smpl_prd_for_rate(rate_hz))
+    gyro, accel = default_sources("adis16350", fs, seed, stream_factory)
+    chip_clock = ChipClock(RealClock())
+    sim = Adis16350Sim(chip_clock, gyro, accel, None, source_rate_hz=fs)
+    emulator = BusPirateEmulator(sim, seed=seed, chip_clock=chip_clock).start()
+    sim.emulator = emulator
+    conn.send(emulator.port)
+    try:
+        while not stop.wait(0.5):
+            if os.getppid() != parent_pid:
+                break
+    finally:
+        emulator.close()
+
+
+class SimulatorProcess:
+    """Start and stop the simulated ADIS16350's process; :meth:`start` returns its port."""
+
+    def __init__(self, rate_hz: float, seed: int = 0, priority: str = "normal") -> None:
+        self.rate_hz = float(rate_hz)
+        self.seed = int(seed)
+        self.priority = priority
+        self._ctx = mp.get_context("spawn")
+        self._stop = self._ctx.Event()
+        self._proc: Any = None
+
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> str:
+        """Start the simulator; the path of its serial port."""
+        recv, send = self._ctx.Pipe(duplex=False)
+        self._proc = self._ctx.Process(
+            target=_simulator_main, name="imunoise-simulator",
+            args=(self.rate_hz, self.seed, send, self._stop, os.getpid(), self.priority))
+        self._proc.start()
+        send.close()
+        if not recv.poll(timeout_s):
+            self.stop()
+            raise OSError(f"the simulator process did not start within {timeout_s:g} s")
+        try:
+            return str(recv.recv())
+        except EOFError:
+            self.stop()
+            raise OSError(f"the simulator process ended at start (exit code "
+                          f"{self._proc.exitcode})") from None
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        if self._proc is not None:
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(2)
