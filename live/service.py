@@ -6,7 +6,7 @@ Three roles, two threads:
   file) and hands each one to the recorder and to a queue for the analyzer. It never waits on
   analysis or HTTP: for a live device the queue is large and ``put_nowait`` is used, so a stalled
   analyzer costs analysis coverage (counted in ``health()``) but never a recorded sample;
-- the *analysis thread* drains the queue into a :class:`analysis.rolling.RollingAnalyzer` and
+- the *analysis thread* drains the queue into a :class:`live.scheduler.RollingAnalyzer` and
   runs its fits and diagnoses one at a time, within the analyzer's CPU budget;
 - HTTP handlers only read published results (and change a model, which refits that channel).
 """
@@ -20,7 +20,8 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
-from analysis.rolling import BlockLike, RollingAnalyzer
+from analysis.rolling import BlockLike
+from live.scheduler import RollingAnalyzer
 
 
 class Sink(Protocol):

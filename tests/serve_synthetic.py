@@ -17,7 +17,7 @@ import uvicorn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from analysis.rolling import RollingAnalyzer
+from live.scheduler import RollingAnalyzer
 from live.service import LiveService
 from tests.live_helpers import CountingSink, SyntheticImu
 from web.app import create_app

@@ -49,7 +49,7 @@ def _speed(text: str) -> float | None:
 def _consumers(summary):
     consumers = [summary]
     try:
-        from analysis.rolling import RollingAnalyzer
+        from live.scheduler import RollingAnalyzer
 
         analyzer = RollingAnalyzer()
     except (ImportError, TypeError):  # not available, or needs set-up replay cannot give

@@ -12,13 +12,10 @@ import pytest
 
 from analysis.allan import oadev
 from analysis.fit import fit_allan, fit_series
-from analysis.rolling import (
-    ChannelAnalyzer,
-    RecentSamples,
-    RollingAnalyzer,
-)
+from analysis.rolling import ChannelAnalyzer, RecentSamples
 from core.blocks import SampleBlock
 from imunoise.cli import main
+from live.scheduler import RollingAnalyzer
 
 FS = 100.0
 N_TRUE = 3e-3   # rad/s/sqrt(Hz)
