@@ -62,9 +62,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "its own at the highest priority the system grants, handing blocks to "
                         "the analysis through shared memory; 'thread', inside this process")
     p.add_argument("--priority", choices=("realtime", "nice", "normal"), default="realtime",
-                   help="scheduling of the acquisition process: 'realtime' (SCHED_FIFO where "
-                        "permitted, else nice -10 where permitted; /health says what was "
-                        "granted), 'nice' or 'normal'")
+                   help="scheduling of the acquisition process: 'realtime' (default: "
+                        "SCHED_FIFO where permitted, else nice -10 where permitted; /health "
+                        "says what was granted), 'nice' or 'normal'")
     p.add_argument("--analysis-cpu", type=float, default=0.3, metavar="F",
                    help="fraction of one core the fits and diagnoses may use on average; "
                         "their cadence adapts to it (default 0.3)")
