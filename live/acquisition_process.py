@@ -34,6 +34,9 @@ STATUS_EVERY_S = 0.25
 """How often the child publishes its counters."""
 START_TIMEOUT_S = 60.0
 """How long the parent waits for the child to open the device."""
+QUICK_DEATH_S = 10.0
+"""A child that ends sooner than this after starting is restarted after a pause."""
+MAX_RESTART_PAUSE_S = 30.0
 
 
 @dataclass
@@ -224,9 +227,13 @@ class AcquisitionProcess:
         self._status: dict[str, Any] = {}
         self.config_reported: dict[str, str] = {}
         self._final: dict[str, Any] | None = None  # the last status, once the ring is released
+        self._respawn_at: float | None = None  # when a dead child is to be replaced
+        self._spawned_at = 0.0
+        self._quick_deaths = 0
 
     # -- life cycle
     def _spawn(self, note: str | None = None) -> None:
+        self._spawned_at = time.monotonic()
         self._stop = self._ctx.Event()
         self._proc = self._ctx.Process(
             target=child_main, name="imunoise-acquisition",
@@ -305,7 +312,18 @@ class AcquisitionProcess:
 
     # -- blocks
     def _check_child(self) -> bool:
-        """True while blocks may still come: restart a dead child unless stopping."""
+        """True while blocks may still come: restart a dead child unless stopping. A child
+        that ends soon after it started (a device that cannot be opened) is restarted after a
+        growing pause (1, 2, 4 ... 30 s), not at once."""
+        if self._respawn_at is not None:
+            if self._stopping:
+                return False
+            if time.monotonic() < self._respawn_at:
+                return True
+            self._respawn_at = None
+            self._spawn(note=f"acquisition restarted: the previous acquisition process ended "
+                             f"({self.last_exit}); samples between the files are lost")
+            return True
         if self._proc.is_alive():
             return True
         if self._stopping:
@@ -317,9 +335,12 @@ class AcquisitionProcess:
             return False
         self.restarts += 1
         self._gap_next = True
-        self._spawn(note=f"acquisition restarted: the previous acquisition process ended "
-                         f"({self.last_exit}); samples between the files are lost")
-        return True
+        lived = time.monotonic() - self._spawned_at
+        self._quick_deaths = self._quick_deaths + 1 if lived < QUICK_DEATH_S else 0
+        pause = min(MAX_RESTART_PAUSE_S, 2.0 ** (self._quick_deaths - 1)) \
+            if self._quick_deaths else 0.0
+        self._respawn_at = time.monotonic() + pause
+        return self._check_child()
 
     def blocks(self):
         """Blocks as the child hands them over, with ``gap_before`` set where the hand-over
@@ -350,7 +371,7 @@ class AcquisitionProcess:
         """The child's acquisition counters, the hand-over losses and the process state."""
         st = self._read_status()
         out = dict(st.get("acquisition") or {})
-        if not self.alive and not self._stopping:
+        if not self.alive and not self._stopping and self._proc is not None:
             out["state"] = "acquisition process down" + (f" ({self.last_exit})"
                                                          if self.last_exit else "")
         out["process"] = {"pid": st.get("pid"), "alive": self.alive, "restarts": self.restarts,
