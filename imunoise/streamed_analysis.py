@@ -69,9 +69,9 @@ class SeriesSummary:
         return self.n_samples / self.fs_hz
 
 
-def imu_sample_bytes(path: str) -> int | None:
-    """float64 bytes the IMU channels of an MCAP file take once loaded (from its message
-    index counts), or None when the file is not one the bulk reader streams."""
+def _open_streamable(path: str):
+    """The opened MCAP file (``daq.readers.mcap.McapSource``) when the bulk reader takes it,
+    else None (another format, or a file the loader reads and explains)."""
     p = Path(path)
     if not (p.is_file() and p.suffix.lower() == ".mcap"):
         return None
@@ -79,9 +79,14 @@ def imu_sample_bytes(path: str) -> int | None:
     from daq.readers.mcap import UnsupportedLayout, open_mcap
 
     try:
-        src = open_mcap(p)
+        return open_mcap(p)
     except (UnsupportedLayout, McapFormatError, OSError, ValueError):
         return None
+
+
+def imu_sample_bytes(src) -> int:
+    """float64 bytes the IMU channels of an opened MCAP file take once loaded (from its
+    message index counts)."""
     total = 0
     for tp in src.topics.values():
         if tp.kind == "imu":
@@ -89,16 +94,16 @@ def imu_sample_bytes(path: str) -> int | None:
     return 8 * total
 
 
-def should_stream(path: str, mode: str) -> bool:
-    """Whether ``analyze`` streams ``path``: ``mode`` ``"auto"`` (above
-    :data:`STREAM_ABOVE_BYTES`), ``"always"`` (any MCAP file the bulk reader takes) or
-    ``"never"``."""
+def stream_source(path: str, mode: str):
+    """The opened file when ``analyze`` streams ``path``, else None: ``mode`` ``"auto"``
+    (above :data:`STREAM_ABOVE_BYTES`), ``"always"`` (any MCAP file the bulk reader takes) or
+    ``"never"``. The file is scanned once, for this choice and for the analysis."""
     if mode == "never":
-        return False
-    size = imu_sample_bytes(path)
-    if size is None:
-        return False
-    return mode == "always" or size > STREAM_ABOVE_BYTES
+        return None
+    src = _open_streamable(path)
+    if src is None or (mode != "always" and imu_sample_bytes(src) <= STREAM_ABOVE_BYTES):
+        return None
+    return src
 
 
 @dataclass
@@ -369,8 +374,9 @@ def _held(record: Record, key: str):
 
 
 def analyze_streamed(path: str, selectors: list[str], rate_hz: float | None = None,
-                     static: str = "auto", show_progress: bool | None = None):
-    """Read and analyse ``path`` in two bounded-memory passes.
+                     static: str = "auto", show_progress: bool | None = None, src=None):
+    """Read and analyse ``path`` in two bounded-memory passes (``src``: the file already
+    opened by :func:`stream_source`).
 
     Returns:
         (record, results): a :class:`core.record.Record` whose channels are
@@ -383,7 +389,7 @@ def analyze_streamed(path: str, selectors: list[str], rate_hz: float | None = No
     from imunoise.commands.common import select
     from imunoise.progress import progress_bar
 
-    src = open_mcap(path)
+    src = open_mcap(path) if src is None else src
     imu = [tp for tp in src.topics.values() if tp.kind == "imu" and tp.count]
     temps = [tp for tp in src.topics.values() if tp.kind == "temperature" and tp.count]
     if not imu:

@@ -199,10 +199,11 @@ def run(args: argparse.Namespace) -> int:
         from imunoise.files import check_output_folder
 
         check_output_folder(args.report)
-    streamed = streamed_analysis.should_stream(args.file, getattr(args, "stream", "auto"))
+    src = streamed_analysis.stream_source(args.file, getattr(args, "stream", "auto"))
+    streamed = src is not None
     if streamed:
         record, results = streamed_analysis.analyze_streamed(args.file, args.channel, args.rate,
-                                                             args.static)
+                                                             args.static, src=src)
     else:
         record = _read(args.file, args.rate, args.static)
         keys = select(record, args.channel)

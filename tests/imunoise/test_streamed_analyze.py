@@ -120,19 +120,23 @@ def test_report_of_a_streamed_record_says_why_it_has_no_diagnosis(recording, tmp
 
 
 def test_which_files_stream(recording, tmp_path, monkeypatch):
+    def streams(path, mode):
+        return streamed_analysis.stream_source(str(path), mode) is not None
+
     # 2.4e5 samples x 6 channels x 8 bytes = 11.5 MB: loaded unless asked
-    assert streamed_analysis.imu_sample_bytes(str(recording)) == 240_000 * 6 * 8
-    assert not streamed_analysis.should_stream(str(recording), "auto")
-    assert streamed_analysis.should_stream(str(recording), "always")
-    assert not streamed_analysis.should_stream(str(recording), "never")
+    src = streamed_analysis.stream_source(str(recording), "always")
+    assert streamed_analysis.imu_sample_bytes(src) == 240_000 * 6 * 8
+    assert not streams(recording, "auto")
+    assert streams(recording, "always")
+    assert not streams(recording, "never")
     monkeypatch.setattr(streamed_analysis, "STREAM_ABOVE_BYTES", 10_000_000)
-    assert streamed_analysis.should_stream(str(recording), "auto")
+    assert streams(recording, "auto")
     csv = tmp_path / "x.csv"
     csv.write_text("t,gyro_x\n0,1\n0.01,2\n")
-    assert not streamed_analysis.should_stream(str(csv), "always")  # CSV is always loaded
+    assert not streams(csv, "always")  # CSV is always loaded
     broken = tmp_path / "broken.mcap"
     broken.write_bytes(b"not an mcap")
-    assert not streamed_analysis.should_stream(str(broken), "always")  # the loader says why
+    assert not streams(broken, "always")  # the loader says why
 
 
 def test_temperature_channel_of_a_streamed_record(recording):
