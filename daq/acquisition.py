@@ -1,7 +1,10 @@
 """The acquisition loop: paces a device driver at its rate and hands out sample blocks.
 
-Pacing is by count: the k-th poll is due at ``t_start + k * period`` on a monotonic clock, so
-oversleeping one poll never shifts the next ones and nothing drifts over hours. Transient
+A part that flags new data but keeps no FIFO (the driver says so with ``polls_data_ready``)
+is polled on its own sample phase (:class:`daq.poll_schedule.DataReadySchedule`). Other
+drivers (FIFO drains, replay) are paced by count: the k-th poll is due at
+``t_start + k * period`` on a monotonic clock, so oversleeping one poll never shifts the next
+ones and nothing drifts over hours. Transient
 faults (timeouts, garbage, NACK bursts, an unplugged cable, stuck data-ready) close the device
 and reopen it with backoff; the samples lost meanwhile show up as ``gap_before`` of the next
 block. Permanent faults, or an outage longer than ``max_outage_s``, end the loop with
@@ -21,13 +24,19 @@ from core.blocks import SampleBlock
 from daq.clock import Clock, RealClock
 from daq.drivers.common import StreamBuffer
 from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
+from daq.poll_schedule import DataReadySchedule
 
 LATE_SKIP_PERIODS = 2.0  # polls this far behind schedule re-anchor it (no burst catch-up)
 LATE_SKIP_MIN_S = 0.02
 
 
 class Driver(Protocol):
-    """What the loop needs from a device driver."""
+    """What the loop needs from a device driver.
+
+    A driver of a part without a FIFO may also set ``polls_data_ready = True`` and, after each
+    poll, ``found_new_sample`` (whether that poll found a new sample of the part it locks to);
+    the loop then polls on the part's sample phase.
+    """
 
     name: str
     rate_hz: float
@@ -148,12 +157,16 @@ class Acquisition:
         self.open()
         clock = self.clock
         period = self.driver.poll_period_s
+        schedule = (DataReadySchedule(1.0 / self.driver.rate_hz)
+                    if getattr(self.driver, "polls_data_ready", False) else None)
         t_start = clock.now()
         t_end = math.inf if duration_s is None else t_start + duration_s
+        if schedule is not None:
+            schedule.start(t_start)
         k = 0
         next_flush = t_start + self.block_s
         while not self._stop.is_set():
-            due = t_start + k * period
+            due = schedule.due if schedule is not None else t_start + k * period
             if due >= t_end or clock.now() >= t_end:
                 break
             clock.sleep_until(due)
@@ -161,12 +174,13 @@ class Acquisition:
             late = now - due
             self._note_late(late)
             k += 1
-            if late > max(LATE_SKIP_PERIODS * period, LATE_SKIP_MIN_S):
+            if schedule is None and late > max(LATE_SKIP_PERIODS * period, LATE_SKIP_MIN_S):
                 # The host fell behind (slow bus, busy machine): polling in a burst to
                 # catch up would only re-read the newest sample, so restart the schedule.
                 t_start, k = now, 1
             try:
-                if self.driver.poll() > 0:
+                found = self.driver.poll()
+                if found > 0:
                     self._outage_since = None
             except PermanentDeviceError as exc:
                 yield from self._flush()
@@ -175,7 +189,12 @@ class Acquisition:
                 yield from self._flush()
                 self._recover(exc)
                 t_start, k = clock.now(), 0
+                if schedule is not None:
+                    schedule.start(t_start)
                 continue
+            if schedule is not None:
+                schedule.after_poll(now, clock.now(),
+                                    bool(getattr(self.driver, "found_new_sample", found > 0)))
             if now >= next_flush:
                 yield from self._flush()
                 next_flush = max(next_flush + self.block_s, now)

@@ -20,11 +20,13 @@ START_TIMEOUT_S = 60.0
 def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid: int,
                     priority: str) -> None:
     import signal
+    import sys
 
-    from live.acquisition_process import raise_priority
+    from live.acquisition_process import GIL_SWITCH_S, raise_priority
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    sys.setswitchinterval(GIL_SWITCH_S)
     raise_priority(priority)
     from analysis.noise_stream import stream_factory
     from daq.clock import RealClock

@@ -202,6 +202,7 @@ class Adis16350:
     name = "adis16350"
     model = "ADIS16350"
     stale_timeout_s = 0.5
+    polls_data_ready = True  # no FIFO: polled on its sample phase (daq.poll_schedule)
 
     def __init__(self, spi: BusPirateSPI, *, rate_hz: float = 102.4, range_dps: int = 300,
                  taps: int | None = None, temp_period_s: float = 1.0, self_test: bool = True,
@@ -231,6 +232,7 @@ class Adis16350:
         self.supply_v: float | None = None
         self.endurance: int | None = None
         self._last_fresh_host: float | None = None
+        self.found_new_sample = False
         self._phase = PolledSampleClock(self.rate_hz)
         self._opened_at = 0.0
         self.run_self_test = self_test
@@ -368,7 +370,8 @@ class Adis16350:
         # may reach a busy host much later: the request time places the sample best.
         now = self.clock.now()
         miso = self.spi.transfer_frames(words)[1:].astype(np.int64)
-        if not miso[0] & FLAG_ND:
+        self.found_new_sample = bool(miso[0] & FLAG_ND)
+        if not self.found_new_sample:
             self.stale_reads += 1
             self._phase.stale(now, self.imu.next_index - 1)
             since = max(self._last_fresh_host or self._opened_at, self._opened_at)

@@ -138,6 +138,7 @@ class Adxl345:
         self.imu = StreamBuffer(f"{prefix}/imu", ["accel_x", "accel_y", "accel_z"],
                                 self.rate_hz, lambda raw: raw * scale)
         self.overruns = 0
+        self.fifo_left = 0  # entries a drain cut short left in the FIFO
         self._last_drain: float | None = None
         self._reopened = False
         self.config: dict[str, str] = self._describe(None)
@@ -190,13 +191,22 @@ class Adxl345:
     def close(self) -> None:
         self.bus.close()
 
-    def poll(self) -> int:
-        """Drain the FIFO; the number of samples read."""
+    def poll(self, deadline: float | None = None) -> int:
+        """Drain the FIFO; the number of samples read.
+
+        With ``deadline`` (on ``clock``), stop reading entries once it has passed (at least
+        one is read); :attr:`fifo_left` then says how many stayed in the FIFO.
+        """
         a = self.address
         source = self.bus.read_u8(a, REG["INT_SOURCE"])
         entries = int(REGISTERS["FIFO_ENTRIES"].counts(self.bus.read_u8(a, REG["FIFO_STATUS"])))
         now = self.clock.now()
-        rows = [self.bus.read_block(a, REG["DATAX"], DATA_BYTES) for _ in range(entries)]
+        rows = []
+        for _ in range(entries):
+            rows.append(self.bus.read_block(a, REG["DATAX"], DATA_BYTES))
+            if deadline is not None and self.clock.now() >= deadline:
+                break
+        left_before, self.fifo_left = self.fifo_left, entries - len(rows)
         missed = 0
         if self._last_drain is None:
             if not rows:
@@ -207,14 +217,14 @@ class Adxl345:
             if not rows:
                 return 0
             produced = int(round((now - self._last_drain) * self.rate_hz))
-            missed = max(0, produced - entries)
+            missed = max(0, produced + left_before - entries)
             self._reopened = False
         elif source & INT_OVERRUN:
             # Full FIFO: how many samples came since the last drain is known only from the
             # host clock; at least one was overwritten.
             self.overruns += 1
             produced = int(round((now - self._last_drain) * self.rate_hz))
-            missed = max(1, produced - entries)
+            missed = max(1, produced + left_before - entries)
         self._last_drain = now
         if rows:
             self.imu.add_many(decode_data(np.asarray(rows)), missed=missed,

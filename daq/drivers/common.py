@@ -133,52 +133,72 @@ class StreamBuffer:
 class PolledSampleClock:
     """Counts samples lost by a polled device (no FIFO, no sample counter on the chip).
 
-    Keeps ``anchor``, the host time at which the device's sample 0 would have appeared, so
-    that the newest sample at host time t is ``floor((t - anchor) * fs)``. A poll that finds
-    no new data pins the phase (the next sample has not come yet) and re-anchors by up to a
-    period, so the estimate follows the device's clock instead of drifting with the host's,
-    while a device that stalls still leaves a gap as long as the stall.
+    The chip only shows whether its sample is new; how many samples came since the last read
+    is told by the time. ``anchor`` is the host time at which the device's sample 0 appeared
+    (on the clock of the polls), so the newest sample at host time t is
+    ``floor((t - anchor) * fs)``. Each poll bounds the anchor: one that found nothing newer
+    than sample i says sample i + 1 had not appeared; one that found sample i says it had.
+    The anchor moves only as far as a bound requires, and a poll that found nothing followed
+    within half a period by one that found the next sample (a bracket, which
+    :class:`daq.poll_schedule.DataReadySchedule` makes about every fifty samples) sets it to
+    the middle of the two. So the estimate follows the device's clock, and a poll late by up
+    to a period less the bracket's width counts exactly the samples lost. A device that stalls
+    still leaves a gap as long as the stall: "nothing new" moves the anchor by at most half a
+    period, and not at all once the device is overdue.
     """
 
     def __init__(self, fs_hz: float) -> None:
         self.fs_hz = float(fs_hz)
+        self.period_s = 1.0 / self.fs_hz
         self.anchor: float | None = None
         self._resyncing = False
         self._last_fresh: float | None = None
+        self._stale: tuple[float, int] | None = None
 
     def reconnected(self) -> None:
         """The device was reopened: until the next fresh sample, "no new data" says nothing
         about the samples made while it was away."""
         self._resyncing = True
+        self._stale = None
 
     def stale(self, t: float, last_index: int) -> None:
         """A poll at host time ``t`` found nothing newer than ``last_index``."""
         if last_index < 0 or self._resyncing or self._last_fresh is None:
             return
-        if t - self._last_fresh > 1.5 / self.fs_hz:
+        self._stale = (t, last_index)
+        if t - self._last_fresh > 1.5 * self.period_s or self.anchor is None:
             return  # overdue: a stall, not jitter
-        pinned = t - (last_index + 0.5) / self.fs_hz
-        # Small corrections follow clock drift; a big one means the device stalled, and the
-        # time it lost must still show up as missing samples.
-        if self.anchor is None or abs(pinned - self.anchor) <= 1.0 / self.fs_hz:
-            self.anchor = pinned
+        not_before = t - (last_index + 1) * self.period_s
+        if 0.0 < not_before - self.anchor <= 0.5 * self.period_s:
+            self.anchor = not_before
 
     def fresh(self, t: float, next_index: int) -> int:
         """A poll at ``t`` found a new sample; how many were lost before it."""
-        restarted = self._resyncing
-        self._resyncing = False
+        bracket, self._stale = self._stale, None
+        restarted, self._resyncing = self._resyncing, False
         self._last_fresh = t
         if self.anchor is None:
-            self.anchor = t - (next_index + 0.5) / self.fs_hz
+            self.anchor = t - next_index * self.period_s
             return 0
         newest = int(math.floor((t - self.anchor) * self.fs_hz))
-        if newest < next_index:
-            self.anchor = t - (next_index + 0.5) / self.fs_hz
-            return 0
         if restarted:
             # The old phase counts the samples lost while away; a reset device samples on a
-            # new phase, which the following stale polls can only fine-tune from here.
-            self.anchor = t - (newest + 0.5) / self.fs_hz
+            # new phase, which the next bracket finds.
+            missed = max(0, newest - next_index)
+            self.anchor = t - (next_index + missed) * self.period_s
+            return missed
+        if (bracket is not None and bracket[1] == next_index - 1
+                and t - bracket[0] <= 0.5 * self.period_s):
+            # Sample next_index appeared between the two polls: none was lost.
+            self.anchor = 0.5 * (bracket[0] + t) - next_index * self.period_s
+            return 0
+        if newest < next_index:
+            # It has appeared by t. Within half a period of the estimate this is the
+            # estimate's own uncertainty (the polls sit just after each appearance); further
+            # out the anchor is wrong and moves.
+            if (t - self.anchor) * self.fs_hz < next_index - 0.5:
+                self.anchor = t - next_index * self.period_s
+            return 0
         return newest - next_index
 
 

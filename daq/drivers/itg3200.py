@@ -119,6 +119,7 @@ class Itg3200:
     name = "itg3200"
     model = "ITG-3200"
     stale_timeout_s = 0.5
+    polls_data_ready = True  # no FIFO: polled on its sample phase (daq.poll_schedule)
 
     def __init__(self, bus: I2CBus, *, rate_hz: float = 100.0, address: int = 0x68,
                  prefix: str = "/itg3200", temp_period_s: float = 1.0,
@@ -140,6 +141,7 @@ class Itg3200:
         self._last_row: list[int] | None = None
         self._same_rows = 0
         self._last_fresh: float | None = None
+        self.found_new_sample = False
         self._opened_at = 0.0
         self._phase = PolledSampleClock(self.rate_hz)
         self.config: dict[str, str] = self._describe(None)
@@ -199,9 +201,12 @@ class Itg3200:
         self.bus.close()
 
     def poll(self) -> int:
-        status = self.bus.read_u8(self.address, REG["INT_STATUS"])
+        # Times are taken before each read: "nothing new" holds from before the status read,
+        # and the data are the newest sample at the data read, however late that comes.
         now = self.clock.now()
-        if not status & INT_RAW_DATA_RDY:
+        status = self.bus.read_u8(self.address, REG["INT_STATUS"])
+        self.found_new_sample = bool(status & INT_RAW_DATA_RDY)
+        if not self.found_new_sample:
             self.stale_reads += 1
             self._phase.stale(now, self.imu.next_index - 1)
             since = max(self._last_fresh or self._opened_at, self._opened_at)
@@ -209,6 +214,7 @@ class Itg3200:
                 raise TransientDeviceError(f"{self.where}: no data-ready for "
                                            f"{now - since:.2f} s (stuck)")
             return 0
+        now = self.clock.now()
         row = decode_data(self.bus.read_block(self.address, REG["TEMP_OUT"], DATA_BYTES))[0]
         self._check_frozen(row.tolist())
         missed = 0

@@ -2,8 +2,12 @@
 
 Each chip keeps its own clock and rate, so each is its own stream (``/razor/itg3200/imu``
 with the gyro channels, ``/razor/adxl345/imu`` with the accelerometer channels) with its own
-sample times. The gyro is polled at its rate; the accelerometer FIFO is drained every
-``adxl.poll_period_s`` by count of gyro polls.
+sample times. The gyro has no FIFO and is polled on its sample phase
+(:class:`daq.poll_schedule.DataReadySchedule`); the accelerometer's FIFO is drained right after
+a gyro sample has been read, when the gyro's next sample is furthest away, at most every
+``adxl.poll_period_s`` and never for longer than half a gyro period at a time (the rest stays
+in the FIFO for the next gyro period), so that at high gyro rates the shared bus is free when
+the gyro's next sample is due.
 """
 
 from __future__ import annotations
@@ -21,14 +25,19 @@ class Razor:
 
     name = "razor"
     model = "SparkFun 9DOF Razor (ITG-3200 + ADXL345)"
+    polls_data_ready = True
 
     def __init__(self, itg: Itg3200, adxl: Adxl345) -> None:
         self.itg, self.adxl = itg, adxl
         self.rate_hz = itg.rate_hz
         self.poll_period_s = itg.poll_period_s
-        self.adxl_every = max(1, int(math.floor(adxl.poll_period_s / itg.poll_period_s)))
-        self._n = 0
+        self._adxl_due = -math.inf
         self.config: dict[str, str] = self._describe()
+
+    @property
+    def found_new_sample(self) -> bool:
+        """Whether the last poll found a new gyro sample (the stream the polls lock to)."""
+        return self.itg.found_new_sample
 
     def open(self) -> None:
         self.itg.open()
@@ -50,9 +59,15 @@ class Razor:
 
     def poll(self) -> int:
         n = self.itg.poll()
-        self._n += 1
-        if self._n % self.adxl_every == 0:
-            n += self.adxl.poll()
+        if n == 0:
+            return 0
+        now = self.adxl.clock.now()
+        if now >= self._adxl_due:
+            budget = 0.5 / self.itg.rate_hz
+            read = self.adxl.poll(deadline=now + budget)
+            # A drain cut short by the deadline goes on after the next gyro sample.
+            self._adxl_due = now if self.adxl.fifo_left else now + self.adxl.poll_period_s
+            n += read
         return n
 
     def take_blocks(self) -> list[SampleBlock]:

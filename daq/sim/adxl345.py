@@ -158,3 +158,4 @@ class Adxl345Sim(RegisterChip):
         if start <= (r["DATAZ"] + 1) and start + n > r["DATAX"] and self.fifo:
             self._last_row = self.fifo.popleft()
             self._overrun = False
+            self.accel.prefetch()  # the host is reading the FIFO: draw ahead now

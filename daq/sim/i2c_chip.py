@@ -81,6 +81,18 @@ class SourceBuffer:
             n -= k
         return np.vstack(parts) if parts else np.zeros((0, 3))
 
+    def prefetch(self) -> None:
+        """Draw the next chunk ahead when less than a quarter of one is left.
+
+        A chip model calls this right after the host has read a sample's data, when the host
+        has the most time before it polls again; drawn later, inside the next status read,
+        the draw would hold the host up between the status and the data reads.
+        """
+        left = len(self._buf) - self._pos
+        if left < CHUNK // 4:
+            self._buf = np.vstack([self._buf[self._pos:], self.source(CHUNK)])
+            self._pos = 0
+
     def skip_take_last(self, n: int) -> np.ndarray:
         """Advance ``n`` samples (n >= 1), returning only the last (bounded memory)."""
         while n > len(self._buf) - self._pos:

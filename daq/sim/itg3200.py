@@ -129,3 +129,5 @@ class Itg3200Sim(RegisterChip):
         touched_status = start <= itg.REG["INT_STATUS"] < start + n
         if touched_status or cfg & itg.INT_CFG_ANYRD_2CLEAR:
             self._int_status &= ~itg.INT_RAW_DATA_RDY
+        if start <= REG_END and start + n > _REGS.addr("GYRO_XOUT"):
+            self.gyro.prefetch()  # the host has its sample: draw ahead now

@@ -1,0 +1,111 @@
+"""Polling a part without a FIFO: the data-ready schedule reads every sample when the host is
+late by less than most of a period, and the sample clock counts exactly what a longer delay
+lost. A model of the part (one sample register, a new-data flag) and of the host (lateness,
+bus latency) in virtual time, against the truth the model knows."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from daq.drivers.common import PolledSampleClock
+from daq.poll_schedule import DataReadySchedule
+
+FS = 204.8
+T = 1.0 / FS
+
+
+class CountPaced:
+    """The fixed-rate schedule (2 % faster than the part) that the drivers used before."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s / 1.02
+        self.due = 0.0
+        self._k = 0
+
+    def start(self, now: float) -> None:
+        self.due, self._k, self._t0 = now, 0, now
+
+    def after_poll(self, started: float, finished: float, fresh: bool) -> float:
+        self._k += 1
+        self.due = self._t0 + self._k * self.period_s
+        return self.due
+
+
+def run(schedule, lateness, seconds=60.0, seed=0, phase=0.37):
+    """Poll the model part; per fresh read (true lost, counted lost, phase of the read)."""
+    rng = np.random.default_rng(seed)
+    clock = PolledSampleClock(FS)
+    schedule.start(0.0)
+    last_read, next_index, t = -1, 0, 0.0
+    events = []
+    while t < seconds:
+        start = max(schedule.due, t) + lateness(rng)
+        read_at = start + rng.uniform(0.02, 0.06) * T  # the bus's latency to the register
+        newest = math.floor((read_at - phase * T) * FS)
+        fresh = newest > last_read and newest >= 0
+        if fresh:
+            true_lost = newest - last_read - 1 if last_read >= 0 else 0
+            counted = clock.fresh(start, next_index) if last_read >= 0 else clock.fresh(start, 0)
+            events.append((true_lost, counted, (read_at / T - phase) % 1.0))
+            next_index += counted + 1
+            last_read = newest
+        else:
+            clock.stale(start, next_index - 1)
+        t = read_at + rng.uniform(0.02, 0.06) * T
+        schedule.after_poll(start, t, fresh)
+    return np.array(events)
+
+
+def jitter(rng):
+    """A busy host: mostly a few per cent of a period late, one poll in fifty up to 0.8."""
+    if rng.random() < 0.02:
+        return rng.uniform(0.2, 0.8) * T
+    return rng.exponential(0.03 * T)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_late_host_loses_nothing_on_the_data_ready_schedule(seed):
+    ev = run(DataReadySchedule(T), jitter, seed=seed)
+    assert len(ev) == pytest.approx(60 * FS, abs=2)
+    assert ev[:, 0].sum() == 0 and ev[:, 1].sum() == 0
+
+
+def test_the_fixed_rate_schedule_loses_samples_under_the_same_host():
+    """Why the schedule exists: at fixed rate the poll phase drifts through each appearance,
+    and a poll a little late there loses a sample. The sample clock still counts them."""
+    ev = run(CountPaced(T), jitter, seed=0)
+    lost, counted = ev[:, 0].sum(), ev[:, 1].sum()
+    assert lost > 0.005 * len(ev)
+    assert counted == pytest.approx(lost, rel=0.05)
+
+
+def test_retries_stay_few_and_polls_sit_just_after_each_appearance():
+    sched = DataReadySchedule(T)
+    ev = run(sched, lambda rng: rng.exponential(0.03 * T), seed=3)
+    assert sched.retries < 0.05 * len(ev)
+    # Read phases after the part's own appearance (bus latency included).
+    assert np.percentile(ev[:, 2], 95) < 0.3
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_stalled_host_gets_its_losses_counted(seed):
+    """Stalls of 1.2 to 3.8 periods: each read whose phase after the part's newest appearance
+    is clear of the bracket's width (0.25 to 0.9 of a period) counts exactly what was lost."""
+
+    def stalls(rng):
+        if rng.random() < 0.02:
+            return rng.uniform(1.2, 3.8) * T
+        return rng.exponential(0.03 * T)
+
+    ev = run(DataReadySchedule(T), stalls, seed=seed)
+    lossy = ev[ev[:, 0] > 0]
+    assert len(lossy) > 100
+    clear = (ev[:, 2] > 0.25) & (ev[:, 2] < 0.9)
+    assert clear[ev[:, 0] > 0].sum() > 0.5 * len(lossy)
+    assert np.array_equal(ev[clear, 0], ev[clear, 1])
+    # Reads inside the bracket's width may be off by one sample, no more.
+    assert np.abs(ev[:, 0] - ev[:, 1]).max() <= 1
+    assert ev[:, 1].sum() == pytest.approx(ev[:, 0].sum(), rel=0.1)
