@@ -17,7 +17,10 @@ clients, the hogs) as a percentage of one core.
 
 Configurations: ``adis204`` is the ADIS16350 at 204.8 Hz (the highest rate a Bus Pirate link
 carries, docs/devices.md); ``razorN`` the ITG-3200 + ADXL345 on one simulated 400 kHz bus with
-the gyro at N Hz.
+the gyro at N Hz and the accelerometer at its nearest rate. ``razor1000`` is the highest gyro
+rate the shared bus carries (1 kHz gyro + 800 Hz accelerometer fill about 60 % of it; the next
+gyro rate, 1142.9 Hz, brings the accelerometer to 1600 Hz and fills it; see
+tests/daq/test_acquisition.py).
 """
 
 from __future__ import annotations
@@ -220,7 +223,7 @@ def report(r: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0)
-    ap.add_argument("--runs", default="adis204,razor100,razor500")
+    ap.add_argument("--runs", default="adis204,razor100,razor1000")
     ap.add_argument("--load", default="idle,busy")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args()
