@@ -22,7 +22,7 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
     import signal
     import sys
 
-    from live.acquisition_process import GIL_SWITCH_S, raise_priority
+    from live.acquisition_process import GIL_SWITCH_S, raise_priority, settle_heap
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -41,6 +41,7 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
     sim = Adis16350Sim(chip_clock, gyro, accel, None, source_rate_hz=fs)
     emulator = BusPirateEmulator(sim, seed=seed, chip_clock=chip_clock).start()
     sim.emulator = emulator
+    settle_heap()
     conn.send(emulator.port)
     try:
         while not stop.wait(0.5):

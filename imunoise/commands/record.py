@@ -123,7 +123,9 @@ def _record(acq: Any, rec: Any, duration: float | None) -> tuple[bool, str | Non
     state changes become events in the file. Returns (interrupted, failure)."""
     from daq import ros2_msgs
     from daq.errors import DeviceError
+    from live.acquisition_process import settle_heap
 
+    settle_heap()  # no long garbage-collector pause between two polls
     tty = sys.stderr.isatty()
     t_start = time.monotonic()
     last_print = 0.0
