@@ -198,6 +198,7 @@ def test_settled_heap_leaves_a_full_collection_little_to_walk():
     from live.acquisition_process import settle_heap
 
     try:
+        gc.unfreeze()  # an in-process `record` earlier in the session froze it already
         gc.collect()
         walked_before = len(gc.get_objects(generation=2))
         settle_heap()
