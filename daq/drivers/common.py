@@ -165,9 +165,12 @@ class PolledSampleClock:
         """A poll at host time ``t`` found nothing newer than ``last_index``."""
         if last_index < 0 or self._resyncing or self._last_fresh is None:
             return
-        self._stale = (t, last_index)
         if t - self._last_fresh > 1.5 * self.period_s or self.anchor is None:
-            return  # overdue: a stall, not jitter
+            # Overdue: the device stalls. The poll that finally finds data brackets nothing;
+            # the stall is counted from the phase it had.
+            self._stale = None
+            return
+        self._stale = (t, last_index)
         not_before = t - (last_index + 1) * self.period_s
         if 0.0 < not_before - self.anchor <= 0.5 * self.period_s:
             self.anchor = not_before

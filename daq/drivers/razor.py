@@ -59,15 +59,18 @@ class Razor:
 
     def poll(self) -> int:
         n = self.itg.poll()
-        if n == 0:
-            return 0
         now = self.adxl.clock.now()
-        if now >= self._adxl_due:
-            budget = 0.5 / self.itg.rate_hz
-            read = self.adxl.poll(deadline=now + budget)
-            # A drain cut short by the deadline goes on after the next gyro sample.
-            self._adxl_due = now if self.adxl.fifo_left else now + self.adxl.poll_period_s
-            n += read
+        if n > 0 and now >= self._adxl_due:
+            # Right after a gyro sample, for at most half a gyro period; a drain cut short
+            # goes on after the next gyro sample.
+            n += self.adxl.poll(deadline=now + 0.5 / self.itg.rate_hz)
+        elif n == 0 and now >= self._adxl_due + 0.5 * self.adxl.poll_period_s:
+            # The gyro delivers nothing (data-ready stuck until it is reopened): no gyro
+            # sample to make way for, and the accelerometer's FIFO must not overrun.
+            n += self.adxl.poll()
+        else:
+            return n
+        self._adxl_due = now if self.adxl.fifo_left else now + self.adxl.poll_period_s
         return n
 
     def take_blocks(self) -> list[SampleBlock]:

@@ -234,3 +234,23 @@ def test_reconnect_to_a_reset_device_adopts_its_new_sampling_phase(offset):
     assert len(gaps) == 1
     # Away from the last sample read before the fault to the first one after it.
     assert gaps[0] == pytest.approx((1.29 + offset / fs - 1.0) * fs, abs=1.5)
+
+
+def test_razor_accelerometer_keeps_draining_while_the_gyro_stalls():
+    """The gyro delivers nothing for 0.4 s (under its 0.5 s stuck timeout); the accelerometer
+    FIFO (32 entries, 40 ms at 800 Hz) is drained all the same and loses nothing."""
+    acq = open_device("sim:razor", rate_hz=1000, realtime=False)
+    clock = acq.clock
+
+    def stall_gyro(a):
+        sim = a.simulator.itg
+        sim.stuck_ready = True
+        clock.call_at(clock.now() + 0.4, lambda: setattr(sim, "stuck_ready", False))
+
+    blocks = run(acq, 3.0, 1.0, stall_gyro)
+    accel = [b for b in blocks if b.stream == "/razor/adxl345/imu"]
+    gyro_gaps = sum(b.gap_before for b in blocks if b.stream == "/razor/itg3200/imu")
+    assert gyro_gaps >= 350  # the stall itself
+    assert sum(b.gap_before for b in accel) == 0
+    assert acq.driver.adxl.overruns == 0
+    assert sum(len(b) for b in accel) == pytest.approx(2400, abs=35)
