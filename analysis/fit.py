@@ -158,9 +158,6 @@ class FitResult:
                 "model_adev": np.sqrt(self.avar_fit).tolist(),
                 "z": self.misfit.z.tolist()}
 
-    def error_dict(self) -> dict[str, float]:
-        return {"chi2_per_dof": float(self.chi2_per_dof), "max_abs_z": float(self.max_abs_z)}
-
 
 def _term_avar(name: str, params: dict[str, float], tau: np.ndarray, fs: float) -> np.ndarray:
     term = get_term(name)

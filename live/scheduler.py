@@ -1,5 +1,5 @@
-"""The scheduler of the live analysis: one :class:`analysis.rolling.ChannelAnalyzer` per
-channel, their fits and diagnoses run one at a time within a CPU budget, in a worker process.
+"""The scheduler of the live analysis: one :class:`live.channel.LiveChannel` per channel,
+their fits and diagnoses run one at a time within a CPU budget, in a worker process.
 
 Feeding (``update``) only runs the streaming estimators, which are vectorised and cheap. The
 work that costs (fits, diagnosis) is scheduled by :meth:`RollingAnalyzer.refresh`, which the
@@ -20,19 +20,23 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from analysis.rolling import (
-    DEFAULT_MODEL,
-    BlockLike,
-    ChannelAnalyzer,
-    _timed,
-    check_terms,
-    run_inline,
-)
+from analysis.channel_state import DEFAULT_MODEL, check_terms
 from core.series import channel_units
+from live.channel import LiveChannel, run_inline, timed
+
+
+class BlockLike(Protocol):
+    """What :meth:`RollingAnalyzer.update` takes: a block of samples of one stream (e.g.
+    :class:`core.blocks.SampleBlock`)."""
+
+    stream: str
+    channels: dict[str, np.ndarray]
+    fs_hz: float
+    gap_before: int
 
 
 def _ignore_sigint() -> None:
@@ -67,7 +71,7 @@ class WorkerProcess:
                 break
             pool = self._executor()
             try:
-                return pool.submit(_timed, fn, *args).result()
+                return pool.submit(timed, fn, *args).result()
             except BrokenProcessPool as exc:
                 with self._lock:
                     if self._pool is pool:
@@ -75,7 +79,7 @@ class WorkerProcess:
                 last = exc
         else:
             self.fallback = f"the worker process died twice ({last}); fits run in-process"
-        return _timed(fn, *args)
+        return timed(fn, *args)
 
     def close(self) -> None:
         with self._lock:
@@ -85,7 +89,7 @@ class WorkerProcess:
 
 
 class RollingAnalyzer:
-    """One :class:`ChannelAnalyzer` per analysable channel of the blocks fed, and the
+    """One :class:`LiveChannel` per analysable channel of the blocks fed, and the
     scheduler of their fits.
 
     Channels named ``gyro_*`` and ``accel_*`` are analysed; a channel name already taken by
@@ -98,7 +102,7 @@ class RollingAnalyzer:
             it began.
         workers: ``"inline"`` (jobs run in the calling thread) or ``"process"`` (in one
             worker process, off the interpreter lock of the acquisition; call :meth:`close`).
-        **analyzer_kwargs: passed to each :class:`ChannelAnalyzer`.
+        **analyzer_kwargs: passed to each :class:`LiveChannel`.
     """
 
     def __init__(self, model: Sequence[str] = DEFAULT_MODEL, cpu_budget: float = 0.3,
@@ -114,7 +118,7 @@ class RollingAnalyzer:
         self._kwargs = analyzer_kwargs
         self.cpu_budget = cpu_budget
         self._lock = threading.Lock()
-        self._analyzers: dict[str, ChannelAnalyzer] = {}
+        self._analyzers: dict[str, LiveChannel] = {}
         self._keys: dict[tuple[str, str], str] = {}
         self._next_job_t = -math.inf
         self._job_cpu = 0.0
@@ -130,13 +134,13 @@ class RollingAnalyzer:
             analyzer = self._analyzer(block.stream, name, block.fs_hz)
             analyzer.update(values, new_segment=gap)
 
-    def _analyzer(self, stream: str, name: str, fs_hz: float) -> ChannelAnalyzer:
+    def _analyzer(self, stream: str, name: str, fs_hz: float) -> LiveChannel:
         key = self._keys.get((stream, name))
         if key is not None:
             return self._analyzers[key]
         with self._lock:
             key = name if name not in self._analyzers else f"{stream}:{name}"
-            self._analyzers[key] = ChannelAnalyzer(key, fs_hz, units=channel_units(name),
+            self._analyzers[key] = LiveChannel(key, fs_hz, units=channel_units(name),
                                                    model=self._model, **self._kwargs)
             self._keys[(stream, name)] = key
             return self._analyzers[key]
@@ -146,7 +150,7 @@ class RollingAnalyzer:
         with self._lock:
             return list(self._analyzers)
 
-    def get(self, channel: str) -> ChannelAnalyzer:
+    def get(self, channel: str) -> LiveChannel:
         """The analyzer of ``channel``; ``KeyError`` naming the valid channels otherwise."""
         with self._lock:
             if channel not in self._analyzers:

@@ -20,8 +20,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
-from analysis.rolling import BlockLike
-from live.scheduler import RollingAnalyzer
+from live.scheduler import BlockLike, RollingAnalyzer
 
 
 class Sink(Protocol):

@@ -11,7 +11,7 @@ from typing import Annotated
 
 from fastapi import Depends, HTTPException, Query, Request
 
-from analysis.rolling import ChannelAnalyzer
+from live.channel import LiveChannel
 from live.service import LiveService
 
 TOKEN_HEADER = "X-Imunoise-Token"
@@ -22,7 +22,7 @@ def service(request: Request) -> LiveService:
     return request.app.state.service
 
 
-def _analyzer(request: Request, channel: str | None) -> ChannelAnalyzer:
+def _analyzer(request: Request, channel: str | None) -> LiveChannel:
     analyzers = service(request).analyzers
     channels = analyzers.channels
     if channel is None:
@@ -37,12 +37,12 @@ def _analyzer(request: Request, channel: str | None) -> ChannelAnalyzer:
 
 def analyzer(request: Request,
              channel: str | None = Query(None, description="e.g. gyro_x; default: the first"),
-             ) -> ChannelAnalyzer:
+             ) -> LiveChannel:
     """The analyzer of the ``channel`` query parameter (404 listing the valid channels)."""
     return _analyzer(request, channel)
 
 
-def analyzer_named(request: Request, channel: str | None) -> ChannelAnalyzer:
+def analyzer_named(request: Request, channel: str | None) -> LiveChannel:
     """The analyzer of a channel named in a request body."""
     return _analyzer(request, channel)
 
@@ -63,5 +63,5 @@ def require_token(request: Request) -> None:
 
 ServiceDep = Annotated[LiveService, Depends(service)]
 """A route parameter that receives the live service."""
-AnalyzerDep = Annotated[ChannelAnalyzer, Depends(analyzer)]
+AnalyzerDep = Annotated[LiveChannel, Depends(analyzer)]
 """A route parameter that receives the analyzer of the ``channel`` query parameter."""

@@ -138,16 +138,16 @@ def analyze_record(record: Record, keys: list[str], show_progress: bool | None =
 
 def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> dict[str, Any]:
     """The ``analyze`` JSON document of analysed channels."""
-    from imunoise import report_json
-    from imunoise.commands.fit import fit_fields
+    from web.views import documents
+    from web.views.documents import fit_fields
 
     channels = {
-        r.key: report_json.channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
+        r.key: documents.channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
                                         warnings=r.warnings, channel=r.key,
                                         **(fit_fields(r.fit, r.allan) if r.fit else {}))
         for r in results
     }
-    doc = report_json.analyze_json(path, channels, record.warnings)
+    doc = documents.analyze_json(path, channels, record.warnings)
     stated = dataset_statement(record)
     if stated:
         doc["dataset"] = stated
@@ -209,7 +209,8 @@ def run(args: argparse.Namespace) -> int:
         keys = select(record, args.channel)
         results = analyze_record(record, keys)
     if args.json or args.report:
-        from imunoise import outputs, report_json
+        from imunoise import outputs
+        from web.views import documents
 
         doc = outputs.complete_document(analysis_json(args.file, record, results), record,
                                         full=bool(args.report), band_hz=args.overbound_band,
@@ -221,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
             write_text_atomically(args.report, render_report(doc))
             print(f"wrote {args.report}", file=sys.stderr)
     if args.json:
-        sys.stdout.write(report_json.dumps(outputs.without_report_extras(doc)) + "\n")
+        sys.stdout.write(documents.dumps(outputs.without_report_extras(doc)) + "\n")
     else:
         from imunoise.commands.fit import fit_summary
         from imunoise.report_text import channel_text

@@ -161,9 +161,9 @@ def run(args: argparse.Namespace) -> int:
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     if args.json:
-        from imunoise import report_json
+        from web.views import documents
 
-        sys.stdout.write(report_json.dumps(diagnosis_json(record, key, diag)) + "\n")
+        sys.stdout.write(documents.dumps(diagnosis_json(record, key, diag)) + "\n")
     else:
         for w in record.warnings:
             print(f"warning: {w}", file=sys.stderr)

@@ -25,6 +25,7 @@ from imunoise.commands.common import (
     open_imu_channel,
     parse_model,
 )
+from web.views.documents import z_on_curve
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -53,15 +54,6 @@ def temperature_at(record: Record, key: str) -> np.ndarray | None:
     return np.interp(t_chan, t_temp, temp.values)
 
 
-def model_json(result: Any) -> list[dict[str, Any]]:
-    """CONTRACT.md ``model`` entries of a fit (parameters in the channel's SI units)."""
-    from imunoise.report_json import number
-
-    return [{"term": t.term, "params": {k: number(v) for k, v in t.params.items()},
-             "ci95": {k: [number(a), number(b)] for k, (a, b) in t.ci95.items()}}
-            for t in result.terms]
-
-
 def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     """Fit ``model_text`` to channel ``key`` of ``record``: ``(FitResult, AllanCurve)``.
 
@@ -77,26 +69,12 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
                           fixed=fixed, ci=CI95)
 
 
-def _z_on_curve(result: Any, curve: Any) -> np.ndarray:
-    """The fit's z at each tau of the curve (NaN where the fit had no estimate)."""
-    z_map = dict(zip(np.round(result.tau_s, 12), result.z, strict=True))
-    return np.array([z_map.get(round(float(t), 12), np.nan) for t in curve.tau_s])
-
-
-def fit_fields(result: Any, curve: Any) -> dict[str, Any]:
-    """The fit's part of a channel document: model, error, failures, model_adev, z."""
-    return {"model": model_json(result), "error": result.error_dict(),
-            "failures": result.failures,
-            "model_adev": np.sqrt(result.model_avar(curve.tau_s)),
-            "z": _z_on_curve(result, curve)}
-
-
 def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
     """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
-    from imunoise import report_json
+    from web.views import documents
 
-    doc = report_json.channel_json(record.series(key), curve, channel=key,
-                                   warnings=record.warnings, **fit_fields(result, curve))
+    doc = documents.channel_json(record.series(key), curve, channel=key,
+                                 warnings=record.warnings, **documents.fit_fields(result, curve))
     for fact in ("timing", "motion"):
         if fact in record.facts:
             doc[fact] = record.facts[fact]
@@ -116,7 +94,7 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
     lines.append(f"    {'tau [s]':>10}  {'adev':>11}  {'low':>11}  {'high':>11}  "
                  f"{'model':>11}  {'z':>6}")
     model_adev = np.sqrt(result.model_avar(curve.tau_s))
-    z_all = _z_on_curve(result, curve)
+    z_all = z_on_curve(result, curve)
     for i, tau in enumerate(curve.tau_s):
         z = z_all[i]
         flag = "  <" if abs(z) > result.misfit.threshold else ""
@@ -132,9 +110,9 @@ def run(args: argparse.Namespace) -> int:
     apply_window(record, key, args.skip, args.split)
     result, curve = fit_channel(record, key, args.model)
     if args.json:
-        from imunoise import report_json
+        from web.views import documents
 
-        sys.stdout.write(report_json.dumps(fit_json(record, key, result, curve)) + "\n")
+        sys.stdout.write(documents.dumps(fit_json(record, key, result, curve)) + "\n")
     else:
         for w in record.warnings:
             print(f"warning: {w}", file=sys.stderr)

@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.output}: {doc['files']} recording(s), {len(doc['outliers'])} "
               f"outlier(s), {len(doc['grew'])} grown", file=sys.stderr)
     if args.json:
-        from imunoise import report_json
+        from web.views import documents
 
-        sys.stdout.write(report_json.dumps(doc) + "\n")
+        sys.stdout.write(documents.dumps(doc) + "\n")
     return 0

@@ -128,14 +128,14 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"plan: {exc}") from None
     rows = [_row(p, facts) for p in plans]
     if args.json:
-        from imunoise import report_json
+        from web.views import documents
 
         doc = {"model": spec, "fs_hz": fs, "targets": rows,
                "assumption": plans[0].assumption if plans else ""}
         if facts:
             doc.update({"file": args.file, "channel": facts["channel"],
                         "warnings": facts["warnings"]})
-        sys.stdout.write(report_json.dumps(doc) + "\n")
+        sys.stdout.write(documents.dumps(doc) + "\n")
         return 0
     for w in facts.get("warnings", []):
         print(f"warning: {w}", file=sys.stderr)

@@ -190,7 +190,7 @@ def _make_server(config: Any, stop_streams: threading.Event) -> Any:
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from analysis.rolling import check_terms
+    from analysis.channel_state import check_terms
     from live.scheduler import RollingAnalyzer
     from live.service import LiveService
     from web.app import LOOPBACK_HOSTS, create_app

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from analysis.channel_state import ChannelState, check_terms
 from analysis.fit import fit_allan
 from analysis.noise_stream import NoiseStream
-from analysis.rolling import ChannelAnalyzer, check_terms
 from analysis.terms import TERMS, Term, TermError, get_term, labels, parse_model, term_names
 
 
@@ -71,11 +71,12 @@ def test_fit_and_live_service_accept_the_same_fixed_parameter():
     res = fit_allan(curve, "white,gauss_markov:T=5")
     assert res.terms[1].params["T"] == 5.0 and res.terms[1].ci95["T"] == (5.0, 5.0)
     check_terms(["white", "gauss_markov:T=5"])  # the live service's check
-    a = ChannelAnalyzer("gyro_x", fs, model=["white", "gauss_markov:T=5"])
+    a = ChannelState("gyro_x", fs, model=["white", "gauss_markov:T=5"])
     a.update(x)
-    assert a.refit(full=False)
+    job = a.plan_refit(full=False, now=0.0)
+    assert job is not None and a.finish_refit(job, job.fn(*job.args), wall_s=0.0)
     assert a.model == ["white", "gauss_markov:T=5"]
-    live = a._fit  # the published fit holds T where the specification put it
+    live = a.snapshot().fit  # the published fit holds T where the specification put it
     assert live.terms[1].params["T"] == 5.0
     with pytest.raises(ValueError, match="temperature"):
         check_terms(["white", "temperature"])

@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 
 from analysis.allan import oadev
+from analysis.channel_state import RecentSamples
 from analysis.fit import fit_allan, fit_series
-from analysis.rolling import ChannelAnalyzer, RecentSamples
 from core.blocks import SampleBlock
 from imunoise.cli import main
+from live.channel import LiveChannel
 from live.scheduler import RollingAnalyzer
+from web.views import live as views
 
 FS = 100.0
 N_TRUE = 3e-3   # rad/s/sqrt(Hz)
@@ -48,7 +50,7 @@ def _cis(fit_terms) -> dict[tuple[str, str], list[float]]:
 
 def test_live_curve_is_the_batch_octave_curve_across_gaps_and_block_sizes() -> None:
     y = _white_rw(150_000, 1)
-    a = ChannelAnalyzer("gyro_x", FS, m0=512)  # exact to m = 512, strided (stride 1) beyond
+    a = LiveChannel("gyro_x", FS, m0=512)  # exact to m = 512, strided (stride 1) beyond
     _feed_random_blocks(a, y[:60_000])
     a.update(y[60_000:], new_segment=True)
     live = a.curve()
@@ -61,9 +63,9 @@ def test_live_curve_is_the_batch_octave_curve_across_gaps_and_block_sizes() -> N
 
 def test_strided_curve_reports_full_counts_and_stays_within_its_band() -> None:
     y = _white_rw(300_000, 2)
-    a = ChannelAnalyzer("gyro_x", FS)
-    a._allan.history_points = 1 << 14  # force a coarse stride (16) beyond m0 = 4096
-    a._allan._hist = np.zeros(1 << 14)
+    a = LiveChannel("gyro_x", FS)
+    a._state._allan.history_points = 1 << 14  # force a coarse stride (16) beyond m0 = 4096
+    a._state._allan._hist = np.zeros(1 << 14)
     a.update(y)
     live, ref = a.curve(), oadev(y, FS, m="octave", ci=0.95)
     np.testing.assert_array_equal(live.n_terms, ref.n_terms)
@@ -86,7 +88,7 @@ def test_dashboard_coefficients_equal_imunoise_fit_on_the_same_samples(tmp_path,
     rs.update(SampleBlock(stream="/imu", t=np.arange(y.size) / FS, fs_hz=FS,
                           channels={"gyro_x": np.loadtxt(path, delimiter=",", skiprows=1)[:, 1]}))
     assert rs.refresh(force=True)
-    live = rs.get("gyro_x").coefficients()
+    live = views.coefficients(rs.get("gyro_x"))
     assert live["intervals"] == "profile" and live["fitted_samples"] == y.size
     p_live, p_cli = _params(live["model"]), _params(cli["model"])
     assert p_live.keys() == p_cli.keys()
@@ -110,7 +112,7 @@ def test_dashboard_coefficients_equal_imunoise_fit_on_the_same_samples(tmp_path,
     assert live["error"]["chi2_per_dof"] == pytest.approx(cli["error"]["chi2_per_dof"],
                                                           rel=1e-5)
     assert live["failures"] == cli["failures"]
-    allan = rs.get("gyro_x").allan()
+    allan = views.allan(rs.get("gyro_x"))
     np.testing.assert_allclose(allan["adev"], cli["allan"]["adev"], rtol=1e-9)
     # z is of order 1; the model curves agree to what the parameter agreement above allows
     # (a few 1e-6 relative), far inside the estimates' own scatter (several per cent)
@@ -120,12 +122,12 @@ def test_dashboard_coefficients_equal_imunoise_fit_on_the_same_samples(tmp_path,
 
 def test_warm_refits_track_the_cold_fit_and_long_records_stay_within_its_intervals() -> None:
     y = _white_rw(400_000, 4)  # beyond 2^18 samples: strided taus with stride 2
-    a = ChannelAnalyzer("gyro_x", FS)
+    a = LiveChannel("gyro_x", FS)
     a.update(y[:200_000])
     assert a.refit(full=True)
     a.update(y[200_000:])
     assert a.refit()  # warm start from the previous result, linearised intervals
-    warm = a.coefficients()
+    warm = views.coefficients(a)
     assert warm["intervals"] == "jacobian"
     cold = fit_allan(a.curve(), DEFAULT, intervals="jacobian")
     # The two solves stop at the solver's tolerance: a hundredth of the interval apart.
@@ -136,7 +138,7 @@ def test_warm_refits_track_the_cold_fit_and_long_records_stay_within_its_interva
     assert warm["error"]["chi2_per_dof"] == pytest.approx(cold.chi2_per_dof, rel=1e-3)
     batch, _ = fit_series(y, FS, DEFAULT)  # what ``imunoise fit`` gives on this record
     assert a.refit(full=True)
-    live = a.coefficients()
+    live = views.coefficients(a)
     for t in batch.terms:
         lo, hi = t.ci95["N" if t.term == "white" else next(iter(t.params))]
         name = next(iter(t.params))
@@ -147,12 +149,12 @@ def test_warm_refits_track_the_cold_fit_and_long_records_stay_within_its_interva
 def test_psd_view_matches_the_fitted_model_and_survives_non_finite_samples() -> None:
     y = _white_rw(200_000, 3)
     y[100_000:100_010] = np.nan  # a burst of bad samples is a gap, not a crash
-    a = ChannelAnalyzer("gyro_x", FS)
+    a = LiveChannel("gyro_x", FS)
     _feed_random_blocks(a, y, seed=5)
     assert a.n_samples == 200_000 - 10 and a.n_segments == 2
     assert a.curve().n_terms[0] == 200_000 - 10 - 2  # no difference spans the gap
     a.refit()
-    p = a.psd()
+    p = views.psd(a)
     f, psd, model = (np.array(p[k]) for k in ("f_hz", "psd", "model_psd"))
     assert p["units"] == "(rad/s)^2/Hz" and np.all(np.isfinite(psd))
     hi = f > 1.0
@@ -163,10 +165,10 @@ def test_psd_view_matches_the_fitted_model_and_survives_non_finite_samples() -> 
 
 def test_default_fit_recovers_coefficients_within_their_intervals() -> None:
     y = _white_rw(360_000, 4)
-    a = ChannelAnalyzer("gyro_x", FS)
+    a = LiveChannel("gyro_x", FS)
     _feed_random_blocks(a, y)
     assert a.refit(full=True)
-    c = a.coefficients()
+    c = views.coefficients(a)
     terms = {t["term"]: t for t in c["model"]}
     lo, hi = terms["white"]["ci95"]["N"]
     assert lo <= N_TRUE <= hi and (hi - lo) / N_TRUE < 0.1
@@ -181,25 +183,25 @@ def test_default_fit_recovers_coefficients_within_their_intervals() -> None:
 def test_adding_a_missing_sinusoid_lowers_the_error_and_removing_it_restores_it() -> None:
     t = np.arange(200_000) / FS
     y = _white_rw(t.size, 6) + 0.01 * np.sin(2 * np.pi * 2.7 * t)
-    a = ChannelAnalyzer("gyro_x", FS)
+    a = LiveChannel("gyro_x", FS)
     a.update(y)
     assert a.refit()
-    before = a.coefficients()["error"]["chi2_per_dof"]
-    assert before > 10 and a.coefficients()["failures"]
-    change = a.add_term("sinusoid")
+    before = views.coefficients(a)["error"]["chi2_per_dof"]
+    assert before > 10 and views.coefficients(a)["failures"]
+    change = views.model_change(a.add_term("sinusoid"))
     assert change["error_before"]["chi2_per_dof"] == before
     after = change["error_after"]["chi2_per_dof"]
     assert after < before / 10
     # The same as fitting the model from scratch, as ``imunoise fit`` would.
     ref, _ = fit_series(y, FS, DEFAULT + ",sinusoid")
     assert after == pytest.approx(ref.chi2_per_dof, rel=0.05)
-    sine = next(m for m in a.coefficients()["model"] if m["term"] == "sinusoid")
+    sine = next(m for m in views.coefficients(a)["model"] if m["term"] == "sinusoid")
     assert sine["params"]["f"] == pytest.approx(2.7, rel=1e-3)
     assert sine["params"]["A"] == pytest.approx(0.01, rel=0.05)
-    hist = a.history()
+    hist = views.history(a)
     assert [h["revision"] for h in hist] == [0, 1]
     assert hist[1]["chi2_per_dof"] < hist[0]["chi2_per_dof"]
-    removed = a.remove_term("sinusoid")
+    removed = views.model_change(a.remove_term("sinusoid"))
     assert removed["error_after"]["chi2_per_dof"] == before  # same model, same samples
 
 
@@ -209,11 +211,11 @@ def test_diagnosis_finds_the_missing_sinusoid_and_adding_it_gives_its_error() ->
     rs = RollingAnalyzer()
     rs.update(SampleBlock(stream="/imu", t=t, fs_hz=FS, channels={"gyro_x": y}))
     rs.refresh(force=True)
-    d = rs.get("gyro_x").diagnosis()
+    d = views.diagnosis(rs.get("gyro_x"))
     top = d["suggestions"][0]
     assert top["term"] == "sinusoid" and top["significant"]
     assert top["params"]["f"] == pytest.approx(2.7, rel=0.01)
-    change = rs.get("gyro_x").add_term("sinusoid")
+    change = views.model_change(rs.get("gyro_x").add_term("sinusoid"))
     assert change["error_after"]["chi2_per_dof"] == pytest.approx(
         top["chi2_per_dof_after"], rel=0.05)
 
@@ -248,7 +250,7 @@ def test_scheduler_takes_channels_in_turn_within_its_cpu_budget() -> None:
 
 
 def test_model_errors_name_the_valid_terms() -> None:
-    a = ChannelAnalyzer("gyro_x", FS)
+    a = LiveChannel("gyro_x", FS)
     with pytest.raises(ValueError, match="valid terms: white, quantization"):
         a.add_term("flicker")
     with pytest.raises(ValueError, match="not in the model"):
@@ -293,8 +295,8 @@ def test_a_stuck_sensor_gives_no_curve_and_no_fit_rather_than_zeros() -> None:
                           channels={"gyro_x": np.full(10_000, 0.25)}))
     assert rs.refresh(force=True) is False
     a = rs.get("gyro_x")
-    assert a.allan()["tau_s"] == [] and a.coefficients()["error"] is None
-    assert a.diagnosis()["suggestions"] == []
+    assert views.allan(a)["tau_s"] == [] and views.coefficients(a)["error"] is None
+    assert views.diagnosis(a)["suggestions"] == []
 
 
 def test_worker_process_gives_the_inline_numbers_and_its_cpu_is_counted() -> None:
@@ -307,7 +309,8 @@ def test_worker_process_gives_the_inline_numbers_and_its_cpu_is_counted() -> Non
             rs.update(block)
             assert rs.refresh()  # the first job: a full fit
             rs.get("gyro_x").add_term("sinusoid")
-        a, b = inline.get("gyro_x").coefficients(), worker.get("gyro_x").coefficients()
+        a = views.coefficients(inline.get("gyro_x"))
+        b = views.coefficients(worker.get("gyro_x"))
         assert a["model"] == b["model"] and a["error"] == b["error"]
         assert worker.get("gyro_x").job_cpu_s > 0
         assert worker.stats()["cpu_s_total"] >= worker._jobs[0][3] > 0.01
@@ -315,7 +318,7 @@ def test_worker_process_gives_the_inline_numbers_and_its_cpu_is_counted() -> Non
             os.kill(proc.pid, signal.SIGKILL)  # a dead worker is replaced
             proc.join(10)
         assert worker.get("gyro_x").refit(full=True)
-        assert worker.get("gyro_x").coefficients()["intervals"] == "profile"
+        assert views.coefficients(worker.get("gyro_x"))["intervals"] == "profile"
     finally:
         worker.close()
 
@@ -328,15 +331,16 @@ def test_coefficients_say_the_interval_now_and_the_time_to_a_target():
 
     fs, n = 10.0, 6000  # ten minutes; K to +-20 % needs about 33 (test_planning)
     y = simulate([("white", {"N": 1e-3}), ("random_walk", {"K": 1e-4})], n, fs, rng=5)
-    a = ChannelAnalyzer("gyro_x", fs, model=["white", "random_walk"],
+    a = LiveChannel("gyro_x", fs, model=["white", "random_walk"],
                         targets="N=5%,K=20%")
     a.update(y)
     assert a.refit(full=True)
-    c = a.coefficients()
+    c = views.coefficients(a)
     white, walk = c["model"]
     assert white["relative_halfwidth"]["N"] < 0.05 and white["time_to_target_s"]["N"] == 0.0
     assert walk["target"]["K"] == 0.2 and walk["relative_halfwidth"]["K"] > 0.2
     spec = [(t["term"], t["params"]) for t in c["model"]]
     (p,) = plan(spec, fs, parse_targets("K=20%", spec))
     assert walk["time_to_target_s"]["K"] == pytest.approx(p.record_s - 600.0)
-    assert a.coefficients()["model"][1]["time_to_target_s"] == walk["time_to_target_s"]  # cached
+    again = views.coefficients(a)["model"][1]["time_to_target_s"]  # from the plan cache
+    assert again == walk["time_to_target_s"]

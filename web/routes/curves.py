@@ -8,6 +8,7 @@ from fastapi import APIRouter
 
 from web import deps
 from web.schemas import AllanOut, CoefficientsOut, PsdOut
+from web.views import live as views
 
 router = APIRouter()
 
@@ -15,7 +16,7 @@ router = APIRouter()
 @router.get("/coefficients", response_model=CoefficientsOut,
             summary="current noise coefficients per channel, with units and 95 % intervals")
 async def coefficients(svc: deps.ServiceDep) -> dict[str, Any]:
-    out = {name: svc.analyzers.get(name).coefficients() for name in svc.analyzers.channels}
+    out = {name: views.coefficients(svc.analyzers.get(name)) for name in svc.analyzers.channels}
     return {"channels": out,
             "samples_seen": sum(c["n_samples"] for c in out.values()),
             "record_length_s": max((c["duration_s"] for c in out.values()), default=0.0)}
@@ -24,9 +25,9 @@ async def coefficients(svc: deps.ServiceDep) -> dict[str, Any]:
 @router.get("/allan", response_model=AllanOut,
             summary="Allan deviation with its 95 % band, the model and each term")
 async def allan(a: deps.AnalyzerDep) -> dict[str, Any]:
-    return a.allan()
+    return views.allan(a)
 
 
 @router.get("/psd", response_model=PsdOut, summary="PSD with its 95 % band and the model")
 async def psd(a: deps.AnalyzerDep) -> dict[str, Any]:
-    return a.psd()
+    return views.psd(a)

@@ -6,7 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request
 
-from analysis.rolling import VALID_TERMS
+from analysis.channel_state import VALID_TERMS
 from analysis.terms import parse_model
 from web import deps
 from web.schemas import (
@@ -17,6 +17,7 @@ from web.schemas import (
     ModelOut,
     RefitRequest,
 )
+from web.views import live as views
 
 router = APIRouter()
 
@@ -24,14 +25,16 @@ router = APIRouter()
 @router.get("/diagnosis", response_model=DiagnosisOut,
             summary="missing terms, most significant first, with the error each would leave")
 async def diagnosis(a: deps.AnalyzerDep) -> dict[str, Any]:
-    return a.diagnosis()
+    return views.diagnosis(a)
 
 
 @router.get("/model", response_model=ModelOut, summary="current model and error history")
 async def get_model(a: deps.AnalyzerDep) -> dict[str, Any]:
-    d = a.diagnosis()
+    s = a.snapshot()
+    d = views.diagnosis_view(s)
     return {"channel": a.channel, "model": d["model"], "model_revision": d["model_revision"],
-            "valid_terms": list(VALID_TERMS), "error": d["error"], "history": a.history()}
+            "valid_terms": list(VALID_TERMS), "error": d["error"],
+            "history": views.history_view(s)}
 
 
 @router.post("/model", response_model=ModelChangeOut, dependencies=[Depends(deps.require_token)],
@@ -42,12 +45,13 @@ def post_model(change: ModelChangeRequest, request: Request) -> dict[str, Any]:
         if change.add is not None:
             if change.add in a.model:
                 raise ValueError(f"term {change.add!r} is already in the model")
-            return a.add_term(change.add)
+            return views.model_change(a.add_term(change.add))
         if change.remove is not None:
-            return a.remove_term(change.remove)
+            return views.model_change(a.remove_term(change.remove))
         if change.model is not None:
-            return a.set_model([e.text() for e in parse_model(change.model).entries])
-        return a.set_model(change.terms or [])
+            return views.model_change(
+                a.set_model([e.text() for e in parse_model(change.model).entries]))
+        return views.model_change(a.set_model(change.terms or []))
     except ValueError as exc:
         raise HTTPException(400, str(exc)) from None
 
@@ -58,4 +62,4 @@ def post_model(change: ModelChangeRequest, request: Request) -> dict[str, Any]:
 def post_refit(req: RefitRequest, request: Request) -> dict[str, Any]:
     a = deps.analyzer_named(request, req.channel)
     a.refit(full=req.intervals == "profile")
-    return a.coefficients()
+    return views.coefficients(a)

@@ -9,7 +9,7 @@ from typing import Any
 from fastapi import APIRouter, Request
 from fastapi.responses import StreamingResponse
 
-from analysis.rolling import VALID_TERMS
+from analysis.channel_state import VALID_TERMS
 from web import deps
 from web.schemas import HealthOut
 

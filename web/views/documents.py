@@ -1,4 +1,5 @@
-"""JSON documents of the command line (``analyze``, ``fit``, ``diagnose``), built in one place.
+"""JSON documents of the command line (``analyze``, ``fit``, ``diagnose``) and the parts that
+the live views (:mod:`web.views.live`) share with them.
 
 Every number is a plain float; a value that is not finite becomes ``null`` so the output is
 strict JSON. Shapes follow the contract: a channel document carries ``channel, units, fs_hz,
@@ -16,6 +17,7 @@ import numpy as np
 from core.series import ChannelSeries
 
 if TYPE_CHECKING:
+    from analysis.fit import FitResult
     from analysis.psd import PsdEstimate
 
 
@@ -43,6 +45,36 @@ def number(value: float | None) -> float | None:
         return None
     value = float(value)
     return value if np.isfinite(value) else None
+
+
+NO_ERROR: Mapping[str, None] = {"chi2_per_dof": None, "max_abs_z": None}
+"""The ``error`` object of a channel without a model fit."""
+
+
+def error_json(fit: FitResult | None) -> dict[str, float | None]:
+    """The ``error`` object of a fit: chi2 per degree of freedom and the largest |z|."""
+    if fit is None:
+        return dict(NO_ERROR)
+    return {"chi2_per_dof": number(fit.chi2_per_dof), "max_abs_z": number(fit.max_abs_z)}
+
+
+def model_json(fit: FitResult) -> list[dict[str, Any]]:
+    """CONTRACT.md ``model`` entries of a fit (parameters in the channel's SI units)."""
+    return [{"term": t.term, "params": {k: number(v) for k, v in t.params.items()},
+             "ci95": {k: [number(a), number(b)] for k, (a, b) in t.ci95.items()}}
+            for t in fit.terms]
+
+
+def z_on_curve(fit: FitResult, curve: AllanLike) -> np.ndarray:
+    """The fit's z at each tau of the curve (NaN where the fit had no estimate)."""
+    z_map = dict(zip(np.round(fit.tau_s, 12), fit.z, strict=True))
+    return np.array([z_map.get(round(float(t), 12), np.nan) for t in curve.tau_s])
+
+
+def fit_fields(fit: FitResult, curve: AllanLike) -> dict[str, Any]:
+    """The fit's part of a channel document: model, error, failures, model_adev, z."""
+    return {"model": model_json(fit), "error": error_json(fit), "failures": fit.failures,
+            "model_adev": np.sqrt(fit.model_avar(curve.tau_s)), "z": z_on_curve(fit, curve)}
 
 
 def allan_json(curve: AllanLike | None, model_adev: Sequence[float] | np.ndarray = (),
@@ -87,10 +119,6 @@ def psd_json(est: PsdEstimate | None) -> dict[str, Any]:
         "method": [str(m) for m in est.method],
         "ci": number(est.ci),
     }
-
-
-NO_ERROR: Mapping[str, None] = {"chi2_per_dof": None, "max_abs_z": None}
-"""The ``error`` object of a channel without a model fit."""
 
 
 def channel_json(
