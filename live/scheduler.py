@@ -45,6 +45,10 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+class WorkerClosed(RuntimeError):
+    """A job was abandoned because the worker was closed (the service is stopping)."""
+
+
 class WorkerProcess:
     """Runs jobs in one worker process, so a fit never holds the interpreter lock that the
     acquisition thread needs. A worker that dies is replaced and the job retried once; if
@@ -55,10 +59,13 @@ class WorkerProcess:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._pool: ProcessPoolExecutor | None = None
+        self._closed = False
         self.fallback: str | None = None
 
     def _executor(self) -> ProcessPoolExecutor:
         with self._lock:
+            if self._closed:
+                raise WorkerClosed("the analysis is shutting down")
             if self._pool is None:
                 # spawn, not fork: the parent runs threads (acquisition, HTTP) holding locks
                 self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"),
@@ -74,6 +81,8 @@ class WorkerProcess:
                 return pool.submit(timed, fn, *args).result()
             except BrokenProcessPool as exc:
                 with self._lock:
+                    if self._closed:
+                        raise WorkerClosed("the analysis is shutting down") from None
                     if self._pool is pool:
                         self._pool = None
                 last = exc
@@ -82,10 +91,22 @@ class WorkerProcess:
         return timed(fn, *args)
 
     def close(self) -> None:
+        """Stop the worker at once: a running job is abandoned (its caller gets
+        :class:`WorkerClosed`), so shutting down never waits for a fit."""
         with self._lock:
+            self._closed = True
             pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        if pool is None:
+            return
+        # The executor has no public way to end a running job; its worker processes are
+        # terminated directly (``_processes``: pid -> Process, unchanged since Python 3.8).
+        processes = list(getattr(pool, "_processes", {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in processes:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in processes:
+            proc.join(5.0)
 
 
 class RollingAnalyzer:

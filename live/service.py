@@ -117,11 +117,15 @@ class LiveService:
                 stopper()
             except Exception:  # noqa: BLE001 - shutdown must go on
                 pass
-        for t in self._threads:
+        # the acquisition thread first: every block it took reaches the sinks
+        for t in self._threads[:1]:
             t.join(timeout)
+        # then the analysis: a fit running in the worker process is abandoned, not awaited
         closer = getattr(self.analyzers, "close", None)
         if callable(closer):
             closer()
+        for t in self._threads[1:]:
+            t.join(timeout)
         for sink in self.sinks:
             try:
                 sink.close()
@@ -206,10 +210,13 @@ class LiveService:
                 n = len(b.t) if hasattr(b, "t") else 0
                 with self._lock:
                     self.samples_analysed += n
+            if self._stop.is_set():
+                return  # stopping: no more fits (the end of a replay brings them up to date)
             try:
                 self.analyzers.refresh(force=done)
             except Exception as exc:  # noqa: BLE001
-                self.error = f"refit: {type(exc).__name__}: {exc}"
+                if not self._stop.is_set():
+                    self.error = f"refit: {type(exc).__name__}: {exc}"
             if done:
                 return
 

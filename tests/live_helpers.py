@@ -168,3 +168,12 @@ def interrupt(proc: subprocess.Popen, timeout: float = 30.0) -> str:
         proc.kill()
         _, err = proc.communicate()
     return err.decode() if isinstance(err, bytes) else err
+
+
+def touch_then_sleep(path: str, seconds: float) -> float:
+    """A job for a worker process that stands for a long fit: says it started (``path``
+    created), then sleeps."""
+    with open(path, "w") as f:
+        f.write("started")
+    time.sleep(seconds)
+    return seconds

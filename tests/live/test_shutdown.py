@@ -1,0 +1,96 @@
+"""Stopping the live service never waits for a fit: the worker process is ended at once."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from live.scheduler import WorkerClosed, WorkerProcess
+from live.service import LiveService
+from tests.live_helpers import SyntheticImu, touch_then_sleep
+
+
+def _wait_for(path: Path, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        assert time.monotonic() < deadline, "the worker never started the job"
+        time.sleep(0.05)
+
+
+def test_closing_the_worker_abandons_a_running_job_at_once(tmp_path: Path) -> None:
+    worker = WorkerProcess()
+    flag = tmp_path / "started"
+    outcome: list[BaseException | tuple] = []
+
+    def call() -> None:
+        try:
+            outcome.append(worker(touch_then_sleep, str(flag), 120.0))
+        except BaseException as exc:  # noqa: BLE001 - the test inspects it
+            outcome.append(exc)
+
+    t = threading.Thread(target=call)
+    t.start()
+    _wait_for(flag)
+    processes = list(worker._pool._processes.values())
+    t0 = time.monotonic()
+    worker.close()
+    t.join(30)
+    assert not t.is_alive() and time.monotonic() - t0 < 15  # not the job's 120 s
+    assert len(outcome) == 1 and isinstance(outcome[0], WorkerClosed)
+    assert processes and not any(p.is_alive() for p in processes)
+    assert worker.fallback is None  # closing is not a failure: no in-process fallback
+    with pytest.raises(WorkerClosed):
+        worker(touch_then_sleep, str(flag), 0.0)
+
+
+class _SlowAnalysis:
+    """Analyzers whose every job is a long fit in a real worker process."""
+
+    def __init__(self, flag: Path) -> None:
+        self.flag = flag
+        self.worker = WorkerProcess()
+        self.channels: list[str] = []
+        self.revision = 0
+
+    def update(self, block) -> None:
+        pass
+
+    def refresh(self, force: bool = False) -> bool:
+        self.worker(touch_then_sleep, str(self.flag), 120.0)
+        return True
+
+    def stats(self) -> dict:
+        return {}
+
+    def close(self) -> None:
+        self.worker.close()
+
+
+class _CountingSink:
+    def __init__(self) -> None:
+        self.samples = 0
+        self.closed = False
+
+    def write(self, block) -> None:
+        self.samples += len(block.t)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_stopping_the_service_during_a_fit_closes_the_sinks_without_waiting(tmp_path: Path):
+    source = SyntheticImu(block=100, pace=True)
+    sink = _CountingSink()
+    svc = LiveService(source, _SlowAnalysis(tmp_path / "started"), sinks=[sink]).start()
+    try:
+        _wait_for(tmp_path / "started")
+    finally:
+        t0 = time.monotonic()
+        svc.stop()
+        took = time.monotonic() - t0
+    assert took < 10  # the fit would have taken 120 s
+    assert sink.closed and sink.samples == source.stats.samples > 0
+    assert svc.error is None  # the abandoned fit is not reported as a failure
