@@ -633,7 +633,56 @@ def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
     params[last] = {**params[last], term.amplitude: 1e-300}
     at_zero = _theta_of(prob, params)
     exact = _Point(at_zero, sub_point.used.copy(), _chi2(prob, at_zero))
-    return [at_zero], exact
+    return [at_zero] + _residual_starts(prob, params, last, line), exact
+
+
+def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
+                     line: tuple[float, float] | None, keep: int = 2) -> list[np.ndarray]:
+    """Starts for a shaped term (a Markov time constant, a resonance, a line) added to a
+    solved smaller model: each shape of its grid (``Term.start_shapes``) is scored by one
+    weighted NNLS solve of every amplitude with the other terms' shapes at the smaller
+    model's solution; the ``keep`` best start from that solve.
+
+    At zero amplitude a log-parameter has no gradient, and the cold starts place the term's
+    shape before the other terms are solved (a Markov term then takes a resonance's bump at
+    the shortest taus, or a random walk keeps what the Markov term should take, and the
+    solver stays in that valley)."""
+    names = prob.names
+    term = get_term(names[last])
+    if term.linear or term.role == "regressor" or term.kind == "filter" or \
+            not term.shape_params:
+        return []
+    held = {k: v for (i, k), v in prob.layout.fixed.items() if i == last}
+    if len(held) >= len(term.shape_params):
+        return []
+    filters = [(n, p) for n, p in zip(names, params, strict=True)
+               if get_term(n).kind == "filter"]
+
+    def column(name: str, shape: dict[str, float]) -> np.ndarray:
+        unit = {**shape, get_term(name).amplitude: 1.0}
+        return model_avar([(name, unit)] + filters, prob.tau, prob.fs, checked=False)
+
+    owners = [j for j, n in enumerate(names) if j != last and
+              get_term(n).role != "regressor" and get_term(n).kind != "filter"]
+    cols = [column(names[j], params[j]) for j in owners]
+    w = np.sqrt(prob.nu0 / 2.0)
+    scored: list[tuple[float, dict[str, float], np.ndarray]] = []
+    for cand in term.start_shapes(prob.fs, prob.duration, line):
+        cand = {**cand, **held}
+        design = np.stack(cols + [column(names[last], cand)], axis=1)
+        coef, rnorm = _nnls_weighted(design, prob.avar, w)
+        if coef[-1] > 0:
+            scored.append((rnorm, cand, coef))
+    scored.sort(key=lambda x: x[0])
+    out = []
+    for _, cand, coef in scored[:keep]:
+        trial = [dict(p) for p in params]
+        for j, c in zip(owners, coef[:-1], strict=True):
+            amp = get_term(names[j]).amplitude
+            trial[j][amp] = math.sqrt(max(float(c), 1e-6 * trial[j][amp] ** 2, 1e-300))
+        trial[last] = {**trial[last], **cand, term.amplitude: math.sqrt(float(coef[-1]))}
+        out.append(_theta_of(prob, trial))
+    return out
 
 
 def _memo_point(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None,

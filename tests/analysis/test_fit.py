@@ -241,3 +241,26 @@ def test_quick_intervals_of_weak_terms_never_collapse(seed):
         assert hi < 1e-2  # bounded by what the Allan band allows, not a runaway
         if slow.ci95[name][0] == 0.0:
             assert lo == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_markov_term_added_after_a_resonance_finds_its_time_constant(seed):
+    """Multimodal: the Markov term's cold start takes the resonance's bump at the shortest
+    taus (T ~ 0.04 s) and a random walk keeps what the Markov term should take; the start
+    that solves every amplitude at the smaller model's shapes finds T. Seed 0 ended at
+    chi2/dof 6.5 with the Markov term at zero before."""
+    from analysis.fit import fit_series
+    from analysis.noise_stream import simulate
+
+    fs = 100.0
+    truth = [("white", {"N": 3e-3}), ("resonance", {"sigma": 0.02, "f0": 14.0, "Q": 1.0}),
+             ("gauss_markov", {"sigma": 3e-3, "T": 10.0}), ("random_walk", {"K": 2e-4})]
+    y = simulate(truth, 360_000, fs, rng=seed)
+    fit, _ = fit_series(y, fs, "white,random_walk,resonance,gauss_markov")
+    markov = fit.terms[3]
+    for name, true in (("T", 10.0), ("sigma", 3e-3)):
+        lo, hi = markov.ci95[name]
+        sd_log = np.log(hi / lo) / (2 * 1.96)  # the 95 % interval's spread, in log
+        # within three of its own standard deviations (a 95 % interval misses one in 20)
+        assert abs(np.log(markov.params[name] / true)) < 3 * sd_log < 0.6, (name, markov)
+    assert fit.chi2_per_dof < 2.0  # a correct model: about 1 (few taus: a wide spread)
