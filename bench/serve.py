@@ -222,9 +222,15 @@ def report(r: dict) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--minutes", type=float, default=10.0)
-    ap.add_argument("--runs", default="adis204,razor100,razor1000")
-    ap.add_argument("--load", default="idle,busy")
+    ap.add_argument("--minutes", type=float, default=10.0,
+                    help="length of each run in minutes (default: %(default)s)")
+    ap.add_argument("--runs", default="adis204,razor100,razor1000",
+                    help="comma-separated devices and rates: adis204 (ADIS16350 at 204.8 Hz), "
+                         "razor100, razor1000 (ITG-3200 gyro at 100 or 1000 Hz beside the "
+                         "ADXL345) (default: %(default)s)")
+    ap.add_argument("--load", default="idle,busy",
+                    help="idle (the benchmark's clients only) and/or busy (two CPU-bound "
+                         "processes beside) (default: %(default)s)")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args()
     try:
