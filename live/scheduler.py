@@ -162,7 +162,7 @@ class RollingAnalyzer:
         with self._lock:
             key = name if name not in self._analyzers else f"{stream}:{name}"
             self._analyzers[key] = LiveChannel(key, fs_hz, units=channel_units(name),
-                                                   model=self._model, **self._kwargs)
+                                               model=self._model, **self._kwargs)
             self._keys[(stream, name)] = key
             return self._analyzers[key]
 

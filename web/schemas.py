@@ -153,7 +153,7 @@ class DiagnosisOut(BaseModel):
 class HistoryPointOut(BaseModel):
     revision: int
     model: list[str]
-    chi2_per_dof: float
+    chi2_per_dof: float | None = Field(description="null when the fit's misfit is not finite")
     time_s: float = Field(description="UNIX time, s")
     n_samples: int
 
