@@ -105,8 +105,11 @@ class WorkerProcess:
         for proc in processes:
             if proc.is_alive():
                 proc.terminate()
+        # the executor's own thread may reap a process first, which ends a join early
+        deadline = time.monotonic() + 5.0
         for proc in processes:
-            proc.join(5.0)
+            while proc.is_alive() and time.monotonic() < deadline:
+                proc.join(0.05)
 
 
 class RollingAnalyzer:

@@ -84,6 +84,7 @@ class LiveService:
         self._queue: queue.Queue[BlockLike | None] = queue.Queue(maxsize=queue_blocks)
         self._stop = threading.Event()
         self._acq_done = threading.Event()
+        self._abandon = False  # stopped while acquiring: running fits are abandoned
         self._threads: list[threading.Thread] = []
         self._lock = threading.Lock()
         self.samples_received = 0
@@ -109,7 +110,10 @@ class LiveService:
         return self
 
     def stop(self, timeout: float = 10.0) -> None:
-        """Stop acquiring, finish analysing what was queued, close the sinks and the source."""
+        """Stop acquiring, close the sinks and the source. A source that ended by itself (a
+        replay) has its analysis finished first (the final full fits, up to ``timeout``);
+        a stop while acquiring abandons a running fit rather than wait for it."""
+        self._abandon = not self._acq_done.is_set()
         self._stop.set()
         stopper = getattr(self.source, "stop", None)
         if callable(stopper):
@@ -120,12 +124,13 @@ class LiveService:
         # the acquisition thread first: every block it took reaches the sinks
         for t in self._threads[:1]:
             t.join(timeout)
-        # then the analysis: a fit running in the worker process is abandoned, not awaited
         closer = getattr(self.analyzers, "close", None)
-        if callable(closer):
-            closer()
+        if self._abandon and callable(closer):
+            closer()  # a fit running in the worker process is abandoned, not awaited
         for t in self._threads[1:]:
             t.join(timeout)
+        if not self._abandon and callable(closer):
+            closer()
         for sink in self.sinks:
             try:
                 sink.close()
@@ -210,12 +215,12 @@ class LiveService:
                 n = len(b.t) if hasattr(b, "t") else 0
                 with self._lock:
                     self.samples_analysed += n
-            if self._stop.is_set():
-                return  # stopping: no more fits (the end of a replay brings them up to date)
+            if self._abandon:
+                return  # stopped while acquiring: no more fits
             try:
                 self.analyzers.refresh(force=done)
             except Exception as exc:  # noqa: BLE001
-                if not self._stop.is_set():
+                if not self._abandon:
                     self.error = f"refit: {type(exc).__name__}: {exc}"
             if done:
                 return
