@@ -251,7 +251,8 @@ def main() -> None:
     lost += sum(int(r["losses"].get("handover", 0) or 0) + int(r["losses"].get("analysis", 0)
                                                                or 0)
                 for r in results if r["load"] == "idle")
-    print(f"idle runs: {lost} samples lost anywhere (target 0)")
+    if any(r["load"] == "idle" for r in results):
+        print(f"idle runs: {lost} samples lost anywhere (target 0)")
     for r in results:
         if r["load"] == "busy":
             exp = sum(s["expected"] for s in r["streams"].values())
