@@ -30,7 +30,15 @@ from scipy import special, stats
 from analysis import evidence
 from analysis.evidence.finding import Finding, family_p
 from analysis.fit import FitResult, fit_series
-from analysis.terms import TERMS, Entry, ModelSpec, TermError, get_term, parse_model
+from analysis.terms import (
+    TERMS,
+    Entry,
+    ModelSpec,
+    TermError,
+    get_term,
+    model_psd,
+    parse_model,
+)
 from core.series import ChannelSeries
 
 DEFAULT_ALPHA = 0.05
@@ -394,8 +402,10 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     by_term: dict[str, Finding] = {}
     if "sinusoid" not in names:
         try:
-            by_term["sinusoid"] = evidence.spectral_lines(segments, fs_hz, alpha=alpha,
-                                                          units=units)
+            # the fitted model's own shape (a filter's notches) is no line
+            by_term["sinusoid"] = evidence.spectral_lines(
+                segments, fs_hz, alpha=alpha, units=units,
+                model_psd=lambda f: model_psd(base.params, f, fs_hz, continuous_only=True))
         except ValueError:
             pass
     if "rate_ramp" not in names:

@@ -7,10 +7,18 @@ quadratic in log-power versus log-frequency, fitted to ``2 W`` bins on either si
 band), and the bin-to-continuum ratio is compared with the F distribution of that ratio. The
 single-bin p-value is corrected for the number of bins searched (Sidak), so that a record of
 pure noise shows no line with probability ``1 - alpha``.
+
+A local quadratic cannot follow every shape a sensor's spectrum has: the zeros of a
+moving-average output filter are V-shaped notches whose bottom the Hann window's leakage
+fills, so the bins there stand far above a continuum fitted to the notch's walls. When the
+fitted noise model is known, its own PSD is put through the same continuum fit, and bins where
+the model departs from its continuum by more than :data:`MODEL_SHAPE_TOLERANCE` are not
+searched: there the model, not a line, explains the shape.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +33,9 @@ _MIN_SEGMENTS = 16
 # Powers in adjacent Hann bins correlate by |2/3|^2 (next-but-one: |1/6|^2), so a fit to
 # neighbouring bins is noisier than one to independent bins by 1 + 2 (4/9 + 1/36).
 _HANN_NEIGHBOUR_INFLATION = 1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0)
+MODEL_SHAPE_TOLERANCE = 1.25
+"""Largest ratio (either way) between the model's PSD and its own local continuum at a bin that
+is still searched; 1.25 is well below the smallest line the test resolves at its dof."""
 
 
 @dataclass
@@ -119,9 +130,27 @@ def _mains_label(f: float, tol_hz: float, fs_hz: float) -> str:
     return ""
 
 
+def _model_shape_ok(model_psd: Callable[[np.ndarray], np.ndarray], wb: WelchBins,
+                    logf: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Bins (of ``idx``) where the model's PSD is one the local continuum can follow."""
+    expected = np.asarray(model_psd(wb.f_hz), dtype=np.float64)
+    if expected.shape != wb.f_hz.shape:
+        raise ValueError(f"model PSD has shape {expected.shape}, the bins {wb.f_hz.shape}")
+    tiny = np.finfo(float).tiny
+    # A model that diverges at 0 Hz (random walk) is infinite in the bins below the first one
+    # searched; any bin whose continuum would rest on such a value is not searched either.
+    log_model = np.log(np.maximum(np.where(np.isfinite(expected), expected, np.nan), tiny))
+    # A noiseless "estimate": the same fit with (practically) infinite dof has no bias term.
+    cont, _, _ = _continuum(log_model, logf, 1 << 40)
+    with np.errstate(invalid="ignore"):
+        dev = np.abs(log_model[idx] - np.log(np.maximum(cont, tiny)))
+        return dev <= np.log(MODEL_SHAPE_TOLERANCE)
+
+
 def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
                    units: str = "rad/s", nperseg: int | None = None,
-                   max_lines: int = 10) -> Finding:
+                   max_lines: int = 10,
+                   model_psd: Callable[[np.ndarray], np.ndarray] | None = None) -> Finding:
     """Search the spectrum for narrow lines.
 
     Args:
@@ -131,6 +160,10 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
         units: units of the samples, for the explanation.
         nperseg: Welch segment length (default: see :func:`welch_bins`).
         max_lines: most lines listed in ``details["lines"]``.
+        model_psd: the fitted noise model's one-sided PSD (units^2/Hz) as a function of
+            frequency (Hz); bins where its shape is one the continuum cannot follow (a
+            filter's notch) are left out of the search and reported in
+            ``details["bins_skipped"]``.
 
     Returns:
         A :class:`Finding` of kind ``"spectral_line"`` whose params are the strongest line's
@@ -143,16 +176,20 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
     psd = np.maximum(wb.psd, np.finfo(float).tiny)
     logp = np.log(psd)
     cont, d2, idx = _continuum(logp, logf, wb.nu)
+    skipped = 0
+    if model_psd is not None and idx.size:
+        keep = _model_shape_ok(model_psd, wb, logf, idx)
+        skipped = int(idx.size - np.count_nonzero(keep))
+        cont, d2, idx = cont[keep], d2[keep], idx[keep]
     if idx.size == 0:
         return Finding("spectral_line", "sinusoid", 0.0, "F", 1.0, alpha,
                        why="record too short to search the spectrum for lines")
     ratio = psd[idx] / cont
     p_single = stats.f.sf(ratio, wb.nu, d2)
     m = idx.size
-    # Local maxima only: a line also raises its Hann neighbours.
-    local = np.ones(m, dtype=bool)
-    local[1:] &= psd[idx[1:]] >= psd[idx[:-1]]
-    local[:-1] &= psd[idx[:-1]] > psd[idx[1:]]
+    # Local maxima only: a line also raises its Hann neighbours (compared with the bins
+    # themselves, searched or not).
+    local = (psd[idx] >= psd[idx - 1]) & (psd[idx] > psd[idx + 1])
     p_fam = -np.expm1(m * np.log1p(-np.minimum(p_single, 1 - 1e-16)))
     cand = np.flatnonzero(local & (p_fam < alpha))
     cand = cand[np.argsort(p_single[cand])]
@@ -177,7 +214,8 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
     else:
         jbest, p_best = int(np.argmin(p_single)), 1.0
     f_lo, f_hi = float(wb.f_hz[idx[0]]), float(wb.f_hz[idx[-1]])
-    details = {"lines": lines, "bins_searched": int(m), "nu": int(wb.nu),
+    details = {"lines": lines, "bins_searched": int(m), "bins_skipped": skipped,
+               "nu": int(wb.nu),
                "df_hz": float(wb.df_hz), "f_searched_hz": [f_lo, f_hi]}
     if lines:
         top = lines[0]
