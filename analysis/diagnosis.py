@@ -330,8 +330,11 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
     why = finding.why
     if np.isfinite(chi_after):
         why += f" Doing so brings chi2/dof from {before:.3g} to {chi_after:.3g}."
+    names = ("t_s", "size") if step else ("tau_s", "amplitude")
+    ci = {k: (float(finding.details[f"{k}_ci95"][0]), float(finding.details[f"{k}_ci95"][1]))
+          for k in names if np.all(np.isfinite(finding.details.get(f"{k}_ci95", [np.nan])))}
     return Suggestion(
-        term=finding.kind, params=dict(finding.params), ci95={},
+        term=finding.kind, params=dict(finding.params), ci95=ci,
         chi2_per_dof_before=before, chi2_per_dof_after=chi_after,
         p_value=float(np.exp(logp)), log_p=logp,
         significant=bool(logp < np.log(alpha) and falls), why=why,

@@ -15,6 +15,19 @@ contrast; its p-value is the probability of a larger one under the model, estima
 ``DRAWS`` draws of the contrasts (exact in distribution, not a bound), with a Bonferroni
 normal tail where the draws run out. So the false-alarm rate holds for records with random
 walk and flicker when the model holds them.
+
+Once found, the step's time and size and the warm-up's time constant and amplitude are
+estimated by generalised least squares on the first differences of the block means (the bias
+drops out, and under the model the differences are Gaussian with covariance
+``V(k+1) + V(k-1) - 2 V(k)`` at lag ``k``), the nonlinear parameter profiled on a fine grid.
+A step inside a block moves that block's mean by the fraction of the block after it, so its
+time is resolved below one block. The 95 % intervals are profile-likelihood intervals at the
+chi-square(1) level 3.84. A change point is not a regular parameter, and for a step small
+against the noise of many blocks the level would be 7.35 (the limit of the likelihood ratio
+is then twice the larger of two independent unit exponentials); but over the steps this test
+detects, the profile within the step's block is sharp enough that 3.84 keeps the coverage of
+the time near 95 % (simulated: 91 % at the detection limit, 98-99 % at 1.6-4 times it), where
+7.35 covers 99-100 %.
 """
 
 from __future__ import annotations
@@ -23,6 +36,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from scipy import stats
+from scipy.linalg import solve_triangular
 
 from analysis.evidence.finding import Finding
 from analysis.terms import get_term, model_psd
@@ -96,6 +110,77 @@ def _contrast_cov(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     return -(w @ gamma @ w.T)
 
 
+_LR95_REGULAR = float(stats.chi2.isf(0.05, 1))
+_STEP_GRID_PER_BLOCK = 50
+_WARMUP_GRID = 400
+
+
+def _difference_whitener(v: np.ndarray, n: int) -> np.ndarray:
+    """Cholesky factor of the covariance of the ``n - 1`` first differences of ``n`` block
+    means whose variogram is ``v`` (``v[k]`` for ``k = 0 .. n - 1``)."""
+    k = np.abs(np.subtract.outer(np.arange(n - 1), np.arange(n - 1)))
+    vv = np.concatenate((v, [v[-1]]))
+    cov = vv[k + 1] + vv[np.abs(k - 1)] - 2.0 * vv[k]
+    scale = float(np.mean(np.diag(cov)))
+    if not np.isfinite(scale) or scale <= 0.0:
+        raise np.linalg.LinAlgError("no noise in the model")
+    return np.linalg.cholesky(cov + np.eye(n - 1) * scale * 1e-12)
+
+
+def _profile(chol: np.ndarray, ybar: np.ndarray, shapes: np.ndarray) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray]:
+    """GLS fit of ``ybar = mu + a * shape`` for each row of ``shapes`` (block units), on the
+    differences: the amplitude ``a`` per row, its variance, and ``-2 log L`` above the best
+    row."""
+    d = solve_triangular(chol, np.diff(ybar), lower=True)
+    xs = solve_triangular(chol, np.diff(shapes, axis=1).T, lower=True)
+    info = np.sum(xs * xs, axis=0)
+    score = xs.T @ d
+    with np.errstate(divide="ignore", invalid="ignore"):
+        amp = np.where(info > 0, score / info, 0.0)
+        gain = np.where(info > 0, score * score / info, 0.0)
+        var = np.where(info > 0, 1.0 / info, np.inf)
+    return amp, var, float(np.max(gain)) - gain
+
+
+def _amplitude_interval(amp: np.ndarray, var: np.ndarray, lr: np.ndarray) -> tuple[float, float]:
+    """Profile interval of the amplitude over the nonlinear parameter's grid."""
+    ok = (lr <= _LR95_REGULAR) & np.isfinite(var)
+    half = np.sqrt((_LR95_REGULAR - lr[ok]) * var[ok])
+    return float(np.min(amp[ok] - half)), float(np.max(amp[ok] + half))
+
+
+def _step_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tuple]:
+    """Step time (blocks from the segment start) and size, with 95 % intervals."""
+    n = ybar.size
+    t = np.arange(_STEP_GRID_PER_BLOCK, (n - 1) * _STEP_GRID_PER_BLOCK + 1) / _STEP_GRID_PER_BLOCK
+    shapes = np.clip(np.arange(n)[None, :] + 1.0 - t[:, None], 0.0, 1.0)
+    amp, var, lr = _profile(chol, ybar, shapes)
+    best = int(np.argmin(lr))
+    inside = t[lr <= _LR95_REGULAR]
+    # the true time lies between grid points: one grid step more on each side
+    step = 1.0 / _STEP_GRID_PER_BLOCK
+    return {"t": float(t[best]), "size": float(amp[best]),
+            "t_ci": (max(float(inside.min()) - step, 0.0), min(float(inside.max()) + step, n)),
+            "size_ci": _amplitude_interval(amp, var, lr)}
+
+
+def _warmup_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tuple]:
+    """Warm-up time constant (blocks) and amplitude at the segment start, with 95 %
+    intervals; a bound that reaches the searched range's end is that end."""
+    n = ybar.size
+    tc = np.geomspace(0.05, 3.0 * n, _WARMUP_GRID)
+    i = np.arange(n)[None, :]
+    # block mean of exp(-t / T), t in blocks from the segment start
+    shapes = tc[:, None] * (np.exp(-i / tc[:, None]) - np.exp(-(i + 1) / tc[:, None]))
+    amp, var, lr = _profile(chol, ybar, shapes)
+    best = int(np.argmin(lr))
+    inside = tc[lr <= _LR95_REGULAR]
+    return {"tau": float(tc[best]), "amplitude": float(amp[best]),
+            "tau_ci": (float(inside.min()), float(inside.max())),
+            "amplitude_ci": _amplitude_interval(amp, var, lr)}
+
+
 def _family(n: int, t_blocks: np.ndarray) -> tuple[np.ndarray, list[tuple[str, float]]]:
     """Zero-sum contrast rows: a step at each split (mean after minus mean before), and the
     least-squares amplitude of exp(-t/T) beside a constant for T from 1 block to a third of
@@ -137,9 +222,11 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
 
     Returns:
         ``(step, warmup)`` findings (kinds ``"bias_step"`` and ``"warmup"``), each with its
-        time and size (``params``: ``t_s`` and ``size`` for a step, ``tau_s`` and
-        ``amplitude`` for a warm-up) and a Monte Carlo p-value, both tests sharing one search
-        (the p-value covers every split and time constant).
+        time and size (``params``: ``t_s`` (s from the record start) and ``size`` (units) for
+        a step, ``tau_s`` (s) and ``amplitude`` (units, at the segment start) for a warm-up),
+        their 95 % intervals in ``details`` (``t_s_ci95``, ``size_ci95``; ``tau_s_ci95``,
+        ``amplitude_ci95``) and a Monte Carlo p-value, both tests sharing one search (the
+        p-value covers every split and time constant).
     """
     x = max(segments, key=len) if segments else np.zeros(0)
     b = max(len(x) // BLOCKS, MIN_BLOCK_SAMPLES)
@@ -169,40 +256,56 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
         p_mc = (1.0 + float(np.sum(np.max(np.abs(draws[:, sel]), axis=1) >= zmax))) / (DRAWS + 1)
         p_tail = min(1.0, float(sel.sum()) * 2.0 * float(stats.norm.sf(zmax)))
         p = min(p_mc, p_tail) if p_mc <= 2.0 / (DRAWS + 1) else p_mc
-        size = float(w[k] @ ybar)
-        half = 1.959963984540054 * float(sd[k])
+        try:
+            chol = _difference_whitener(v, n)
+        except np.linalg.LinAlgError:
+            chol = None
+        blk = b / fs_hz
         if kind == "step":
-            # the size from up to five blocks on each side of the split
-            c = int(labels[k][1])
-            local = np.zeros(n)
-            lo, hi = max(0, c - 5), min(n, c + 5)
-            local[lo:c] = -1.0 / (c - lo)
-            local[c:hi] = 1.0 / (hi - c)
-            size = float(local @ ybar)
-            half = 1.959963984540054 * float(np.sqrt(max(float(
-                _contrast_cov(local[None, :], v)[0, 0]), 0.0)))
-        if kind == "step":
-            t_s = t0_s + labels[k][1] * b / fs_hz
+            if chol is not None:
+                est = _step_estimate(chol, ybar)
+            else:
+                c = labels[k][1]
+                est = {"t": c, "size": float(w[k] @ ybar), "t_ci": (c - 1.0, c + 1.0),
+                       "size_ci": (float("nan"), float("nan"))}
+            t_s = t0_s + est["t"] * blk
+            size = est["size"]
+            t_ci = [t0_s + est["t_ci"][0] * blk, t0_s + est["t_ci"][1] * blk]
+            size_ci = list(est["size_ci"])
             params = {"t_s": t_s, "size": size}
-            why = (f"The bias steps by {size:.3g} {units} near t = {t_s:.0f} s "
-                   f"(95 % interval {size - half:.3g} .. {size + half:.3g}), more than the "
-                   f"fitted noise model's random wander allows (|z| = {zmax:.1f}): a knock or "
-                   f"a change of state. Analyse the two sides as separate segments.")
+            why = (f"The bias steps by {size:.3g} {units} at t = {t_s:.0f} s "
+                   f"(95 % intervals {t_ci[0]:.0f} .. {t_ci[1]:.0f} s, size {size_ci[0]:.3g} "
+                   f".. {size_ci[1]:.3g}), more than the fitted noise model's random wander "
+                   f"allows (|z| = {zmax:.1f}): a knock or a change of state. Analyse the two "
+                   f"sides as separate segments.")
             out.append(Finding("bias_step", None, zmax, "max |z|", p, alpha, params,
-                               {"t_s": [t_s, t_s]}, why if p < alpha else
+                               {"t_s": t_ci}, why if p < alpha else
                                f"No bias step beyond the model's wander (largest |z| = "
-                               f"{zmax:.1f}).", {"size_ci95": [size - half, size + half],
-                                                  "block_s": b / fs_hz}))
+                               f"{zmax:.1f}).", {"size_ci95": size_ci, "t_s_ci95": t_ci,
+                                                  "block_s": blk}))
         else:
-            tau_s = labels[k][1] * b / fs_hz
-            params = {"tau_s": tau_s, "amplitude": size}
+            if chol is not None:
+                est = _warmup_estimate(chol, ybar)
+            else:
+                tb = labels[k][1]
+                est = {"tau": tb, "amplitude": float(w[k] @ ybar), "tau_ci": (tb, tb),
+                       "amplitude_ci": (float("nan"), float("nan"))}
+            tau_s = est["tau"] * blk
+            amplitude = est["amplitude"]
+            tau_ci = [est["tau_ci"][0] * blk, est["tau_ci"][1] * blk]
+            amp_ci = list(est["amplitude_ci"])
+            params = {"tau_s": tau_s, "amplitude": amplitude}
             # five time constants, in whole samples (the remedy's --skip counts samples)
-            skip = round(min(5.0 * tau_s, 0.5 * n * b / fs_hz) * fs_hz) / fs_hz
-            why = (f"The bias settles after the start: an exponential of {size:.3g} {units} "
-                   f"with a time constant near {tau_s:.0f} s (|z| = {zmax:.1f}), beyond the "
-                   f"fitted noise model's wander: a warm-up. Skip the first {skip:.0f} s.")
+            skip = round(min(5.0 * tau_s, 0.5 * n * blk) * fs_hz) / fs_hz
+            why = (f"The bias settles after the start: an exponential of {amplitude:.3g} "
+                   f"{units} (95 % interval {amp_ci[0]:.3g} .. {amp_ci[1]:.3g}) with a time "
+                   f"constant of {tau_s:.3g} s ({tau_ci[0]:.3g} .. {tau_ci[1]:.3g} s), beyond "
+                   f"the fitted noise model's wander (|z| = {zmax:.1f}): a warm-up. Skip the "
+                   f"first {skip:.0f} s.")
             out.append(Finding("warmup", None, zmax, "max |z|", p, alpha, params,
                                {"t_s": [t0_s, t0_s + skip]}, why if p < alpha else
                                f"No warm-up transient beyond the model's wander (largest |z| "
-                               f"= {zmax:.1f}).", {"skip_s": skip, "block_s": b / fs_hz}))
+                               f"= {zmax:.1f}).", {"skip_s": skip, "block_s": blk,
+                                                   "tau_s_ci95": tau_ci,
+                                                   "amplitude_ci95": amp_ci}))
     return out[0], out[1]

@@ -10,7 +10,7 @@ from scipy import stats
 from analysis.diagnosis import diagnose
 from analysis.evidence.transients import _variogram, transients
 from analysis.fit import fit_series
-from analysis.noise_stream import NoiseStream
+from analysis.noise_stream import NoiseStream, simulate
 from analysis.terms import model_avar
 from core.series import ChannelSeries
 
@@ -92,3 +92,45 @@ def test_windowed_series_cuts_by_sample_count() -> None:
     assert s.windowed() is s
     with pytest.raises(ValueError, match="leaves no samples"):
         s.windowed(skip_s=10.0)
+
+
+# The calibration setting: two hours at 50 Hz, white, flicker and rate random walk at a
+# MEMS gyro's levels; the test runs against the true noise model.
+_CAL_FS = 50.0
+_CAL_MODEL = [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+              ("random_walk", {"K": 2e-6})]
+_CAL_SEEDS = 40
+# Binomial(40, 0.95): 35 or more inside with probability 0.99; 40 of 40 has probability 0.13,
+# so a bound below 40 would fail a correct interval too often to be a test of over-coverage.
+_CAL_MIN_INSIDE = int(stats.binom.ppf(0.01, _CAL_SEEDS, 0.95))
+
+
+def _calibration_runs(add) -> list:
+    n = int(2 * 3600 * _CAL_FS)
+    t = np.arange(n) / _CAL_FS
+    return [transients([simulate(_CAL_MODEL, n, _CAL_FS, rng=500 + seed) + add(t)], _CAL_FS,
+                       _CAL_MODEL) for seed in range(_CAL_SEEDS)]
+
+
+def test_a_step_is_found_with_its_time_and_size_inside_their_intervals() -> None:
+    # a 4e-4 rad/s knock 30 s into the 51st one-minute block
+    runs = [step for step, _ in _calibration_runs(lambda t: 4e-4 * (t >= 3030.0))]
+    assert sum(f.significant for f in runs) >= 0.9 * _CAL_SEEDS
+    t_in = sum(lo <= 3030.0 <= hi for lo, hi in (f.details["t_s_ci95"] for f in runs))
+    s_in = sum(lo <= 4e-4 <= hi for lo, hi in (f.details["size_ci95"] for f in runs))
+    assert t_in >= _CAL_MIN_INSIDE and s_in >= _CAL_MIN_INSIDE, (t_in, s_in)
+    # resolved below one block: the median interval is narrower than a block (60 s)
+    widths = [hi - lo for lo, hi in (f.details["t_s_ci95"] for f in runs)]
+    assert runs[0].details["block_s"] == 60.0 and np.median(widths) < 60.0
+
+
+def test_a_warm_up_is_found_with_its_time_constant_and_amplitude_inside_their_intervals(
+        ) -> None:
+    runs = [warm for _, warm in _calibration_runs(lambda t: 6e-4 * np.exp(-t / 300.0))]
+    assert sum(f.significant for f in runs) >= 0.9 * _CAL_SEEDS
+    tau_in = sum(lo <= 300.0 <= hi for lo, hi in (f.details["tau_s_ci95"] for f in runs))
+    a_in = sum(lo <= 6e-4 <= hi for lo, hi in (f.details["amplitude_ci95"] for f in runs))
+    assert tau_in >= _CAL_MIN_INSIDE and a_in >= _CAL_MIN_INSIDE, (tau_in, a_in)
+    # the remedy skips five time constants (at most half the record), in whole samples
+    assert all(f.details["skip_s"] == pytest.approx(
+        round(min(5 * f.params["tau_s"], 3600.0) * _CAL_FS) / _CAL_FS) for f in runs)
