@@ -39,10 +39,10 @@ START_TIMEOUT_S = 60.0
 QUICK_DEATH_S = 10.0
 """A child that ends sooner than this after starting is restarted after a pause."""
 MAX_RESTART_PAUSE_S = 30.0
-GIL_SWITCH_S = 0.0005
+GIL_SWITCH_S = 0.0001
 """The interpreter's thread switch interval in the acquisition and simulator processes (the
 default 5 ms lets the recorder's writer thread hold up a poll by a whole ADIS16350 period at
-204.8 Hz)."""
+204.8 Hz; at 0.5 ms a 1 kHz ITG-3200 still lost 0.2 % of its samples, at 0.1 ms 0.06 %)."""
 
 
 def settle_heap() -> None:
