@@ -5,9 +5,9 @@ with the gyro channels, ``/razor/adxl345/imu`` with the accelerometer channels) 
 sample times. The gyro has no FIFO and is polled on its sample phase
 (:class:`daq.poll_schedule.DataReadySchedule`); the accelerometer's FIFO is drained right after
 a gyro sample has been read, when the gyro's next sample is furthest away, at most every
-``adxl.poll_period_s`` and never for longer than half a gyro period at a time (the rest stays
-in the FIFO for the next gyro period), so that at high gyro rates the shared bus is free when
-the gyro's next sample is due.
+``adxl.poll_period_s`` and only until :data:`ADXL_SHARE` of a gyro period has passed since the
+poll began (the rest stays in the FIFO for the next gyro period), so that at high gyro rates
+the shared bus is free, and the poll over, well before the gyro's next sample is due.
 """
 
 from __future__ import annotations
@@ -18,6 +18,11 @@ from core.blocks import SampleBlock
 from daq.drivers.adxl345 import Adxl345
 from daq.drivers.common import StreamBuffer
 from daq.drivers.itg3200 import Itg3200
+
+ADXL_SHARE = 0.5
+"""The accelerometer's drain ends this fraction of a gyro period after the poll began; when
+the gyro's own read took that long (the simulated chip drawing its next chunk of noise, a slow
+bus), the drain waits for the next gyro sample (the FIFO holds 32 samples)."""
 
 
 class Razor:
@@ -58,12 +63,17 @@ class Razor:
         self.adxl.close()
 
     def poll(self) -> int:
+        clock = self.adxl.clock
+        started = clock.now()
         n = self.itg.poll()
-        now = self.adxl.clock.now()
+        now = clock.now()
+        deadline = started + ADXL_SHARE / self.itg.rate_hz
         if n > 0 and now >= self._adxl_due:
-            # Right after a gyro sample, for at most half a gyro period; a drain cut short
-            # goes on after the next gyro sample.
-            n += self.adxl.poll(deadline=now + 0.5 / self.itg.rate_hz)
+            if now >= deadline:
+                return n  # no time left before the next gyro sample; the FIFO waits
+            # Right after a gyro sample, until ADXL_SHARE of a gyro period has passed; a
+            # drain cut short goes on after the next gyro sample.
+            n += self.adxl.poll(deadline=deadline)
         elif n == 0 and now >= self._adxl_due + 0.5 * self.adxl.poll_period_s:
             # The gyro delivers nothing (data-ready stuck until it is reopened): no gyro
             # sample to make way for, and the accelerometer's FIFO must not overrun.

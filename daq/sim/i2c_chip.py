@@ -9,7 +9,8 @@ from daq.clock import Clock
 CHUNK = 256
 """Samples drawn from a signal source at a time. A real chip never stalls; drawing 4096 samples
 of the seed-paper noise models at once took about 7 ms, longer than a sample period of a part
-without a FIFO at 200 Hz and up, so the simulation itself lost samples. 256 take 0.8 ms."""
+without a FIFO at 200 Hz and up, so the simulation itself lost samples. 256 take 0.7 ms for
+three ITG-3200 channels, about 0.25 ms for one (see :meth:`SourceBuffer.prefetch`)."""
 
 
 class RegisterChip:
@@ -63,18 +64,38 @@ class RegisterChip:
 
 
 class SourceBuffer:
-    """Draws a triad signal source in chunks and hands out the next samples in order."""
+    """Draws a triad signal source in chunks and hands out the next samples in order.
+
+    A source that exposes its three channels (``source.channels``: the per-channel
+    ``take(n)`` functions and the triad's offset, as :func:`daq.sim.signals.model_source`
+    does) is drawn ahead one channel per :meth:`prefetch`, so that no single read of the
+    chip carries the cost of a whole chunk of three channels.
+    """
 
     def __init__(self, source) -> None:
         self.source = source
+        self._channels = getattr(source, "channels", None)
+        self._pending: list[np.ndarray] = []
         self._buf = np.zeros((0, 3))
         self._pos = 0
+
+    def _next_chunk(self, n: int = CHUNK) -> np.ndarray:
+        """The next samples of the source: the chunk being drawn ahead, completed, if one is
+        under way (the channels stay in step), else ``n`` new samples."""
+        if self._channels is None:
+            return self.source(n)
+        takes, offset = self._channels
+        if self._pending:
+            parts = self._pending + [take(CHUNK) for take in takes[len(self._pending):]]
+            self._pending = []
+            return offset + np.column_stack(parts)
+        return offset + np.column_stack([take(n) for take in takes])
 
     def take(self, n: int) -> np.ndarray:
         parts = []
         while n > 0:
             if self._pos >= len(self._buf):
-                self._buf, self._pos = self.source(max(CHUNK, min(n, 1 << 16))), 0
+                self._buf, self._pos = self._next_chunk(max(CHUNK, min(n, 1 << 16))), 0
             k = min(n, len(self._buf) - self._pos)
             parts.append(self._buf[self._pos:self._pos + k])
             self._pos += k
@@ -82,21 +103,28 @@ class SourceBuffer:
         return np.vstack(parts) if parts else np.zeros((0, 3))
 
     def prefetch(self) -> None:
-        """Draw the next chunk ahead when less than a quarter of one is left.
+        """Draw ahead when less than half a chunk is left: one channel per call when the
+        source exposes its channels, else the whole next chunk.
 
         A chip model calls this right after the host has read a sample's data, when the host
         has the most time before it polls again; drawn later, inside the next status read,
         the draw would hold the host up between the status and the data reads.
         """
         left = len(self._buf) - self._pos
-        if left < CHUNK // 4:
-            self._buf = np.vstack([self._buf[self._pos:], self.source(CHUNK)])
-            self._pos = 0
+        if left >= CHUNK // 2:
+            return
+        if self._channels is not None:
+            takes, _ = self._channels
+            self._pending.append(takes[len(self._pending)](CHUNK))
+            if len(self._pending) < len(takes):
+                return
+        self._buf = np.vstack([self._buf[self._pos:], self._next_chunk()])
+        self._pos = 0
 
     def skip_take_last(self, n: int) -> np.ndarray:
         """Advance ``n`` samples (n >= 1), returning only the last (bounded memory)."""
         while n > len(self._buf) - self._pos:
             n -= len(self._buf) - self._pos
-            self._buf, self._pos = self.source(CHUNK), 0
+            self._buf, self._pos = self._next_chunk(), 0
         self._pos += n
         return self._buf[self._pos - 1]

@@ -88,6 +88,7 @@ def model_source(model: list[tuple[str, dict[str, float]]], fs_hz: float, *,
     def take(n: int) -> np.ndarray:
         return offset + np.column_stack([s(n) for s in streams])
 
+    take.channels = (streams, offset)  # drawn one channel at a time by daq.sim.i2c_chip
     return take
 
 
