@@ -4,8 +4,9 @@ analysis side without ever blocking the producer.
 One producer (the acquisition process) and one consumer (the analysis side of ``serve``). The
 producer never waits: when the consumer has fallen so far behind that a block does not fit, the
 block is not handed over, the samples are counted as lost *in the hand-over* and the next block
-that fits carries that count (``lost_before``), so the analysis starts a new segment there. The
-recording, which the producer writes itself, is not affected.
+of the same stream that fits carries that count (``lost_before``), so the analysis of that
+stream starts a new segment there (a temperature block handed over first must not take the IMU
+stream's loss). The recording, which the producer writes itself, is not affected.
 
 Layout of the shared memory (little-endian; counters are 8-byte aligned, written with single
 aligned stores):
@@ -91,7 +92,8 @@ class BlockRing:
         self.name = self._shm.name
         self._buf = self._shm.buf
         self.capacity = self._get(_OFF_CAP)
-        self._pending_lost = 0  # producer: samples dropped since the last record handed over
+        # producer: per stream, samples dropped since its last record handed over
+        self._pending_lost: dict[str, int] = {}
 
     # ------------------------------------------------------------------ counters
     def _get(self, off: int) -> int:
@@ -119,9 +121,10 @@ class BlockRing:
         """Hand a block over (pickled); False, with its ``n_samples`` counted as lost, when it
         does not fit. Never blocks."""
         payload = pickle.dumps(block, protocol=pickle.HIGHEST_PROTOCOL)
-        return self.put_bytes(payload, n_samples)
+        return self.put_bytes(payload, n_samples, str(getattr(block, "stream", "")))
 
-    def put_bytes(self, payload: bytes, n_samples: int) -> bool:
+    def put_bytes(self, payload: bytes, n_samples: int, stream: str = "") -> bool:
+        """:meth:`put` of a block already pickled; ``stream`` keys its hand-over losses."""
         cap = self.capacity
         w = self._get(_OFF_W)
         free = cap - (w - self._get(_OFF_R))
@@ -129,7 +132,7 @@ class BlockRing:
         at = w % cap
         waste = cap - at if at + need > cap else 0  # the record must not straddle the end
         if need > cap // 2 or need + waste > free:
-            self._pending_lost += n_samples
+            self._pending_lost[stream] = self._pending_lost.get(stream, 0) + n_samples
             self._set(_OFF_LOST, self._get(_OFF_LOST) + n_samples)
             self._set(_OFF_LOST_BLOCKS, self._get(_OFF_LOST_BLOCKS) + 1)
             return False
@@ -141,9 +144,10 @@ class BlockRing:
             at = 0
         start = _HEADER + at
         buf[start + _REC.size:start + _REC.size + len(payload)] = payload
-        _REC.pack_into(buf, start, len(payload), zlib.crc32(payload), self._pending_lost)
+        _REC.pack_into(buf, start, len(payload), zlib.crc32(payload),
+                       self._pending_lost.get(stream, 0))
         self._set(_OFF_W, w + need)  # publish after the record is in place
-        self._pending_lost = 0
+        self._pending_lost.pop(stream, None)
         return True
 
     def publish_status(self, status: dict[str, Any]) -> None:

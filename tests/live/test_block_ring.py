@@ -56,6 +56,19 @@ def test_a_full_ring_drops_and_the_next_block_carries_the_loss(ring):
     assert ring.get()[1] == 0  # counted once
 
 
+def test_a_loss_is_carried_by_the_next_block_of_its_own_stream(ring):
+    put = [ring.put(_block(k), 10) for k in range(40)]  # the IMU blocks fill the ring
+    lost = put.count(False) * 10
+    while ring.get() is not None:
+        pass
+    temp = SampleBlock("/temperature", np.array([1.7e9]), {"temp": np.array([25.0])}, 1.0)
+    assert ring.put(temp, 1)  # the first to fit is another stream's block
+    assert ring.put(_block(99), 10)
+    (first, first_lost), (second, second_lost) = ring.get(), ring.get()
+    assert first.stream == "/temperature" and first_lost == 0
+    assert second.stream == "/imu" and second_lost == lost > 0
+
+
 def test_a_record_not_yet_complete_is_read_later(ring):
     assert ring.put(_block(1), 10)
     payload_at = _HEADER + 16
