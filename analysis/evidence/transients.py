@@ -248,6 +248,11 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
     vals, vecs = np.linalg.eigh(corr)
     root = vecs * np.sqrt(np.clip(vals, 0.0, None))
     draws = np.random.default_rng(_SEED).standard_normal((DRAWS, len(vals))) @ root.T
+    try:
+        chol = _difference_whitener(v, n)
+    except np.linalg.LinAlgError:
+        chol = None
+    blk = b / fs_hz
     out = []
     for kind in ("step", "warmup"):
         sel = np.array([lab[0] == kind for lab in labels])
@@ -256,11 +261,6 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
         p_mc = (1.0 + float(np.sum(np.max(np.abs(draws[:, sel]), axis=1) >= zmax))) / (DRAWS + 1)
         p_tail = min(1.0, float(sel.sum()) * 2.0 * float(stats.norm.sf(zmax)))
         p = min(p_mc, p_tail) if p_mc <= 2.0 / (DRAWS + 1) else p_mc
-        try:
-            chol = _difference_whitener(v, n)
-        except np.linalg.LinAlgError:
-            chol = None
-        blk = b / fs_hz
         if kind == "step":
             if chol is not None:
                 est = _step_estimate(chol, ybar)
