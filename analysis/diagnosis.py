@@ -342,6 +342,37 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
         apply={"model": ctx.spec.text(), "args": args})
 
 
+def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggestion]:
+    """Put a simpler significant term first when the top term explains the curve no better.
+
+    Two terms can describe the same bump: a second-order resonance with Q near 0.5 has no
+    spectral peak and bends the Allan curve much as a Gauss-Markov term does, with one
+    parameter more. Ranked by their own p-values the richer one can come first by chance.
+    The top term keeps its place only if its refit's chi2 lies significantly below the
+    simpler term's (chi-square with the difference in parameters as degrees of freedom, at
+    ``alpha``); otherwise the simplest such term goes first. Cuts of the record (bias step,
+    warm-up) are refitted on other data and take no part.
+    """
+    def k_of(s: Suggestion) -> int:
+        return len(get_term(s.term).params)
+
+    terms = [s for s in suggestions if s.significant and s.fit is not None
+             and not s.apply.get("args")]
+    if not terms or suggestions[0] is not terms[0]:
+        return suggestions
+    top = terms[0]
+    for simpler in sorted((s for s in terms[1:] if k_of(s) < k_of(top)), key=k_of):
+        drop = simpler.fit.misfit.chi2 - top.fit.misfit.chi2
+        p = float(stats.chi2.sf(drop, k_of(top) - k_of(simpler))) if drop > 0 else 1.0
+        if p < alpha:
+            continue
+        simpler.why += (f" It comes before {top.term}, which explains the curve no better with "
+                        f"{k_of(top) - k_of(simpler)} parameter(s) more (its further chi2 "
+                        f"drop {max(drop, 0.0):.3g}, p = {p:.2g}).")
+        return [simpler] + [s for s in suggestions if s is not simpler]
+    return suggestions
+
+
 def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              segment_starts: np.ndarray | None = None, t0_s: float = 0.0,
              temperature: tuple[np.ndarray, np.ndarray] | None = None,
@@ -445,5 +476,6 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
     # parameters, so a two-parameter Markov term does not win merely by being flexible.
     suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
+    suggestions = _simplest_first(suggestions, alpha)
     return Diagnosis(fit=base, curve=curve, suggestions=suggestions, findings=findings,
                      alpha=alpha)

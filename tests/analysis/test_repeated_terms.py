@@ -7,7 +7,7 @@ import pytest
 
 from analysis.diagnosis import diagnose
 from analysis.fit import fit_series
-from analysis.noise_stream import NoiseStream
+from analysis.noise_stream import NoiseStream, simulate
 
 FS = 100.0
 
@@ -32,3 +32,22 @@ def test_a_term_that_cannot_repeat_is_not_offered_twice() -> None:
                     seed=3).take(1 << 17)
     d = diagnose(x, FS, "white,random_walk")
     assert [s.term for s in d.suggestions].count("random_walk") == 0
+
+
+def test_a_second_markov_term_comes_before_a_resonance_that_fits_no_better() -> None:
+    """Two Markov terms (1 s and 30 s) in a 2 h record whose model holds one: a resonance with
+    Q near 0.5 bends the Allan curve as the second Markov term does, with one parameter more,
+    and on this seed its own p-value ranks it first. Its refit's chi2 lies less than the
+    chi-square(1) 95 % point (3.84) below the Markov term's, so the Markov term goes first."""
+    fs = 50.0
+    x = simulate([("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+                  ("random_walk", {"K": 2e-6}), ("gauss_markov", {"sigma": 2e-4, "T": 1.0}),
+                  ("gauss_markov", {"sigma": 2e-4, "T": 30.0})], int(2 * 3600 * fs), fs, rng=0)
+    d = diagnose(x, fs, "white,bias_instability,random_walk,gauss_markov")
+    top = d.suggestions[0]
+    res = next(s for s in d.suggestions if s.term == "resonance")
+    assert top.term == "gauss_markov" and top.significant
+    assert res.significant and res.log_p < top.log_p  # ranked first by its own p-value
+    assert 0.0 < top.fit.misfit.chi2 - res.fit.misfit.chi2 < 3.84
+    assert "comes before resonance" in top.why
+    assert 15.0 < top.params["T"] < 60.0
