@@ -135,15 +135,19 @@ class PolledSampleClock:
 
     The chip only shows whether its sample is new; how many samples came since the last read
     is told by the time. ``anchor`` is the host time at which the device's sample 0 appeared
-    (on the clock of the polls), so the newest sample at host time t is
-    ``floor((t - anchor) * fs)``. Each poll bounds the anchor: one that found nothing newer
-    than sample i says sample i + 1 had not appeared; one that found sample i says it had.
-    The anchor moves only as far as a bound requires, and a poll that found nothing followed
-    within half a period by one that found the next sample (a bracket, which
-    :class:`daq.poll_schedule.DataReadySchedule` makes about every fifty samples) sets it to
-    the middle of the two. So the estimate follows the device's clock, and a poll late by up
-    to a period less the bracket's width counts exactly the samples lost. A device that stalls
-    still leaves a gap as long as the stall: "nothing new" moves the anchor by at most half a
+    (on the clock of the polls, every time taken as a read begins), so the newest sample at
+    host time t is ``floor((t - anchor) * fs)``. Each poll bounds the anchor: one that found
+    nothing newer than sample i says sample i + 1 had not appeared (a lower bound); one that
+    found sample i says it had (an upper bound). The anchor moves only as far as a bound
+    requires. It is not set to the middle of a bracket (a poll that found nothing followed
+    within half a period by one that found the next sample): the
+    :class:`daq.poll_schedule.DataReadySchedule` creeps its polls earlier until one comes too
+    early, so the appearance lies just after the empty poll, and the middle of the bracket
+    would put the anchor late by a good part of it (at 1 kHz, about 5 % of a period), and
+    a poll late by nearly a whole period would then be taken to hold one sample fewer than it
+    did. So the estimate follows the device's clock, and a poll late by up to a period less
+    the anchor's uncertainty counts exactly the samples lost. A device that stalls still
+    leaves a gap as long as the stall: "nothing new" moves the anchor by at most half a
     period, and not at all once the device is overdue.
     """
 
@@ -175,34 +179,35 @@ class PolledSampleClock:
         if 0.0 < not_before - self.anchor <= 0.5 * self.period_s:
             self.anchor = not_before
 
-    def fresh(self, t: float, next_index: int) -> int:
-        """A poll at ``t`` found a new sample; how many were lost before it."""
+    def fresh(self, t: float, next_index: int, seen_at: float | None = None) -> int:
+        """A poll whose data read began at ``t`` found a new sample; how many were lost
+        before it.
+
+        ``seen_at``: when the status read that found the sample new began, for a part read
+        as status then data (the ITG-3200); the sample had appeared by then, which bounds the
+        anchor a status read's duration more tightly than ``t`` does.
+        """
+        seen = t if seen_at is None else seen_at
         bracket, self._stale = self._stale, None
         restarted, self._resyncing = self._resyncing, False
         self._last_fresh = t
         if self.anchor is None:
             self.anchor = t - next_index * self.period_s
             return 0
-        newest = int(math.floor((t - self.anchor) * self.fs_hz))
         if restarted:
             # The old phase counts the samples lost while away; a reset device samples on a
             # new phase, which the next bracket finds.
-            missed = max(0, newest - next_index)
+            missed = max(0, int(math.floor((t - self.anchor) * self.fs_hz)) - next_index)
             self.anchor = t - (next_index + missed) * self.period_s
             return missed
+        # Sample next_index (or a later one) had appeared by the time it was seen.
+        self.anchor = min(self.anchor, seen - next_index * self.period_s)
         if (bracket is not None and bracket[1] == next_index - 1
-                and t - bracket[0] <= 0.5 * self.period_s):
+                and seen - bracket[0] <= 0.5 * self.period_s):
             # Sample next_index appeared between the two polls: none was lost.
-            self.anchor = 0.5 * (bracket[0] + t) - next_index * self.period_s
+            self.anchor = max(self.anchor, bracket[0] - next_index * self.period_s)
             return 0
-        if newest < next_index:
-            # It has appeared by t. Within half a period of the estimate this is the
-            # estimate's own uncertainty (the polls sit just after each appearance); further
-            # out the anchor is wrong and moves.
-            if (t - self.anchor) * self.fs_hz < next_index - 0.5:
-                self.anchor = t - next_index * self.period_s
-            return 0
-        return newest - next_index
+        return max(0, int(math.floor((t - self.anchor) * self.fs_hz)) - next_index)
 
 
 def sign_extend(values: np.ndarray | int, bits: int) -> np.ndarray:

@@ -214,6 +214,7 @@ class Itg3200:
                 raise TransientDeviceError(f"{self.where}: no data-ready for "
                                            f"{now - since:.2f} s (stuck)")
             return 0
+        seen = now  # when the status read found the new sample
         now = self.clock.now()
         row = decode_data(self.bus.read_block(self.address, REG["TEMP_OUT"], DATA_BYTES))[0]
         self._check_frozen(row.tolist())
@@ -223,7 +224,7 @@ class Itg3200:
             self.temperature.anchor(self.clock.wall())
             self._phase.fresh(now, 0)
         else:
-            missed = self._phase.fresh(now, self.imu.next_index)
+            missed = self._phase.fresh(now, self.imu.next_index, seen_at=seen)
         self._last_fresh = now
         index = self.imu.next_index + missed
         self.imu.add(row[1:].tolist(), missed=missed, host_time=self.clock.wall())

@@ -109,3 +109,62 @@ def test_a_stalled_host_gets_its_losses_counted(seed):
     # Reads inside the bracket's width may be off by one sample, no more.
     assert np.abs(ev[:, 0] - ev[:, 1]).max() <= 1
     assert ev[:, 1].sum() == pytest.approx(ev[:, 0].sum(), rel=0.1)
+
+
+def run_status_then_data(lateness, seconds=120.0, seed=0, phase=0.37, status_s=0.12 * T,
+                         drift_ppm=0.0):
+    """The ITG-3200's poll: a status read, and when it shows new data a data read a status
+    read's duration later, which takes the newest sample then. The part's clock runs
+    ``drift_ppm`` fast. Per fresh read: (true lost, counted lost)."""
+    rng = np.random.default_rng(seed)
+    fs_part = FS * (1.0 + drift_ppm * 1e-6)
+    clock = PolledSampleClock(FS)
+    schedule = DataReadySchedule(T)
+    schedule.start(0.0)
+    last_read, next_index, t = -1, 0, 0.0
+    events = []
+    while t < seconds:
+        start = max(schedule.due, t) + lateness(rng)
+        status_at = start + rng.uniform(0.02, 0.06) * T
+        fresh = math.floor((status_at - phase * T) * fs_part) > last_read
+        if fresh:
+            data_start = start + status_s
+            data_at = data_start + rng.uniform(0.02, 0.06) * T
+            newest = math.floor((data_at - phase * T) * fs_part)
+            if last_read < 0:
+                counted = clock.fresh(data_start, 0, seen_at=start)
+                events.append((0, counted))
+            else:
+                counted = clock.fresh(data_start, next_index, seen_at=start)
+                events.append((newest - last_read - 1, counted))
+            next_index += counted + 1
+            last_read = newest
+            t = data_at + rng.uniform(0.02, 0.06) * T
+        else:
+            clock.stale(start, next_index - 1)
+            t = status_at + rng.uniform(0.02, 0.06) * T
+        schedule.after_poll(start, t, fresh)
+    return np.array(events)
+
+
+@pytest.mark.parametrize("drift_ppm", [0.0, 300.0, -300.0])
+def test_a_status_then_data_poll_counts_its_losses(drift_ppm):
+    """Stalls of 0.5 to 3 periods, so that many reads land near a period boundary. The
+    anchor follows the bounds the polls set (an empty poll comes just before the appearance,
+    the schedule makes sure of it) instead of a bracket's middle, and a found sample bounds it
+    from the status read's start: at 204.8 Hz, 120 s, the count is off by one in 1-3 % of the
+    lossy reads (16-19 % with a bracket's middle and the data read's time) and the total is
+    within 1.3 % (9 % short before)."""
+
+    def stalls(rng):
+        if rng.random() < 0.02:
+            return rng.uniform(0.5, 3.0) * T
+        return rng.exponential(0.03 * T)
+
+    ev = run_status_then_data(stalls, seed=int(abs(drift_ppm)) + 1, drift_ppm=drift_ppm)
+    lossy = int((ev[:, 0] > 0).sum())
+    wrong = int((ev[:, 0] != ev[:, 1]).sum())
+    assert lossy > 300
+    assert wrong < 0.05 * lossy
+    assert np.abs(ev[:, 0] - ev[:, 1]).max() <= 1
+    assert ev[:, 1].sum() == pytest.approx(ev[:, 0].sum(), rel=0.02)
