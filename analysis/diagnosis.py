@@ -231,6 +231,7 @@ class _Context:
     by_term: dict[str, Finding]
     n_candidates: int
     sensor_filter: tuple[str, dict[str, float]] | None = None
+    time_origin_s: float = 0.0
 
 
 def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[str, float]]:
@@ -314,7 +315,9 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
     """A warm-up or bias step as a suggestion: not a term but a cut of the record (its
     ``apply.args``), refitted exactly as ``imunoise fit --model M ARGS`` fits it."""
     step = finding.kind == "bias_step"
-    at = float(finding.params["t_s"] if step else finding.details["skip_s"])
+    # a cut counts from the first sample analysed; the step's time from the time origin
+    at = float(finding.params["t_s"] - ctx.time_origin_s if step
+               else finding.details["skip_s"])
     args = ["--split" if step else "--skip", f"{at:.10g}"]
     series = ChannelSeries("x", units, ctx.fs_hz, ctx.x, ctx.starts).windowed(
         skip_s=0.0 if step else float(args[1]), split_s=[float(args[1])] if step else [])
@@ -379,7 +382,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              units: str = "rad/s", alpha: float = DEFAULT_ALPHA,
              fixed: dict | None = None,
              sensor_filter: tuple[str, dict[str, float]] | None = None,
-             transients: bool = True) -> Diagnosis:
+             transients: bool = True, time_origin_s: float = 0.0) -> Diagnosis:
     """Fit ``model`` to a rate series and rank the terms it is missing.
 
     Args:
@@ -401,6 +404,9 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             (:func:`analysis.evidence.transients`); their remedies are cuts of the record
             (``apply.args``: ``--split T``, ``--skip S``), so a caller that cannot cut (the
             live service) leaves them out.
+        time_origin_s: the time of the first sample analysed on the scale step times are
+            reported on, seconds (the command line passes its ``--skip``, so that a step's
+            ``t_s`` counts from the start of the file, as ``--split`` does).
 
     Returns:
         A :class:`Diagnosis` with suggestions best first.
@@ -463,10 +469,11 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         bounds = np.append(starts, x.size)
         longest = int(np.argmax(np.diff(bounds)))
         cuts = list(evidence.transients(segments, fs_hz, base.params, alpha=alpha,
-                                        units=units, t0_s=float(bounds[longest]) / fs_hz))
+                                        units=units,
+                                        t0_s=time_origin_s + float(bounds[longest]) / fs_hz))
         findings.extend(cuts)
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
-                   len(candidates) + len(cuts), sensor_filter)
+                   len(candidates) + len(cuts), sensor_filter, time_origin_s)
     suggestions = [_suggest(ctx, term, alpha) for term in candidates]
     if not any(s.significant for s in suggestions):
         # the step and warm-up tests take the fitted model as the sensor's noise: only once

@@ -9,7 +9,11 @@ For each simulated device configuration and each load, starts ``imunoise serve -
     and ``/coefficients``;
   * 50 API clients, each fetching ``/coefficients``, ``/allan`` or ``/psd`` every 0.2 s;
   * with ``busy``, two CPU-bound processes beside it (on a 2-core machine: both cores).
-Then stops serve with SIGTERM and reads the recording back. Prints per run: samples expected
+Beside serve runs the platform's floor: a bare loop at the acquisition process's priority
+that wakes once per device period and does nothing else (``floor_main``); the samples a
+polled part would lose to its late wake-ups alone are what no acquisition code on this
+machine, at that moment, can avoid. Then stops serve with SIGTERM and reads the recording
+back. Prints per run: samples expected
 (from the recording's first and last stamps at the device rate), recorded, lost at each stage
 (device: missing in the file; hand-over and analysis: from ``/health``), and the CPU used by
 each process (serve's HTTP/analysis side, the acquisition process, the fit worker, the
@@ -91,6 +95,40 @@ def children(pid: int) -> list[int]:
         except OSError:
             pass
     return out
+
+
+def floor_main(rate_hz: float, seconds: float) -> None:
+    """The platform's own floor, measured beside serve: a bare loop at the acquisition
+    process's priority that wakes once per device period and does nothing else. Prints (JSON)
+    how often it woke later than a data-ready poll may be (``1 - RETRY_FRACTION`` of a
+    period: the polls sit up to a tenth of a period after each appearance), and how many
+    samples a part without FIFO would have lost to those late wake-ups alone."""
+    from daq.poll_schedule import RETRY_FRACTION
+    from live.acquisition_process import raise_priority
+
+    policy = raise_priority("realtime")["policy"]
+    period = 1.0 / rate_hz
+    slack = (1.0 - RETRY_FRACTION) * period
+    t0 = time.monotonic()
+    n = int(seconds * rate_hz)
+    late_wakes = lost = 0
+    worst = 0.0
+    k = 0
+    while k < n:
+        k += 1
+        due = t0 + k * period
+        wait = due - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        late = time.monotonic() - due
+        worst = max(worst, late)
+        if late > slack:
+            late_wakes += 1
+            missed = int((late - slack) // period) + 1
+            lost += missed
+            k += missed  # the periods slept through are gone, as a polled part's samples are
+    print(json.dumps({"policy": policy, "periods": n, "late_wakes": late_wakes,
+                      "lost": lost, "worst_late_s": worst}))
 
 
 def client_main(base: str, channel: str, n: int, period: float, stop_after: float) -> None:
@@ -176,6 +214,10 @@ def run_one(name: str, load: str, seconds: float) -> dict:
                 f"b.client_main({base!r}, {channel!r}, {CLIENTS}, {CLIENT_PERIOD_S!r}, "
                 f"{seconds!r})")
         client = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
+        floor = subprocess.Popen(
+            [sys.executable, "-c", f"import sys; sys.path.insert(0, {str(ROOT)!r}); "
+             f"import bench.serve as b; b.floor_main({rate!r}, {seconds!r})"],
+            cwd=ROOT, stdout=subprocess.PIPE, text=True)
         procs = {"serve": serve.pid, "acquisition": acq_pid, "clients": client.pid}
         workers = [p for p in children(serve.pid) if p != acq_pid]
         cpu0 = {k: cpu_seconds(p) for k, p in procs.items() if p}
@@ -189,6 +231,11 @@ def run_one(name: str, load: str, seconds: float) -> dict:
         cpu["hogs"] = sum(cpu_seconds(h.pid) - c for h, c in zip(hogs, hog0, strict=True)) / wall
         health = json.loads(get(base + "/health") or b"{}")
         client.wait(60)
+        try:
+            platform = json.loads(floor.communicate(timeout=60)[0] or "{}")
+        except (subprocess.TimeoutExpired, ValueError):
+            floor.kill()
+            platform = {}
         serve.send_signal(signal.SIGTERM)
         serve.wait(120)
     finally:
@@ -199,7 +246,8 @@ def run_one(name: str, load: str, seconds: float) -> dict:
     streams = recorded(out)
     return {"run": name, "load": load, "seconds": wall, "streams": streams,
             "losses": health.get("losses", {}), "process": health.get("acquisition_process"),
-            "cpu": cpu, "serve_exit": serve.returncode, "out": str(out)}
+            "cpu": cpu, "serve_exit": serve.returncode, "out": str(out), "rate_hz": rate,
+            "platform": platform}
 
 
 def report(r: dict) -> None:
@@ -215,6 +263,13 @@ def report(r: dict) -> None:
     print(f"{'':17}losses from /health: device {lo.get('device')}, hand-over "
           f"{lo.get('handover')}, analysis {lo.get('analysis')}; restarts "
           f"{pr.get('restarts')}")
+    pf = r.get("platform") or {}
+    if pf:
+        print(f"{'':17}platform floor at {r['rate_hz']:g} Hz ({pf['policy']}, same run): a "
+              f"bare loop woke too late for a polled part {pf['late_wakes']} times, "
+              f"{pf['lost']} samples of {pf['periods']} "
+              f"({100 * pf['lost'] / max(pf['periods'], 1):.4f} %), worst "
+              f"{1e3 * pf['worst_late_s']:.1f} ms late")
     cpu = r["cpu"]
     print(f"{'':17}CPU (% of a core): " + ", ".join(f"{k} {100 * v:.0f}"
                                                      for k, v in cpu.items()))
@@ -252,13 +307,18 @@ def main() -> None:
                                                                or 0)
                 for r in results if r["load"] == "idle")
     if any(r["load"] == "idle" for r in results):
-        print(f"idle runs: {lost} samples lost anywhere (target 0)")
+        floor = sum(int((r.get("platform") or {}).get("lost", 0)) for r in results
+                    if r["load"] == "idle")
+        print(f"idle runs: {lost} samples lost anywhere (target 0); the platform's floor in "
+              f"the same runs: {floor}")
     for r in results:
         if r["load"] == "busy":
             exp = sum(s["expected"] for s in r["streams"].values())
             miss = sum(s["missing"] for s in r["streams"].values())
+            pf = r.get("platform") or {}
             print(f"busy {r['run']}: recording lost {miss} of {exp:.0f} samples "
-                  f"({100 * miss / max(exp, 1):.4f} %, target <= 0.01 %)")
+                  f"({100 * miss / max(exp, 1):.4f} %, target <= 0.01 %); the platform's "
+                  f"floor {pf.get('lost', '?')} of {pf.get('periods', '?')}")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1, default=str))
 

@@ -45,8 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def diagnose_channel(record: Record, key: str, model_text: str) -> Any:
-    """Run :func:`analysis.diagnosis.diagnose` on one channel of a record.
+def diagnose_channel(record: Record, key: str, model_text: str,
+                     time_origin_s: float = 0.0) -> Any:
+    """Run :func:`analysis.diagnosis.diagnose` on one channel of a record (its first sample
+    ``time_origin_s`` seconds after the start of the file: the ``--skip`` applied).
 
     Raises UsageError for an unknown term or a record too short to fit."""
     from analysis.diagnosis import diagnose
@@ -61,7 +63,8 @@ def diagnose_channel(record: Record, key: str, model_text: str) -> Any:
         return diagnose(series.values, series.fs_hz, names,
                         segment_starts=series.segment_starts, t0_s=series.t0_s,
                         temperature=temperature, units=series.units, fixed=fixed,
-                        sensor_filter=device_filter(record.metadata, key))
+                        sensor_filter=device_filter(record.metadata, key),
+                        time_origin_s=time_origin_s)
 
 
 def full_window_args(own: list[str], skip_s: float, split_s: list[float]) -> list[str]:
@@ -139,8 +142,9 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
             lines.append(f"        {s.why}")
     best = next((s for s in diag.suggestions if s.significant), None)
     if best is not None:
+        extra = "".join(f" {a}" for a in best.apply.get("args", []))
         lines.append(f"  next: imunoise fit {file} --channel {key} "
-                     f"--model {model_text},{best.term}")
+                     f"--model {best.apply.get('model', model_text + ',' + best.term)}{extra}")
     if best is None and diag.fit.failures:
         lines.append("  the model fails, but no single added term explains the failure: look at "
                      "the failing tau ranges above and at the evidence below")
@@ -157,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
                                    args.static)
     apply_window(record, key, args.skip, args.split)
-    diag = diagnose_channel(record, key, args.model)
+    diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     if args.json:

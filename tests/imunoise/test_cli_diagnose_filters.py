@@ -81,6 +81,12 @@ def test_a_cut_suggestion_applies_as_stated(tmp_path, capsys) -> None:
     assert cuts and cuts[0]["apply"]["args"][:2] == ["--skip", "10"]
     assert cuts[0]["apply"]["args"][2] == "--split"
     assert abs(float(cuts[0]["apply"]["args"][3]) - 1800.0) <= 30.0  # within a block
+    # the step's time, its interval and the cut all count from the start of the file
+    step = cuts[0]
+    assert set(step["ci95"]) == {"t_s", "size"}
+    assert step["params"]["t_s"] == pytest.approx(float(step["apply"]["args"][3]), abs=1e-3)
+    assert step["ci95"]["t_s"][0] <= 1800.0 <= step["ci95"]["t_s"][1]
+    assert step["ci95"]["size"][0] <= 0.05 <= step["ci95"]["size"][1]
     for s in cuts:
         assert main(["fit", *common, "--model", s["apply"]["model"], *s["apply"]["args"]]) == 0
         fitted = json.loads(capsys.readouterr().out)
