@@ -138,22 +138,29 @@ class PolledSampleClock:
     (on the clock of the polls, every time taken as a read begins), so the newest sample at
     host time t is ``floor((t - anchor) * fs)``. Each poll bounds the anchor: one that found
     nothing newer than sample i says sample i + 1 had not appeared (a lower bound); one that
-    found sample i says it had (an upper bound). The anchor moves only as far as a bound
-    requires. It is not set to the middle of a bracket (a poll that found nothing followed
-    within half a period by one that found the next sample): the
-    :class:`daq.poll_schedule.DataReadySchedule` creeps its polls earlier until one comes too
-    early, so the appearance lies just after the empty poll, and the middle of the bracket
-    would put the anchor late by a good part of it (at 1 kHz, about 5 % of a period), and
-    a poll late by nearly a whole period would then be taken to hold one sample fewer than it
-    did. So the estimate follows the device's clock, and a poll late by up to a period less
+    found sample i says it had (an upper bound).
+
+    With ``reads_latch_at_once`` (a part on a local bus, the ITG-3200: a read takes the
+    registers a short, steady time after it begins) the anchor moves only as far as each
+    bound requires. The :class:`daq.poll_schedule.DataReadySchedule` creeps its polls earlier
+    until one finds nothing, so the lower bound sits just before each appearance; the middle
+    of a bracket (an empty poll, then one that found the sample) would be late by a good part
+    of the bracket (at 1 kHz about 5 % of a period), and a poll late by nearly a whole period
+    would then be taken to hold one sample fewer than it did. Without it (the ADIS16350
+    behind a serial bridge, whose latency varies by a good part of a period) a single poll's
+    time bounds the phase only loosely: a bracket sets the anchor to its middle, and a poll
+    that found data moves it only when it is off by more than half a period.
+
+    Either way the estimate follows the device's clock, and a poll late by up to a period less
     the anchor's uncertainty counts exactly the samples lost. A device that stalls still
     leaves a gap as long as the stall: "nothing new" moves the anchor by at most half a
     period, and not at all once the device is overdue.
     """
 
-    def __init__(self, fs_hz: float) -> None:
+    def __init__(self, fs_hz: float, *, reads_latch_at_once: bool = False) -> None:
         self.fs_hz = float(fs_hz)
         self.period_s = 1.0 / self.fs_hz
+        self.reads_latch_at_once = reads_latch_at_once
         self.anchor: float | None = None
         self._resyncing = False
         self._last_fresh: float | None = None
@@ -184,8 +191,7 @@ class PolledSampleClock:
         before it.
 
         ``seen_at``: when the status read that found the sample new began, for a part read
-        as status then data (the ITG-3200); the sample had appeared by then, which bounds the
-        anchor a status read's duration more tightly than ``t`` does.
+        as status then data (the ITG-3200); the sample had appeared by then.
         """
         seen = t if seen_at is None else seen_at
         bracket, self._stale = self._stale, None
@@ -200,14 +206,27 @@ class PolledSampleClock:
             missed = max(0, int(math.floor((t - self.anchor) * self.fs_hz)) - next_index)
             self.anchor = t - (next_index + missed) * self.period_s
             return missed
-        # Sample next_index (or a later one) had appeared by the time it was seen.
-        self.anchor = min(self.anchor, seen - next_index * self.period_s)
-        if (bracket is not None and bracket[1] == next_index - 1
-                and seen - bracket[0] <= 0.5 * self.period_s):
-            # Sample next_index appeared between the two polls: none was lost.
-            self.anchor = max(self.anchor, bracket[0] - next_index * self.period_s)
+        in_bracket = (bracket is not None and bracket[1] == next_index - 1
+                      and seen - bracket[0] <= 0.5 * self.period_s)
+        if self.reads_latch_at_once:
+            # Sample next_index (or a later one) had appeared when it was seen.
+            self.anchor = min(self.anchor, seen - next_index * self.period_s)
+            if in_bracket:  # it appeared between the two polls: none was lost
+                self.anchor = max(self.anchor, bracket[0] - next_index * self.period_s)
+                return 0
+            return max(0, int(math.floor((t - self.anchor) * self.fs_hz)) - next_index)
+        # A bridge's latency varies from read to read: one poll's time bounds the phase only
+        # to within that variation, so a bracket sets its middle, and a finding poll moves the
+        # phase only when it is off by more than half a period.
+        if in_bracket:
+            self.anchor = 0.5 * (bracket[0] + seen) - next_index * self.period_s
             return 0
-        return max(0, int(math.floor((t - self.anchor) * self.fs_hz)) - next_index)
+        newest = int(math.floor((t - self.anchor) * self.fs_hz))
+        if newest < next_index:
+            if (seen - self.anchor) * self.fs_hz < next_index - 0.5:
+                self.anchor = seen - next_index * self.period_s
+            return 0
+        return newest - next_index
 
 
 def sign_extend(values: np.ndarray | int, bits: int) -> np.ndarray:

@@ -143,7 +143,7 @@ class Itg3200:
         self._last_fresh: float | None = None
         self.found_new_sample = False
         self._opened_at = 0.0
-        self._phase = PolledSampleClock(self.rate_hz)
+        self._phase = PolledSampleClock(self.rate_hz, reads_latch_at_once=True)
         self.config: dict[str, str] = self._describe(None)
 
     @property

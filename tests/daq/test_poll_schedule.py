@@ -118,7 +118,7 @@ def run_status_then_data(lateness, seconds=120.0, seed=0, phase=0.37, status_s=0
     ``drift_ppm`` fast. Per fresh read: (true lost, counted lost)."""
     rng = np.random.default_rng(seed)
     fs_part = FS * (1.0 + drift_ppm * 1e-6)
-    clock = PolledSampleClock(FS)
+    clock = PolledSampleClock(FS, reads_latch_at_once=True)
     schedule = DataReadySchedule(T)
     schedule.start(0.0)
     last_read, next_index, t = -1, 0, 0.0
