@@ -147,9 +147,9 @@ class PolledSampleClock:
     of a bracket (an empty poll, then one that found the sample) would be late by a good part
     of the bracket (at 1 kHz about 5 % of a period), and a poll late by nearly a whole period
     would then be taken to hold one sample fewer than it did. Without it (the ADIS16350
-    behind a serial bridge, whose latency varies by a good part of a period) a single poll's
-    time bounds the phase only loosely: a bracket sets the anchor to its middle, and a poll
-    that found data moves it only when it is off by more than half a period.
+    behind a serial bridge, whose latency varies from read to read) a single poll's time
+    bounds the phase only loosely: a bracket sets the anchor to its middle, and a poll that
+    found data moves it only when it is off by more than half a period.
 
     Either way the estimate follows the device's clock, and a poll late by up to a period less
     the anchor's uncertainty counts exactly the samples lost. A device that stalls still
