@@ -353,8 +353,10 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     parameter more. Ranked by their own p-values the richer one can come first by chance.
     The top term keeps its place only if its refit's chi2 lies significantly below the
     simpler term's (chi-square with the difference in parameters as degrees of freedom, at
-    ``alpha``); otherwise the simplest such term goes first. Cuts of the record (bias step,
-    warm-up) are refitted on other data and take no part.
+    ``alpha``) and it resolves the feature that names it (:meth:`Term.unresolved`: a
+    resonance whose Q interval reaches its no-peak limit has shown no peak); otherwise the
+    simplest such term goes first. Cuts of the record (bias step, warm-up) are refitted on
+    other data and take no part.
     """
     def k_of(s: Suggestion) -> int:
         return len(get_term(s.term).params)
@@ -364,14 +366,20 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     if not terms or suggestions[0] is not terms[0]:
         return suggestions
     top = terms[0]
+    unresolved = get_term(top.term).unresolved(top.params, top.ci95)
     for simpler in sorted((s for s in terms[1:] if k_of(s) < k_of(top)), key=k_of):
         drop = simpler.fit.misfit.chi2 - top.fit.misfit.chi2
         p = float(stats.chi2.sf(drop, k_of(top) - k_of(simpler))) if drop > 0 else 1.0
-        if p < alpha:
+        if unresolved is not None:
+            simpler.why += (f" It comes before {top.term}, whose fit lowers chi2 by "
+                            f"{max(drop, 0.0):.3g} more with {k_of(top) - k_of(simpler)} "
+                            f"parameter(s) more but {unresolved}.")
+        elif p >= alpha:
+            simpler.why += (f" It comes before {top.term}, which explains the curve no better "
+                            f"with {k_of(top) - k_of(simpler)} parameter(s) more (its further "
+                            f"chi2 drop {max(drop, 0.0):.3g}, p = {p:.2g}).")
+        else:
             continue
-        simpler.why += (f" It comes before {top.term}, which explains the curve no better with "
-                        f"{k_of(top) - k_of(simpler)} parameter(s) more (its further chi2 "
-                        f"drop {max(drop, 0.0):.3g}, p = {p:.2g}).")
         return [simpler] + [s for s in suggestions if s is not simpler]
     return suggestions
 

@@ -264,6 +264,14 @@ class Term:
         """Slope (units/s) of a ``role == "ramp"`` term."""
         raise NotImplementedError
 
+    # --- what the diagnosis may claim ---------------------------------------------------------
+    def unresolved(self, params: dict[str, float],
+                   ci95: dict[str, tuple[float, float]]) -> str | None:
+        """Why a fit of this term does not resolve the feature that gives it its name (a
+        clause for the diagnosis's text), or None when it does. The diagnosis then prefers
+        a simpler term that explains the curve as well."""
+        return None
+
     # --- starting values of the Allan fit ----------------------------------------------------
     def start_shapes(self, fs_hz: float, duration_s: float,
                      line: tuple[float, float] | None) -> list[dict[str, float]]:

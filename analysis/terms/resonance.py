@@ -93,6 +93,17 @@ class Resonance(Term):
             return math.log(20.0 / duration_s), math.log(0.49 * fs_hz)
         return param.log_fit_bounds(fs_hz, duration_s)
 
+    def unresolved(self, params, ci95):
+        # With the pole radius exp(-pi f0/(Q fs)) the spectrum has a peak only for Q above
+        # its lower bound 0.5 (the critically damped limit, for f0 well below fs/2); an
+        # interval reaching it means the data show no peak, only a bend a Markov term makes.
+        lo = ci95.get("Q", (math.nan, math.nan))[0]
+        q_min = self.param("Q").lo
+        if not math.isfinite(lo) or lo <= q_min * (1.0 + 1e-6):
+            return (f"its spectral peak is not resolved (the interval of Q reaches "
+                    f"{q_min:g}, where the spectrum has no peak)")
+        return None
+
     def _avar(self, tau: np.ndarray, fs: float, sigma: float, f0: float, Q: float
               ) -> np.ndarray:
         return sigma * sigma * resonance_avar_shape(tau * fs, fs, f0, Q)
