@@ -353,10 +353,11 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     parameter more. Ranked by their own p-values the richer one can come first by chance.
     The top term keeps its place only if its refit's chi2 lies significantly below the
     simpler term's (chi-square with the difference in parameters as degrees of freedom, at
-    ``alpha``) and it resolves the feature that names it (:meth:`Term.unresolved`: a
-    resonance whose Q interval reaches its no-peak limit has shown no peak); otherwise the
-    simplest such term goes first. Cuts of the record (bias step, warm-up) are refitted on
-    other data and take no part.
+    ``alpha``); otherwise the simplest such term goes first. Nor does it keep its place
+    when it does not resolve the feature that names it (:meth:`Term.unresolved`: a
+    resonance whose Q interval reaches its no-peak limit has shown no peak) and the term it
+    then resembles (:attr:`Term.reduces_to`, a Gauss-Markov term) is significant too. Cuts
+    of the record (bias step, warm-up) are refitted on other data and take no part.
     """
     def k_of(s: Suggestion) -> int:
         return len(get_term(s.term).params)
@@ -370,7 +371,7 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     for simpler in sorted((s for s in terms[1:] if k_of(s) < k_of(top)), key=k_of):
         drop = simpler.fit.misfit.chi2 - top.fit.misfit.chi2
         p = float(stats.chi2.sf(drop, k_of(top) - k_of(simpler))) if drop > 0 else 1.0
-        if unresolved is not None:
+        if unresolved is not None and simpler.term == get_term(top.term).reduces_to:
             simpler.why += (f" It comes before {top.term}, whose fit lowers chi2 by "
                             f"{max(drop, 0.0):.3g} more with {k_of(top) - k_of(simpler)} "
                             f"parameter(s) more but {unresolved}.")

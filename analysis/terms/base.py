@@ -135,6 +135,8 @@ class Term:
             parameters (e.g. the temperature record's Allan variance).
         allan_signature, effect, explanation: user-facing text.
         small_default: starting parameters of a term that is new to a warm-started fit.
+        reduces_to: the simpler term this one resembles when the fit does not resolve its
+            defining feature (see :meth:`unresolved`), or None.
     """
 
     name: ClassVar[str]
@@ -154,6 +156,7 @@ class Term:
     effect: ClassVar[str]
     explanation: ClassVar[str]
     small_default: ClassVar[dict[str, float]]
+    reduces_to: ClassVar[str | None] = None
 
     # --- vocabulary --------------------------------------------------------------------------
     @property
@@ -269,7 +272,8 @@ class Term:
                    ci95: dict[str, tuple[float, float]]) -> str | None:
         """Why a fit of this term does not resolve the feature that gives it its name (a
         clause for the diagnosis's text), or None when it does. The diagnosis then prefers
-        a simpler term that explains the curve as well."""
+        :attr:`reduces_to`, the simpler term it becomes without that feature, when that one
+        is significant too."""
         return None
 
     # --- starting values of the Allan fit ----------------------------------------------------

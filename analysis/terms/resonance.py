@@ -87,6 +87,7 @@ class Resonance(Term):
         "spectral peak at f0 has a width f0/Q; on the Allan deviation it makes a bump near "
         "tau = 1/(2 f0) with fewer ripples than a sinusoid's.")
     small_default = {"sigma": 1e-6, "f0": 1.0, "Q": 10.0}
+    reduces_to = "gauss_markov"  # without a peak: a bend of the Allan curve, no line
 
     def log_fit_bounds(self, param, fs_hz, duration_s):
         if param.name == "f0":

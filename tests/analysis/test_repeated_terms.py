@@ -81,3 +81,4 @@ def test_a_resonance_is_resolved_only_when_its_q_interval_clears_the_no_peak_lim
     assert "not resolved" in res.unresolved(params, {"Q": (0.5, 6.0)})
     assert "not resolved" in res.unresolved(params, {})  # no interval: nothing shown
     assert get_term("gauss_markov").unresolved({"sigma": 1.0, "T": 1.0}, {}) is None
+    assert res.reduces_to == "gauss_markov"
