@@ -122,7 +122,7 @@ def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
 def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                    model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
-    from analysis.terms import get_term, param_unit
+    from analysis.terms import TERMS, param_unit
 
     u = series.units
     lines = [fit_text(key, series, diag.fit, diag.curve), "", "  suggestions (best first; "
@@ -131,11 +131,18 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
         mark = "*" if s.significant else " "
         after = (f"{s.chi2_per_dof_after:.3g}" if np.isfinite(s.chi2_per_dof_after)
                  else "n/a")
-        lines.append(f"  {mark}{i:2d}. add {s.term:17s} chi2/dof {s.chi2_per_dof_before:.3g} -> "
-                     f"{after:8s} p = {s.p_value:.2g}")
-        term = get_term(s.term)
-        pars = [f"{p.name} = {s.params[p.name]:.4g} {param_unit(p, u)}" for p in term.params
-                if p.name in s.params]
+        term = TERMS.get(s.term)
+        # a warm-up or bias step is no term: its remedy cuts the record (apply.args)
+        verb = "add" if term is not None else "cut"
+        lines.append(f"  {mark}{i:2d}. {verb} {s.term:17s} chi2/dof {s.chi2_per_dof_before:.3g} "
+                     f"-> {after:8s} p = {s.p_value:.2g}")
+        if term is not None:
+            # a dimensionless parameter's unit "1" is left out of the text
+            pars = [f"{p.name} = {s.params[p.name]:.4g} {param_unit(p, u)}".removesuffix(" 1")
+                    for p in term.params if p.name in s.params]
+        else:
+            pars = [f"{k} = {v:.4g} {'s' if k.endswith('_s') else u}"
+                    for k, v in s.params.items()]
         if pars:
             lines.append(f"        {', '.join(pars)}")
         if s.significant:

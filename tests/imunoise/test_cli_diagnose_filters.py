@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from imunoise.commands.diagnose import device_filter
@@ -87,6 +89,12 @@ def test_a_cut_suggestion_applies_as_stated(tmp_path, capsys) -> None:
     assert step["params"]["t_s"] == pytest.approx(float(step["apply"]["args"][3]), abs=1e-3)
     assert step["ci95"]["t_s"][0] <= 1800.0 <= step["ci95"]["t_s"][1]
     assert step["ci95"]["size"][0] <= 0.05 <= step["ci95"]["size"][1]
+    # the text report lists a cut as a cut, with its parameters' units
+    assert main(["diagnose", str(path), "--channel", "gyro_x", "--model", "white,random_walk",
+                 "--skip", "10"]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"^ +[ *] ?\d+\. cut bias_step +chi2/dof", text, re.M), text
+    assert re.search(r"t_s = 1[78]\d\d s, size = 0\.0\d+ rad/s", text), text
     for s in cuts:
         assert main(["fit", *common, "--model", s["apply"]["model"], *s["apply"]["args"]]) == 0
         fitted = json.loads(capsys.readouterr().out)

@@ -96,3 +96,36 @@ def test_a_markov_bias_beside_the_vibration_closes_an_adis_accelerometer(shared_
     assert 3.0 < top.params["T"] < 30.0
     res, _ = fit_series(x, fs, top.apply["model"])
     assert res.chi2_per_dof == pytest.approx(top.chi2_per_dof_after, rel=1e-12)
+
+
+def test_a_knock_on_the_galaxy_accelerometer_is_cut_as_the_text_report_says(
+        shared_data: Path, tmp_path: Path, capsys) -> None:
+    """Galaxy S5 accel_z with the terms the loop adds first: no term is missing any more,
+    and the bias step at about 3 min is the top significant suggestion. The text report
+    lists it as a cut, its `next:` command splits there, and that command reports the
+    error the suggestion stated (to the text's three digits)."""
+    import json
+    import re
+
+    from imunoise.cli import main
+
+    d = np.load(shared_data / "galaxy_s5" / "galaxy_s5_static_10hz.npz")
+    z = np.asarray(d["accel"][:, 2], dtype=np.float64)
+    path = tmp_path / "galaxy_accel_z.csv"
+    np.savetxt(path, np.column_stack([np.arange(z.size) / float(d["fs"]), z]),
+               delimiter=",", header="t,accel_z", comments="", fmt="%.10g")
+    model = DEFAULT + ",resonance,resonance,gauss_markov"
+    assert main(["diagnose", str(path), "--channel", "accel_z", "--model", model]) == 0
+    text = capsys.readouterr().out
+    first = re.search(r"^ +\* 1\. cut bias_step +chi2/dof (\S+) -> (\S+)", text, re.M)
+    assert first, text
+    assert float(first[2]) < float(first[1])
+    nxt = re.search(r"^  next: imunoise fit (.+)$", text, re.M)
+    assert nxt, text
+    args = nxt[1].split()
+    assert args[args.index("--model") + 1] == model
+    split_s = float(args[args.index("--split") + 1])
+    assert 150.0 < split_s < 250.0
+    assert main(["fit", *args, "--json"]) == 0
+    fitted = json.loads(capsys.readouterr().out)
+    assert fitted["error"]["chi2_per_dof"] == pytest.approx(float(first[2]), rel=1e-2)
