@@ -346,7 +346,8 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
 
 
 def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggestion]:
-    """Put a simpler significant term first when the top term explains the curve no better.
+    """Put a simpler significant term first when the top significant term explains the curve
+    no better.
 
     Two terms can describe the same bump: a second-order resonance with Q near 0.5 has no
     spectral peak and bends the Allan curve much as a Gauss-Markov term does, with one
@@ -364,7 +365,9 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
 
     terms = [s for s in suggestions if s.significant and s.fit is not None
              and not s.apply.get("args")]
-    if not terms or suggestions[0] is not terms[0]:
+    # the first significant suggestion is the one to apply; a cut there keeps its place
+    first = next((s for s in suggestions if s.significant), None)
+    if not terms or first is not terms[0]:
         return suggestions
     top = terms[0]
     unresolved = get_term(top.term).unresolved(top.params, top.ci95)
