@@ -3,9 +3,11 @@ its suggestion applies as written."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
-from analysis.diagnosis import diagnose
+from analysis.diagnosis import Suggestion, _simplest_first, diagnose
 from analysis.fit import fit_series
 from analysis.noise_stream import NoiseStream, simulate
 from analysis.terms import get_term
@@ -82,3 +84,33 @@ def test_a_resonance_is_resolved_only_when_its_q_interval_clears_the_no_peak_lim
     assert "not resolved" in res.unresolved(params, {})  # no interval: nothing shown
     assert get_term("gauss_markov").unresolved({"sigma": 1.0, "T": 1.0}, {}) is None
     assert res.reduces_to == "gauss_markov"
+
+
+def _suggestion(term: str, chi2: float, significant: bool, args: list[str] | None = None,
+                ci95: dict | None = None) -> Suggestion:
+    return Suggestion(term=term, params={}, ci95=ci95 or {}, chi2_per_dof_before=10.0,
+                      chi2_per_dof_after=chi2 / 10.0, p_value=0.001 if significant else 0.5,
+                      log_p=-7.0 if significant else -0.7, significant=significant, why="",
+                      fit=SimpleNamespace(misfit=SimpleNamespace(chi2=chi2)),
+                      apply={"model": "white," + term, "args": args or []})
+
+
+def test_the_order_rules_act_on_the_first_significant_suggestion() -> None:
+    """An unresolved resonance is the first significant suggestion behind a non-significant
+    one (a term whose refit raised the error): the Markov term still takes its place, since
+    the first significant suggestion is the one a user applies. A cut there keeps it."""
+    unresolved = {"Q": (0.5, 3.0)}
+    ranked = [_suggestion("sinusoid", 60.0, False),
+              _suggestion("resonance", 15.0, True, ci95=unresolved),
+              _suggestion("quantization", 22.0, True),
+              _suggestion("gauss_markov", 21.0, True)]
+    out = _simplest_first(list(ranked), 0.05)
+    assert [s.term for s in out if s.significant][0] == "gauss_markov"
+    assert "spectral peak is not resolved" in out[0].why
+    # quantization is simpler still but of another kind, and fits significantly worse
+    assert "quantization" not in out[0].why
+    cut_first = [_suggestion("sinusoid", 60.0, False),
+                 _suggestion("bias_step", 14.0, True, args=["--split", "100"]),
+                 _suggestion("resonance", 15.0, True, ci95=unresolved),
+                 _suggestion("gauss_markov", 21.0, True)]
+    assert _simplest_first(list(cut_first), 0.05) == cut_first
