@@ -370,11 +370,12 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     if not terms or first is not terms[0]:
         return suggestions
     top = terms[0]
-    unresolved = get_term(top.term).unresolved(top.params, top.ci95)
+    top_term = get_term(top.term)
+    unresolved = top_term.unresolved(top.params, top.ci95)
     for simpler in sorted((s for s in terms[1:] if k_of(s) < k_of(top)), key=k_of):
         drop = simpler.fit.misfit.chi2 - top.fit.misfit.chi2
         p = float(stats.chi2.sf(drop, k_of(top) - k_of(simpler))) if drop > 0 else 1.0
-        if unresolved is not None and simpler.term == get_term(top.term).reduces_to:
+        if unresolved is not None and simpler.term == top_term.reduces_to:
             simpler.why += (f" It comes before {top.term}, whose fit lowers chi2 by "
                             f"{max(drop, 0.0):.3g} more with {k_of(top) - k_of(simpler)} "
                             f"parameter(s) more but {unresolved}.")

@@ -37,16 +37,22 @@ def test_a_term_that_cannot_repeat_is_not_offered_twice() -> None:
     assert [s.term for s in d.suggestions].count("random_walk") == 0
 
 
+def _two_markov_diagnosis(seed: int):
+    """Diagnosis of 2 h at 50 Hz with Markov terms of 1 s and 30 s, given a model with one."""
+    fs = 50.0
+    x = simulate([("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+                  ("random_walk", {"K": 2e-6}), ("gauss_markov", {"sigma": 2e-4, "T": 1.0}),
+                  ("gauss_markov", {"sigma": 2e-4, "T": 30.0})], int(2 * 3600 * fs), fs,
+                 rng=seed)
+    return diagnose(x, fs, "white,bias_instability,random_walk,gauss_markov")
+
+
 def test_a_second_markov_term_comes_before_a_resonance_that_fits_no_better() -> None:
     """Two Markov terms (1 s and 30 s) in a 2 h record whose model holds one: a resonance with
     Q near 0.5 bends the Allan curve as the second Markov term does, with one parameter more,
     and on this seed its own p-value ranks it first. Its refit's chi2 lies less than the
     chi-square(1) 95 % point (3.84) below the Markov term's, so the Markov term goes first."""
-    fs = 50.0
-    x = simulate([("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
-                  ("random_walk", {"K": 2e-6}), ("gauss_markov", {"sigma": 2e-4, "T": 1.0}),
-                  ("gauss_markov", {"sigma": 2e-4, "T": 30.0})], int(2 * 3600 * fs), fs, rng=0)
-    d = diagnose(x, fs, "white,bias_instability,random_walk,gauss_markov")
+    d = _two_markov_diagnosis(seed=0)
     top = d.suggestions[0]
     res = next(s for s in d.suggestions if s.term == "resonance")
     assert top.term == "gauss_markov" and top.significant
@@ -60,11 +66,7 @@ def test_a_resonance_without_a_resolved_peak_yields_to_the_markov_term() -> None
     """Seed 19 of the same record: the resonance's refit lies 4.6 below the Markov term's in
     chi2, more than the 95 % point, but its Q interval reaches 0.5, where the spectrum has no
     peak: the data show a bend, which the Markov term explains with a parameter less."""
-    fs = 50.0
-    x = simulate([("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
-                  ("random_walk", {"K": 2e-6}), ("gauss_markov", {"sigma": 2e-4, "T": 1.0}),
-                  ("gauss_markov", {"sigma": 2e-4, "T": 30.0})], int(2 * 3600 * fs), fs, rng=19)
-    d = diagnose(x, fs, "white,bias_instability,random_walk,gauss_markov")
+    d = _two_markov_diagnosis(seed=19)
     top = d.suggestions[0]
     res = next(s for s in d.suggestions if s.term == "resonance")
     assert res.significant and res.log_p < top.log_p
