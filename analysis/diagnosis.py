@@ -492,7 +492,10 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         # the step and warm-up tests take the fitted model as the sensor's noise: only once
         # no term is missing is that a fair null (a model without its random walk sees
         # steps everywhere); until then they stay findings
-        suggestions += [_remedy(ctx, f, units, alpha) for f in cuts if f.significant]
+        # one transient, one remedy: the shape that explains it better when both are found
+        found = {f.kind for f in cuts if f.significant}
+        suggestions += [_remedy(ctx, f, units, alpha) for f in cuts if f.significant
+                        and f.details.get("better_explained_by") not in found]
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
     # parameters, so a two-parameter Markov term does not win merely by being flexible.
     suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))

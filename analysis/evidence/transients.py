@@ -128,10 +128,10 @@ def _difference_whitener(v: np.ndarray, n: int) -> np.ndarray:
 
 
 def _profile(chol: np.ndarray, ybar: np.ndarray, shapes: np.ndarray) -> tuple[
-        np.ndarray, np.ndarray, np.ndarray]:
+        np.ndarray, np.ndarray, np.ndarray, float]:
     """GLS fit of ``ybar = mu + a * shape`` for each row of ``shapes`` (block units), on the
-    differences: the amplitude ``a`` per row, its variance, and ``-2 log L`` above the best
-    row."""
+    differences: the amplitude ``a`` per row, its variance, ``-2 log L`` above the best row,
+    and the best row's fall of ``-2 log L`` from no shape at all."""
     d = solve_triangular(chol, np.diff(ybar), lower=True)
     xs = solve_triangular(chol, np.diff(shapes, axis=1).T, lower=True)
     info = np.sum(xs * xs, axis=0)
@@ -140,7 +140,8 @@ def _profile(chol: np.ndarray, ybar: np.ndarray, shapes: np.ndarray) -> tuple[
         amp = np.where(info > 0, score / info, 0.0)
         gain = np.where(info > 0, score * score / info, 0.0)
         var = np.where(info > 0, 1.0 / info, np.inf)
-    return amp, var, float(np.max(gain)) - gain
+    best = float(np.max(gain))
+    return amp, var, best - gain, best
 
 
 def _amplitude_interval(amp: np.ndarray, var: np.ndarray, lr: np.ndarray) -> tuple[float, float]:
@@ -155,12 +156,12 @@ def _step_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tupl
     n = ybar.size
     t = np.arange(_STEP_GRID_PER_BLOCK, (n - 1) * _STEP_GRID_PER_BLOCK + 1) / _STEP_GRID_PER_BLOCK
     shapes = np.clip(np.arange(n)[None, :] + 1.0 - t[:, None], 0.0, 1.0)
-    amp, var, lr = _profile(chol, ybar, shapes)
+    amp, var, lr, gain = _profile(chol, ybar, shapes)
     best = int(np.argmin(lr))
     inside = t[lr <= _LR95_REGULAR]
     # the true time lies between grid points: one grid step more on each side
     step = 1.0 / _STEP_GRID_PER_BLOCK
-    return {"t": float(t[best]), "size": float(amp[best]),
+    return {"t": float(t[best]), "size": float(amp[best]), "gain": gain,
             "t_ci": (max(float(inside.min()) - step, 0.0), min(float(inside.max()) + step, n)),
             "size_ci": _amplitude_interval(amp, var, lr)}
 
@@ -173,10 +174,10 @@ def _warmup_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tu
     i = np.arange(n)[None, :]
     # block mean of exp(-t / T), t in blocks from the segment start
     shapes = tc[:, None] * (np.exp(-i / tc[:, None]) - np.exp(-(i + 1) / tc[:, None]))
-    amp, var, lr = _profile(chol, ybar, shapes)
+    amp, var, lr, gain = _profile(chol, ybar, shapes)
     best = int(np.argmin(lr))
     inside = tc[lr <= _LR95_REGULAR]
-    return {"tau": float(tc[best]), "amplitude": float(amp[best]),
+    return {"tau": float(tc[best]), "amplitude": float(amp[best]), "gain": gain,
             "tau_ci": (float(inside.min()), float(inside.max())),
             "amplitude_ci": _amplitude_interval(amp, var, lr)}
 
@@ -253,17 +254,24 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
     except np.linalg.LinAlgError:
         chol = None
     blk = b / fs_hz
+    ests = ({"step": _step_estimate(chol, ybar), "warmup": _warmup_estimate(chol, ybar)}
+            if chol is not None else {})
+    # A warm-up also trips the step contrasts (a step down early on) and a step late in the
+    # record the long exponentials: the shape whose fit explains the block means better
+    # names the transient, and it may take the p-value of the whole search.
+    better = max(ests, key=lambda kd: ests[kd]["gain"]) if ests else None
+    p_any = _max_z_p(z, draws, np.ones(len(labels), dtype=bool))
     out = []
     for kind in ("step", "warmup"):
         sel = np.array([lab[0] == kind for lab in labels])
         k = int(np.flatnonzero(sel)[np.argmax(np.abs(z[sel]))])
         zmax = float(abs(z[k]))
-        p_mc = (1.0 + float(np.sum(np.max(np.abs(draws[:, sel]), axis=1) >= zmax))) / (DRAWS + 1)
-        p_tail = min(1.0, float(sel.sum()) * 2.0 * float(stats.norm.sf(zmax)))
-        p = min(p_mc, p_tail) if p_mc <= 2.0 / (DRAWS + 1) else p_mc
+        p = _max_z_p(z, draws, sel)
+        if kind == better:
+            p = min(p, p_any)
         if kind == "step":
             if chol is not None:
-                est = _step_estimate(chol, ybar)
+                est = ests["step"]
             else:
                 c = labels[k][1]
                 est = {"t": c, "size": float(w[k] @ ybar), "t_ci": (c - 1.0, c + 1.0),
@@ -285,7 +293,7 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
                                                   "block_s": blk}))
         else:
             if chol is not None:
-                est = _warmup_estimate(chol, ybar)
+                est = ests["warmup"]
             else:
                 tb = labels[k][1]
                 est = {"tau": tb, "amplitude": float(w[k] @ ybar), "tau_ci": (tb, tb),
@@ -308,4 +316,23 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
                                f"= {zmax:.1f}).", {"skip_s": skip, "block_s": blk,
                                                    "tau_s_ci95": tau_ci,
                                                    "amplitude_ci95": amp_ci}))
-    return out[0], out[1]
+    step_f, warm_f = out
+    if better is not None:
+        step_f.details["gain"] = ests["step"]["gain"]
+        warm_f.details["gain"] = ests["warmup"]["gain"]
+        winner, loser = (step_f, warm_f) if better == "step" else (warm_f, step_f)
+        loser.details["better_explained_by"] = winner.kind
+        if loser.significant:
+            shape = "a bias step" if winner.kind == "bias_step" else "a warm-up"
+            loser.why += (f" But {shape} explains the block means better (-2 log L lower by "
+                          f"{winner.details['gain'] - loser.details['gain']:.1f}).")
+    return step_f, warm_f
+
+
+def _max_z_p(z: np.ndarray, draws: np.ndarray, sel: np.ndarray) -> float:
+    """p-value of the largest ``|z|`` among the contrasts ``sel`` under the model: the share of
+    null draws reaching it, with a Bonferroni normal tail where the draws run out."""
+    zmax = float(np.max(np.abs(z[sel])))
+    p_mc = (1.0 + float(np.sum(np.max(np.abs(draws[:, sel]), axis=1) >= zmax))) / (DRAWS + 1)
+    p_tail = min(1.0, float(sel.sum()) * 2.0 * float(stats.norm.sf(zmax)))
+    return min(p_mc, p_tail) if p_mc <= 2.0 / (DRAWS + 1) else p_mc
