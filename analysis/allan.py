@@ -448,6 +448,29 @@ def _segments(n: int, segment_starts) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
 
 
+def _intervals(kind: str, dev: np.ndarray, ms: np.ndarray, counts: np.ndarray,
+               seg_points: list[int], phases: list[np.ndarray], alpha_arr: np.ndarray | None,
+               ci: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Noise type per tau, equivalent degrees of freedom and the deviation's ``ci``
+    interval: ``(alpha, edf, ci_low, ci_high)``; without ``ci`` no noise identification and
+    NaN intervals."""
+    if ci is None:
+        nan = np.full(ms.size, np.nan)
+        alpha = alpha_arr if alpha_arr is not None else np.zeros(ms.size, dtype=np.int64)
+        return np.asarray(alpha, dtype=np.int64), nan, nan.copy(), nan.copy()
+    if alpha_arr is None:
+        if phases:
+            u_long = phases[int(np.argmax(seg_points))]
+            alpha_arr = identify_noise(u_long, ms, kind, n_terms=counts)
+        else:
+            alpha_arr = np.zeros(0, dtype=np.int64)
+    lo, hi = alpha_range(kind)
+    alpha_arr = np.clip(alpha_arr, lo, hi).astype(np.int64)
+    edf = edf_for(kind, alpha_arr, ms, seg_points)
+    ci_low, ci_high = chi2_interval(dev, edf, ci)
+    return alpha_arr, edf, ci_low, ci_high
+
+
 def allan(
     data: np.ndarray,
     fs_hz: float,
@@ -533,32 +556,8 @@ def allan(
     var = normalise(sums, counts, ms, kind)
     dev = np.sqrt(var)
 
-    if ci is None:
-        nan = np.full(ms.size, np.nan)
-        return AllanCurve(
-            kind=kind,
-            fs_hz=float(fs_hz),
-            tau_s=ms / float(fs_hz),
-            m=ms,
-            dev=dev,
-            n_terms=counts,
-            edf=nan,
-            alpha=alpha_arr if alpha_arr is not None else np.zeros(ms.size, dtype=np.int64),
-            ci_low=nan.copy(),
-            ci_high=nan.copy(),
-            ci=float("nan"),
-            exact_upto_m=int(ms.max()) if ms.size else 0,
-        )
-    if alpha_arr is None:
-        if phases:
-            u_long = phases[int(np.argmax(seg_points))]
-            alpha_arr = identify_noise(u_long, ms, kind, n_terms=counts)
-        else:
-            alpha_arr = np.zeros(0, dtype=np.int64)
-    lo, hi = alpha_range(kind)
-    alpha_arr = np.clip(alpha_arr, lo, hi)
-    edf = edf_for(kind, alpha_arr, ms, seg_points)
-    ci_low, ci_high = chi2_interval(dev, edf, ci)
+    alpha_arr, edf, ci_low, ci_high = _intervals(kind, dev, ms, counts, seg_points, phases,
+                                                 alpha_arr, ci)
     return AllanCurve(
         kind=kind,
         fs_hz=float(fs_hz),
@@ -567,10 +566,10 @@ def allan(
         dev=dev,
         n_terms=counts,
         edf=edf,
-        alpha=alpha_arr.astype(np.int64),
+        alpha=alpha_arr,
         ci_low=ci_low,
         ci_high=ci_high,
-        ci=float(ci),
+        ci=float("nan") if ci is None else float(ci),
         exact_upto_m=int(ms.max()) if ms.size else 0,
     )
 
