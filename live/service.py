@@ -208,15 +208,13 @@ class LiveService:
                 if b is None:
                     done = True
                     continue
-                try:
-                    self.analyzers.update(b)
-                except Exception as exc:  # noqa: BLE001 - bad block: report, keep going
-                    self.error = f"analysis: {type(exc).__name__}: {exc}"
-                n = len(b.t) if hasattr(b, "t") else 0
-                with self._lock:
-                    self.samples_analysed += n
+                self._update(b)
             if self._abandon:
-                return  # stopped while acquiring: no more fits
+                # stopped while acquiring: no more fits, but the blocks already handed over
+                # still reach the streaming estimates (cheap), so none is left uncounted
+                if not done:
+                    self._update_until_end()
+                return
             try:
                 self.analyzers.refresh(force=done)
             except Exception as exc:  # noqa: BLE001
@@ -224,6 +222,27 @@ class LiveService:
                     self.error = f"refit: {type(exc).__name__}: {exc}"
             if done:
                 return
+
+    def _update(self, block: BlockLike) -> None:
+        try:
+            self.analyzers.update(block)
+        except Exception as exc:  # noqa: BLE001 - bad block: report, keep going
+            self.error = f"analysis: {type(exc).__name__}: {exc}"
+        n = len(block.t) if hasattr(block, "t") else 0
+        with self._lock:
+            self.samples_analysed += n
+
+    def _update_until_end(self, wait_s: float = 2.0) -> None:
+        """Take the blocks still queued up to the acquisition's end mark (waiting at most
+        ``wait_s`` for each) into the streaming estimates."""
+        while True:
+            try:
+                block = self._queue.get(timeout=wait_s)
+            except queue.Empty:
+                return
+            if block is None:
+                return
+            self._update(block)
 
     # --- views ---------------------------------------------------------------------------
     def current_file(self) -> str | None:

@@ -94,3 +94,52 @@ def test_stopping_the_service_during_a_fit_closes_the_sinks_without_waiting(tmp_
     assert took < 10  # the fit would have taken 120 s
     assert sink.closed and sink.samples == source.stats.samples > 0
     assert svc.error is None  # the abandoned fit is not reported as a failure
+
+
+class _GatedAnalysis:
+    """Analyzers whose first update waits for a gate (a stall in the streaming estimates)."""
+
+    def __init__(self) -> None:
+        self.entered = threading.Event()
+        self.gate = threading.Event()
+        self.channels: list[str] = []
+        self.revision = 0
+        self.samples = 0
+
+    def update(self, block) -> None:
+        self.entered.set()
+        self.gate.wait(30)
+        self.samples += len(block.t)
+
+    def refresh(self, force: bool = False) -> bool:
+        return False
+
+    def stats(self) -> dict:
+        return {}
+
+    def close(self) -> None:
+        pass
+
+
+def test_blocks_handed_over_before_a_stop_are_all_counted_in() -> None:
+    # a stop while the analysis is busy with one block, blocks queued behind it: each block
+    # the acquisition received is analysed or counted as not analysed, none is left over
+    source = SyntheticImu(block=10, pace=True)
+    analysis = _GatedAnalysis()
+    svc = LiveService(source, analysis, sinks=[]).start()
+    assert analysis.entered.wait(30)
+    deadline = time.monotonic() + 30
+    while svc.blocks_received < 4:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    stopper = threading.Thread(target=svc.stop)
+    stopper.start()
+    while not (svc._abandon and svc._acq_done.is_set()):
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    analysis.gate.set()
+    stopper.join(30)
+    assert not stopper.is_alive()
+    assert svc.samples_received >= 40
+    assert svc.samples_analysed + svc.samples_not_analysed == svc.samples_received
+    assert analysis.samples == svc.samples_analysed
