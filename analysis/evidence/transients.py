@@ -227,7 +227,10 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
         a step, ``tau_s`` (s) and ``amplitude`` (units, at the segment start) for a warm-up),
         their 95 % intervals in ``details`` (``t_s_ci95``, ``size_ci95``; ``tau_s_ci95``,
         ``amplitude_ci95``) and a Monte Carlo p-value, both tests sharing one search (the
-        p-value covers every split and time constant).
+        p-value covers every split and time constant). The shape whose profiled fit lowers
+        ``-2 log L`` more (``details["gain"]``) names the transient and may take the p-value
+        of the largest contrast of both families; the other finding then carries
+        ``details["better_explained_by"]`` (the better finding's kind).
     """
     x = max(segments, key=len) if segments else np.zeros(0)
     b = max(len(x) // BLOCKS, MIN_BLOCK_SAMPLES)
@@ -267,8 +270,9 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
         k = int(np.flatnonzero(sel)[np.argmax(np.abs(z[sel]))])
         zmax = float(abs(z[k]))
         p = _max_z_p(z, draws, sel)
-        if kind == better:
-            p = min(p, p_any)
+        if kind == better and p_any < p:
+            # the evidence is the whole search's largest contrast, named by the better shape
+            p, zmax = p_any, float(np.max(np.abs(z)))
         if kind == "step":
             if chol is not None:
                 est = ests["step"]
