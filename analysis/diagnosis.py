@@ -87,8 +87,12 @@ class Suggestion:
         def num(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
 
+        term = TERMS.get(self.term)  # a cut (bias step, warm-up) is no term
         return {"term": self.term, "params": {k: num(v) for k, v in self.params.items()},
                 "ci95": {k: [num(a), num(b)] for k, (a, b) in self.ci95.items()},
+                # amplitudes whose interval reaches zero: no estimate, only an upper bound
+                "unresolved": [k for k in self.params if term is not None
+                               and not term.resolved(k, self.ci95.get(k))],
                 "chi2_per_dof_before": num(self.chi2_per_dof_before),
                 "chi2_per_dof_after": num(self.chi2_per_dof_after),
                 "significant": bool(self.significant), "p_value": num(self.p_value),

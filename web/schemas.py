@@ -122,6 +122,8 @@ class SuggestionOut(BaseModel):
     term: str
     params: dict[str, float | None]
     ci95: dict[str, list[float | None]] = Field(default_factory=dict)
+    unresolved: list[str] = Field(default_factory=list, description=(
+        "amplitudes whose 95 % interval reaches zero: no estimate, only an upper bound"))
     chi2_per_dof_before: float | None = None
     chi2_per_dof_after: float | None
     significant: bool

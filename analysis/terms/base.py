@@ -175,6 +175,18 @@ class Term:
         """Parameters other than the amplitude (a Markov time, a frequency)."""
         return tuple(p.name for p in self.params if p.name != self.amplitude)
 
+    def resolved(self, name: str, ci95: tuple[float, float] | None) -> bool:
+        """Whether parameter ``name`` with 95 % interval ``ci95`` is an estimate: the
+        amplitude of a term that vanishes at zero (not a filter's length or cutoff) is not
+        when its interval reaches zero or is undefined; other parameters, and one without
+        an interval, are shown as they are."""
+        if ci95 is None or self.kind == "filter" or name != self.amplitude:
+            return True
+        lo, hi = float(ci95[0]), float(ci95[1])
+        if math.isnan(lo) or math.isnan(hi):
+            return False
+        return lo > 0.0 or hi < 0.0  # a signed amplitude (a temperature coefficient) too
+
     def check(self, params: dict[str, float]) -> dict[str, float]:
         """``params`` when they name exactly this term's parameters (extras allowed)."""
         allowed = set(self.param_names) | set(self.avar_extras)

@@ -206,11 +206,6 @@ def open_imu_channel(path: str, rate_hz: float | None, selector: str,
     return record, key
 
 
-# Amplitude parameters: zero means the term is absent, so an interval reaching zero leaves the
-# amplitude unresolved (a time constant or frequency interval is shown as it is).
-AMPLITUDES = ("N", "Q", "B", "K", "R", "sigma", "A", "coef")
-
-
 def model_lines(result: FitResult | Any, units: str) -> list[str]:
     """The fitted model with its 95 % intervals (one line per parameter, units labelled) and
     the error line."""
@@ -222,7 +217,7 @@ def model_lines(result: FitResult | Any, units: str) -> list[str]:
             v = t.params[p.name]
             lo, hi = t.ci95[p.name]
             unit = param_unit(p, units)
-            if p.name in AMPLITUDES and not lo > 0.0:  # an interval reaching zero: no estimate
+            if not get_term(t.term).resolved(p.name, (lo, hi)):  # an interval reaching zero
                 lines.append(f"    {t.term:17s} {p.name:5s} = not resolved (95 % upper bound "
                              f"{hi:.4g}) {unit}")
                 continue

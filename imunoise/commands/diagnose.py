@@ -119,6 +119,19 @@ def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
     return doc
 
 
+def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float] | None,
+                     unit: str) -> str:
+    """One parameter of a suggested term's refit; an amplitude whose interval reaches zero is
+    no estimate (as in the fit's model lines), and a dimensionless unit "1" is left out."""
+    from analysis.terms import get_term
+
+    if not get_term(term).resolved(name, ci):
+        text = f"{name} not resolved (95 % upper bound {ci[1]:.4g} {unit})"
+    else:
+        text = f"{name} = {value:.4g} {unit}"
+    return text.replace(" 1)", ")").removesuffix(" 1")
+
+
 def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                    model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
@@ -137,8 +150,8 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
         lines.append(f"  {mark}{i:2d}. {verb} {s.term:17s} chi2/dof {s.chi2_per_dof_before:.3g} "
                      f"-> {after:8s} p = {s.p_value:.2g}")
         if term is not None:
-            # a dimensionless parameter's unit "1" is left out of the text
-            pars = [f"{p.name} = {s.params[p.name]:.4g} {param_unit(p, u)}".removesuffix(" 1")
+            pars = [_suggested_param(s.term, p.name, s.params[p.name], s.ci95.get(p.name),
+                                     param_unit(p, u))
                     for p in term.params if p.name in s.params]
         else:
             pars = [f"{k} = {v:.4g} {'s' if k.endswith('_s') else u}"

@@ -180,7 +180,10 @@ function drawModel(m) {
 
 function drawDiagnosis(d) {
   const items = d.suggestions.map((s) => {
-    const ps = Object.entries(s.params).map(([k, v]) => `${k} = ${fmt(v)}`).join(", ");
+    // an amplitude whose interval reaches zero is no estimate: its upper bound only
+    const ps = Object.entries(s.params).map(([k, v]) => (s.unresolved || []).includes(k) ?
+      `${k} not resolved (< ${fmt((s.ci95 || {})[k] ? s.ci95[k][1] : null)})` :
+      `${k} = ${fmt(v)}`).join(", ");
     const model = s.apply && s.apply.model ? s.apply.model : "";
     return `<li><button class="add-term" data-term="${s.term}" data-model="${model}">Add ${s.term}</button>
       <span class="${s.significant ? "sig" : ""}">${s.significant ? "significant" : "not significant"}</span>:
