@@ -80,6 +80,29 @@ def _interval(ci: Sequence[float] | None, factor: float = 1.0) -> str:
     return f"[{_num(ci[0] * factor)}, {_num(ci[1] * factor)}]"
 
 
+def _resolved(term: str, param: str, ci: Sequence[float | None] | None) -> bool:
+    """Whether a fitted parameter is an estimate (:meth:`analysis.terms.Term.resolved`): an
+    amplitude whose interval reaches zero is only an upper bound."""
+    from analysis.terms import TERMS
+
+    t = TERMS.get(str(term).split(":")[0].split("#")[0])
+    if t is None or not ci or len(ci) != 2:
+        return True
+    lo, hi = (math.nan if c is None else float(c) for c in ci)
+    return t.resolved(param, (lo, hi))
+
+
+def _value_cell(term: str, param: str, v: float, ci: Sequence[float] | None, unit: str,
+                factor: float = 1.0) -> str:
+    """A parameter's value and its interval below, or "not resolved" and the upper bound."""
+    if not _resolved(term, param, ci):
+        hi = ci[1] if ci and ci[1] is not None else None
+        bound = "" if hi is None else f" (95 % upper bound {_num(hi * factor)} {unit})"
+        return f'<td class="num">not resolved<br><span class="muted">{bound}</span></td>'
+    return (f'<td class="num">{_num(v * factor)} {unit}<br>'
+            f'<span class="muted">{_interval(ci, factor)}</span></td>')
+
+
 def _kind(channel: str) -> str:
     return "gyro" if channel.split(":")[-1].startswith("gyro") else "accel"
 
@@ -218,13 +241,11 @@ def _coefficient_table(ch: Mapping, kind: str) -> str:
             v = float(params[p])
             si = escape(_si_unit(p, kind))
             conv = _conventional(p, kind)
+            term = str(t.get("term"))
             conv_cell = ("<td>\u2013</td>" if conv is None else
-                         f'<td class="num">{_num(v * conv[1])} {escape(conv[0])}<br>'
-                         f'<span class="muted">{_interval(ci95.get(p), conv[1])}</span></td>')
-            rows.append(f"<tr><td>{escape(str(t.get('term')))}</td><td>{escape(p)}</td>"
-                        f'<td class="num">{_num(v)} {si}<br>'
-                        f'<span class="muted">{_interval(ci95.get(p))}</span></td>'
-                        f"{conv_cell}</tr>")
+                         _value_cell(term, p, v, ci95.get(p), escape(conv[0]), conv[1]))
+            rows.append(f"<tr><td>{escape(term)}</td><td>{escape(p)}</td>"
+                        f"{_value_cell(term, p, v, ci95.get(p), si)}{conv_cell}</tr>")
     return f"<table>{head}{''.join(rows)}</table>"
 
 
@@ -394,7 +415,9 @@ def _diagnosis_block(ch: Mapping) -> str:
             "</th><th>significant</th><th>why</th></tr>")
 
     def row(s: Mapping) -> str:
-        params = ", ".join(f"{escape(k)} = {_num(v, 3)}"
+        unresolved = s.get("unresolved") or []
+        params = ", ".join(f"{escape(k)} not resolved" if k in unresolved else
+                           f"{escape(k)} = {_num(v, 3)}"
                            for k, v in (s.get("params") or {}).items())
         sig = s.get("significant")
         return (f"<tr><td>{escape(str(s.get('term')))}</td><td>{params}</td>"

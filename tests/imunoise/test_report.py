@@ -155,6 +155,25 @@ def test_report_content():
         assert label in html
 
 
+def test_an_amplitude_whose_interval_reaches_zero_is_reported_as_not_resolved():
+    doc = _doc()
+    ch = doc["channels"]["gyro_x"]
+    # a flicker level the record cannot resolve: the fit's number is no measurement
+    ch["model"][1] = {"term": "bias_instability", "params": {"B": 1.7e-17},
+                      "ci95": {"B": [0.0, 3.1e-5]}}
+    ch["suggestions"][1]["unresolved"] = ["R"]
+    html = render_report(doc)
+    p = _Collector()
+    p.feed(html)
+    text = " ".join(p.text)
+    assert "1.7\u00d710" not in html and "1.700\u00d710" not in html
+    # the SI cell and the conventional one, each with its upper bound (3.1e-5 rad/s = 6.394 deg/h)
+    assert text.count("not resolved") == 3
+    assert "6.394 deg/h" in text
+    # the accelerometer's resolved B is still shown as a number
+    assert "0.0102 mg" in text
+
+
 def test_report_handles_missing_parts():
     doc = {"file": "x.csv", "channels": {"gyro_x": {"units": "rad/s", "fs_hz": 10.0,
                                                      "model": [], "error": None,
