@@ -34,6 +34,8 @@ class TermOut(BaseModel):
     term: str
     params: dict[str, float] = Field(description="parameters in SI units")
     ci95: dict[str, list[float]] = Field(default_factory=dict, description="95 % intervals")
+    unresolved: list[str] = Field(default_factory=list, description=(
+        "amplitudes whose 95 % interval reaches zero: no estimate, only an upper bound"))
     units: dict[str, str] = Field(default_factory=dict, description="SI units per parameter")
     conventional: dict[str, ConventionalValueOut] = Field(default_factory=dict)
     relative_halfwidth: dict[str, float | None] = Field(

@@ -139,9 +139,11 @@ function drawCoefficients(c) {
     for (const [name, value] of Object.entries(t.params)) {
       const ci = t.ci95[name];
       const conv = (t.conventional || {})[name];
+      // an amplitude whose interval reaches zero is no estimate: "not resolved", its bound
+      const open = (t.unresolved || []).includes(name);
       rows.push(`<tr data-term="${t.term}"><td>${t.term}</td><td>${name}</td>
-        <td>${fmt(value)}</td><td>${ci ? `${fmt(ci[0])} … ${fmt(ci[1])}` : ""}</td>
-        <td>${(t.units || {})[name] || ""}</td><td>${conv ? fmt(conv.value) : ""}</td>
+        <td>${open ? "not resolved" : fmt(value)}</td><td>${ci ? `${fmt(ci[0])} … ${fmt(ci[1])}` : ""}</td>
+        <td>${(t.units || {})[name] || ""}</td><td>${conv ? (open ? "not resolved" : fmt(conv.value)) : ""}</td>
         <td>${conv && conv.ci95 ? `${fmt(conv.ci95[0])} … ${fmt(conv.ci95[1])}` : ""}</td>
         <td>${conv ? conv.units : ""}</td><td class="plan">${planText(t, name)}</td></tr>`);
     }

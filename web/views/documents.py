@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from analysis.terms import get_term
 from core.series import ChannelSeries
 
 if TYPE_CHECKING:
@@ -59,9 +60,13 @@ def error_json(fit: FitResult | None) -> dict[str, float | None]:
 
 
 def model_json(fit: FitResult) -> list[dict[str, Any]]:
-    """CONTRACT.md ``model`` entries of a fit (parameters in the channel's SI units)."""
+    """CONTRACT.md ``model`` entries of a fit (parameters in the channel's SI units), each
+    with ``unresolved``: the amplitudes whose 95 % interval reaches zero (no estimate, only an
+    upper bound)."""
     return [{"term": t.term, "params": {k: number(v) for k, v in t.params.items()},
-             "ci95": {k: [number(a), number(b)] for k, (a, b) in t.ci95.items()}}
+             "ci95": {k: [number(a), number(b)] for k, (a, b) in t.ci95.items()},
+             "unresolved": [k for k in t.params
+                            if not get_term(t.term).resolved(k, t.ci95.get(k))]}
             for t in fit.terms]
 
 
