@@ -80,22 +80,11 @@ def _interval(ci: Sequence[float] | None, factor: float = 1.0) -> str:
     return f"[{_num(ci[0] * factor)}, {_num(ci[1] * factor)}]"
 
 
-def _resolved(term: str, param: str, ci: Sequence[float | None] | None) -> bool:
-    """Whether a fitted parameter is an estimate (:meth:`analysis.terms.Term.resolved`): an
-    amplitude whose interval reaches zero is only an upper bound."""
-    from analysis.terms import TERMS
-
-    t = TERMS.get(str(term).split(":")[0].split("#")[0])
-    if t is None or not ci or len(ci) != 2:
-        return True
-    lo, hi = (math.nan if c is None else float(c) for c in ci)
-    return t.resolved(param, (lo, hi))
-
-
-def _value_cell(term: str, param: str, v: float, ci: Sequence[float] | None, unit: str,
+def _value_cell(resolved: bool, v: float, ci: Sequence[float] | None, unit: str,
                 factor: float = 1.0) -> str:
-    """A parameter's value and its interval below, or "not resolved" and the upper bound."""
-    if not _resolved(term, param, ci):
+    """A parameter's value and its interval below, or (not ``resolved``: the model entry's
+    ``unresolved`` names it) "not resolved" and the upper bound."""
+    if not resolved:
         hi = ci[1] if ci and ci[1] is not None else None
         bound = "" if hi is None else f" (95 % upper bound {_num(hi * factor)} {unit})"
         return f'<td class="num">not resolved<br><span class="muted">{bound}</span></td>'
@@ -241,11 +230,11 @@ def _coefficient_table(ch: Mapping, kind: str) -> str:
             v = float(params[p])
             si = escape(_si_unit(p, kind))
             conv = _conventional(p, kind)
-            term = str(t.get("term"))
+            resolved = p not in (t.get("unresolved") or [])
             conv_cell = ("<td>\u2013</td>" if conv is None else
-                         _value_cell(term, p, v, ci95.get(p), escape(conv[0]), conv[1]))
-            rows.append(f"<tr><td>{escape(term)}</td><td>{escape(p)}</td>"
-                        f"{_value_cell(term, p, v, ci95.get(p), si)}{conv_cell}</tr>")
+                         _value_cell(resolved, v, ci95.get(p), escape(conv[0]), conv[1]))
+            rows.append(f"<tr><td>{escape(str(t.get('term')))}</td><td>{escape(p)}</td>"
+                        f"{_value_cell(resolved, v, ci95.get(p), si)}{conv_cell}</tr>")
     return f"<table>{head}{''.join(rows)}</table>"
 
 

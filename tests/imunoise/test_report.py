@@ -160,7 +160,7 @@ def test_an_amplitude_whose_interval_reaches_zero_is_reported_as_not_resolved():
     ch = doc["channels"]["gyro_x"]
     # a flicker level the record cannot resolve: the fit's number is no measurement
     ch["model"][1] = {"term": "bias_instability", "params": {"B": 1.7e-17},
-                      "ci95": {"B": [0.0, 3.1e-5]}}
+                      "ci95": {"B": [0.0, 3.1e-5]}, "unresolved": ["B"]}
     ch["suggestions"][1]["unresolved"] = ["R"]
     html = render_report(doc)
     p = _Collector()
