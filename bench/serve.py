@@ -15,7 +15,9 @@ polled part would lose to its late wake-ups alone are what no acquisition code o
 machine, at that moment, can avoid. Then stops serve with SIGTERM and reads the recording
 back. Prints per run: samples expected
 (from the recording's first and last stamps at the device rate), recorded, lost at each stage
-(device: missing in the file; hand-over and analysis: from ``/health``), and the CPU used by
+(device: missing in the file; hand-over and analysis: from ``/health``; for the ADIS16350 also
+the simulator process's own count of samples it made that were never read, the truth against
+which the driver's estimate from the host clock is checked), and the CPU used by
 each process (serve's HTTP/analysis side, the acquisition process, the fit worker, the
 clients, the hogs) as a percentage of one core.
 
@@ -263,6 +265,10 @@ def report(r: dict) -> None:
     print(f"{'':17}losses from /health: device {lo.get('device')}, hand-over "
           f"{lo.get('handover')}, analysis {lo.get('analysis')}; restarts "
           f"{pr.get('restarts')}")
+    sim = pr.get("simulator") or {}
+    if sim.get("samples_never_read") is not None:
+        print(f"{'':17}the simulator's own count at the same /health read: "
+              f"{sim['samples_never_read']} samples made and never read")
     pf = r.get("platform") or {}
     if pf:
         print(f"{'':17}platform floor at {r['rate_hz']:g} Hz ({pf['policy']}, same run): a "

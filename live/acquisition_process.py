@@ -109,7 +109,8 @@ def raise_priority(mode: str) -> dict[str, Any]:
 
 
 def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None = None,
-            error: str | None = None) -> dict[str, Any]:
+            error: str | None = None, simulator: dict[str, Any] | None = None
+            ) -> dict[str, Any]:
     stats = getattr(acq, "stats", None)
     acq_stats = stats.as_dict() if stats is not None and hasattr(stats, "as_dict") else {}
     if state is not None:
@@ -125,8 +126,30 @@ def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None
             "blocks_dropped": rec.blocks_dropped,
             "error": str(getattr(recorder, "error", "") or "") or None},
         "error": error,
+        "simulator": simulator,
         "time": time.time(),
     }
+
+
+class _SimulatorTruth:
+    """The simulator process's count of samples never read, from the first block on (the
+    samples made between opening the device and the first poll are not part of the
+    recording)."""
+
+    def __init__(self, simulator: Any) -> None:
+        self.simulator = simulator
+        self.baseline: int | None = None
+
+    def first_block(self) -> None:
+        if self.simulator is not None and self.baseline is None:
+            self.baseline = self.simulator.samples_never_read
+
+    def status(self) -> dict[str, Any] | None:
+        if self.simulator is None:
+            return None
+        lost = (None if self.baseline is None
+                else self.simulator.samples_never_read - self.baseline)
+        return {"pid": self.simulator.pid, "samples_never_read": lost}
 
 
 def _open(config: AcquisitionConfig, note: str | None):
@@ -187,17 +210,19 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
 
     threading.Thread(target=watch, name="imunoise-acq-watch", daemon=True).start()
     settle_heap()
-    ring.publish_status(_status(acq, recorder, priority))
+    truth = _SimulatorTruth(simulator)
+    ring.publish_status(_status(acq, recorder, priority, simulator=truth.status()))
     next_status = time.monotonic() + STATUS_EVERY_S
     error = None
     try:
         for block in acq.blocks():
+            truth.first_block()
             if sink is not None:
                 sink.write(block)
             ring.put(block, len(block))
             now = time.monotonic()
             if now >= next_status:
-                ring.publish_status(_status(acq, recorder, priority))
+                ring.publish_status(_status(acq, recorder, priority, simulator=truth.status()))
                 next_status = now + STATUS_EVERY_S
             if stop.is_set():
                 break
@@ -214,7 +239,8 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
             sink.close()
         if simulator is not None:
             simulator.stop()
-        ring.publish_status(_status(acq, recorder, priority, error=error))
+        ring.publish_status(_status(acq, recorder, priority, error=error,
+                                    simulator=truth.status()))
         ring.close()
 
 
@@ -395,7 +421,8 @@ class AcquisitionProcess:
             out["state"] = "acquisition process down" + (f" ({self.last_exit})"
                                                          if self.last_exit else "")
         out["process"] = {"pid": st.get("pid"), "alive": self.alive, "restarts": self.restarts,
-                          "last_exit": self.last_exit, "priority": st.get("priority")}
+                          "last_exit": self.last_exit, "priority": st.get("priority"),
+                          "simulator": st.get("simulator")}
         out["handover_lost_samples"], out["handover_lost_blocks"] = self._lost()
         out["recording"] = st.get("recording")
         if st.get("error"):

@@ -6,6 +6,11 @@ hide (or cause) losses a real device would not. Here the chip model and the emul
 run in their own process on the real clock, behind a pseudo-terminal, and the acquisition
 process opens that terminal with the real driver and the real pyserial, exactly as it opens
 a Bus Pirate on ``/dev/ttyUSB0``.
+
+The simulated part counts the samples it made that were never read
+(:attr:`daq.sim.adis16350.Adis16350Sim.samples_never_read`) into shared memory as they occur:
+:attr:`SimulatorProcess.samples_never_read` is the truth against which the driver's own
+estimate of the samples lost at the device (from the host's clock) can be checked.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ START_TIMEOUT_S = 60.0
 
 
 def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid: int,
-                    priority: str) -> None:
+                    priority: str, never_read: Any) -> None:
     import signal
     import sys
 
@@ -39,6 +44,7 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
     gyro, accel = default_sources("adis16350", fs, seed, stream_factory)
     chip_clock = ChipClock(RealClock())
     sim = Adis16350Sim(chip_clock, gyro, accel, None, source_rate_hz=fs)
+    sim.on_never_read = lambda n: setattr(never_read, "value", n)
     emulator = BusPirateEmulator(sim, seed=seed, chip_clock=chip_clock).start()
     sim.emulator = emulator
     settle_heap()
@@ -60,6 +66,7 @@ class SimulatorProcess:
         self.priority = priority
         self._ctx = mp.get_context("spawn")
         self._stop = self._ctx.Event()
+        self._never_read = self._ctx.RawValue("q", 0)
         self._proc: Any = None
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> str:
@@ -67,7 +74,8 @@ class SimulatorProcess:
         recv, send = self._ctx.Pipe(duplex=False)
         self._proc = self._ctx.Process(
             target=_simulator_main, name="imunoise-simulator",
-            args=(self.rate_hz, self.seed, send, self._stop, os.getpid(), self.priority))
+            args=(self.rate_hz, self.seed, send, self._stop, os.getpid(), self.priority,
+                  self._never_read))
         self._proc.start()
         send.close()
         if not recv.poll(timeout_s):
@@ -79,6 +87,12 @@ class SimulatorProcess:
             self.stop()
             raise OSError(f"the simulator process ended at start (exit code "
                           f"{self._proc.exitcode})") from None
+
+    @property
+    def samples_never_read(self) -> int:
+        """Samples the simulated part made and overwrote unread, between two reads of fresh
+        data (readable after the process ended, too)."""
+        return int(self._never_read.value)
 
     @property
     def pid(self) -> int | None:

@@ -10,6 +10,7 @@ The physical signal comes from injected sources (SI units), quantized to the par
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -37,6 +38,11 @@ class Adis16350Sim:
 
     Fault switches (attributes): ``stuck_data`` (no more internal updates, ND never sets,
     until a software reset), ``self_test_fails``.
+
+    Ground truth for the host's loss estimate (the part itself has no sample counter):
+    ``samples_never_read`` counts the samples that appeared between two reads of fresh data
+    (ND set in XGYRO_OUT) and were overwritten unread; ``on_never_read``, when set, is called
+    with the new total whenever it grows.
     """
 
     def __init__(self, clock: Clock, gyro: SignalSource, accel: SignalSource,
@@ -52,6 +58,9 @@ class Adis16350Sim:
         self.undefined_writes = 0  # writes to byte 0x3F (e.g. a 0xFFFF dummy frame)
         self.emulator: object | None = None  # the bridge it sits behind, when there is one
         self.frames = 0
+        self.samples_never_read = 0
+        self.on_never_read: Callable[[int], None] | None = None
+        self._last_read_index: int | None = None
         self.words = {r.addr: 0 for r in reg.REGISTERS.values()}
         self.words[reg.ADDR["SMPL_PRD"]] = reg.SMPL_PRD_DEFAULT
         self.words[reg.ADDR["SENS_AVG"]] = reg.SENS_AVG_DEFAULT
@@ -72,6 +81,7 @@ class Adis16350Sim:
     def _restart(self, delay_s: float) -> None:
         self._t0 = self.clock.now() + delay_s
         self._index = -1
+        self._last_read_index = None  # a new time base: nothing before it counts
 
     @property
     def rate_hz(self) -> float:
@@ -181,7 +191,17 @@ class Adis16350Sim:
             ea = 1 if self._status else 0
             value = (value & 0x3FFF) | (nd << 15) | (ea << 14)
             self._nd &= ~(1 << (base // 2))
+            if nd and base == reg.ADDR["XGYRO_OUT"]:
+                self._count_unread()
         self._next_out = value & 0xFFFF
+
+    def _count_unread(self) -> None:
+        """Sample ``self._index`` is being read: the ones since the last read were not."""
+        last, self._last_read_index = self._last_read_index, self._index
+        if last is not None and self._index - last > 1:
+            self.samples_never_read += self._index - last - 1
+            if self.on_never_read is not None:
+                self.on_never_read(self.samples_never_read)
 
     def _write_byte(self, addr: int, data: int) -> None:
         if addr == 0x3F:

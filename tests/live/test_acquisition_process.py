@@ -81,6 +81,39 @@ def test_a_stalled_analysis_side_loses_no_recorded_sample(tmp_path):
     assert n_mcap == n_file
 
 
+def test_the_samples_counted_lost_at_the_device_are_the_ones_the_simulator_never_gave(
+        tmp_path):
+    """The ADIS16350 has no sample counter: the driver infers its losses from the host's
+    clock. The simulator, in its own process, counts the samples it overwrote unread; the two
+    agree on a stall of the acquisition process (SIGSTOP) while the part runs on."""
+    src = _source(tmp_path)
+    it = src.blocks()
+    try:
+        _consume(it, 1.5)
+        before = src.stats
+        os.kill(src.pid, signal.SIGSTOP)
+        time.sleep(0.4)
+        os.kill(src.pid, signal.SIGCONT)
+        _consume(it, 1.5)
+        time.sleep(2 * 0.25)  # two status periods of the child
+        stats = src.stats
+    finally:
+        src.stop()
+        for _ in it:
+            pass
+        src.close()
+    truth_before = before["process"]["simulator"]["samples_never_read"]
+    truth = stats["process"]["simulator"]["samples_never_read"]
+    lost = stats["dropped"] - before["dropped"]
+    # 0.4 s at 102.4 Hz: 41 samples, less the one read when the stall ended
+    assert 35 <= truth - truth_before <= 45
+    assert lost == truth - truth_before
+    final = src.stats
+    assert final["dropped"] == final["process"]["simulator"]["samples_never_read"]
+    (path,) = tmp_path.glob("*.mcap")
+    assert _imu_in_file(path)[1] == final["dropped"]
+
+
 def test_a_ring_too_small_for_the_stall_loses_only_analysis_samples(tmp_path):
     src = _source(tmp_path, ring_bytes=16 * 1024)  # about 1.5 s of blocks
     it = src.blocks()
