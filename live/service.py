@@ -109,18 +109,30 @@ class LiveService:
             self._threads.append(t)
         return self
 
-    def stop(self, timeout: float = 10.0) -> None:
-        """Stop acquiring, close the sinks and the source. A source that ended by itself (a
-        replay) has its analysis finished first (the final full fits, up to ``timeout``);
-        a stop while acquiring abandons a running fit rather than wait for it."""
-        self._abandon = not self._acq_done.is_set()
-        self._stop.set()
+    def stop_acquisition(self) -> None:
+        """Ask the source to end now, as a stop signal arrives: the device is released and the
+        file closed while the HTTP side still winds down (nothing else then shares the
+        machine with the last samples). Cheap and safe in a signal handler; :meth:`stop`
+        then finishes as for a stop while acquiring (running fits abandoned)."""
+        if not self._acq_done.is_set():
+            self._abandon = True
+        self._stop_source()
+
+    def _stop_source(self) -> None:
         stopper = getattr(self.source, "stop", None)
         if callable(stopper):
             try:
                 stopper()
             except Exception:  # noqa: BLE001 - shutdown must go on
                 pass
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop acquiring, close the sinks and the source. A source that ended by itself (a
+        replay) has its analysis finished first (the final full fits, up to ``timeout``);
+        a stop while acquiring abandons a running fit rather than wait for it."""
+        self._abandon = self._abandon or not self._acq_done.is_set()
+        self._stop.set()
+        self._stop_source()
         # the acquisition thread first: every block it took reaches the sinks
         for t in self._threads[:1]:
             t.join(timeout)

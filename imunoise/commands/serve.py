@@ -174,13 +174,17 @@ def open_recorder(out: str, device: str, config: dict[str, str] | None,
         raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
 
 
-def _make_server(config: Any, stop_streams: threading.Event) -> Any:
-    """A uvicorn server that also ends the live event streams as soon as a stop is asked for,
-    so Ctrl-C or SIGTERM closes an open dashboard's connection instead of timing out on it."""
+def _make_server(config: Any, stop_streams: threading.Event,
+                 stop_acquisition: Any = None) -> Any:
+    """A uvicorn server that, as soon as a stop is asked for (Ctrl-C, SIGTERM), ends the
+    recording first and the live event streams, so that the file is closed before the HTTP
+    side winds down and an open dashboard's connection closes instead of timing out."""
     import uvicorn
 
     class _Server(uvicorn.Server):
         def handle_exit(self, sig: int, frame: object) -> None:
+            if stop_acquisition is not None:
+                stop_acquisition()
             stop_streams.set()
             super().handle_exit(sig, frame)
 
@@ -233,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
                      allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
                             timeout_graceful_shutdown=2, lifespan="on")
-    server = _make_server(config, app.state.stop_streams)
+    server = _make_server(config, app.state.stop_streams, service.stop_acquisition)
     service.start()
     url_host = f"[{args.host}]" if ":" in args.host else args.host
     print(f"imunoise: serving {info['spec']} on http://{url_host}:{args.port}/ "
@@ -242,6 +246,7 @@ def run(args: argparse.Namespace) -> int:
 
     def _terminate(signum: int, frame: object) -> None:  # SIGTERM from docker stop
         stopping.set()
+        service.stop_acquisition()
         server.should_exit = True
 
     if threading.current_thread() is threading.main_thread():

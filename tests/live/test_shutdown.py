@@ -143,3 +143,25 @@ def test_blocks_handed_over_before_a_stop_are_all_counted_in() -> None:
     assert svc.samples_received >= 40
     assert svc.samples_analysed + svc.samples_not_analysed == svc.samples_received
     assert analysis.samples == svc.samples_analysed
+
+
+def test_a_stop_signal_ends_the_recording_first_and_no_final_fit_is_awaited(tmp_path: Path):
+    """``serve`` calls ``stop_acquisition`` from its signal handler: the source ends (the file
+    closes) at once, while a fit is still running and the HTTP side winds down; the stop
+    that follows abandons the fit instead of running the final full fits of a finished
+    replay."""
+    source = SyntheticImu(block=100, pace=True)
+    sink = _CountingSink()
+    svc = LiveService(source, _SlowAnalysis(tmp_path / "started"), sinks=[sink]).start()
+    try:
+        _wait_for(tmp_path / "started")
+        svc.stop_acquisition()
+        assert svc.wait(5.0)  # the acquisition ended though the 120 s fit still runs
+        assert not svc.running
+    finally:
+        t0 = time.monotonic()
+        svc.stop()
+        took = time.monotonic() - t0
+    assert took < 10  # neither the running fit nor a final one is awaited
+    assert sink.closed and sink.samples == source.stats.samples > 0
+    assert svc.error is None
