@@ -19,7 +19,8 @@ back. Prints per run: samples expected
 the simulator process's own count of samples it made that were never read, the truth against
 which the driver's estimate from the host clock is checked), and the CPU used by
 each process (serve's HTTP/analysis side, the acquisition process, the fit worker, the
-clients, the hogs) as a percentage of one core.
+clients, the hogs) as a percentage of one core, and on a virtual machine the CPU time the host
+took from it during the run (steal), which no priority inside the machine can prevent.
 
 Configurations: ``adis204`` is the ADIS16350 at 204.8 Hz (the highest rate a Bus Pirate link
 carries, docs/devices.md); ``razorN`` the ITG-3200 + ADXL345 on one simulated 400 kHz bus with
@@ -87,6 +88,20 @@ def cpu_seconds(pid: int) -> float:
     except OSError:
         return 0.0
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def stolen_seconds() -> float | None:
+    """CPU time the hypervisor gave to others while this machine's CPUs wanted to run (s,
+    summed over CPUs; the ``steal`` column of /proc/stat), None where there is none.
+
+    A virtual CPU taken away for a few milliseconds stalls whatever runs on it, real-time
+    priority or not: a sample a polled part makes in that time is lost to any software.
+    """
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def children(pid: int) -> list[int]:
@@ -223,6 +238,7 @@ def run_one(name: str, load: str, seconds: float) -> dict:
         procs = {"serve": serve.pid, "acquisition": acq_pid, "clients": client.pid}
         workers = [p for p in children(serve.pid) if p != acq_pid]
         cpu0 = {k: cpu_seconds(p) for k, p in procs.items() if p}
+        steal0 = stolen_seconds()
         hog0 = [cpu_seconds(h.pid) for h in hogs]
         t0 = time.monotonic()
         time.sleep(seconds)
@@ -231,6 +247,8 @@ def run_one(name: str, load: str, seconds: float) -> dict:
         cpu = {k: (cpu_seconds(p) - cpu0.get(k, 0.0)) / wall for k, p in procs.items() if p}
         cpu["fit_worker"] = sum(cpu_seconds(p) for p in workers) / wall
         cpu["hogs"] = sum(cpu_seconds(h.pid) - c for h, c in zip(hogs, hog0, strict=True)) / wall
+        steal1 = stolen_seconds()
+        stolen = None if steal0 is None or steal1 is None else steal1 - steal0
         health = json.loads(get(base + "/health") or b"{}")
         client.wait(60)
         try:
@@ -249,7 +267,7 @@ def run_one(name: str, load: str, seconds: float) -> dict:
     return {"run": name, "load": load, "seconds": wall, "streams": streams,
             "losses": health.get("losses", {}), "process": health.get("acquisition_process"),
             "cpu": cpu, "serve_exit": serve.returncode, "out": str(out), "rate_hz": rate,
-            "platform": platform}
+            "platform": platform, "stolen_s": stolen}
 
 
 def report(r: dict) -> None:
@@ -276,6 +294,9 @@ def report(r: dict) -> None:
               f"{pf['lost']} samples of {pf['periods']} "
               f"({100 * pf['lost'] / max(pf['periods'], 1):.4f} %), worst "
               f"{1e3 * pf['worst_late_s']:.1f} ms late")
+    if r.get("stolen_s") is not None:
+        print(f"{'':17}CPU time the host took from this machine's CPUs during the run "
+              f"(/proc/stat steal): {r['stolen_s']:.2f} s")
     cpu = r["cpu"]
     print(f"{'':17}CPU (% of a core): " + ", ".join(f"{k} {100 * v:.0f}"
                                                      for k, v in cpu.items()))
