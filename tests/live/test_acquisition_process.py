@@ -42,6 +42,14 @@ def _consume(it, seconds: float) -> list:
     return got
 
 
+def _finish(src: AcquisitionProcess, it) -> None:
+    """Stop the source, take what was still in the ring, release it."""
+    src.stop()
+    for _ in it:
+        pass
+    src.close()
+
+
 def _imu_in_file(path: Path) -> tuple[int, int]:
     """(IMU samples, samples missing between them) of a recording."""
     rec = read_mcap(path)
@@ -62,10 +70,7 @@ def test_a_stalled_analysis_side_loses_no_recorded_sample(tmp_path):
         after = sum(len(b) for b in _consume(it, 1.5))
         stats = src.stats
     finally:
-        src.stop()
-        for _ in it:  # what was still in the ring
-            pass
-        src.close()
+        _finish(src, it)
     (path,) = tmp_path.glob("*.mcap")
     assert open_mcap(path).layout.complete
     n_file, missing = _imu_in_file(path)
@@ -98,10 +103,7 @@ def test_the_samples_counted_lost_at_the_device_are_the_ones_the_simulator_never
         time.sleep(2 * 0.25)  # two status periods of the child
         stats = src.stats
     finally:
-        src.stop()
-        for _ in it:
-            pass
-        src.close()
+        _finish(src, it)
     truth_before = before["process"]["simulator"]["samples_never_read"]
     truth = stats["process"]["simulator"]["samples_never_read"]
     lost = stats["dropped"] - before["dropped"]
@@ -125,10 +127,7 @@ def test_a_ring_too_small_for_the_stall_loses_only_analysis_samples(tmp_path):
         blocks = _consume(it, 1.5)
         stats = src.stats
     finally:
-        src.stop()
-        for _ in it:
-            pass
-        src.close()
+        _finish(src, it)
     assert stats["handover_lost_samples"] > 2 * RATE
     assert any(b.gap_before > 0 for b in blocks)  # the analysis sees the hand-over gap
     (path,) = tmp_path.glob("*.mcap")
@@ -148,10 +147,7 @@ def test_a_killed_acquisition_process_is_restarted_and_the_gap_marked(tmp_path):
         stats = src.stats
         assert src.pid != first_pid and src.alive
     finally:
-        src.stop()
-        for _ in it:
-            pass
-        src.close()
+        _finish(src, it)
     assert stats["process"]["restarts"] == 1
     assert "signal 9" in stats["process"]["last_exit"]
     marked = [i for i, b in enumerate(later) if b.gap_before == -1]
