@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -94,6 +95,7 @@ def decode_data(block: np.ndarray) -> np.ndarray:
     return REGISTERS.block_counts(DATA_FIELDS, block)
 
 
+@lru_cache(maxsize=256)  # a simulator asks for every sample it makes
 def data_field(name: str, fmt: int) -> Field:
     """The data field ``name`` as DATA_FORMAT ``fmt`` sets it: 10 bits at 3.9 mg, or at full
     resolution 10 to 13 bits at 3.9 mg; otherwise the LSB doubles with each range step."""

@@ -40,6 +40,7 @@ class Itg3200Sim(RegisterChip):
         self.stuck_ready = False
         self.pll_error_ppm = 0.0  # frequency error of the gyro-referenced clock
         self.samples_made = 0
+        self._rate: tuple[tuple, float] | None = None
         self._reset()
 
     def _reset(self) -> None:
@@ -55,6 +56,14 @@ class Itg3200Sim(RegisterChip):
 
     @property
     def rate_hz(self) -> float:
+        # Asked at every bus access: recomputed only when a setting it depends on changed.
+        key = (self.regs[itg.REG["DLPF_CFG"]], self.regs[itg.REG["CLK_SEL"]],
+               self.regs[itg.REG["SMPLRT_DIV"]], self.pll_error_ppm)
+        if self._rate is None or self._rate[0] != key:
+            self._rate = (key, self._rate_of_registers())
+        return self._rate[1]
+
+    def _rate_of_registers(self) -> float:
         dlpf = int(_REGS["DLPF_CFG"].counts(self.regs[itg.REG["DLPF_CFG"]]))
         f_int = itg.DLPF_CFG.get(dlpf, (0.0, 1000.0))[1]
         clk = int(_REGS["CLK_SEL"].counts(self.regs[itg.REG["CLK_SEL"]]))
