@@ -15,9 +15,13 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/imunoise serve --device sim:adis16350 --out data
 
+# Two passes: the tests that do not depend on the host keeping time, two at a time (one per
+# core of a small machine); then the `realtime` ones (live acquisition, serving, lost-sample
+# counts) alone, so that nothing else competes with them. Together they are the whole suite.
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not realtime"
+	$(BIN)/python -m pytest -q -m realtime
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

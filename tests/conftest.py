@@ -8,6 +8,22 @@ import pytest
 
 from tests.shared_paths import ABSENT, SHARED_DATA, SHARED_REFERENCE
 
+TESTS = Path(__file__).resolve().parent
+REALTIME = ("live", "web", "daq", "imunoise/test_record_command.py",
+            "imunoise/test_serve_command.py")
+"""Tests (folders or files under tests/) whose outcome depends on the host keeping time: live
+acquisition against a device's clock, serving while recording, lost-sample counts. `make test`
+runs them on their own after the others, which it runs two at a time (``-n 2``), so that no
+other test competes with them for the CPUs."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark the tests under :data:`REALTIME` ``realtime``."""
+    for item in items:
+        rel = item.path.resolve().relative_to(TESTS).as_posix()
+        if any(rel == r or rel.startswith(r + "/") for r in REALTIME):
+            item.add_marker(pytest.mark.realtime)
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
