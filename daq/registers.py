@@ -59,8 +59,8 @@ class Field:
     def counts(self, words: np.ndarray | int) -> np.ndarray:
         """The field's counts in register words (other bits ignored), signed when it is."""
         if isinstance(words, int | np.integer):
-            # One word, as a driver polls it: integer arithmetic, about twenty times faster
-            # than the array round trip.
+            # One word, as a driver polls it: integer arithmetic, about four times faster
+            # than the 0-d array round trip (1.8 against 7.4 us here).
             c = (int(words) >> self.shift) & self.mask
             if self.signed and c >> (self.bits - 1):
                 c -= 1 << self.bits
