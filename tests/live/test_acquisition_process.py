@@ -31,15 +31,23 @@ def _source(out: Path, **kw) -> AcquisitionProcess:
     return src
 
 
-def _consume(it, seconds: float) -> list:
-    """The IMU blocks handed over in ``seconds`` (temperature blocks left out)."""
-    got, end = [], time.monotonic() + seconds
+def _consume(it, seconds: float, until=None, limit_s: float = 30.0) -> list:
+    """The IMU blocks handed over in ``seconds`` (temperature blocks left out); with
+    ``until``, go on (up to ``limit_s``) until it holds for the blocks so far."""
+    got, t0 = [], time.monotonic()
     for block in it:
         if block.stream.endswith("/imu"):
             got.append(block)
-        if time.monotonic() > end:
+        elapsed = time.monotonic() - t0
+        if elapsed > seconds and (until is None or until(got) or elapsed > limit_s):
             break
     return got
+
+
+def _new_segment_s(blocks: list) -> float:
+    """Seconds of data from the last block that starts a new segment (gap unknown) on."""
+    starts = [i for i, b in enumerate(blocks) if b.gap_before == -1]
+    return sum(len(b) for b in blocks[starts[-1]:]) / RATE if starts else 0.0
 
 
 def _finish(src: AcquisitionProcess, it) -> None:
@@ -143,7 +151,9 @@ def test_a_killed_acquisition_process_is_restarted_and_the_gap_marked(tmp_path):
         first = _consume(it, 2.0)
         first_pid = src.pid
         os.kill(first_pid, signal.SIGKILL)
-        later = _consume(it, 6.0)
+        # A new process takes a few seconds to start (more on a loaded machine): wait for
+        # 2 s of its data rather than a fixed time.
+        later = _consume(it, 6.0, until=lambda got: _new_segment_s(got) > 2.0)
         stats = src.stats
         assert src.pid != first_pid and src.alive
     finally:
