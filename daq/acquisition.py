@@ -109,11 +109,6 @@ class Acquisition:
         self.simulator: object | None = None
         self._on_close = on_close or []
         self._stop = threading.Event()
-        self.between_polls = threading.Event()
-        """Set except while a poll runs: a writer thread in this process that waits on it
-        before each slice of its work (``McapRecorder(between_polls=...)``) keeps the
-        interpreter free for the poll."""
-        self.between_polls.set()
         self._opened = False
         self._late_sq = 0.0
         self._late_n = 0
@@ -184,7 +179,7 @@ class Acquisition:
                 # catch up would only re-read the newest sample, so restart the schedule.
                 t_start, k = now, 1
             try:
-                found = self._poll()
+                found = self.driver.poll()
                 if found > 0:
                     self._outage_since = None
             except PermanentDeviceError as exc:
@@ -206,13 +201,6 @@ class Acquisition:
         yield from self._flush()
         if self.stats.state == "running":
             self.stats.state = "stopped"
-
-    def _poll(self) -> int:
-        self.between_polls.clear()
-        try:
-            return self.driver.poll()
-        finally:
-            self.between_polls.set()
 
     def _note_late(self, late: float) -> None:
         late = max(0.0, late)

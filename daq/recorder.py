@@ -45,14 +45,6 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 METADATA_NAME = "imunoise"
 RESERVE_NAME = ".imunoise-reserve"
 _POLL_S = 0.1
-TURN_MESSAGES = 8
-"""Messages the writer thread adds between two looks at ``between_polls`` (about 0.1 ms of
-Python: the longest a poll that starts meanwhile shares the interpreter with it)."""
-TURN_WAIT_S = 0.002
-"""Longest wait for a poll to finish: with polls back to back the writer still adds
-TURN_MESSAGES every 2 ms (4,000 a second; the razor at 1 kHz writes about 1,800)."""
-TURN_BACKLOG_BLOCKS = 16
-"""Blocks queued beyond which the writer no longer waits for polls at all."""
 
 
 class SyncedFile:
@@ -164,10 +156,6 @@ class McapRecorder:
         chunk_size: uncompressed chunk size threshold in bytes.
         software: the writing program and its version (MCAP header and metadata), passed in
             by the command line (``daq`` does not import it).
-        between_polls: an event the acquisition clears while it polls the device
-            (:attr:`daq.acquisition.Acquisition.between_polls`); the writer thread waits for
-            it before each slice of its work, at most :data:`TURN_WAIT_S`, so that its
-            Python does not hold up a poll. None: never wait.
     """
 
     def __init__(self, out_dir: str | Path, device: str, *, config: dict[str, str] | None = None,
@@ -177,10 +165,8 @@ class McapRecorder:
                  threaded: bool = True, clock: Callable[[], float] = time.time,
                  reserve_bytes: int = 2 << 20, chunk_size: int = 1 << 20,
                  file_opener: Callable[[Path], SyncedFile] = SyncedFile,
-                 queue_blocks: int = 4096, software: str = SOFTWARE,
-                 between_polls: threading.Event | None = None) -> None:
+                 queue_blocks: int = 4096, software: str = SOFTWARE) -> None:
         self.out_dir = Path(out_dir)
-        self.between_polls = between_polls
         self.software = software
         self.device = device
         self.name = _safe_name(device)
@@ -396,18 +382,9 @@ class McapRecorder:
             self._sequence[cid] = 0
         return cid
 
-    def _wait_turn(self) -> None:
-        """Let a running poll finish before the next slice of work (writer thread only; not
-        when blocks are piling up, so the wait can never cost the recording)."""
-        if (self.between_polls is not None and self._queue is not None
-                and threading.current_thread() is self._thread
-                and self._queue.qsize() < TURN_BACKLOG_BLOCKS):
-            self.between_polls.wait(TURN_WAIT_S)
-
     def _flush(self) -> None:
         if self._writer is None or self._file is None:
             return
-        self._wait_turn()
         self._writer.flush()
         self._file.sync(self.fsync)
         self.stats.bytes_written = sum(_size(p) for p in self.stats.files[:-1]) + self._file.pos
@@ -549,10 +526,8 @@ class McapRecorder:
         seq0 = self._sequence[cid]
         add = self._writer.add_message
         log_list = log_ns.tolist()
-        for start in range(0, len(rec), TURN_MESSAGES):
-            self._wait_turn()
-            for i in range(start, min(start + TURN_MESSAGES, len(rec))):
-                add(cid, log_list[i], payload[i].data, log_list[i], seq0 + i)
+        for i, row in enumerate(payload):
+            add(cid, log_list[i], row.data, log_list[i], seq0 + i)
         self._sequence[cid] = seq0 + len(rec)
         self.stats.messages += len(rec)
 

@@ -173,8 +173,7 @@ def _open(config: AcquisitionConfig, note: str | None):
         acq.open()
         if config.out:
             recorder = McapRecorder(config.out, config.spec, config=getattr(acq, "config", None),
-                                    rate_hz=config.record_rate_hz, software=config.software,
-                                    between_polls=getattr(acq, "between_polls", None))
+                                    rate_hz=config.record_rate_hz, software=config.software)
             sink = RecorderSink(recorder, acq)
             if note:
                 sink.note("warn", note, {"event": "acquisition_restart"})

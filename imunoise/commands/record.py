@@ -111,8 +111,7 @@ def _open(args: argparse.Namespace, out: Path, rotate_s: float | None) -> tuple[
     try:
         rec = McapRecorder(args.out, args.device, config=config, software=SOFTWARE,
                            scales=scales_from_config(config),
-                           rate_hz=getattr(acq, "rate_hz", None) or args.rate, rotate_s=rotate_s,
-                           between_polls=getattr(acq, "between_polls", None))
+                           rate_hz=getattr(acq, "rate_hz", None) or args.rate, rotate_s=rotate_s)
     except OSError as exc:
         acq.close()
         raise RuntimeFailure(f"record: cannot write to {out}: {exc.strerror or exc}") from exc

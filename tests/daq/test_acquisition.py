@@ -21,7 +21,6 @@ from daq.drivers import adis16350 as adis
 from daq.drivers import adxl345 as ax
 from daq.drivers import itg3200 as itg
 from daq.drivers.common import StreamBuffer
-from daq.errors import TransientDeviceError
 from daq.sim.signals import white_source
 from tests.daq_testing import expected_variance, record, white_level_interval
 
@@ -257,24 +256,3 @@ def test_razor_at_the_highest_gyro_rate_its_shared_bus_carries_loses_nothing():
     took = np.array([d for d, _ in drains])
     assert took.max() < 0.5e-3 + 0.3e-3  # the budget plus one entry's transfer (bus time)
     assert acq.driver.itg.stale_reads < 0.05 * len(gyro["t"])
-
-
-def test_between_polls_is_clear_exactly_while_the_driver_polls():
-    clock = VirtualClock(start=1000.0)
-    driver = CountingDriver(clock, 0.01)
-    acq = Acquisition(driver, clock=clock)
-    seen: list[bool] = []
-    poll = driver.poll
-
-    def watched_poll():
-        seen.append(acq.between_polls.is_set())
-        if len(seen) == 5:
-            raise TransientDeviceError("unplugged")  # the event is set again after it
-        return poll()
-
-    driver.poll = watched_poll
-    assert acq.between_polls.is_set()
-    for _ in acq.blocks(0.2):
-        assert acq.between_polls.is_set()
-    assert len(seen) >= 15 and not any(seen)
-    assert acq.between_polls.is_set()

@@ -1,4 +1,3 @@
-import math
 import time
 
 import numpy as np
@@ -141,62 +140,3 @@ def test_two_chip_board_records_one_topic_per_stream(tmp_path):
     assert np.array_equal(r.channels["/razor/adxl345/imu:accel_y"].values,
                           np.concatenate([b.channels["accel_y"] for b in accel]))
     assert rec.stats.samples == 400
-
-
-class _PollGate:
-    """Stands in for ``Acquisition.between_polls``: counts the writer's waits; ``hold`` makes
-    the first wait last until :meth:`release` (a poll that runs long)."""
-
-    def __init__(self, hold: bool = False) -> None:
-        import threading
-
-        self.waits: list[tuple[float, str]] = []
-        self._held = threading.Event()
-        self._go = threading.Event()
-        if not hold:
-            self._go.set()
-
-    def wait(self, timeout: float) -> bool:
-        import threading
-
-        self.waits.append((timeout, threading.current_thread().name))
-        self._held.set()
-        self._go.wait()
-        return True
-
-    def release(self) -> None:
-        self._go.set()
-
-
-def test_the_writer_thread_waits_for_each_poll_but_never_at_the_recording_s_cost(tmp_path):
-    from daq import recorder as r
-
-    blocks = make_blocks(40, 100)
-    gate = _PollGate(hold=True)
-    rec = McapRecorder(tmp_path, "sim:adis16350", config={"model": "ADIS16350"},
-                       fsync=False, rotate_s=None, between_polls=gate)
-    rec.write(blocks[0])
-    assert gate._held.wait(5.0)  # the writer waits for the "poll" before its first slice
-    for b in blocks[1:]:
-        rec.write(b)  # never waits itself: it only queues
-    assert len(gate.waits) == 1 and rec._queue.qsize() == 39
-    gate.release()
-    rec.close()
-    assert rec.error is None
-    waits = [w for w in gate.waits if w[1].startswith("recorder-")]
-    assert len(waits) == len(gate.waits) and {w[0] for w in waits} == {r.TURN_WAIT_S}
-    # An Imu and a Temperature message per sample, TURN_MESSAGES per slice, a wait before
-    # each slice and each flush; none while TURN_BACKLOG_BLOCKS or more blocks are queued, so
-    # only about the last 16 of the 40 blocks waited.
-    per_block = 2 * math.ceil(100 / r.TURN_MESSAGES)
-    assert per_block * (r.TURN_BACKLOG_BLOCKS - 1) <= len(waits) \
-        <= per_block * (r.TURN_BACKLOG_BLOCKS + 1) + 10
-    assert rec.stats.samples == 4000
-    assert sum(len(b) for b in iter_blocks(next(tmp_path.glob("*.mcap")))
-               if b.stream.endswith("/imu")) == 4000
-
-
-def test_a_recorder_without_a_poll_gate_or_thread_never_waits(tmp_path):
-    gate = _PollGate()
-    rec = record_blocks(tmp_path, make_blocks(3, 50), between_polls=gate)  # unthreaded
-    assert gate.waits == [] and rec.stats.samples == 150
