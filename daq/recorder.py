@@ -32,10 +32,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
-from mcap.writer import CompressionType, IndexType, Writer
 
 from core.blocks import SampleBlock
 from daq import ros2_msgs as msgs
+from daq.mcap_writer import McapBlockWriter
 
 SOFTWARE = "imunoise"
 GYRO = ("gyro_x", "gyro_y", "gyro_z")
@@ -186,7 +186,7 @@ class McapRecorder:
         self._opener = file_opener
         self.stats = RecorderStats()
         self.error: str | None = None
-        self._writer: Writer | None = None
+        self._writer: McapBlockWriter | None = None
         self._file: SyncedFile | None = None
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
@@ -336,9 +336,7 @@ class McapRecorder:
     def _open_file(self, wall: float, block: SampleBlock | None) -> None:
         path = self._file_path(wall)
         self._file = self._opener(path)
-        self._writer = Writer(self._file, chunk_size=self.chunk_size,
-                              compression=CompressionType.ZSTD,
-                              index_types=IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA)
+        self._writer = McapBlockWriter(self._file, chunk_size=self.chunk_size)
         self._writer.start(profile=msgs.PROFILE, library=self.software)
         self._channels.clear()
         self._schemas.clear()
@@ -524,10 +522,7 @@ class McapRecorder:
         assert self._writer is not None
         payload = rec.view(np.uint8).reshape(len(rec), rec.dtype.itemsize)
         seq0 = self._sequence[cid]
-        add = self._writer.add_message
-        log_list = log_ns.tolist()
-        for i, row in enumerate(payload):
-            add(cid, log_list[i], row.data, log_list[i], seq0 + i)
+        self._writer.add_messages(cid, log_ns, payload, seq0)
         self._sequence[cid] = seq0 + len(rec)
         self.stats.messages += len(rec)
 

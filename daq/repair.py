@@ -17,25 +17,22 @@ import mmap
 import os
 import shutil
 import struct
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 from mcap.data_stream import RecordBuilder
-from mcap.opcode import Opcode
 from mcap.records import (
     Channel,
     ChunkIndex,
     DataEnd,
-    Footer,
     MessageIndex,
     MetadataIndex,
     Schema,
     Statistics,
-    SummaryOffset,
 )
 
 from daq import mcap_layout as ml
+from daq.mcap_writer import summary_bytes
 
 
 @dataclass
@@ -67,49 +64,31 @@ def _message_counts(buf, layout: ml.McapLayout) -> tuple[dict[int, int], list[di
 
 def _summary(buf, layout: ml.McapLayout, summary_start: int) -> bytes:
     totals, _ = _message_counts(buf, layout)
-    chunks = [c for c in layout.chunks]
-    builder = RecordBuilder()
-    offsets: list[SummaryOffset] = []
-
-    def group(opcode: int, records: list) -> None:
-        start = builder.count
-        for r in records:
-            r.write(builder)
-        offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
-                                     group_length=builder.count - start))
-
-    group(Opcode.SCHEMA, [Schema(id=s.id, name=s.name, encoding=s.encoding, data=s.data)
-                          for s in sorted(layout.schemas.values(), key=lambda s: s.id)])
-    group(Opcode.CHANNEL, [Channel(id=c.id, schema_id=c.schema_id, topic=c.topic,
-                                   message_encoding=c.message_encoding, metadata=c.metadata)
-                           for c in sorted(layout.channels.values(), key=lambda c: c.id)])
-    t0 = min((c.message_start_time for c in chunks), default=0)
-    t1 = max((c.message_end_time for c in chunks), default=0)
-    group(Opcode.STATISTICS, [Statistics(
+    chunks = layout.chunks
+    statistics = Statistics(
         attachment_count=0, channel_count=len(layout.channels),
         channel_message_counts=totals, chunk_count=len(chunks),
-        message_count=sum(totals.values()), message_start_time=t0, message_end_time=t1,
-        metadata_count=len(layout.metadata), schema_count=len(layout.schemas))])
-    group(Opcode.CHUNK_INDEX, [ChunkIndex(
-        message_start_time=c.message_start_time, message_end_time=c.message_end_time,
-        chunk_start_offset=c.start, chunk_length=c.end - c.start,
-        message_index_offsets={cid: pos - 6 - ml.RECORD_PREFIX
-                               for cid, (pos, _n) in c.mi.items()},
-        message_index_length=c.mi_end - c.end, compression=c.compression,
-        compressed_size=c.data_length, uncompressed_size=c.uncompressed_size)
-        for c in chunks])
-    group(Opcode.METADATA_INDEX, [MetadataIndex(offset=m.offset, length=m.length, name=m.name)
-                                  for m in layout.metadata])
-    offset_start = summary_start + builder.count
-    for o in offsets:
-        o.write(builder)
-    data = builder.end()
-    crc = zlib.crc32(data)
-    crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, offset_start), crc)
-    tail = RecordBuilder()
-    Footer(summary_start=summary_start, summary_offset_start=offset_start,
-           summary_crc=crc).write(tail)
-    return data + tail.end() + ml.MAGIC
+        message_count=sum(totals.values()),
+        message_start_time=min((c.message_start_time for c in chunks), default=0),
+        message_end_time=max((c.message_end_time for c in chunks), default=0),
+        metadata_count=len(layout.metadata), schema_count=len(layout.schemas))
+    return summary_bytes(
+        summary_start,
+        [Schema(id=s.id, name=s.name, encoding=s.encoding, data=s.data)
+         for s in sorted(layout.schemas.values(), key=lambda s: s.id)],
+        [Channel(id=c.id, schema_id=c.schema_id, topic=c.topic,
+                 message_encoding=c.message_encoding, metadata=c.metadata)
+         for c in sorted(layout.channels.values(), key=lambda c: c.id)],
+        statistics,
+        [ChunkIndex(message_start_time=c.message_start_time,
+                    message_end_time=c.message_end_time, chunk_start_offset=c.start,
+                    chunk_length=c.end - c.start,
+                    message_index_offsets={cid: pos - 6 - ml.RECORD_PREFIX
+                                           for cid, (pos, _n) in c.mi.items()},
+                    message_index_length=c.mi_end - c.end, compression=c.compression,
+                    compressed_size=c.data_length, uncompressed_size=c.uncompressed_size)
+         for c in chunks],
+        [MetadataIndex(offset=m.offset, length=m.length, name=m.name) for m in layout.metadata])
 
 
 def _only_message_indexes(buf, start: int, end: int) -> bool:
