@@ -154,6 +154,12 @@ class Acquisition:
     # -- the loop --------------------------------------------------------------------------
     def blocks(self, duration_s: float | None = None) -> Iterator[SampleBlock]:
         """Sample blocks until ``duration_s`` of device time has passed, or :meth:`stop`."""
+        for batch in self.batches(duration_s):
+            yield from batch
+
+    def batches(self, duration_s: float | None = None) -> Iterator[list[SampleBlock]]:
+        """:meth:`blocks`, those handed out together (every ``block_s``) as one list (never
+        empty), so that a consumer can do its most urgent work with all of them first."""
         self.open()
         clock = self.clock
         period = self.driver.poll_period_s
@@ -209,15 +215,17 @@ class Acquisition:
         self.stats.jitter_s = math.sqrt(self._late_sq / self._late_n)
         self.stats.max_late_s = max(self.stats.max_late_s, late)
 
-    def _flush(self) -> Iterator[SampleBlock]:
-        for block in self.driver.take_blocks():
+    def _flush(self) -> Iterator[list[SampleBlock]]:
+        batch = self.driver.take_blocks()
+        for block in batch:
             if block.stream.endswith("/imu"):
                 self.stats.samples += len(block)
                 if block.gap_before > 0:
                     self.stats.dropped += block.gap_before
                     self.stats.gaps += 1
-            yield block
         self._update_drift()
+        if batch:
+            yield list(batch)
 
     def _update_drift(self) -> None:
         drift = self.driver.streams[0].drift_ppm()

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -64,15 +64,13 @@ def _message_dtype(payload_size: int) -> np.dtype:
 class _OpenChunk:
     """The records of the chunk being built, and where each channel's messages lie in it."""
 
-    parts: list[bytes]
+    parts: list[bytes] = field(default_factory=list)
     size: int = 0
     messages: int = 0
     start_time: int = 0
     end_time: int = 0
-
-    def __post_init__(self) -> None:
-        # channel id -> (log time, offset in the chunk) arrays, in order of first message
-        self.index: dict[int, list[np.ndarray]] = {}
+    # channel id -> (log time, offset in the chunk) pairs, channels in order of first message
+    index: dict[int, list[np.ndarray]] = field(default_factory=dict)
 
     def add(self, data: bytes) -> int:
         offset = self.size
@@ -132,7 +130,7 @@ class McapBlockWriter:
         self._stream = stream
         self._chunk_size = chunk_size
         self._compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
-        self._chunk = _OpenChunk(parts=[])
+        self._chunk = _OpenChunk()
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
         self._chunk_indexes: list[ChunkIndex] = []
@@ -196,8 +194,7 @@ class McapBlockWriter:
             first_sequence: sequence number of the first message; the rest count up by one.
         """
         n = len(payloads)
-        size = payloads.shape[1] if payloads.ndim == 2 else 0
-        record_size = RECORD_PREFIX + MESSAGE_FIELDS + size
+        record_size = RECORD_PREFIX + MESSAGE_FIELDS + payloads.shape[1]
         start = 0
         while start < n:
             # As mcap's Writer: the chunk closes right after the message that takes it past
@@ -299,7 +296,7 @@ class McapBlockWriter:
             message_index_offsets=index_offsets, message_index_length=pos - index_start,
             compression=COMPRESSION, compressed_size=len(compressed),
             uncompressed_size=len(data)))
-        self._chunk = _OpenChunk(parts=[])
+        self._chunk = _OpenChunk()
 
     def _write_records(self, record: object, *, magic: bool = False) -> None:
         data = _record_bytes(record)

@@ -215,15 +215,24 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
     next_status = time.monotonic() + STATUS_EVERY_S
     error = None
     try:
-        for block in acq.blocks():
+        for batch in acq.batches():
             truth.first_block()
-            if sink is not None:
-                sink.write(block)
-            ring.put(block, len(block))
-            now = time.monotonic()
-            if now >= next_status:
-                ring.publish_status(_status(acq, recorder, priority, simulator=truth.status()))
-                next_status = now + STATUS_EVERY_S
+            # The recorder's writer thread wakes on sink.write and then shares the interpreter
+            # with the polls; the hand-over and the status go first, while it is still idle,
+            # so that the work squeezed between two polls is shortest (at 1 kHz in-process,
+            # 26-65 samples missed in 25 s this way against 85-140 the other way round).
+            try:
+                for block in batch:
+                    ring.put(block, len(block))
+                now = time.monotonic()
+                if now >= next_status:
+                    ring.publish_status(_status(acq, recorder, priority,
+                                                simulator=truth.status()))
+                    next_status = now + STATUS_EVERY_S
+            finally:
+                if sink is not None:
+                    for block in batch:
+                        sink.write(block)
             if stop.is_set():
                 break
     except Exception as exc:  # noqa: BLE001

@@ -161,6 +161,30 @@ def test_blocks_carry_si_values_raw_counts_and_config():
     assert all(isinstance(v, str) for v in cfg.values())
 
 
+def test_batches_hand_out_each_flush_together_and_blocks_are_their_concatenation():
+    def run(method):
+        acq = open_device("sim:razor", rate_hz=100, realtime=False, seed=3)
+        with acq:
+            return list(getattr(acq, method)(1.0)), acq.stats.samples
+
+    batches, n_batched = run("batches")
+    blocks, n_blocks = run("blocks")
+    assert batches and all(batches)  # never an empty batch
+    # one batch per 0.1 s of device time, each with the gyro's block and at most one block of
+    # each other stream (the accelerometer's FIFO and the temperature are read less often)
+    assert len(batches) in (10, 11)
+    for batch in batches:
+        streams = [b.stream for b in batch]
+        assert "/razor/itg3200/imu" in streams and len(set(streams)) == len(streams)
+    assert sum(len(batch) for batch in batches) >= 2 * len(batches)
+    flat = [b for batch in batches for b in batch]
+    assert [(b.stream, len(b)) for b in flat] == [(b.stream, len(b)) for b in blocks]
+    t0_a, t0_b = flat[0].t[0], blocks[0].t[0]  # each run's clock starts at its opening
+    assert all(np.allclose(a.t - t0_a, b.t - t0_b, atol=1e-9)
+               for a, b in zip(flat, blocks, strict=True))
+    assert n_batched == n_blocks == sum(len(b) for b in flat if b.stream.endswith("/imu"))
+
+
 # -- 60 s recordings: measured white noise vs the simulator's configuration ----------------
 def _check_white(x, density, fs, lsb):
     est, lo, hi = white_level_interval(x)
