@@ -220,7 +220,7 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
             # The recorder's writer thread wakes on sink.write and then shares the interpreter
             # with the polls; the hand-over and the status go first, while it is still idle,
             # so that the work squeezed between two polls is shortest (at 1 kHz in-process,
-            # 26-65 samples missed in 25 s this way against 85-140 the other way round).
+            # 26-73 samples missed in 25 s this way against 85-140 the other way round).
             try:
                 for block in batch:
                     ring.put(block, len(block))
