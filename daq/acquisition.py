@@ -225,7 +225,7 @@ class Acquisition:
                     self.stats.gaps += 1
         self._update_drift()
         if batch:
-            yield list(batch)
+            yield batch
 
     def _update_drift(self) -> None:
         drift = self.driver.streams[0].drift_ppm()

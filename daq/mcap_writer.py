@@ -37,12 +37,11 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.writer import MCAP0_MAGIC
+
+from daq.mcap_layout import MAGIC, MESSAGE_HEADER, RECORD_PREFIX
 
 COMPRESSION = "zstd"
 ZSTD_LEVEL = 3  # the level zstandard.compress, and so mcap's Writer, uses
-RECORD_PREFIX = 9  # opcode u8 + record length u64
-MESSAGE_FIELDS = 22  # channel id u16, sequence u32, log time u64, publish time u64
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _INDEX_HEAD = struct.Struct("<BQHI")
 
@@ -115,7 +114,7 @@ def summary_bytes(summary_start: int, schemas: list[Schema], channels: list[Chan
     tail = RecordBuilder()
     Footer(summary_start=summary_start, summary_offset_start=offset_start,
            summary_crc=crc).write(tail)
-    return data + tail.end() + MCAP0_MAGIC
+    return data + tail.end() + MAGIC
 
 
 class McapBlockWriter:
@@ -144,7 +143,7 @@ class McapBlockWriter:
     # ---- records outside messages ------------------------------------------------------------
 
     def start(self, profile: str, library: str) -> None:
-        self._write_records(Header(profile=profile, library=library), magic=True)
+        self._stream.write(MAGIC + _record_bytes(Header(profile=profile, library=library)))
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
@@ -176,7 +175,7 @@ class McapBlockWriter:
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int,
                     sequence: int) -> None:
         """One message of any size (times in ns)."""
-        head = _MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel_id,
+        head = _MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_HEADER + len(data), channel_id,
                                   sequence, log_time, publish_time)
         self._note_messages(channel_id, np.array([log_time], dtype=np.uint64),
                             np.array([self._chunk.size], dtype=np.uint64))
@@ -194,7 +193,7 @@ class McapBlockWriter:
             first_sequence: sequence number of the first message; the rest count up by one.
         """
         n = len(payloads)
-        record_size = RECORD_PREFIX + MESSAGE_FIELDS + payloads.shape[1]
+        record_size = RECORD_PREFIX + MESSAGE_HEADER + payloads.shape[1]
         start = 0
         while start < n:
             # As mcap's Writer: the chunk closes right after the message that takes it past
@@ -214,7 +213,7 @@ class McapBlockWriter:
             dtype = self._dtypes[size] = _message_dtype(size)
         records = np.empty(n, dtype=dtype)
         records["opcode"] = Opcode.MESSAGE
-        records["length"] = MESSAGE_FIELDS + size
+        records["length"] = MESSAGE_HEADER + size
         records["channel"] = channel_id
         records["sequence"] = (first_sequence + np.arange(n, dtype=np.int64)) & 0xFFFFFFFF
         times = np.asarray(log_times, dtype=np.uint64)
@@ -250,7 +249,7 @@ class McapBlockWriter:
     def finish(self) -> None:
         """Close the open chunk and write the summary and footer (the stream stays open)."""
         self._close_chunk()
-        self._write_records(DataEnd(data_section_crc=0))
+        self._stream.write(_record_bytes(DataEnd(data_section_crc=0)))
         statistics = Statistics(
             message_count=self._messages, schema_count=len(self._schemas),
             channel_count=len(self._channels), attachment_count=0,
@@ -297,10 +296,6 @@ class McapBlockWriter:
             compression=COMPRESSION, compressed_size=len(compressed),
             uncompressed_size=len(data)))
         self._chunk = _OpenChunk()
-
-    def _write_records(self, record: object, *, magic: bool = False) -> None:
-        data = _record_bytes(record)
-        self._stream.write(MCAP0_MAGIC + data if magic else data)
 
 
 def _record_bytes(record: object) -> bytes:

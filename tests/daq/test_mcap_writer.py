@@ -18,11 +18,12 @@ def _operations(seed: int) -> list[tuple]:
     rng = np.random.default_rng(seed)
     ops: list[tuple] = [("schema", "pkg/msg/A", b"float64 x"), ("schema", "pkg/msg/B", b"int8 y"),
                         ("channel", "/dev/imu", 1), ("channel", "/dev/temperature", 2),
+                        ("channel", "/diagnostics", 1),
                         ("metadata", "device", {"rate_hz": "1000.0"})]
     t = 10**18
     seq = {1: 0, 2: 0, 3: 0}
     for step in range(60):
-        kind = rng.choice(["block", "block", "block", "single", "flush", "metadata", "channel"])
+        kind = rng.choice(["block", "block", "block", "single", "flush", "metadata"])
         if kind == "block":
             cid = int(rng.integers(1, 3))
             n = int(rng.integers(1, 400))
@@ -35,14 +36,12 @@ def _operations(seed: int) -> list[tuple]:
         elif kind == "single":
             data = rng.integers(0, 256, size=int(rng.integers(0, 900)), dtype=np.uint8).tobytes()
             t_event = t - int(rng.integers(0, 10**9))  # events may be stamped in the past
-            ops.append(("single", 3 if step > 5 else 1, t_event, data, seq[3]))
+            ops.append(("single", 3, t_event, data, seq[3]))
             seq[3] += 1
         elif kind == "flush":
             ops.append(("flush",))
-        elif kind == "metadata":
+        else:
             ops.append(("metadata", f"note{step}", {"k": str(step)}))
-        elif kind == "channel" and step == 5:
-            ops.append(("channel", "/diagnostics", 1))
     return ops
 
 
