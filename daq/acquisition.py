@@ -28,6 +28,13 @@ from daq.poll_schedule import DataReadySchedule
 
 LATE_SKIP_PERIODS = 2.0  # polls this far behind schedule re-anchor it (no burst catch-up)
 LATE_SKIP_MIN_S = 0.02
+HANDOUT_SLACK_PERIODS = 0.7
+"""Blocks are handed out right after a poll that leaves at least this many poll periods
+before the next one is due, so that the consumer's work (the hand-over to the analysis, the
+recorder's thread waking) falls where it delays no poll; a hand-out waits at most one more
+``block_s`` for such a poll. The simulated ADIS16350 leaves that much after 96 % of its polls,
+the 1 kHz razor (gyro read and accelerometer drain) after 30 %; in-process at 1 kHz with the
+recorder, 17-28 samples missed in 25 s this way against 24-109 handing out at any poll."""
 
 
 class Driver(Protocol):
@@ -201,12 +208,22 @@ class Acquisition:
             if schedule is not None:
                 schedule.after_poll(now, clock.now(),
                                     bool(getattr(self.driver, "found_new_sample", found > 0)))
-            if now >= next_flush:
+            if now >= next_flush and (now >= next_flush + self.block_s
+                                      or self._slack_periods(schedule, t_start, k, period)
+                                      >= HANDOUT_SLACK_PERIODS):
                 yield from self._flush()
                 next_flush = max(next_flush + self.block_s, now)
         yield from self._flush()
         if self.stats.state == "running":
             self.stats.state = "stopped"
+
+    def _slack_periods(self, schedule: DataReadySchedule | None, t_start: float, k: int,
+                       period: float) -> float:
+        """Time from now to the next poll, in poll periods."""
+        now = self.clock.now()
+        if schedule is not None:
+            return (schedule.due - now) / schedule.period_s
+        return (t_start + k * period - now) / period if period > 0 else math.inf
 
     def _note_late(self, late: float) -> None:
         late = max(0.0, late)

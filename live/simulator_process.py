@@ -72,12 +72,15 @@ class SimulatorProcess:
     def start(self, timeout_s: float = START_TIMEOUT_S) -> str:
         """Start the simulator; the path of its serial port."""
         recv, send = self._ctx.Pipe(duplex=False)
-        self._proc = self._ctx.Process(
+        proc = self._ctx.Process(
             target=_simulator_main, name="imunoise-simulator",
             args=(self.rate_hz, self.seed, send, self._stop, os.getpid(), self.priority,
                   self._never_read))
-        self._proc.start()
-        send.close()
+        try:
+            proc.start()
+        finally:
+            send.close()
+        self._proc = proc  # only a started process: stop() joins it
         if not recv.poll(timeout_s):
             self.stop()
             raise OSError(f"the simulator process did not start within {timeout_s:g} s")

@@ -14,6 +14,7 @@ import pytest
 from analysis.allan import oadev
 from core.blocks import SampleBlock
 from core.units import DEG, G0
+from daq import acquisition as daq_acquisition
 from daq.acquisition import Acquisition
 from daq.clock import RealClock, VirtualClock
 from daq.devices import DEVICES, open_device
@@ -84,6 +85,53 @@ def test_pacing_is_by_count_not_accumulated_sleeps():
     accumulated = t[0] + np.cumsum(np.full(len(t) - 1, period))
     assert abs(accumulated[-1] - (t[0] + (len(t) - 1) * period)) > 1e-8  # what sums would do
     assert acq.stats.jitter_s == 0.0 and acq.stats.samples == 86400
+
+
+class SlowPollDriver(CountingDriver):
+    """A CountingDriver whose polls take virtual time: ``durations`` (in periods), cycled."""
+
+    def __init__(self, clock, period, durations):
+        super().__init__(clock, period)
+        self.durations = durations
+        self.ends: list[float] = []
+
+    def poll(self):
+        n = super().poll()
+        self.clock.advance(self.durations[len(self.times) % len(self.durations)]
+                           * self.poll_period_s)
+        self.ends.append(self.clock.now())
+        return n
+
+
+def _handouts(durations, block_s=0.01, period=0.001):
+    clock = VirtualClock(start=50.0)
+    drv = SlowPollDriver(clock, period, durations)
+    acq = Acquisition(drv, clock=clock, block_s=block_s)
+    at, samples = [], 0
+    for batch in acq.batches(1.0):
+        at.append(clock.now())
+        samples += sum(len(b) for b in batch)
+    assert samples == len(drv.times)  # every sample handed out, none twice
+    # the slack each hand-out began with: time to the next poll, in periods
+    nxt = np.searchsorted(np.asarray(drv.times), np.asarray(at), side="right")
+    due = np.append(np.asarray(drv.times), np.inf)[nxt]
+    return np.asarray(at), (due - np.asarray(at)) / period, drv
+
+
+def test_blocks_are_handed_out_after_a_poll_that_leaves_time():
+    # One poll in four is long (half a period): a hand-out after it would leave the consumer
+    # half a period before the next poll, so it waits for a short one.
+    at, slack, _ = _handouts([0.1, 0.5, 0.5, 0.5])
+    assert len(at) >= 95 and np.all(slack[:-1] >= daq_acquisition.HANDOUT_SLACK_PERIODS)
+    assert np.all(np.diff(at) <= 2 * 0.01 + 1e-9)
+    # The same run handing out at the first poll past each block_s: many after a long poll.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(daq_acquisition, "HANDOUT_SLACK_PERIODS", -np.inf)
+        _, slack_any, _ = _handouts([0.1, 0.5, 0.5, 0.5])
+    assert np.mean(slack_any[:-1] < 0.7) > 0.5
+    # When no poll leaves that much, blocks still go out, at most one block_s late.
+    at, _, _ = _handouts([0.5])
+    assert len(at) >= 45 and np.all(np.diff(at) <= 2 * 0.01 + 1e-9)
 
 
 def test_real_clock_pacing_and_jitter_are_measured():

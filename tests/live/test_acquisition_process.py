@@ -247,3 +247,22 @@ def test_settled_heap_leaves_a_full_collection_little_to_walk():
         assert len(gc.get_objects(generation=2)) < 0.01 * walked_before
     finally:
         gc.unfreeze()
+
+
+def test_a_simulator_process_that_cannot_start_says_why_and_stops_cleanly(monkeypatch):
+    from live.simulator_process import SimulatorProcess
+
+    sim = SimulatorProcess(204.8)
+
+    def refuse(self):
+        raise OSError("fork refused")
+
+    monkeypatch.setattr(sim._ctx.Process, "start", refuse)
+    try:
+        sim.start()
+    except OSError as exc:
+        assert str(exc) == "fork refused"
+    else:
+        raise AssertionError("start did not fail")
+    sim.stop()  # nothing was started: nothing to join, no AssertionError
+    assert sim.pid is None
