@@ -26,7 +26,6 @@ from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import (
     Channel,
-    Chunk,
     ChunkIndex,
     DataEnd,
     Footer,
@@ -44,6 +43,10 @@ COMPRESSION = "zstd"
 ZSTD_LEVEL = 3  # the level zstandard.compress, and so mcap's Writer, uses
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _INDEX_HEAD = struct.Struct("<BQHI")
+_CHUNK_HEAD = struct.Struct("<BQQQQI")  # opcode, length, start and end time, size, crc
+_COMPRESSION_FIELD = struct.pack("<I", len(COMPRESSION)) + COMPRESSION.encode()
+_CHUNK_FIXED = _CHUNK_HEAD.size - RECORD_PREFIX + len(_COMPRESSION_FIELD) + 8
+"""Bytes of a Chunk record's body besides the compressed records."""
 
 
 class OutputStream(Protocol):
@@ -61,9 +64,15 @@ def _message_dtype(payload_size: int) -> np.dtype:
 
 @dataclass
 class _OpenChunk:
-    """The records of the chunk being built, and where each channel's messages lie in it."""
+    """The records of the chunk being built, and where each channel's messages lie in it.
 
-    parts: list[bytes] = field(default_factory=list)
+    The records are copied into ``buffer``, which the writer keeps from chunk to chunk:
+    joining the parts into a fresh buffer at every flush held the interpreter for 0.1-0.6 ms
+    (measured on a 640 kB chunk, mostly page faults) while the acquisition thread in the same
+    process waited to poll; compression and the checksum read the buffer in place.
+    """
+
+    buffer: bytearray
     size: int = 0
     messages: int = 0
     start_time: int = 0
@@ -71,10 +80,13 @@ class _OpenChunk:
     # channel id -> (log time, offset in the chunk) pairs, channels in order of first message
     index: dict[int, list[np.ndarray]] = field(default_factory=dict)
 
-    def add(self, data: bytes) -> int:
+    def add(self, data: bytes | np.ndarray) -> int:
+        """Append records (bytes, or a contiguous array's memory); their offset."""
         offset = self.size
-        self.parts.append(data)
-        self.size += len(data)
+        view = memoryview(data).cast("B")
+        self.buffer[offset:offset + view.nbytes] = view
+        self.size += view.nbytes
+        view.release()
         return offset
 
     def times(self, first: int, last: int) -> None:
@@ -129,7 +141,8 @@ class McapBlockWriter:
         self._stream = stream
         self._chunk_size = chunk_size
         self._compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
-        self._chunk = _OpenChunk()
+        self._buffer = bytearray()
+        self._chunk = _OpenChunk(self._buffer)
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
         self._chunk_indexes: list[ChunkIndex] = []
@@ -222,7 +235,7 @@ class McapBlockWriter:
         records["data"] = payloads
         offsets = self._chunk.size + dtype.itemsize * np.arange(n, dtype=np.uint64)
         self._note_messages(channel_id, times, offsets)
-        self._chunk.add(records.tobytes())
+        self._chunk.add(records)
         self._maybe_close_chunk()
 
     def _note_messages(self, channel_id: int, times: np.ndarray, offsets: np.ndarray) -> None:
@@ -268,34 +281,37 @@ class McapBlockWriter:
         chunk = self._chunk
         if chunk.messages == 0:
             return
-        data = b"".join(chunk.parts)
-        compressed = self._compressor.compress(data)
-        record = Chunk(compression=COMPRESSION, data=compressed,
-                       message_start_time=chunk.start_time, message_end_time=chunk.end_time,
-                       uncompressed_crc=zlib.crc32(data), uncompressed_size=len(data))
+        with memoryview(self._buffer) as whole, whole[:chunk.size] as data:
+            compressed = self._compressor.compress(data)
+            crc = zlib.crc32(data)
+        # The Chunk record as mcap's RecordBuilder lays it out, written as a header and the
+        # compressed bytes without first copying them into one record.
+        head = (_CHUNK_HEAD.pack(Opcode.CHUNK, _CHUNK_FIXED + len(compressed),
+                                 chunk.start_time, chunk.end_time, chunk.size, crc)
+                + _COMPRESSION_FIELD + struct.pack("<Q", len(compressed)))
         chunk_start = self._stream.tell()
-        chunk_bytes = _record_bytes(record)
-        self._stream.write(chunk_bytes)
+        self._stream.write(head)
+        self._stream.write(compressed)
         index_start = self._stream.tell()
         index_offsets: dict[int, int] = {}
         parts = []
         pos = index_start
         for channel_id, pieces in chunk.index.items():
             entries = np.concatenate(pieces).astype("<u8", copy=False)
-            head = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + entries.nbytes, channel_id,
-                                    entries.nbytes)
+            index_head = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + entries.nbytes, channel_id,
+                                          entries.nbytes)
             index_offsets[channel_id] = pos
-            parts.append(head)
+            parts.append(index_head)
             parts.append(entries.tobytes())
-            pos += len(head) + entries.nbytes
+            pos += len(index_head) + entries.nbytes
         self._stream.write(b"".join(parts))
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=chunk.start_time, message_end_time=chunk.end_time,
-            chunk_start_offset=chunk_start, chunk_length=len(chunk_bytes),
+            chunk_start_offset=chunk_start, chunk_length=index_start - chunk_start,
             message_index_offsets=index_offsets, message_index_length=pos - index_start,
             compression=COMPRESSION, compressed_size=len(compressed),
-            uncompressed_size=len(data)))
-        self._chunk = _OpenChunk()
+            uncompressed_size=chunk.size))
+        self._chunk = _OpenChunk(self._buffer)
 
 
 def _record_bytes(record: object) -> bytes:
