@@ -68,8 +68,8 @@ class _OpenChunk:
 
     The records are copied into ``buffer``, which the writer keeps from chunk to chunk:
     joining the parts into a fresh buffer at every flush held the interpreter for 0.1-0.6 ms
-    (measured on a 640 kB chunk, mostly page faults) while the acquisition thread in the same
-    process waited to poll; compression and the checksum read the buffer in place.
+    (measured on a 640 kB chunk) while the acquisition thread in the same process waited to
+    poll; compression and the checksum read the buffer in place.
     """
 
     buffer: bytearray

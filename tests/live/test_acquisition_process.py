@@ -15,6 +15,7 @@ import time
 import urllib.request
 from pathlib import Path
 
+import pytest
 from mcap.reader import make_reader
 
 from daq.readers.mcap import open_mcap, read_mcap
@@ -258,11 +259,7 @@ def test_a_simulator_process_that_cannot_start_says_why_and_stops_cleanly(monkey
         raise OSError("fork refused")
 
     monkeypatch.setattr(sim._ctx.Process, "start", refuse)
-    try:
+    with pytest.raises(OSError, match="^fork refused$"):
         sim.start()
-    except OSError as exc:
-        assert str(exc) == "fork refused"
-    else:
-        raise AssertionError("start did not fail")
     sim.stop()  # nothing was started: nothing to join, no AssertionError
     assert sim.pid is None
