@@ -235,7 +235,10 @@ def run_one(name: str, load: str, seconds: float) -> dict:
             [sys.executable, "-c", f"import sys; sys.path.insert(0, {str(ROOT)!r}); "
              f"import bench.serve as b; b.floor_main({rate!r}, {seconds!r})"],
             cwd=ROOT, stdout=subprocess.PIPE, text=True)
-        procs = {"serve": serve.pid, "acquisition": acq_pid, "clients": client.pid}
+        rec_pid = (health.get("recording") or {}).get("pid")
+        sim_pid = ((health.get("acquisition_process") or {}).get("simulator") or {}).get("pid")
+        procs = {"serve": serve.pid, "acquisition": acq_pid, "recorder": rec_pid,
+                 "simulator": sim_pid, "clients": client.pid}
         workers = [p for p in children(serve.pid) if p != acq_pid]
         cpu0 = {k: cpu_seconds(p) for k, p in procs.items() if p}
         steal0 = stolen_seconds()

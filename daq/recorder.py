@@ -210,25 +210,30 @@ class McapRecorder:
 
     # ---- public API -------------------------------------------------------------------------
 
-    def write(self, block: SampleBlock) -> None:
-        """Record one block (queued when threaded). Raises nothing; check :attr:`error`."""
+    def write(self, block: SampleBlock, wall: float | None = None) -> None:
+        """Record one block (queued when threaded). Raises nothing; check :attr:`error`.
+
+        ``wall``: when the block was received (seconds, the recorder's clock); default now. A
+        recorder fed from another process passes the time the block was handed to it."""
         if self.error or self._closed:
             return
+        wall = self.clock() if wall is None else wall
         if self._queue is None:
-            self._guarded(self._write_block, block, self.clock())
+            self._guarded(self._write_block, block, wall)
             return
         try:
-            self._queue.put(("block", block, self.clock()), timeout=1.0)
+            self._queue.put(("block", block, wall), timeout=1.0)
         except queue.Full:
             self.stats.blocks_dropped += 1
 
     def event(self, level: int, message: str, values: dict[str, str] | None = None,
-              t: float | None = None) -> None:
+              t: float | None = None, wall: float | None = None) -> None:
         """Record a device-status event (``ros2_msgs.OK/WARN/ERROR/STALE``) at time ``t``
-        (seconds, sample time base; default: the wall clock)."""
+        (seconds, sample time base; default: the wall clock ``wall``, default now)."""
         if self.error or self._closed:
             return
-        item = ("event", (level, message, dict(values or {}), t), self.clock())
+        item = ("event", (level, message, dict(values or {}), t),
+                self.clock() if wall is None else wall)
         if self._queue is None:
             self._guarded(self._write_event, *item[1], item[2])
         else:
@@ -245,6 +250,14 @@ class McapRecorder:
             while not done.wait(0.5) and self._thread.is_alive():
                 pass
         else:
+            self._guarded(self._flush)
+
+    def flush_if_due(self) -> None:
+        """Without a writer thread: write and fsync what is recorded once ``flush_s`` has
+        passed since the last flush (the caller's idle loop calls this; with the thread, the
+        thread does it)."""
+        if (self._queue is None and self._dirty and not self._closed
+                and self.clock() - self.stats.last_flush_wall >= self._flush_wall_s):
             self._guarded(self._flush)
 
     def close(self) -> None:

@@ -3,12 +3,13 @@
 A sensor without a FIFO (ADIS16350, ITG-3200) must be read on time; in one interpreter with
 the rolling analysis, the HTTP server and the event stream, any stall there (a long numpy
 call, JSON encoding of a curve, garbage collection) delays the reads, and samples are lost.
-So ``serve`` runs the device driver and the MCAP recorder in a child process started here,
-at the highest scheduling priority the system grants, doing nothing per sample but read,
-stamp and write. Blocks reach the analysis side through a :class:`live.block_ring.BlockRing`
-in shared memory that never makes the child wait: when the analysis side falls behind, the
-block is not handed over (a counted hand-over loss, and a gap for the analysis), while the
-recording has it.
+So ``serve`` runs the device driver in a child process started here, at the highest
+scheduling priority the system grants, doing nothing per sample but read and stamp; the MCAP
+recorder runs in a child of that one (:mod:`live.recorder_process`), so that encoding,
+compressing and fsyncing never hold up a poll. Blocks reach the analysis side through a
+:class:`live.block_ring.BlockRing` in shared memory that never makes the child wait: when the
+analysis side falls behind, the block is not handed over (a counted hand-over loss, and a gap
+for the analysis), while the recording has it.
 
 The parent's :class:`AcquisitionProcess` is the live service's source: it iterates the
 blocks from the ring, reports the child's counters (``stats``) and restarts the child when it
@@ -23,6 +24,7 @@ from __future__ import annotations
 import gc
 import multiprocessing as mp
 import os
+import pickle
 import signal
 import sys
 import threading
@@ -123,7 +125,8 @@ def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None
         "config": {str(k): str(v) for k, v in (getattr(acq, "config", {}) or {}).items()},
         "recording": None if rec is None else {
             "file": rec.file, "files": list(rec.files), "samples": rec.samples,
-            "blocks_dropped": rec.blocks_dropped,
+            "blocks_dropped": rec.blocks_dropped, "lost_samples": rec.lost_samples,
+            "pid": rec.pid, "restarts": rec.restarts,
             "error": str(getattr(recorder, "error", "") or "") or None},
         "error": error,
         "simulator": simulator,
@@ -156,7 +159,7 @@ def _open(config: AcquisitionConfig, note: str | None):
     """The device (and its simulator process), the recorder and its sink of one child."""
     from analysis.noise_stream import stream_factory
     from daq.devices import open_device
-    from daq.recorder import McapRecorder
+    from live.recorder_process import RecorderProcess
     from live.recorder_sink import RecorderSink
 
     acq = recorder = sink = simulator = None
@@ -172,12 +175,16 @@ def _open(config: AcquisitionConfig, note: str | None):
             acq = open_device(config.spec, noise=stream_factory, **config.device_kwargs)
         acq.open()
         if config.out:
-            recorder = McapRecorder(config.out, config.spec, config=getattr(acq, "config", None),
-                                    rate_hz=config.record_rate_hz, software=config.software)
+            recorder = RecorderProcess(
+                {"out_dir": config.out, "device": config.spec,
+                 "config": getattr(acq, "config", None), "rate_hz": config.record_rate_hz,
+                 "software": config.software}, config.priority).start()
             sink = RecorderSink(recorder, acq)
             if note:
                 sink.note("warn", note, {"event": "acquisition_restart"})
     except Exception:
+        if recorder is not None:
+            recorder.close()
         if acq is not None:
             acq.close()
         if simulator is not None:
@@ -217,22 +224,21 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
     try:
         for batch in acq.batches():
             truth.first_block()
-            # The recorder's writer thread wakes on sink.write and then shares the interpreter
-            # with the polls; the hand-over and the status go first, while it is still idle,
-            # so that the work squeezed between two polls is shortest (at 1 kHz in-process,
-            # 26-73 samples missed in 25 s this way against 85-140 the other way round).
-            try:
-                for block in batch:
-                    ring.put(block, len(block))
-                now = time.monotonic()
-                if now >= next_status:
-                    ring.publish_status(_status(acq, recorder, priority,
-                                                simulator=truth.status()))
-                    next_status = now + STATUS_EVERY_S
-            finally:
-                if sink is not None:
-                    for block in batch:
-                        sink.write(block)
+            # Each block is pickled once, for the analysis side's ring and the recorder's.
+            payloads = [pickle.dumps(block, protocol=pickle.HIGHEST_PROTOCOL)
+                        for block in batch]
+            if sink is not None:
+                for block, payload in zip(batch, payloads, strict=True):
+                    sink.write(block, payload)
+            for block, payload in zip(batch, payloads, strict=True):
+                ring.put_bytes(payload, len(block), str(block.stream))
+            now = time.monotonic()
+            if now >= next_status:
+                if recorder is not None:
+                    recorder.check()
+                ring.publish_status(_status(acq, recorder, priority,
+                                            simulator=truth.status()))
+                next_status = now + STATUS_EVERY_S
             if stop.is_set():
                 break
     except Exception as exc:  # noqa: BLE001
@@ -244,7 +250,8 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
             sink.note("ok", "acquisition ended", {
                 "event": "losses", "device_dropped": str(counts.get("dropped", 0)),
                 "device_gaps": str(counts.get("gaps", 0)),
-                "handover_lost": str(ring.lost_samples)})
+                "handover_lost": str(ring.lost_samples),
+                "recording_lost": str(recorder.stats.lost_samples)})
             sink.close()
         if simulator is not None:
             simulator.stop()

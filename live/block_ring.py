@@ -211,9 +211,10 @@ class BlockRing:
         except BufferError:  # a view still exported: the mapping goes with the process
             pass
 
-    def unlink(self) -> None:
-        """Remove the segment (owner only); attached processes keep their mapping."""
-        if self.owner:
+    def unlink(self, *, orphaned: bool = False) -> None:
+        """Remove the segment (owner only, or with ``orphaned`` when its owner has died);
+        attached processes keep their mapping."""
+        if self.owner or orphaned:
             try:
                 self._shm.unlink()
             except FileNotFoundError:

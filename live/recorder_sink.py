@@ -7,10 +7,11 @@ from typing import Any
 
 
 class RecorderSink:
-    """Feeds an :class:`daq.recorder.McapRecorder` and records device state changes.
+    """Feeds a recorder and records device state changes.
 
     Args:
-        recorder: the open recorder.
+        recorder: the open recorder: a :class:`daq.recorder.McapRecorder`, or in the
+            acquisition process a :class:`live.recorder_process.RecorderProcess`.
         acquisition: the source whose ``stats`` (``state``, ``reconnects``, ``last_error``)
             are watched; any object (its missing attributes read as empty).
     """
@@ -21,8 +22,13 @@ class RecorderSink:
         self._state: str | None = None
         self._reconnects = 0
 
-    def write(self, block: Any) -> None:
-        self.recorder.write(block)
+    def write(self, block: Any, payload: bytes | None = None) -> None:
+        """Record a block; ``payload``: the block already pickled, for a recorder in another
+        process (:class:`live.recorder_process.RecorderProcess`), which then sends it as is."""
+        if payload is None:
+            self.recorder.write(block)
+        else:
+            self.recorder.write(block, payload)
         stats = getattr(self.acquisition, "stats", None)
         state = str(getattr(stats, "state", ""))
         reconnects = int(getattr(stats, "reconnects", 0) or 0)

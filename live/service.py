@@ -290,12 +290,13 @@ class LiveService:
         rec_stats = stats.pop("recording", None)
         losses = {"device": counts["dropped"],
                   "handover": int(stats.get("handover_lost_samples", 0) or 0),
-                  "analysis": counts["not_analysed"]}
+                  "analysis": counts["not_analysed"],
+                  "recording": int((rec_stats or {}).get("lost_samples") or 0)}
         recording: dict[str, Any] = {"file": self.current_file(), "sink_errors": self.sink_errors}
         if rec_stats:
-            recording.update(samples=rec_stats.get("samples"), files=rec_stats.get("files"),
-                             blocks_dropped=rec_stats.get("blocks_dropped"),
-                             error=rec_stats.get("error"))
+            recording.update({k: rec_stats.get(k) for k in (
+                "samples", "files", "blocks_dropped", "lost_samples", "pid", "restarts",
+                "error")})
         status = "ok" if self.error is None else "degraded"
         if process is not None and not process.get("alive") and self.running:
             status = "degraded"
