@@ -42,9 +42,11 @@ QUICK_DEATH_S = 10.0
 """A child that ends sooner than this after starting is restarted after a pause."""
 MAX_RESTART_PAUSE_S = 30.0
 GIL_SWITCH_S = 0.0001
-"""The interpreter's thread switch interval in the acquisition and simulator processes (the
-default 5 ms lets the recorder's writer thread hold up a poll by a whole ADIS16350 period at
-204.8 Hz; at 0.5 ms a 1 kHz ITG-3200 still lost 0.2 % of its samples, at 0.1 ms 0.06 %)."""
+"""The interpreter's thread switch interval in the acquisition and simulator processes. With
+the recorder's writer thread in the acquisition process, the default 5 ms let it hold up a
+poll by a whole ADIS16350 period at 204.8 Hz; at 0.5 ms a 1 kHz ITG-3200 still lost 0.2 % of
+its samples, at 0.1 ms 0.06 %. The recorder now has a process of its own; the simulator's
+emulated bridge still runs threads."""
 
 
 def settle_heap() -> None:
