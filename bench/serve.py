@@ -15,11 +15,12 @@ polled part would lose to its late wake-ups alone are what no acquisition code o
 machine, at that moment, can avoid. Then stops serve with SIGTERM and reads the recording
 back. Prints per run: samples expected
 (from the recording's first and last stamps at the device rate), recorded, lost at each stage
-(device: missing in the file; hand-over and analysis: from ``/health``; for the ADIS16350 also
+(missing in the file: lost at the device, or by the recorder's ring, which ``/health`` counts
+under ``recording``; hand-over and analysis: from ``/health``; for the ADIS16350 also
 the simulator process's own count of samples it made that were never read, the truth against
 which the driver's estimate from the host clock is checked), and the CPU used by
-each process (serve's HTTP/analysis side, the acquisition process, the fit worker, the
-clients, the hogs) as a percentage of one core, and on a virtual machine the CPU time the host
+each process (serve's HTTP/analysis side, the acquisition process, the recorder process, the
+ADIS16350's simulator process, the fit worker, the clients, the hogs) as a percentage of one core, and on a virtual machine the CPU time the host
 took from it during the run (steal), which no priority inside the machine can prevent.
 
 Configurations: ``adis204`` is the ADIS16350 at 204.8 Hz (the highest rate a Bus Pirate link
@@ -281,11 +282,11 @@ def report(r: dict) -> None:
           + (f" (refused: {prio['refused']})" if prio.get("refused") else ""))
     for topic, s in r["streams"].items():
         print(f"{'':17}{topic:24} expected {s['expected']:9.0f}  recorded {s['recorded']:9.0f}"
-              f"  lost at the device {s['missing']:6.0f}")
+              f"  missing in the file {s['missing']:6.0f}")
     lo = r["losses"]
     print(f"{'':17}losses from /health: device {lo.get('device')}, hand-over "
-          f"{lo.get('handover')}, analysis {lo.get('analysis')}; restarts "
-          f"{pr.get('restarts')}")
+          f"{lo.get('handover')}, analysis {lo.get('analysis')}, recording "
+          f"{lo.get('recording')}; restarts {pr.get('restarts')}")
     sim = pr.get("simulator") or {}
     if sim.get("samples_never_read") is not None:
         print(f"{'':17}the simulator's own count at the same /health read: "
@@ -333,6 +334,7 @@ def main() -> None:
             sys.stdout.flush()
     lost = sum(s["missing"] for r in results if r["load"] == "idle"
                for s in r["streams"].values())
+    # A sample the recorder's ring could not take is missing in the file too (a marked gap).
     lost += sum(int(r["losses"].get("handover", 0) or 0) + int(r["losses"].get("analysis", 0)
                                                                or 0)
                 for r in results if r["load"] == "idle")
