@@ -13,15 +13,15 @@ Beside serve runs the platform's floor: a bare loop at the acquisition process's
 that wakes once per device period and does nothing else (``floor_main``); the samples a
 polled part would lose to its late wake-ups alone are what no acquisition code on this
 machine, at that moment, can avoid. Then stops serve with SIGTERM and reads the recording
-back. Prints per run: samples expected
-(from the recording's first and last stamps at the device rate), recorded, lost at each stage
-(missing in the file: lost at the device, or by the recorder's ring, which ``/health`` counts
-under ``recording``; hand-over and analysis: from ``/health``; for the ADIS16350 also
-the simulator process's own count of samples it made that were never read, the truth against
-which the driver's estimate from the host clock is checked), and the CPU used by
-each process (serve's HTTP/analysis side, the acquisition process, the recorder process, the
-ADIS16350's simulator process, the fit worker, the clients, the hogs) as a percentage of one core, and on a virtual machine the CPU time the host
-took from it during the run (steal), which no priority inside the machine can prevent.
+back. Prints per run: samples expected (from the recording's first and last stamps at the
+device rate), recorded, lost at each stage (missing in the file: lost at the device, or by the
+recorder's ring, which ``/health`` counts under ``recording``; hand-over and analysis: from
+``/health``; for the ADIS16350 also the simulator process's own count of samples it made that
+were never read, the truth against which the driver's estimate from the host clock is
+checked), and the CPU used by each process (serve's HTTP/analysis side, the acquisition
+process, the recorder process, the ADIS16350's simulator process, the fit worker, the
+clients, the hogs) as a percentage of one core, and on a virtual machine the CPU time the
+host took from it during the run (steal), which no priority inside the machine can prevent.
 
 Configurations: ``adis204`` is the ADIS16350 at 204.8 Hz (the highest rate a Bus Pirate link
 carries, docs/devices.md); ``razorN`` the ITG-3200 + ADXL345 on one simulated 400 kHz bus with

@@ -128,7 +128,7 @@ def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None
         "recording": None if rec is None else {
             "file": rec.file, "files": list(rec.files), "samples": rec.samples,
             "blocks_dropped": rec.blocks_dropped, "lost_samples": rec.lost_samples,
-            "pid": rec.pid, "restarts": rec.restarts,
+            "pid": rec.pid, "restarts": rec.restarts, "backlog_bytes": rec.backlog_bytes,
             "error": str(getattr(recorder, "error", "") or "") or None},
         "error": error,
         "simulator": simulator,

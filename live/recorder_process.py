@@ -81,6 +81,10 @@ def _recorder_main(feed_name: str, back_name: str, recorder_args: dict[str, Any]
     orphaned = False
     try:
         while True:
+            now = time.monotonic()
+            if now >= next_status:  # also while catching up, so that a lag shows
+                publish("recording")
+                next_status = now + STATUS_EVERY_S
             got = feed.get_bytes()
             if got is None:
                 if orphaned:
@@ -89,10 +93,6 @@ def _recorder_main(feed_name: str, back_name: str, recorder_args: dict[str, Any]
                     orphaned = True
                     continue  # one more pass: anything put before the acquisition died
                 recorder.flush_if_due()
-                now = time.monotonic()
-                if now >= next_status:
-                    publish("recording")
-                    next_status = now + STATUS_EVERY_S
                 time.sleep(IDLE_SLEEP_S)
                 continue
             record, lost = got
@@ -250,7 +250,8 @@ class RecorderProcess:
     def stats(self) -> SimpleNamespace:
         """``file``, ``files`` and ``samples`` (of every recorder process so far),
         ``blocks_dropped`` (the recorder's own and those the feed could not take),
-        ``lost_samples`` (samples the feed could not take), ``restarts``, ``pid``."""
+        ``lost_samples`` (samples the feed could not take), ``restarts``, ``pid``,
+        ``backlog_bytes`` (handed over and not yet read by the recorder)."""
         st = self._status()
         self._remember_files(st)
         lost_samples, lost_blocks = self._lost()
@@ -258,7 +259,8 @@ class RecorderProcess:
             file=st.get("file") or "", files=list(self._files),
             samples=self._samples_before + int(st.get("samples") or 0),
             blocks_dropped=int(st.get("blocks_dropped") or 0) + lost_blocks,
-            lost_samples=lost_samples, restarts=self.restarts, pid=st.get("pid"))
+            lost_samples=lost_samples, restarts=self.restarts, pid=st.get("pid"),
+            backlog_bytes=0 if self._final is not None else self.feed.used_bytes)
 
     @property
     def error(self) -> str | None:

@@ -295,8 +295,8 @@ class LiveService:
         recording: dict[str, Any] = {"file": self.current_file(), "sink_errors": self.sink_errors}
         if rec_stats:
             recording.update({k: rec_stats.get(k) for k in (
-                "samples", "files", "blocks_dropped", "lost_samples", "pid", "restarts",
-                "error")})
+                "samples", "files", "blocks_dropped", "lost_samples", "backlog_bytes", "pid",
+                "restarts", "error")})
         status = "ok" if self.error is None else "degraded"
         if process is not None and not process.get("alive") and self.running:
             status = "degraded"

@@ -67,9 +67,10 @@ def test_a_stalled_recorder_loses_nothing_the_feed_holds_and_marks_the_rest_as_a
         try:
             for b in blocks[:70]:
                 rec.write(b)
+            assert rec.stats.backlog_bytes > 0  # /health shows the recorder lagging
         finally:
             os.kill(rec.pid, signal.SIGCONT)
-        _wait(lambda r=rec: r.feed.used_bytes == 0)
+        _wait(lambda r=rec: r.stats.backlog_bytes == 0)
         for b in blocks[70:]:
             rec.write(b)
         rec.close()
