@@ -30,13 +30,14 @@ LATE_SKIP_PERIODS = 2.0  # polls this far behind schedule re-anchor it (no burst
 LATE_SKIP_MIN_S = 0.02
 HANDOUT_SLACK_PERIODS = 0.7
 """Blocks are handed out right after a poll that leaves at least this many poll periods
-before the next one is due, so that the consumer's work (the hand-over to the analysis, the
-recorder's thread waking) falls where it delays no poll; a hand-out waits at most one more
-``block_s`` for such a poll. The simulated ADIS16350 leaves that much after 96 % of its polls,
-the 1 kHz razor (gyro read and accelerometer drain) after 30 %. The 1 kHz razor with its
-recorder, in-process, 25 s runs interleaved: fewer samples missed in five pairs of six (71
-against 170 on a quiet host); under ``serve`` (bench/serve.py, 3 min idle) 198 and 170 lost
-against 242 and 299 handing out at the first poll past ``block_s``."""
+before the next one is due, so that the consumer's work (under ``serve``, pickling the blocks
+for the analysis side's and the recorder's rings) falls where it delays no poll; a hand-out
+waits at most one more ``block_s`` for such a poll. The simulated ADIS16350 leaves that much
+after 96 % of its polls, the 1 kHz razor (gyro read and accelerometer drain) after 30 %. The
+1 kHz razor with its recorder's writer thread in-process (as it then was), 25 s runs
+interleaved: fewer samples missed in five pairs of six (71 against 170 on a quiet host); under
+``serve`` (bench/serve.py, 3 min idle) 198 and 170 lost against 242 and 299 handing out at the
+first poll past ``block_s``."""
 
 
 class Driver(Protocol):
