@@ -104,7 +104,10 @@ def test_a_killed_recorder_is_replaced_and_the_new_file_says_why(tmp_path):
         assert rec.error is not None and "recorder process ended" in rec.error
         for b in blocks[30:]:  # handed over while no recorder runs: the feed keeps them
             rec.write(b)
-        assert rec.check() and rec.pid != first_pid and rec.restarts == 1
+        # it lived less than QUICK_DEATH_S: replaced after a pause of 1 s, not at once
+        assert not rec.check() and rec.restarts == 0
+        _wait(rec.check, limit_s=5.0)
+        assert rec.pid != first_pid and rec.restarts == 1
         assert not rec.check()  # the new one is alive
     finally:
         rec.close()
@@ -123,3 +126,18 @@ def test_a_recorder_that_cannot_write_says_why(tmp_path):
     blocked.write_text("not a folder")
     with pytest.raises(OSError, match="File exists|Not a directory"):
         _recorder(blocked)
+
+
+def test_what_a_dead_recorder_left_in_the_feed_is_written_at_close(tmp_path):
+    blocks = make_blocks(20, SIZE, fs=FS)
+    rec = _recorder(tmp_path)
+    try:
+        os.kill(rec.pid, signal.SIGKILL)
+        _wait(lambda: not rec._proc.is_alive())
+        for b in blocks:
+            rec.write(b)
+    finally:
+        rec.close()  # no check() before: close replaces the dead recorder itself
+    (path,) = tmp_path.glob("*.mcap")  # the killed one had no block: no file
+    assert read_mcap(path).channels["gyro_x"].n_samples == 20 * SIZE
+    assert rec.restarts == 1 and open_mcap(path).layout.complete
