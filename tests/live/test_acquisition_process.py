@@ -183,25 +183,34 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_serve_reports_losses_by_stage_and_closes_its_file_on_sigterm(tmp_path):
+def _serve(out: Path) -> tuple[subprocess.Popen, dict]:
+    """``imunoise serve`` on the simulated ADIS16350 recording into ``out``, and its /health
+    once 3 s of samples have been received."""
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "imunoise", "serve", "--device",
-                             "sim:adis16350", "--port", str(port), "--out", str(tmp_path),
+                             "sim:adis16350", "--port", str(port), "--out", str(out),
                              "--priority", "normal"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    health = None
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5) as r:
+                health = json.load(r)
+            if health["samples"]["received"] > 3 * RATE:
+                break
+        except OSError:
+            pass
+        time.sleep(0.5)
+    if health is None:
+        proc.kill()
+        raise AssertionError(f"serve did not come up: {proc.communicate()[1][-2000:]}")
+    return proc, health
+
+
+def test_serve_reports_losses_by_stage_and_closes_its_file_on_sigterm(tmp_path):
+    proc, health = _serve(tmp_path)
     try:
-        health = None
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5) as r:
-                    health = json.load(r)
-                if health["samples"]["received"] > 3 * RATE:
-                    break
-            except OSError:
-                pass
-            time.sleep(0.5)
-        assert health is not None, proc.stderr.read() if proc.poll() is not None else ""
         losses = health["losses"]
         assert losses["handover"] == 0 and losses["analysis"] == 0
         assert losses["recording"] == 0 == health["recording"]["lost_samples"]
@@ -221,6 +230,33 @@ def test_serve_reports_losses_by_stage_and_closes_its_file_on_sigterm(tmp_path):
     layout = open_mcap(path).layout
     assert layout.complete  # closed by its own process, with summary and footer
     assert "recorded " + str(path) in proc.stderr.read()
+
+
+def _running(pid: int) -> bool:
+    """The process exists and has not ended (a zombie that nobody reaped has ended)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_serve_killed_leaves_a_complete_file_with_every_sample_received(tmp_path):
+    proc, health = _serve(tmp_path)
+    acq_pid, rec_pid = health["acquisition_process"]["pid"], health["recording"]["pid"]
+    received = health["samples"]["received"]
+    proc.kill()
+    proc.wait(10)
+    # the acquisition process sees its parent gone, its recorder writes what it was handed
+    # and closes the file; both end by themselves
+    deadline = time.monotonic() + 30
+    while any(_running(pid) for pid in (acq_pid, rec_pid)):
+        assert time.monotonic() < deadline, "the acquisition or recorder process lingers"
+        time.sleep(0.2)
+    (path,) = tmp_path.glob("*.mcap")
+    assert open_mcap(path).layout.complete
+    n, missing = _imu_in_file(path)
+    assert n >= received and missing <= RATE  # nothing lost on the way to the disk
 
 
 def test_priority_granted_or_refused_is_reported():
