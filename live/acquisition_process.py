@@ -33,14 +33,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from live.block_ring import DEFAULT_CAPACITY, BlockRing
+from live.restart_pause import RestartPause, describe_exit
 
 STATUS_EVERY_S = 0.25
 """How often the child publishes its counters."""
 START_TIMEOUT_S = 60.0
 """How long the parent waits for the child to open the device."""
-QUICK_DEATH_S = 10.0
-"""A child that ends sooner than this after starting is restarted after a pause."""
-MAX_RESTART_PAUSE_S = 30.0
 GIL_SWITCH_S = 0.0001
 """The interpreter's thread switch interval in the acquisition and simulator processes. With
 the recorder's writer thread in the acquisition process, the default 5 ms let it hold up a
@@ -292,12 +290,11 @@ class AcquisitionProcess:
         self.config_reported: dict[str, str] = {}
         self._final: dict[str, Any] | None = None  # the last status, once the ring is released
         self._respawn_at: float | None = None  # when a dead child is to be replaced
-        self._spawned_at = 0.0
-        self._quick_deaths = 0
+        self._pause = RestartPause()
 
     # -- life cycle
     def _spawn(self, note: str | None = None) -> None:
-        self._spawned_at = time.monotonic()
+        self._pause.started()
         self._stop = self._ctx.Event()
         self._proc = self._ctx.Process(
             target=child_main, name="imunoise-acquisition",
@@ -393,17 +390,13 @@ class AcquisitionProcess:
         if self._stopping:
             return False
         code = self._proc.exitcode
-        self.last_exit = f"exit code {code}" + (f" (signal {-code})" if code and code < 0 else "")
+        self.last_exit = describe_exit(code)
         self._remember_files()
         if not self.restart or self.restarts >= self.max_restarts:
             return False
         self.restarts += 1
         self._gap_next = True
-        lived = time.monotonic() - self._spawned_at
-        self._quick_deaths = self._quick_deaths + 1 if lived < QUICK_DEATH_S else 0
-        pause = min(MAX_RESTART_PAUSE_S, 2.0 ** (self._quick_deaths - 1)) \
-            if self._quick_deaths else 0.0
-        self._respawn_at = time.monotonic() + pause
+        self._respawn_at = self._pause.ended()
         return self._check_child()
 
     def blocks(self):

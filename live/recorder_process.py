@@ -35,6 +35,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from live.block_ring import BlockRing
+from live.restart_pause import RestartPause, describe_exit
 
 FEED_BYTES = 64 * 1024 * 1024
 """Data area of the feed ring: about 2.5 min of an ADIS16350 at 819 Hz and 10 min of a 1 kHz
@@ -43,9 +44,6 @@ START_TIMEOUT_S = 60.0
 IDLE_SLEEP_S = 0.005
 """How long the recorder process sleeps when the feed is empty (seconds)."""
 STATUS_EVERY_S = 0.25
-QUICK_DEATH_S = 10.0
-"""A recorder process that ends sooner than this after its start is replaced after a pause."""
-MAX_RESTART_PAUSE_S = 30.0
 PRIORITY_OF = {"realtime": "nice", "nice": "nice", "normal": "normal"}
 """The recorder's priority for the acquisition's: never SCHED_FIFO, whose compression and
 fsync would take a core from the analysis side without need; the feed absorbs its delays."""
@@ -147,13 +145,12 @@ class RecorderProcess:
         self._final: dict[str, Any] | None = None
         self._closing = False
         self._samples_before = 0  # samples written by recorder processes that died
-        self._spawned_at = 0.0
-        self._quick_deaths = 0
+        self._pause = RestartPause()
         self._respawn_at: float | None = None  # when a dead recorder is to be replaced
 
     # -- life cycle
     def _spawn(self, note: str | None = None) -> None:
-        self._spawned_at = time.monotonic()
+        self._pause.started()
         self._proc = self._ctx.Process(
             target=_recorder_main, name="imunoise-recorder",
             args=(self.feed.name, self.back.name, self.recorder_args, self.priority,
@@ -186,24 +183,18 @@ class RecorderProcess:
     def check(self, *, now_or_never: bool = False) -> bool:
         """Replace a recorder process that died (True when it did); cheap, call it often.
 
-        One that dies within :data:`QUICK_DEATH_S` of its start (e.g. a folder that became
-        unwritable) is replaced after a pause that doubles each time (1, 2, 4 ... 30 s); the
+        One that dies soon after its start (e.g. a folder that became unwritable) is replaced
+        after a pause that doubles each time (:class:`live.restart_pause.RestartPause`); the
         feed keeps what comes meanwhile. ``now_or_never``: no pause (at close)."""
         if self._closing or self._proc is None or self._proc.is_alive():
             return False
-        now = time.monotonic()
         if self._respawn_at is None:
-            code = self._proc.exitcode
-            self.last_exit = (f"exit code {code}"
-                              + (f" (signal {-code})" if code and code < 0 else ""))
+            self.last_exit = describe_exit(self._proc.exitcode)
             last = self.back.status()
             self._remember_files(last)
             self._samples_before += int(last.get("samples") or 0)
-            quick = now - self._spawned_at < QUICK_DEATH_S
-            self._quick_deaths = self._quick_deaths + 1 if quick else 0
-            self._respawn_at = now + (min(MAX_RESTART_PAUSE_S, 2.0 ** (self._quick_deaths - 1))
-                                      if self._quick_deaths else 0.0)
-        if now < self._respawn_at and not now_or_never:
+            self._respawn_at = self._pause.ended()
+        if time.monotonic() < self._respawn_at and not now_or_never:
             return False
         self._respawn_at = None
         self.restarts += 1

@@ -104,7 +104,7 @@ def test_a_killed_recorder_is_replaced_and_the_new_file_says_why(tmp_path):
         assert rec.error is not None and "recorder process ended" in rec.error
         for b in blocks[30:]:  # handed over while no recorder runs: the feed keeps them
             rec.write(b)
-        # it lived less than QUICK_DEATH_S: replaced after a pause of 1 s, not at once
+        # it lived less than restart_pause.QUICK_DEATH_S: replaced after 1 s, not at once
         assert not rec.check() and rec.restarts == 0
         _wait(rec.check, limit_s=5.0)
         assert rec.pid != first_pid and rec.restarts == 1
