@@ -229,7 +229,8 @@ class McapRecorder:
     def event(self, level: int, message: str, values: dict[str, str] | None = None,
               t: float | None = None, wall: float | None = None) -> None:
         """Record a device-status event (``ros2_msgs.OK/WARN/ERROR/STALE``) at time ``t``
-        (seconds, sample time base; default: the wall clock ``wall``, default now)."""
+        (seconds, sample time base; default: ``wall``), received at ``wall`` (seconds, the
+        recorder's clock; default now)."""
         if self.error or self._closed:
             return
         item = ("event", (level, message, dict(values or {}), t),

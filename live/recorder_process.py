@@ -282,7 +282,8 @@ class RecorderProcess:
         if st.get("error"):
             return str(st["error"])
         if not self._closing and self._proc is not None and not self._proc.is_alive():
-            return f"the recorder process ended ({self._proc.exitcode}); restarting it"
+            return (f"the recorder process ended ({describe_exit(self._proc.exitcode)}); "
+                    f"it is being replaced")
         return None
 
     @property
