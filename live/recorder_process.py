@@ -39,7 +39,7 @@ from live.restart_pause import RestartPause, describe_exit
 
 FEED_BYTES = 64 * 1024 * 1024
 """Data area of the feed ring: about 2.5 min of an ADIS16350 at 819 Hz and 10 min of a 1 kHz
-razor (pickled blocks), before a recorder that cannot keep up loses blocks."""
+razor (113 kB/s of records, measured), before a recorder that cannot keep up loses blocks."""
 START_TIMEOUT_S = 60.0
 IDLE_SLEEP_S = 0.005
 """How long the recorder process sleeps when the feed is empty (seconds)."""
@@ -173,7 +173,7 @@ class RecorderProcess:
             if not self._proc.is_alive():
                 code = self._proc.exitcode
                 self._release()
-                raise OSError(f"the recorder process ended at start (exit code {code})")
+                raise OSError(f"the recorder process ended at start ({describe_exit(code)})")
             time.sleep(0.02)
         self._proc.kill()
         self._proc.join(5)

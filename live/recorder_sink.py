@@ -28,7 +28,7 @@ class RecorderSink:
         if payload is None:
             self.recorder.write(block)
         else:
-            self.recorder.write(block, payload)
+            self.recorder.write(block, payload=payload)  # McapRecorder's 2nd is wall
         stats = getattr(self.acquisition, "stats", None)
         state = str(getattr(stats, "state", ""))
         reconnects = int(getattr(stats, "reconnects", 0) or 0)

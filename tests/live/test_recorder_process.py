@@ -82,7 +82,7 @@ def test_a_stalled_recorder_loses_nothing_the_feed_holds_and_marks_the_rest_as_a
             assert lost == 0 and got.channels["gyro_x"].n_samples == 80 * SIZE
             assert facts["missing_samples"] == 0
         else:
-            # 64 kB hold about 25 of these blocks: the rest of the 70 did not fit
+            # 64 kB hold about 20 of these blocks (3.2 kB pickled): most of the 70 did not fit
             assert 30 * SIZE <= lost <= 60 * SIZE and lost % SIZE == 0
             assert got.channels["gyro_x"].n_samples == 80 * SIZE - lost
             assert facts["missing_samples"] == lost  # the file knows exactly what is missing
