@@ -1,6 +1,7 @@
 """Serve benchmark: does ``imunoise serve`` lose samples under dashboard and API load?
 
     python bench/serve.py [--minutes 10] [--runs adis204,razor100,razor1000] [--load idle,busy]
+                          [--realtime-kernel-workers]
 
 For each simulated device configuration and each load, starts ``imunoise serve --device ...
 --out DIR`` (acquisition in its own process, the default), and while it runs keeps
@@ -22,6 +23,8 @@ checked), and the CPU used by each process (serve's HTTP/analysis side, the acqu
 process, the recorder process, the ADIS16350's simulator process, the fit worker, the
 clients, the hogs) as a percentage of one core, and on a virtual machine the CPU time the
 host took from it during the run (steal), which no priority inside the machine can prevent.
+With ``--realtime-kernel-workers`` serve holds the kernel's tty workers at real-time priority
+(``live/kernel_workers.py``), which the ADIS16350's bytes pass through.
 
 Configurations: ``adis204`` is the ADIS16350 at 204.8 Hz (the highest rate a Bus Pirate link
 carries, docs/devices.md); ``razorN`` the ITG-3200 + ADXL345 on one simulated 400 kHz bus with
@@ -204,7 +207,7 @@ def recorded(out: Path) -> dict[str, dict[str, float]]:
     return rows
 
 
-def run_one(name: str, load: str, seconds: float) -> dict:
+def run_one(name: str, load: str, seconds: float, serve_args: tuple[str, ...] = ()) -> dict:
     spec, rate = config_of(name)
     port = free_port()
     base = f"http://127.0.0.1:{port}"
@@ -212,7 +215,8 @@ def run_one(name: str, load: str, seconds: float) -> dict:
     hogs = [subprocess.Popen([sys.executable, "-c", _HOG]) for _ in range(2 if load == "busy"
                                                                           else 0)]
     serve = subprocess.Popen([sys.executable, "-m", "imunoise", "serve", "--device", spec,
-                              "--rate", f"{rate:g}", "--port", str(port), "--out", str(out)],
+                              "--rate", f"{rate:g}", "--port", str(port), "--out", str(out),
+                              *serve_args],
                              cwd=ROOT, stderr=subprocess.PIPE, text=True,
                              env=dict(os.environ, PYTHONPATH=str(ROOT)))
     try:
@@ -280,6 +284,10 @@ def report(r: dict) -> None:
     print(f"{r['run']:>10} {r['load']:>5}  {r['seconds']:5.0f} s  exit {r['serve_exit']}  "
           f"acquisition priority {prio.get('policy')}"
           + (f" (refused: {prio['refused']})" if prio.get("refused") else ""))
+    kw = pr.get("kernel_workers")
+    if kw:
+        print(f"{'':17}kernel's unbound workers: {kw.get('policy')} for {kw.get('threads')} "
+              "threads" + (f" (refused: {kw['refused']})" if kw.get("refused") else ""))
     for topic, s in r["streams"].items():
         print(f"{'':17}{topic:24} expected {s['expected']:9.0f}  recorded {s['recorded']:9.0f}"
               f"  missing in the file {s['missing']:6.0f}")
@@ -317,18 +325,24 @@ def main() -> None:
     ap.add_argument("--load", default="idle,busy",
                     help="idle (the benchmark's clients only) and/or busy (two CPU-bound "
                          "processes beside) (default: %(default)s)")
+    ap.add_argument("--realtime-kernel-workers", action="store_true",
+                    help="run serve with --realtime-kernel-workers (the kernel's unbound "
+                         "workers, which carry the ADIS16350 simulator's bytes, at SCHED_FIFO "
+                         "1; see live/kernel_workers.py)")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args()
+    serve_args = ("--realtime-kernel-workers",) if args.realtime_kernel_workers else ()
     try:
         load = os.getloadavg()[0]
     except OSError:
         load = float("nan")
     print(f"load average before: {load:.1f} on {os.cpu_count()} cores; {args.minutes:g} min "
-          f"per run, {CLIENTS} API clients + a dashboard")
+          f"per run, {CLIENTS} API clients + a dashboard"
+          + ("; serve --realtime-kernel-workers" if serve_args else ""))
     results = []
     for load_kind in args.load.split(","):
         for name in args.runs.split(","):
-            r = run_one(name, load_kind, 60.0 * args.minutes)
+            r = run_one(name, load_kind, 60.0 * args.minutes, serve_args)
             report(r)
             results.append(r)
             sys.stdout.flush()

@@ -74,6 +74,9 @@ class AcquisitionConfig:
         simulator_process: run ``sim:adis16350`` in a process of its own behind its
             pseudo-terminal (``live.simulator_process``), opened like real hardware; the I2C
             simulators live under smbus2's ioctl layer and stay in the acquisition process.
+        realtime_kernel_workers: while the child runs, the parent holds the kernel's unbound
+            workers, which carry a serial adapter's bytes, at SCHED_FIFO 1
+            (:mod:`live.kernel_workers`; changes the whole machine's scheduling).
     """
 
     spec: str
@@ -83,6 +86,7 @@ class AcquisitionConfig:
     software: str = ""
     priority: str = "realtime"
     simulator_process: bool = True
+    realtime_kernel_workers: bool = False
 
 
 # ----------------------------------------------------------------------------- the child
@@ -291,6 +295,7 @@ class AcquisitionProcess:
         self._final: dict[str, Any] | None = None  # the last status, once the ring is released
         self._respawn_at: float | None = None  # when a dead child is to be replaced
         self._pause = RestartPause()
+        self._kernel_workers: Any = None  # live.kernel_workers.KernelWorkerBoost, when asked
 
     # -- life cycle
     def _spawn(self, note: str | None = None) -> None:
@@ -306,6 +311,10 @@ class AcquisitionProcess:
         ``daq.errors.DeviceError`` with its reason)."""
         from daq.errors import DeviceError
 
+        if self.config.realtime_kernel_workers and self._kernel_workers is None:
+            from live.kernel_workers import KernelWorkerBoost
+
+            self._kernel_workers = KernelWorkerBoost().start()
         self._spawn()
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -350,6 +359,8 @@ class AcquisitionProcess:
                 self._proc.terminate()
                 self._proc.join(5)
         self._remember_files()
+        if self._kernel_workers is not None:
+            self._kernel_workers.stop()
         if self._final is None:
             self._final = self.ring.status() or {}
             self._final_lost = (self.ring.lost_samples, self.ring.lost_blocks)
@@ -433,7 +444,9 @@ class AcquisitionProcess:
                                                          if self.last_exit else "")
         out["process"] = {"pid": st.get("pid"), "alive": self.alive, "restarts": self.restarts,
                           "last_exit": self.last_exit, "priority": st.get("priority"),
-                          "simulator": st.get("simulator")}
+                          "simulator": st.get("simulator"),
+                          "kernel_workers": (None if self._kernel_workers is None
+                                             else self._kernel_workers.status())}
         out["handover_lost_samples"], out["handover_lost_blocks"] = self._lost()
         out["recording"] = st.get("recording")
         if st.get("error"):

@@ -1,8 +1,9 @@
 """``imunoise serve``: acquire (or replay), record and analyse live; API and dashboard over HTTP.
 
-Acquisition runs in its own thread and never waits on the analysis or on HTTP; refits run at a
-bounded cadence on another thread. Ctrl-C stops acquisition, finishes the file being written and
-exits.
+A device is read in a process of its own at the highest priority granted and recorded by a
+child of that process (``--acquisition thread``: a thread of this one); neither waits on the
+analysis or on HTTP, and refits run at a bounded cadence in a worker process. Ctrl-C stops
+acquisition, finishes the file being written and exits.
 """
 
 from __future__ import annotations
@@ -65,6 +66,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="scheduling of the acquisition process: 'realtime' (default: "
                         "SCHED_FIFO where permitted, else nice -10 where permitted; /health "
                         "says what was granted), 'nice' or 'normal'")
+    p.add_argument("--realtime-kernel-workers", action="store_true",
+                   help="while serving, also run the kernel's unbound worker threads, which "
+                        "carry a serial adapter's bytes to the acquisition process, at "
+                        "SCHED_FIFO 1 (needs the right to set real-time priority; changes "
+                        "the whole machine's scheduling until serve ends; for the ADIS16350 "
+                        "beside CPU-bound processes; see docs/service.md)")
     p.add_argument("--analysis-cpu", type=float, default=0.3, metavar="F",
                    help="fraction of one core the fits and diagnoses may use on average; "
                         "their cadence adapts to it (default 0.3)")
@@ -123,6 +130,8 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
             kwargs[key] = value
     if getattr(args, "acquisition", "thread") == "process":
         return _open_process(args, spec, kwargs)
+    if getattr(args, "realtime_kernel_workers", False):
+        raise UsageError("serve: --realtime-kernel-workers needs --acquisition process")
     from analysis.noise_stream import stream_factory
 
     try:  # noise: the simulators' seed-paper models, not white noise alone
@@ -147,7 +156,9 @@ def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
     from live.acquisition_process import AcquisitionConfig, AcquisitionProcess
 
     config = AcquisitionConfig(spec, dict(kwargs), out=args.out, record_rate_hz=args.rate,
-                               software=SOFTWARE, priority=getattr(args, "priority", "realtime"))
+                               software=SOFTWARE, priority=getattr(args, "priority", "realtime"),
+                               realtime_kernel_workers=bool(
+                                   getattr(args, "realtime_kernel_workers", False)))
     if args.out:
         try:
             Path(args.out).mkdir(parents=True, exist_ok=True)
