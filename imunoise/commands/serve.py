@@ -97,6 +97,8 @@ def check_security(host: str, token: str | None) -> None:
 
 def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     """The block source, its description for /health, and whether it is a live device."""
+    if args.replay and getattr(args, "realtime_kernel_workers", False):
+        raise UsageError("serve: --realtime-kernel-workers applies to a device, not to --replay")
     if args.replay:
         path = Path(args.replay)
         if not path.exists():

@@ -112,13 +112,18 @@ def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone():
         rt.wait()
 
 
-def test_serve_refuses_the_option_without_an_acquisition_process():
-    run = subprocess.run([sys.executable, "-m", "imunoise", "serve", "--device", "sim:adis16350",
-                          "--acquisition", "thread", "--realtime-kernel-workers",
-                          "--port", str(_free_port())], capture_output=True, text=True, timeout=60)
+@pytest.mark.parametrize("source, message", [
+    (["--device", "sim:adis16350", "--acquisition", "thread"],
+     "serve: --realtime-kernel-workers needs --acquisition process"),
+    (["--replay", "night.mcap"],
+     "serve: --realtime-kernel-workers applies to a device, not to --replay"),
+])
+def test_serve_refuses_the_option_without_an_acquisition_process(source, message):
+    run = subprocess.run([sys.executable, "-m", "imunoise", "serve", *source,
+                          "--realtime-kernel-workers", "--port", str(_free_port())],
+                         capture_output=True, text=True, timeout=60)
     assert run.returncode == 2
-    assert run.stderr.strip().splitlines()[-1] == (
-        "imunoise: serve: --realtime-kernel-workers needs --acquisition process")
+    assert run.stderr.strip().splitlines()[-1] == f"imunoise: {message}"
 
 
 def _at_fifo_1(pid: int) -> bool:
