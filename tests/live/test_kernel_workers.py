@@ -24,7 +24,7 @@ from live.kernel_workers import (
     FIFO_PRIORITY,
     KernelWorkerBoost,
     is_unbound_worker,
-    threads,
+    processes,
 )
 
 
@@ -53,11 +53,11 @@ def test_unbound_workers_are_told_apart_by_name():
     assert not is_unbound_worker(1, "python")
 
 
-def test_threads_lists_live_processes_with_their_names():
-    found = dict(threads())
+def test_processes_lists_live_processes_with_their_names():
+    found = dict(processes())
     assert found[os.getpid()] == Path("/proc/self/comm").read_text().strip()
     assert all(isinstance(pid, int) and pid > 0 for pid in found)
-    assert dict(threads(Path("/no/such/proc"))) == {}
+    assert dict(processes(Path("/no/such/proc"))) == {}
 
 
 def test_raised_while_running_and_given_back_at_stop():
@@ -159,7 +159,7 @@ def test_serve_reports_the_workers_in_health_and_restores_them_when_it_ends(tmp_
         assert health, f"serve did not come up: {proc.stderr.read()[-2000:]}"
         workers = health["acquisition_process"]["kernel_workers"]
         assert workers["policy"] == f"SCHED_FIFO {FIFO_PRIORITY}"
-        visible = [pid for pid, comm in threads() if is_unbound_worker(pid, comm)]
+        visible = [pid for pid, comm in processes() if is_unbound_worker(pid, comm)]
         if workers["refused"] is None and not visible:
             assert workers["threads"] == 0  # in a container that does not show them
         elif workers["refused"] is None:
