@@ -101,6 +101,7 @@ class WorkerProcess:
         # The executor has no public way to end a running job; its worker processes are
         # terminated directly (``_processes``: pid -> Process, unchanged since Python 3.8).
         processes = list(getattr(pool, "_processes", {}).values())
+        manager = getattr(pool, "_executor_manager_thread", None)  # shutdown() forgets it
         pool.shutdown(wait=False, cancel_futures=True)
         for proc in processes:
             if proc.is_alive():
@@ -110,6 +111,11 @@ class WorkerProcess:
         for proc in processes:
             while proc.is_alive() and time.monotonic() < deadline:
                 proc.join(0.05)
+        # Let the executor's thread finish now: on Python 3.11, if it is still closing its
+        # wake-up pipe when the interpreter exits, the executor's exit hook can write to the
+        # closed pipe and print "OSError: Bad file descriptor" after a clean stop.
+        if manager is not None:
+            manager.join(max(0.0, deadline - time.monotonic()))
 
 
 class RollingAnalyzer:

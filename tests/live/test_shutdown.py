@@ -35,12 +35,16 @@ def test_closing_the_worker_abandons_a_running_job_at_once(tmp_path: Path) -> No
     t.start()
     _wait_for(flag)
     processes = list(worker._pool._processes.values())
+    manager = worker._pool._executor_manager_thread
     t0 = time.monotonic()
     worker.close()
     t.join(30)
     assert not t.is_alive() and time.monotonic() - t0 < 15  # not the job's 120 s
     assert len(outcome) == 1 and isinstance(outcome[0], WorkerClosed)
     assert processes and not any(p.is_alive() for p in processes)
+    # and the executor's own thread has ended, so that nothing of it is left for the
+    # interpreter's exit to trip over (a "Bad file descriptor" after a clean stop)
+    assert manager is not None and not manager.is_alive()
     assert worker.fallback is None  # closing is not a failure: no in-process fallback
     with pytest.raises(WorkerClosed):
         worker(touch_then_sleep, str(flag), 0.0)
