@@ -22,6 +22,11 @@ from daq.readers.mcap import open_mcap, read_mcap
 from live.acquisition_process import AcquisitionConfig, AcquisitionProcess
 
 RATE = 102.4  # the simulated ADIS16350's default rate, Hz
+DEVICE_LOSS_BOUND = 0.1
+"""The most the device side may lose, as a fraction of the samples in the file, while the
+analysis side stalls for 5 s in the stall tests. A stall that reached the acquisition would
+lose 5 s x 102.4 Hz = 512 samples, over 60 % of the 8 s recorded; a busy host (CPU time taken
+by the hypervisor, the test's own busy loop on one of two cores) has cost up to 12 (1.5 %)."""
 
 
 def _source(out: Path, **kw) -> AcquisitionProcess:
@@ -84,9 +89,10 @@ def test_a_stalled_analysis_side_loses_no_recorded_sample(tmp_path):
     assert open_mcap(path).layout.complete
     n_file, missing = _imu_in_file(path)
     # 8 s at 102.4 Hz: the file has every sample the device delivered, and misses only what
-    # the device itself lost (none on a quiet machine; a loaded one may starve the simulator)
+    # the device itself lost (none on a quiet machine; a loaded one may starve the simulator;
+    # far fewer than a stall reaching the acquisition would cost)
     assert n_file >= 7.5 * RATE - missing
-    assert missing == stats["dropped"] <= 0.01 * n_file
+    assert missing == stats["dropped"] <= DEVICE_LOSS_BOUND * n_file
     assert stats["handover_lost_samples"] == 0
     assert before + after <= n_file
     with open(path, "rb") as f:  # an independent reader agrees on the count
@@ -142,7 +148,7 @@ def test_a_ring_too_small_for_the_stall_loses_only_analysis_samples(tmp_path):
     (path,) = tmp_path.glob("*.mcap")
     n_file, missing = _imu_in_file(path)
     assert n_file >= 7 * RATE - missing  # the recording has every sample the device gave
-    assert missing == stats["dropped"] <= 0.01 * n_file
+    assert missing == stats["dropped"] <= DEVICE_LOSS_BOUND * n_file
 
 
 def test_a_killed_acquisition_process_is_restarted_and_the_gap_marked(tmp_path):
