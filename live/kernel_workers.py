@@ -44,21 +44,25 @@ def is_unbound_worker(pid: int, comm: str) -> bool:
     return comm.startswith(WORKER_PREFIX)
 
 
+def process_name(pid: int, proc: Path = Path("/proc")) -> str | None:
+    """The name of process ``pid``, or None when it has ended."""
+    try:
+        return (proc / str(pid) / "comm").read_text().strip()
+    except OSError:
+        return None
+
+
 def processes(proc: Path = Path("/proc")) -> Iterator[tuple[int, str]]:
     """(pid, name) of every process visible in ``proc``; kernel workers are single-thread
     processes, so their pid is their thread id."""
     try:
-        entries = list(os.scandir(proc))
+        pids = [int(e.name) for e in os.scandir(proc) if e.name.isdigit()]
     except OSError:
         return
-    for entry in entries:
-        if not entry.name.isdigit():
-            continue
-        try:
-            comm = (proc / entry.name / "comm").read_text().strip()
-        except OSError:
-            continue  # ended meanwhile
-        yield int(entry.name), comm
+    for pid in pids:
+        comm = process_name(pid, proc)
+        if comm is not None:  # else ended meanwhile
+            yield pid, comm
 
 
 class KernelWorkerBoost:
@@ -129,10 +133,10 @@ class KernelWorkerBoost:
         with self._lock:
             changed, self._changed = self._changed, {}
         for pid, (name, policy, nice) in changed.items():
+            comm = process_name(pid)
+            if comm is None or comm.split("-", 1)[0] != name:
+                continue
             try:
-                comm = (Path("/proc") / str(pid) / "comm").read_text().strip()
-                if comm.split("-", 1)[0] != name:
-                    continue
                 os.sched_setscheduler(pid, policy, os.sched_param(0))
                 os.setpriority(os.PRIO_PROCESS, pid, nice)
             except (OSError, ValueError):

@@ -121,6 +121,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_until(cond, timeout: float = 10.0, every_s: float = 0.05) -> bool:
+    """Whether ``cond()`` became true within ``timeout`` seconds (asked every ``every_s``)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(every_s)
+    return bool(cond())
+
+
 @contextlib.contextmanager
 def running_server(app, host: str = "127.0.0.1") -> Iterator[str]:
     """Serve ``app`` with uvicorn on a free loopback port in a thread; yields the base URL."""

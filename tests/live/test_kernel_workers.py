@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ from live.kernel_workers import (
     is_unbound_worker,
     processes,
 )
+from tests.live_helpers import free_port, wait_until
 
 
 def _sleeper(nice: int = 0) -> subprocess.Popen:
@@ -35,15 +35,6 @@ def _sleeper(nice: int = 0) -> subprocess.Popen:
 def _policy(pid: int) -> tuple[int, int, int]:
     return (os.sched_getscheduler(pid), os.sched_getparam(pid).sched_priority,
             os.getpriority(os.PRIO_PROCESS, pid))
-
-
-def _wait_for(cond, limit_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + limit_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
 
 
 def test_unbound_workers_are_told_apart_by_name():
@@ -63,7 +54,7 @@ def test_processes_lists_live_processes_with_their_names():
 def test_raised_while_running_and_given_back_at_stop():
     child = _sleeper(nice=5)
     try:
-        _wait_for(lambda: os.getpriority(os.PRIO_PROCESS, child.pid) == 5)
+        wait_until(lambda: os.getpriority(os.PRIO_PROCESS, child.pid) == 5)
         before = _policy(child.pid)
         assert before == (os.SCHED_OTHER, 0, 5)
         boost = KernelWorkerBoost(match=lambda pid, comm: pid == child.pid).start()
@@ -99,7 +90,7 @@ def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone():
         try:
             assert boost.status()["threads"] == 0  # the real-time one is not taken over
             pids.add(late.pid)
-            assert _wait_for(lambda: os.sched_getscheduler(late.pid) == os.SCHED_FIFO)
+            assert wait_until(lambda: os.sched_getscheduler(late.pid) == os.SCHED_FIFO)
             assert boost.status()["threads"] == 1
         finally:
             boost.stop()
@@ -120,7 +111,7 @@ def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone():
 ])
 def test_serve_refuses_the_option_without_an_acquisition_process(source, message):
     run = subprocess.run([sys.executable, "-m", "imunoise", "serve", *source,
-                          "--realtime-kernel-workers", "--port", str(_free_port())],
+                          "--realtime-kernel-workers", "--port", str(free_port())],
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 2
     assert run.stderr.strip().splitlines()[-1] == f"imunoise: {message}"
@@ -134,14 +125,8 @@ def _at_fifo_1(pid: int) -> bool:
         return False
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_serve_reports_the_workers_in_health_and_restores_them_when_it_ends(tmp_path):
-    port = _free_port()
+    port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "imunoise", "serve", "--device",
                              "sim:adis16350", "--port", str(port), "--out", str(tmp_path),
                              "--priority", "normal", "--realtime-kernel-workers"],

@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 
 from live.service import LiveService
-from tests.live_helpers import free_port, running_server
+from tests.live_helpers import free_port, running_server, wait_until
 from web.app import create_app
 
 TESTS = Path(__file__).resolve().parent.parent
@@ -60,15 +60,6 @@ async def _hammer(port: int) -> tuple[list[float], list[int]]:
     return latencies, statuses
 
 
-def _wait_until(cond, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
-
-
 def test_load_50_clients_2000_requests_while_recording_1khz_drops_nothing() -> None:
     port = free_port()
     proc = subprocess.Popen([sys.executable, str(TESTS / "serve_synthetic.py"), str(port), "1000"],
@@ -76,7 +67,7 @@ def test_load_50_clients_2000_requests_while_recording_1khz_drops_nothing() -> N
     try:
         assert proc.stdout.readline().strip() == "ready"
         base = f"http://127.0.0.1:{port}"
-        assert _wait_until(lambda: len(httpx.get(base + "/channels").json()["channels"]) == 2)
+        assert wait_until(lambda: len(httpx.get(base + "/channels").json()["channels"]) == 2)
         time.sleep(1.0)  # a first fit
         t0 = time.perf_counter()
         latencies, statuses = asyncio.run(_hammer(port))
@@ -126,21 +117,21 @@ def test_unplug_and_replug_of_a_simulated_adis_shows_in_health_and_recording_goe
 
     try:
         with running_server(create_app(svc)) as base, httpx.Client(base_url=base) as c:
-            assert _wait_until(lambda: health(c)["samples"]["received"] > 100)
+            assert wait_until(lambda: health(c)["samples"]["received"] > 100)
             h = health(c)
             assert h["device"]["state"] == "running" and h["device"]["stats"]["reconnects"] == 0
             assert h["recording"]["file"].startswith(str(tmp_path))
             acq.simulator.emulator.unplug()
-            assert _wait_until(lambda: health(c)["device"]["state"] == "reconnecting"), states
+            assert wait_until(lambda: health(c)["device"]["state"] == "reconnecting"), states
             before = health(c)["samples"]["received"]
             acq.simulator.emulator.replug()
-            assert _wait_until(lambda: health(c)["device"]["state"] == "running"
+            assert wait_until(lambda: health(c)["device"]["state"] == "running"
                                and health(c)["samples"]["received"] > before + 100), states
             h = health(c)
             assert h["device"]["stats"]["reconnects"] == 1
             assert h["gaps"] >= 1 and h["samples"]["dropped"] > 0
             assert h["device"]["stats"]["last_error"] != ""
-            assert _wait_until(lambda: c.get("/coefficients").json()["channels"]["gyro_x"]
+            assert wait_until(lambda: c.get("/coefficients").json()["channels"]["gyro_x"]
                                ["segments"] >= 2)
     finally:
         svc.stop()
