@@ -1,7 +1,7 @@
 """Serve benchmark: does ``imunoise serve`` lose samples under dashboard and API load?
 
     python bench/serve.py [--minutes 10] [--runs adis204,razor100,razor1000] [--load idle,busy]
-                          [--realtime-kernel-workers]
+                          [--[no-]realtime-kernel-workers]
 
 For each simulated device configuration and each load, starts ``imunoise serve --device ...
 --out DIR`` (acquisition in its own process, the default), and while it runs keeps
@@ -23,8 +23,10 @@ checked), and the CPU used by each process (serve's HTTP/analysis side, the acqu
 process, the recorder process, the ADIS16350's simulator process, the fit worker, the
 clients, the hogs) as a percentage of one core, and on a virtual machine the CPU time the
 host took from it during the run (steal), which no priority inside the machine can prevent.
-With ``--realtime-kernel-workers`` serve holds the kernel's tty workers at real-time priority
-(``live/kernel_workers.py``), which the ADIS16350's bytes pass through.
+Serve holds the kernel's tty workers, which the ADIS16350's bytes pass through, at real-time
+priority by default for that device where it may (``live/kernel_workers.py``);
+``--no-realtime-kernel-workers`` runs it without, ``--realtime-kernel-workers`` with them for
+every device.
 
 Configurations: ``adis204`` is the ADIS16350 at 204.8 Hz (the highest rate a Bus Pirate link
 carries, docs/devices.md); ``razorN`` the ITG-3200 + ADXL345 on one simulated 400 kHz bus with
@@ -325,20 +327,23 @@ def main() -> None:
     ap.add_argument("--load", default="idle,busy",
                     help="idle (the benchmark's clients only) and/or busy (two CPU-bound "
                          "processes beside) (default: %(default)s)")
-    ap.add_argument("--realtime-kernel-workers", action="store_true",
-                    help="run serve with --realtime-kernel-workers (the kernel's unbound "
-                         "workers, which carry the ADIS16350 simulator's bytes, at SCHED_FIFO "
-                         "1; see live/kernel_workers.py)")
+    ap.add_argument("--realtime-kernel-workers", action=argparse.BooleanOptionalAction,
+                    default=None,
+                    help="pass serve --realtime-kernel-workers or --no-realtime-kernel-workers "
+                         "(the kernel's unbound workers, which carry the ADIS16350 simulator's "
+                         "bytes, at SCHED_FIFO 1; see live/kernel_workers.py); default: "
+                         "serve's own default (on for the ADIS16350 where permitted)")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args()
-    serve_args = ("--realtime-kernel-workers",) if args.realtime_kernel_workers else ()
+    serve_args = {None: (), True: ("--realtime-kernel-workers",),
+                  False: ("--no-realtime-kernel-workers",)}[args.realtime_kernel_workers]
     try:
         load = os.getloadavg()[0]
     except OSError:
         load = float("nan")
     print(f"load average before: {load:.1f} on {os.cpu_count()} cores; {args.minutes:g} min "
           f"per run, {CLIENTS} API clients + a dashboard"
-          + ("; serve --realtime-kernel-workers" if serve_args else ""))
+          + (f"; serve {serve_args[0]}" if serve_args else ""))
     results = []
     for load_kind in args.load.split(","):
         for name in args.runs.split(","):

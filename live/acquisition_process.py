@@ -74,9 +74,10 @@ class AcquisitionConfig:
         simulator_process: run ``sim:adis16350`` in a process of its own behind its
             pseudo-terminal (``live.simulator_process``), opened like real hardware; the I2C
             simulators live under smbus2's ioctl layer and stay in the acquisition process.
-        realtime_kernel_workers: while the child runs, the parent holds the kernel's unbound
-            workers, which carry a serial adapter's bytes, at SCHED_FIFO 1
-            (:mod:`live.kernel_workers`; changes the whole machine's scheduling).
+        realtime_kernel_workers: while the child runs, a process of the parent's holds the
+            kernel's unbound workers, which carry a serial adapter's bytes, at SCHED_FIFO 1
+            (:class:`live.kernel_workers.KernelWorkerKeeper`; changes the whole machine's
+            scheduling until the parent ends, however it ends).
     """
 
     spec: str
@@ -295,7 +296,7 @@ class AcquisitionProcess:
         self._final: dict[str, Any] | None = None  # the last status, once the ring is released
         self._respawn_at: float | None = None  # when a dead child is to be replaced
         self._pause = RestartPause()
-        self._kernel_workers: Any = None  # live.kernel_workers.KernelWorkerBoost, when asked
+        self._kernel_workers: Any = None  # live.kernel_workers.KernelWorkerKeeper, when asked
 
     # -- life cycle
     def _spawn(self, note: str | None = None) -> None:
@@ -312,9 +313,9 @@ class AcquisitionProcess:
         from daq.errors import DeviceError
 
         if self.config.realtime_kernel_workers and self._kernel_workers is None:
-            from live.kernel_workers import KernelWorkerBoost
+            from live.kernel_workers import KernelWorkerKeeper
 
-            self._kernel_workers = KernelWorkerBoost().start()
+            self._kernel_workers = KernelWorkerKeeper().start()
         self._spawn()
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -339,6 +340,12 @@ class AcquisitionProcess:
     @property
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
+
+    @property
+    def kernel_workers(self) -> dict[str, Any] | None:
+        """The kernel-worker keeper's status (``KernelWorkerBoost.status``), or None when
+        the workers are left as they are."""
+        return None if self._kernel_workers is None else self._kernel_workers.status()
 
     @property
     def alive(self) -> bool:
@@ -445,8 +452,7 @@ class AcquisitionProcess:
         out["process"] = {"pid": st.get("pid"), "alive": self.alive, "restarts": self.restarts,
                           "last_exit": self.last_exit, "priority": st.get("priority"),
                           "simulator": st.get("simulator"),
-                          "kernel_workers": (None if self._kernel_workers is None
-                                             else self._kernel_workers.status())}
+                          "kernel_workers": self.kernel_workers}
         out["handover_lost_samples"], out["handover_lost_blocks"] = self._lost()
         out["recording"] = st.get("recording")
         if st.get("error"):

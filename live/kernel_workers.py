@@ -1,4 +1,4 @@
-"""Real-time priority for the kernel's unbound worker threads while a device is read.
+"""Real-time priority for the kernel's unbound worker threads while a serial device is read.
 
 Bytes from a serial adapter (a Bus Pirate on USB, or the simulator's pseudo-terminal) do not
 go straight to the process that reads them: the tty layer queues them in a flip buffer and a
@@ -8,21 +8,31 @@ beside CPU-bound processes a worker can wait several milliseconds for a core, an
 poll of a part without FIFO waits with it; measured with ``bench/serve.py --runs adis204
 --load busy`` (3 min, the simulator's pseudo-terminal carries both directions through such
 workers): 20 of 37,261 samples lost with the workers as the kernel leaves them, 0 of 37,243
-with them at SCHED_FIFO 1; over 10 minutes (same load) with ``serve
---realtime-kernel-workers``, 0 of 123,195 (60 of 123,153 without, in an earlier run).
+with them at SCHED_FIFO 1; over 10 minutes (same load) with the workers raised, 0 of 123,195
+(60 of 123,153 without, in an earlier run).
 
 :class:`KernelWorkerBoost` puts every unbound worker at SCHED_FIFO 1, the lowest real-time
 priority (below the acquisition process's), looks again every :data:`RESCAN_S` since the
 kernel starts and ends workers as it likes, and puts back the policy and nice value of each
-worker it changed when stopped. It changes the whole machine's scheduling while it runs, so
-it is off unless asked for (``serve --realtime-kernel-workers``). I2C transfers run in the
-calling thread and do not need it.
+worker raised when the last holder stops. Several ``serve`` processes on one machine share
+the workers through a :class:`WorkerLedger` (a small file under an exclusive lock): a worker
+is given back only when no live holder remains, and a holder that died without stopping is
+dropped by the next one that looks. :class:`KernelWorkerKeeper` runs a boost in a process of
+its own, which gives the workers back as soon as its parent has gone, even when the parent
+was killed with SIGKILL. I2C transfers run in the calling thread and do not need any of it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import json
+import multiprocessing as mp
 import os
+import signal
+import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -34,7 +44,10 @@ FIFO_PRIORITY = 1
 """The real-time priority given: the lowest, so that the acquisition process (20) and the
 kernel's own real-time threads keep precedence."""
 RESCAN_S = 0.5
-"""How often new workers are looked for (s)."""
+"""How often new workers are looked for, and a keeper checks that its parent lives (s)."""
+LEDGER_NAME = "imunoise-kernel-workers.json"
+STATUS_BYTES = 512
+"""Room for a keeper's status (JSON) in shared memory."""
 
 Match = Callable[[int, str], bool]
 
@@ -52,6 +65,18 @@ def process_name(pid: int, proc: Path = Path("/proc")) -> str | None:
         return None
 
 
+def process_start(pid: int, proc: Path = Path("/proc")) -> int | None:
+    """When process ``pid`` started (clock ticks since boot: with the pid, it names one
+    process for good), or None when it has ended."""
+    try:
+        stat = (proc / str(pid) / "stat").read_text()
+    except OSError:
+        return None
+    # the name in parentheses may hold spaces; the start time is field 22, the 20th after it
+    fields = stat.rsplit(")", 1)[-1].split()
+    return int(fields[19]) if len(fields) > 19 else None
+
+
 def processes(proc: Path = Path("/proc")) -> Iterator[tuple[int, str]]:
     """(pid, name) of every process visible in ``proc``; kernel workers are single-thread
     processes, so their pid is their thread id."""
@@ -65,25 +90,84 @@ def processes(proc: Path = Path("/proc")) -> Iterator[tuple[int, str]]:
             yield pid, comm
 
 
+def default_ledger() -> Path:
+    """Where the machine's ledger lives: ``/run`` when this process may write there (root),
+    else the temporary folder, per user."""
+    run = Path("/run")
+    if run.is_dir() and os.access(run, os.W_OK):
+        return run / LEDGER_NAME
+    return Path(tempfile.gettempdir()) / f"{LEDGER_NAME.removesuffix('.json')}-{os.getuid()}.json"
+
+
+class WorkerLedger:
+    """Which processes hold the workers raised, and what each raised worker had before.
+
+    The record is ``{"holders": [[pid, start], ...], "changed": {pid: [name, policy, nice]}}``
+    in a file read and written only under an exclusive ``flock``.
+    """
+
+    def __init__(self, path: Path | None = None) -> None:
+        self.path = Path(path) if path is not None else default_ledger()
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[dict[str, Any]]:
+        """The record, locked; changes made to it are written back on leaving.
+
+        Raises:
+            OSError: the file cannot be opened (a symbolic link is refused).
+        """
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            with os.fdopen(os.dup(fd), "r+") as f:
+                try:
+                    state = json.loads(f.read() or "{}")
+                except ValueError:
+                    state = {}  # unreadable: what it held cannot be given back
+                if not isinstance(state, dict):
+                    state = {}
+                state.setdefault("holders", [])
+                state.setdefault("changed", {})
+                yield state
+                f.seek(0)
+                f.truncate()
+                f.write(json.dumps(state))
+        finally:
+            os.close(fd)  # releases the lock
+
+
+def _alive(holder: list[int]) -> bool:
+    pid, start = holder
+    return process_start(pid) == start
+
+
 class KernelWorkerBoost:
     """Hold the matching threads at SCHED_FIFO :data:`FIFO_PRIORITY` until :meth:`stop`.
 
     Args:
         match: which (pid, name) to raise; the kernel's unbound workers by default.
-        every_s: how often to look for new ones (s).
+        every_s: how often :meth:`start`'s thread looks for new ones (s).
+        ledger: the record shared with other holders on this machine (default: the
+            machine's, :func:`default_ledger`).
     """
 
-    def __init__(self, match: Match = is_unbound_worker, every_s: float = RESCAN_S) -> None:
+    def __init__(self, match: Match = is_unbound_worker, every_s: float = RESCAN_S,
+                 ledger: WorkerLedger | None = None) -> None:
         self.match = match
         self.every_s = float(every_s)
+        self.ledger = ledger or WorkerLedger()
         self.refused: str | None = None
-        self._changed: dict[int, tuple[str, int, int]] = {}  # pid -> (name, policy, nice)
+        self._me = [os.getpid(), process_start(os.getpid()) or 0]
+        self._threads = 0
+        self._holders = 0
+        self._joined = False
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     def start(self) -> KernelWorkerBoost:
-        """Raise the workers now (so that a refusal is known at once), then keep watching."""
+        """Raise the workers now (so that a refusal is known at once), then keep watching in a
+        thread of this process."""
         self.boost_once()
         if self.refused is None:
             self._thread = threading.Thread(target=self._run, name="imunoise-kworker-boost",
@@ -103,47 +187,176 @@ class KernelWorkerBoost:
             self.refused = "real-time scheduling is not available on this system"
             return 0
         raised = 0
+        with self._lock:
+            if self._stop.is_set() or self.refused is not None:
+                return 0
+            try:
+                with self.ledger.locked() as state:
+                    if self._me not in state["holders"]:
+                        state["holders"].append(self._me)
+                    self._joined = True
+                    raised = self._raise(state)
+                    self._threads = len(state["changed"])
+                    self._holders = len(state["holders"])
+            except OSError as exc:
+                self.refused = f"ledger {self.ledger.path}: {exc.strerror or exc}"
+        return raised
+
+    def _raise(self, state: dict[str, Any]) -> int:
+        changed: dict[str, list] = state["changed"]
+        raised = 0
+        seen: dict[str, str] = {}
         for pid, comm in processes():
             if not self.match(pid, comm):
                 continue
-            with self._lock:
-                if self._stop.is_set() or pid in self._changed:
-                    continue
-                try:
-                    policy = os.sched_getscheduler(pid)
-                    if policy != os.SCHED_OTHER:
-                        continue  # already real-time (by the kernel or an administrator)
-                    nice = os.getpriority(os.PRIO_PROCESS, pid)
-                    os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
-                except ProcessLookupError:
-                    continue
-                except PermissionError as exc:
-                    self.refused = f"SCHED_FIFO for kernel workers: {exc.strerror or exc}"
-                    return raised
-                self._changed[pid] = (comm.split("-", 1)[0], policy, nice)
-                raised += 1
+            seen[str(pid)] = comm.split("-", 1)[0]
+            try:
+                policy = os.sched_getscheduler(pid)
+                if policy != os.SCHED_OTHER:
+                    continue  # raised already, or real-time by the kernel or an administrator
+                nice = os.getpriority(os.PRIO_PROCESS, pid)
+                os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
+            except ProcessLookupError:
+                continue
+            except PermissionError as exc:
+                self.refused = f"SCHED_FIFO for kernel workers: {exc.strerror or exc}"
+                break
+            changed[str(pid)] = [seen[str(pid)], policy, nice]
+            raised += 1
+        if self.refused is None:  # a full scan: forget the workers that have ended
+            for key in [k for k, v in changed.items() if seen.get(k) != v[0]]:
+                del changed[key]
         return raised
 
     def stop(self) -> None:
-        """Stop watching and give every thread raised here its policy and nice value back
-        (a thread that has ended, or whose pid now names something else, is left alone)."""
+        """Stop watching and leave the ledger; when no live holder remains, give every thread
+        raised its policy and nice value back (a thread that has ended, or whose pid now names
+        something else, is left alone)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(5)
         with self._lock:
-            changed, self._changed = self._changed, {}
-        for pid, (name, policy, nice) in changed.items():
-            comm = process_name(pid)
-            if comm is None or comm.split("-", 1)[0] != name:
-                continue
+            if not self._joined:
+                return
+            self._joined = False
             try:
-                os.sched_setscheduler(pid, policy, os.sched_param(0))
-                os.setpriority(os.PRIO_PROCESS, pid, nice)
-            except (OSError, ValueError):
-                continue
+                with self.ledger.locked() as state:
+                    state["holders"] = [h for h in state["holders"]
+                                        if h != self._me and _alive(h)]
+                    if not state["holders"]:
+                        _restore(state["changed"])
+                        state["changed"] = {}
+                    self._threads = 0
+                    self._holders = len(state["holders"])
+            except OSError:
+                pass  # the ledger vanished: nothing recorded to give back
 
     def status(self) -> dict[str, Any]:
-        """For /health: the policy given, how many threads hold it, or why none does."""
+        """For /health: the policy given, how many threads hold it (raised by any holder),
+        how many processes hold them, or why none does."""
         with self._lock:
-            n = len(self._changed)
-        return {"policy": f"SCHED_FIFO {FIFO_PRIORITY}", "threads": n, "refused": self.refused}
+            return {"policy": f"SCHED_FIFO {FIFO_PRIORITY}", "threads": self._threads,
+                    "holders": self._holders, "refused": self.refused}
+
+
+def _restore(changed: dict[str, list]) -> None:
+    for key, (name, policy, nice) in changed.items():
+        pid = int(key)
+        comm = process_name(pid)
+        if comm is None or comm.split("-", 1)[0] != name:
+            continue
+        try:
+            os.sched_setscheduler(pid, policy, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, pid, nice)
+        except (OSError, ValueError):
+            continue
+
+
+def _keeper_main(prefix: str, every_s: float, ledger_path: str | None, parent_pid: int,
+                 stop: Any, status: Any) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
+    def publish(st: dict[str, Any]) -> None:
+        status.value = json.dumps(st).encode()[:STATUS_BYTES - 1]
+
+    boost = KernelWorkerBoost(match=lambda pid, comm: comm.startswith(prefix),
+                              every_s=every_s,
+                              ledger=WorkerLedger(Path(ledger_path) if ledger_path else None))
+    try:
+        boost.boost_once()
+        publish(boost.status())
+        while boost.refused is None and not stop.wait(every_s):
+            if os.getppid() != parent_pid:
+                break  # the parent is gone, however it ended
+            boost.boost_once()
+            publish(boost.status())
+        while boost.refused is not None and not stop.wait(every_s):
+            if os.getppid() != parent_pid:
+                break  # refused: nothing to hold, but the parent reads the reason
+    finally:
+        boost.stop()
+        publish(boost.status())
+
+
+class KernelWorkerKeeper:
+    """A :class:`KernelWorkerBoost` in a process of its own (``imunoise-kernel-workers``).
+
+    The scan of ``/proc`` stays out of the acquisition process, and the workers are given
+    back within :data:`RESCAN_S` of the parent's end, even when it was killed with SIGKILL.
+
+    Args:
+        prefix: names of the threads to raise (the kernel's unbound workers by default).
+        every_s: how often to look for new workers and for the parent (s).
+        ledger: the ledger's file (default: the machine's, :func:`default_ledger`).
+    """
+
+    def __init__(self, prefix: str = WORKER_PREFIX, every_s: float = RESCAN_S,
+                 ledger: Path | None = None) -> None:
+        self.prefix = prefix
+        self.every_s = float(every_s)
+        self.ledger = ledger
+        self._ctx = mp.get_context("spawn")
+        self._stop = self._ctx.Event()
+        self._status = self._ctx.RawArray("c", STATUS_BYTES)
+        self._proc: Any = None
+
+    def start(self, timeout_s: float = 30.0) -> KernelWorkerKeeper:
+        """Start the process and wait for its first pass (its status then says what was
+        raised or why nothing could be)."""
+        self._proc = self._ctx.Process(
+            target=_keeper_main, name="imunoise-kernel-workers", daemon=False,
+            args=(self.prefix, self.every_s, str(self.ledger) if self.ledger else None,
+                  os.getpid(), self._stop, self._status))
+        self._proc.start()
+        deadline = time.monotonic() + timeout_s
+        while not self._status.value and time.monotonic() < deadline:
+            if not self._proc.is_alive():
+                break
+            time.sleep(0.01)
+        return self
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def status(self) -> dict[str, Any]:
+        """The keeper's last published status (see :meth:`KernelWorkerBoost.status`)."""
+        raw = self._status.value
+        if raw:
+            try:
+                return json.loads(raw.decode())
+            except ValueError:
+                pass
+        alive = self._proc is not None and self._proc.is_alive()
+        return {"policy": f"SCHED_FIFO {FIFO_PRIORITY}", "threads": 0, "holders": 0,
+                "refused": None if alive else "the kernel-worker process ended at start"}
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Ask the process to give the workers back and end; wait for it."""
+        self._stop.set()
+        if self._proc is not None:
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(2)

@@ -222,8 +222,10 @@ class HealthOut(BaseModel):
                     "(not analysed: queue full)")
     acquisition_process: dict[str, Any] | None = Field(
         None, description="the acquisition process: pid, alive, restarts, last_exit, priority "
-                          "(policy granted and what was refused), kernel_workers (with "
-                          "--realtime-kernel-workers: policy, threads holding it, refused), "
+                          "(policy granted and what was refused), kernel_workers (when "
+                          "serve raises the kernel's unbound workers, by default for the "
+                          "ADIS16350: policy, threads holding it, holders: serve processes "
+                          "sharing them, refused), "
                           "simulator (for "
                           "sim:adis16350: its pid and samples_never_read, the simulated "
                           "part's own count of samples lost at the device); null when "

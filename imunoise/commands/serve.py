@@ -66,12 +66,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="scheduling of the acquisition process: 'realtime' (default: "
                         "SCHED_FIFO where permitted, else nice -10 where permitted; /health "
                         "says what was granted), 'nice' or 'normal'")
-    p.add_argument("--realtime-kernel-workers", action="store_true",
+    p.add_argument("--realtime-kernel-workers", action=argparse.BooleanOptionalAction,
+                   default=None,
                    help="while serving, also run the kernel's unbound worker threads, which "
                         "carry a serial adapter's bytes to the acquisition process, at "
-                        "SCHED_FIFO 1 (needs the right to set real-time priority; changes "
-                        "the whole machine's scheduling until serve ends; for the ADIS16350 "
-                        "beside CPU-bound processes; see docs/service.md)")
+                        "SCHED_FIFO 1, and give them back when serve ends (needs the right to "
+                        "set real-time priority; /health says what was granted). Default: on "
+                        "for the ADIS16350 with --priority realtime and --acquisition process, "
+                        "off otherwise; see docs/service.md")
     p.add_argument("--analysis-cpu", type=float, default=0.3, metavar="F",
                    help="fraction of one core the fits and diagnoses may use on average; "
                         "their cadence adapts to it (default 0.3)")
@@ -97,7 +99,7 @@ def check_security(host: str, token: str | None) -> None:
 
 def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     """The block source, its description for /health, and whether it is a live device."""
-    if args.replay and getattr(args, "realtime_kernel_workers", False):
+    if args.replay and getattr(args, "realtime_kernel_workers", None):
         raise UsageError("serve: --realtime-kernel-workers applies to a device, not to --replay")
     if args.replay:
         path = Path(args.replay)
@@ -132,7 +134,7 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
             kwargs[key] = value
     if getattr(args, "acquisition", "thread") == "process":
         return _open_process(args, spec, kwargs)
-    if getattr(args, "realtime_kernel_workers", False):
+    if getattr(args, "realtime_kernel_workers", None):
         raise UsageError("serve: --realtime-kernel-workers needs --acquisition process")
     from analysis.noise_stream import stream_factory
 
@@ -151,6 +153,17 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     return acq, info, True
 
 
+def raise_kernel_workers(args: argparse.Namespace, spec: str) -> bool:
+    """Whether serve holds the kernel's unbound workers at real-time priority: as asked, else
+    for a serial device read at real-time priority, whose bytes those workers carry (serve
+    then already changes the machine's scheduling for its acquisition process)."""
+    asked = getattr(args, "realtime_kernel_workers", None)
+    if asked is not None:
+        return bool(asked)
+    return (spec.removeprefix("sim:") in SERIAL_DEVICES
+            and getattr(args, "priority", "realtime") == "realtime")
+
+
 def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
                   ) -> tuple[Any, dict[str, Any], bool]:
     """The device read and recorded by an acquisition process (``live.acquisition_process``)."""
@@ -159,8 +172,7 @@ def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
 
     config = AcquisitionConfig(spec, dict(kwargs), out=args.out, record_rate_hz=args.rate,
                                software=SOFTWARE, priority=getattr(args, "priority", "realtime"),
-                               realtime_kernel_workers=bool(
-                                   getattr(args, "realtime_kernel_workers", False)))
+                               realtime_kernel_workers=raise_kernel_workers(args, spec))
     if args.out:
         try:
             Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -171,6 +183,11 @@ def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
         source.open()
     except DeviceError as exc:
         raise RuntimeFailure(f"serve: {exc}") from None
+    workers = source.kernel_workers
+    if workers and workers.get("threads"):
+        print(f"imunoise: {workers['threads']} kernel worker threads at {workers['policy']} "
+              f"while serving (they carry the serial port's bytes; "
+              f"--no-realtime-kernel-workers leaves them as they are)", file=sys.stderr)
     info: dict[str, Any] = {"spec": spec, "acquisition": "process",
                             **{k: v for k, v in kwargs.items() if k != "seed"}}
     info["config"] = source.config_reported

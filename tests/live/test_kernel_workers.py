@@ -1,6 +1,8 @@
 """Real-time priority for the kernel's unbound workers: raised while asked, found again when
-new ones appear, given back at stop, left alone when already real-time; and `serve
---realtime-kernel-workers` reports it in /health and restores the workers when it ends.
+new ones appear, given back when the last holder stops (not before, and also when a holder
+died without stopping), left alone when already real-time; the keeper process gives them back
+when its parent is killed; and `serve` raises them by default for a serial device, reports
+them in /health and restores them when it ends.
 
 The raising is tried on real processes of this test (a ``sleep``), so that nothing here
 depends on which kernel workers exist; where the system refuses real-time priority, the test
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,17 +22,29 @@ from pathlib import Path
 
 import pytest
 
+from imunoise.cli import build_parser
+from imunoise.commands.serve import raise_kernel_workers
 from live.kernel_workers import (
     FIFO_PRIORITY,
     KernelWorkerBoost,
+    KernelWorkerKeeper,
+    WorkerLedger,
     is_unbound_worker,
+    process_start,
     processes,
 )
 from tests.live_helpers import free_port, wait_until
 
+REPO = Path(__file__).resolve().parents[2]
+
 
 def _sleeper(nice: int = 0) -> subprocess.Popen:
     return subprocess.Popen(["nice", "-n", str(nice), "sleep", "60"])
+
+
+def _only(*children: subprocess.Popen):
+    pids = {c.pid for c in children}
+    return lambda pid, comm: pid in pids
 
 
 def _policy(pid: int) -> tuple[int, int, int]:
@@ -51,13 +66,23 @@ def test_processes_lists_live_processes_with_their_names():
     assert dict(processes(Path("/no/such/proc"))) == {}
 
 
-def test_raised_while_running_and_given_back_at_stop():
+def test_process_start_names_a_process_for_good():
+    child = _sleeper()
+    start = process_start(child.pid)
+    assert start is not None and start >= process_start(1)
+    child.kill()
+    child.wait()
+    assert process_start(child.pid) is None
+
+
+def test_raised_while_running_and_given_back_at_stop(tmp_path):
     child = _sleeper(nice=5)
     try:
         wait_until(lambda: os.getpriority(os.PRIO_PROCESS, child.pid) == 5)
         before = _policy(child.pid)
         assert before == (os.SCHED_OTHER, 0, 5)
-        boost = KernelWorkerBoost(match=lambda pid, comm: pid == child.pid).start()
+        boost = KernelWorkerBoost(match=_only(child),
+                                  ledger=WorkerLedger(tmp_path / "ledger.json")).start()
         try:
             if boost.refused is not None:  # no right to real-time priority here
                 assert boost.refused.startswith("SCHED_FIFO for kernel workers: ")
@@ -66,7 +91,7 @@ def test_raised_while_running_and_given_back_at_stop():
                 return
             assert _policy(child.pid)[:2] == (os.SCHED_FIFO, FIFO_PRIORITY)
             assert boost.status() == {"policy": f"SCHED_FIFO {FIFO_PRIORITY}", "threads": 1,
-                                      "refused": None}
+                                      "holders": 1, "refused": None}
         finally:
             boost.stop()
         assert _policy(child.pid) == before
@@ -76,7 +101,7 @@ def test_raised_while_running_and_given_back_at_stop():
         child.wait()
 
 
-def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone():
+def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone(tmp_path):
     pids: set[int] = set()
     rt = _sleeper()
     try:
@@ -85,7 +110,8 @@ def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone():
         except PermissionError:
             pytest.skip("this system refuses real-time priority (the refusal is tested above)")
         pids.add(rt.pid)
-        boost = KernelWorkerBoost(match=lambda pid, comm: pid in pids, every_s=0.05).start()
+        boost = KernelWorkerBoost(match=lambda pid, comm: pid in pids, every_s=0.05,
+                                  ledger=WorkerLedger(tmp_path / "ledger.json")).start()
         late = _sleeper()
         try:
             assert boost.status()["threads"] == 0  # the real-time one is not taken over
@@ -101,6 +127,130 @@ def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone():
     finally:
         rt.kill()
         rt.wait()
+
+
+def _named_sleeper(tmp_path: Path, name: str, nice: int = 0) -> subprocess.Popen:
+    """A ``sleep`` whose process name is ``name`` (a copy of the program under that name)."""
+    program = tmp_path / name
+    shutil.copy(shutil.which("sleep") or "/bin/sleep", program)
+    return subprocess.Popen(["nice", "-n", str(nice), str(program), "60"])
+
+
+def _can_raise(child: subprocess.Popen) -> bool:
+    try:
+        os.sched_setscheduler(child.pid, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
+        os.sched_setscheduler(child.pid, os.SCHED_OTHER, os.sched_param(0))
+        return True
+    except PermissionError:
+        return False
+
+
+def test_shared_workers_are_given_back_only_when_the_last_holder_stops(tmp_path):
+    child = _named_sleeper(tmp_path, "imnkw-shared", nice=5)
+    try:
+        if not _can_raise(child):
+            pytest.skip("this system refuses real-time priority (the refusal is tested above)")
+        wait_until(lambda: os.getpriority(os.PRIO_PROCESS, child.pid) == 5)
+        ledger = tmp_path / "ledger.json"
+        keeper = KernelWorkerKeeper(prefix="imnkw-shared", every_s=0.1, ledger=ledger).start()
+        try:
+            assert keeper.status()["threads"] == 1 and keeper.status()["refused"] is None
+            assert _policy(child.pid)[:2] == (os.SCHED_FIFO, FIFO_PRIORITY)
+            here = KernelWorkerBoost(match=_only(child), ledger=WorkerLedger(ledger)).start()
+            assert here.status() == {"policy": f"SCHED_FIFO {FIFO_PRIORITY}", "threads": 1,
+                                     "holders": 2, "refused": None}
+        finally:
+            keeper.stop()
+        assert _policy(child.pid)[:2] == (os.SCHED_FIFO, FIFO_PRIORITY)  # still held here
+        here.stop()
+        assert _policy(child.pid) == (os.SCHED_OTHER, 0, 5)
+        assert json.loads(ledger.read_text()) == {"holders": [], "changed": {}}
+    finally:
+        child.kill()
+        child.wait()
+
+
+def test_a_holder_that_died_without_stopping_is_dropped(tmp_path):
+    child = _sleeper(nice=5)
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    try:
+        if not _can_raise(child):
+            pytest.skip("this system refuses real-time priority (the refusal is tested above)")
+        wait_until(lambda: os.getpriority(os.PRIO_PROCESS, child.pid) == 5)
+        # what a holder killed with SIGKILL leaves: itself listed, the worker it raised
+        os.sched_setscheduler(child.pid, os.SCHED_FIFO, os.sched_param(FIFO_PRIORITY))
+        ledger = tmp_path / "ledger.json"
+        ledger.write_text(json.dumps({"holders": [[gone.pid, 12345]],
+                                      "changed": {str(child.pid): ["sleep", os.SCHED_OTHER, 5]}}))
+        boost = KernelWorkerBoost(match=_only(child), ledger=WorkerLedger(ledger)).start()
+        assert boost.status()["holders"] == 2 and boost.status()["threads"] == 1
+        boost.stop()
+        assert _policy(child.pid) == (os.SCHED_OTHER, 0, 5)
+    finally:
+        child.kill()
+        child.wait()
+
+
+def test_an_unreadable_ledger_is_started_afresh_and_a_link_refused(tmp_path):
+    ledger = tmp_path / "ledger.json"
+    ledger.write_text("{not json")
+    with WorkerLedger(ledger).locked() as state:
+        assert state == {"holders": [], "changed": {}}
+    assert json.loads(ledger.read_text()) == {"holders": [], "changed": {}}
+    link = tmp_path / "link.json"
+    link.symlink_to(tmp_path / "elsewhere.json")
+    boost = KernelWorkerBoost(match=lambda pid, comm: False, ledger=WorkerLedger(link))
+    boost.start()
+    boost.stop()
+    assert boost.status()["refused"].startswith(f"ledger {link}: ")
+    assert not (tmp_path / "elsewhere.json").exists()
+
+
+_PARENT = """
+import json, sys, time
+from pathlib import Path
+from live.kernel_workers import KernelWorkerKeeper
+keeper = KernelWorkerKeeper(prefix=sys.argv[1], every_s=0.1, ledger=Path(sys.argv[2])).start()
+print(keeper.pid, json.dumps(keeper.status()), flush=True)
+time.sleep(60)
+"""
+
+
+def test_the_keeper_gives_the_workers_back_when_its_parent_is_killed(tmp_path):
+    child = _named_sleeper(tmp_path, "imnkw-orphan", nice=5)
+    try:
+        if not _can_raise(child):
+            pytest.skip("this system refuses real-time priority (the refusal is tested above)")
+        wait_until(lambda: os.getpriority(os.PRIO_PROCESS, child.pid) == 5)
+        parent = subprocess.Popen([sys.executable, "-c", _PARENT, "imnkw-orphan",
+                                   str(tmp_path / "ledger.json")], cwd=REPO,
+                                  stdout=subprocess.PIPE, text=True)
+        try:
+            keeper_pid, status = parent.stdout.readline().split(" ", 1)
+            assert json.loads(status)["threads"] == 1
+            assert _policy(child.pid)[:2] == (os.SCHED_FIFO, FIFO_PRIORITY)
+        finally:
+            parent.kill()
+            parent.wait()
+        assert wait_until(lambda: _policy(child.pid) == (os.SCHED_OTHER, 0, 5), timeout=10)
+        assert wait_until(lambda: process_start(int(keeper_pid)) is None, timeout=10)
+    finally:
+        child.kill()
+        child.wait()
+
+
+@pytest.mark.parametrize("argv, raised", [
+    (["--device", "sim:adis16350"], True),
+    (["--device", "adis16350", "--serial", "/dev/ttyUSB0"], True),
+    (["--device", "sim:adis16350", "--priority", "nice"], False),
+    (["--device", "sim:adis16350", "--no-realtime-kernel-workers"], False),
+    (["--device", "sim:razor"], False),
+    (["--device", "sim:razor", "--realtime-kernel-workers"], True),
+])
+def test_serve_raises_the_workers_by_default_only_for_a_serial_device_at_realtime(argv, raised):
+    args = build_parser().parse_args(["serve", *argv])
+    assert raise_kernel_workers(args, args.device) is raised
 
 
 @pytest.mark.parametrize("source, message", [
@@ -155,3 +305,33 @@ def test_serve_reports_the_workers_in_health_and_restores_them_when_it_ends(tmp_
         proc.communicate(timeout=60)
     assert proc.returncode == 0
     assert not [pid for pid in raised if _at_fifo_1(pid)]  # ended workers count as given back
+
+
+def test_serve_raises_the_workers_by_default_and_gives_them_back_when_killed(tmp_path):
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "imunoise", "serve", "--device",
+                             "sim:adis16350", "--port", str(port), "--out", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    health: dict = {}
+    raised: set[int] = set()
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and not health.get("samples", {}).get("received"):
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5) as r:
+                    health = json.load(r)
+            except OSError:
+                time.sleep(0.5)
+        assert health, f"serve did not come up: {proc.stderr.read()[-2000:]}"
+        workers = health["acquisition_process"]["kernel_workers"]
+        assert workers is not None and workers["policy"] == f"SCHED_FIFO {FIFO_PRIORITY}"
+        visible = [pid for pid, comm in processes() if is_unbound_worker(pid, comm)]
+        if workers["refused"] is None and visible:
+            raised = {pid for pid in visible if _at_fifo_1(pid)}
+            assert raised and workers["threads"] > 0
+    finally:
+        proc.kill()  # SIGKILL: serve cannot give anything back itself
+        _, err = proc.communicate(timeout=60)
+    if raised:
+        assert f"imunoise: {workers['threads']} kernel worker threads at SCHED_FIFO 1" in err
+    assert wait_until(lambda: not [pid for pid in raised if _at_fifo_1(pid)], timeout=10)
