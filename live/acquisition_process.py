@@ -25,7 +25,6 @@ import gc
 import multiprocessing as mp
 import os
 import pickle
-import signal
 import sys
 import threading
 import time
@@ -34,6 +33,7 @@ from typing import Any
 
 from live.block_ring import DEFAULT_CAPACITY, BlockRing
 from live.restart_pause import RestartPause, describe_exit
+from live.termination import TermFlag
 
 STATUS_EVERY_S = 0.25
 """How often the child publishes its counters."""
@@ -201,8 +201,7 @@ def _open(config: AcquisitionConfig, note: str | None):
 def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid: int,
                note: str | None = None) -> None:
     """Entry point of the acquisition process."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    term = TermFlag().install()  # the parent decides when to stop
     sys.setswitchinterval(GIL_SWITCH_S)
     priority = raise_priority(config.priority)
     ring = BlockRing(ring_name)
@@ -215,7 +214,7 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
         return
 
     def watch() -> None:  # stop when asked, or when the parent is gone
-        while not stop.wait(0.2):
+        while not term and not stop.wait(0.2):
             if os.getppid() != parent_pid:
                 break
         acq.stop()
@@ -244,7 +243,7 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
                 ring.publish_status(_status(acq, recorder, priority,
                                             simulator=truth.status()))
                 next_status = now + STATUS_EVERY_S
-            if stop.is_set():
+            if term or stop.is_set():
                 break
     except Exception as exc:  # noqa: BLE001
         error = f"acquisition stopped: {type(exc).__name__}: {exc}"

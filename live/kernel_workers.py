@@ -29,13 +29,14 @@ import fcntl
 import json
 import multiprocessing as mp
 import os
-import signal
 import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+from live.termination import TermFlag
 
 WORKER_PREFIX = "kworker/u"
 """Name prefix of the kernel's unbound workqueue threads (the suffix after ``-`` names the
@@ -274,8 +275,7 @@ def _restore(changed: dict[str, list]) -> None:
 
 def _keeper_main(prefix: str, every_s: float, ledger_path: str | None, parent_pid: int,
                  stop: Any, status: Any) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    term = TermFlag().install()  # the parent decides when to stop
 
     def publish(st: dict[str, Any]) -> None:
         status.value = json.dumps(st).encode()[:STATUS_BYTES - 1]
@@ -286,12 +286,12 @@ def _keeper_main(prefix: str, every_s: float, ledger_path: str | None, parent_pi
     try:
         boost.boost_once()
         publish(boost.status())
-        while boost.refused is None and not stop.wait(every_s):
+        while boost.refused is None and not term and not stop.wait(every_s):
             if os.getppid() != parent_pid:
                 break  # the parent is gone, however it ended
             boost.boost_once()
             publish(boost.status())
-        while boost.refused is not None and not stop.wait(every_s):
+        while boost.refused is not None and not term and not stop.wait(every_s):
             if os.getppid() != parent_pid:
                 break  # refused: nothing to hold, but the parent reads the reason
     finally:
@@ -324,8 +324,10 @@ class KernelWorkerKeeper:
     def start(self, timeout_s: float = 30.0) -> KernelWorkerKeeper:
         """Start the process and wait for its first pass (its status then says what was
         raised or why nothing could be)."""
+        # daemonic: should the parent leave without stop(), multiprocessing's exit hook
+        # sends it SIGTERM (it gives the workers back) instead of waiting for it forever
         self._proc = self._ctx.Process(
-            target=_keeper_main, name="imunoise-kernel-workers", daemon=False,
+            target=_keeper_main, name="imunoise-kernel-workers", daemon=True,
             args=(self.prefix, self.every_s, str(self.ledger) if self.ledger else None,
                   os.getpid(), self._stop, self._status))
         self._proc.start()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import signal
 import threading
 import time
@@ -39,10 +40,23 @@ class BlockLike(Protocol):
     gap_before: int
 
 
-def _ignore_sigint() -> None:
-    """Fit workers leave Ctrl-C to the service, which stops them (a terminal sends SIGINT to
-    every process of the foreground group)."""
+PARENT_CHECK_S = 1.0
+"""How often a fit worker checks that the service that started it still runs (s)."""
+
+
+def _worker_init(parent_pid: int) -> None:
+    """Set up a fit worker: Ctrl-C is left to the service, which stops the worker (a terminal
+    sends SIGINT to every process of the foreground group); and the worker ends when the
+    service is gone. A service killed with SIGKILL cannot stop it, and the worker, waiting
+    on a job queue whose other end it holds itself, would never learn of it otherwise."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(0)  # no job can be returned to anyone: nothing to finish
+
+    threading.Thread(target=watch, name="imunoise-fit-parent-watch", daemon=True).start()
 
 
 class WorkerClosed(RuntimeError):
@@ -69,7 +83,8 @@ class WorkerProcess:
             if self._pool is None:
                 # spawn, not fork: the parent runs threads (acquisition, HTTP) holding locks
                 self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"),
-                                                 initializer=_ignore_sigint)
+                                                 initializer=_worker_init,
+                                                 initargs=(os.getpid(),))
             return self._pool
 
     def __call__(self, fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:

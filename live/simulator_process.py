@@ -24,13 +24,12 @@ START_TIMEOUT_S = 60.0
 
 def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid: int,
                     priority: str, never_read: Any) -> None:
-    import signal
     import sys
 
     from live.acquisition_process import GIL_SWITCH_S, raise_priority, settle_heap
+    from live.termination import TermFlag
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    term = TermFlag().install()
     sys.setswitchinterval(GIL_SWITCH_S)
     raise_priority(priority)
     from analysis.noise_stream import stream_factory
@@ -50,7 +49,7 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
     settle_heap()
     conn.send(emulator.port)
     try:
-        while not stop.wait(0.5):
+        while not term and not stop.wait(0.5):
             if os.getppid() != parent_pid:
                 break
     finally:

@@ -20,6 +20,7 @@ from mcap.reader import make_reader
 
 from daq.readers.mcap import open_mcap, read_mcap
 from live.acquisition_process import AcquisitionConfig, AcquisitionProcess
+from tests.live_helpers import wait_until
 
 RATE = 102.4  # the simulated ADIS16350's default rate, Hz
 DEVICE_LOSS_BOUND = 0.1
@@ -183,6 +184,25 @@ def test_a_killed_acquisition_process_is_restarted_and_the_gap_marked(tmp_path):
     assert any(b"acquisition restarted" in t and b"signal 9" in t for t in texts)
 
 
+def test_sigterm_ends_the_acquisition_process_cleanly_and_it_is_restarted(tmp_path):
+    src = _source(tmp_path)
+    it = src.blocks()
+    try:
+        _consume(it, 1.5)
+        first_pid = src.pid
+        os.kill(first_pid, signal.SIGTERM)
+        later = _consume(it, 4.0, until=lambda got: _new_segment_s(got) > 1.0)
+        stats = src.stats
+        assert src.pid != first_pid and src.alive
+    finally:
+        _finish(src, it)
+    # ended by itself, within the stop check's period, not by the signal's default action
+    assert stats["process"]["last_exit"] == "exit code 0"
+    assert stats["process"]["restarts"] == 1 and _new_segment_s(later) > 1.0
+    first, _ = sorted(tmp_path.glob("*.mcap"))
+    assert open_mcap(first).layout.complete  # its recorder closed the file
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -247,17 +267,47 @@ def _running(pid: int) -> bool:
     return state != "Z"
 
 
+def _descendants(pid: int) -> dict[int, str]:
+    """Every process below ``pid`` (children, theirs, ...): pid -> command line."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry.name))
+    found: dict[int, str] = {}
+    todo = list(children.get(pid, []))
+    while todo:
+        p = todo.pop()
+        try:
+            found[p] = Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        todo += children.get(p, [])
+    return found
+
+
 def test_serve_killed_leaves_a_complete_file_with_every_sample_received(tmp_path):
     proc, health = _serve(tmp_path)
     acq_pid, rec_pid = health["acquisition_process"]["pid"], health["recording"]["pid"]
+    # the fit worker, spawned at the first fit: serve's one spawned child besides the
+    # acquisition process (and multiprocessing's resource tracker)
+    assert wait_until(lambda: any(
+        "spawn_main" in cmd and p != acq_pid for p, cmd in _descendants(proc.pid).items()
+        if p not in (acq_pid, rec_pid)), timeout=60), "no fit worker started"
     received = health["samples"]["received"]
+    started = _descendants(proc.pid)
     proc.kill()
     proc.wait(10)
     # the acquisition process sees its parent gone, its recorder writes what it was handed
-    # and closes the file; both end by themselves
+    # and closes the file; both end by themselves, and so does every other process serve
+    # started (the simulator's, the fit worker, the resource tracker)
     deadline = time.monotonic() + 30
-    while any(_running(pid) for pid in (acq_pid, rec_pid)):
-        assert time.monotonic() < deadline, "the acquisition or recorder process lingers"
+    while [p for p in started if _running(p)]:
+        assert time.monotonic() < deadline, \
+            f"processes of serve linger: {[started[p] for p in started if _running(p)]}"
         time.sleep(0.2)
     (path,) = tmp_path.glob("*.mcap")
     assert open_mcap(path).layout.complete

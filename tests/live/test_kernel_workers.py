@@ -213,23 +213,28 @@ from pathlib import Path
 from live.kernel_workers import KernelWorkerKeeper
 keeper = KernelWorkerKeeper(prefix=sys.argv[1], every_s=0.1, ledger=Path(sys.argv[2])).start()
 print(keeper.pid, json.dumps(keeper.status()), flush=True)
+if sys.argv[3] == "exit":
+    sys.exit(0)  # without keeper.stop()
 time.sleep(60)
 """
 
 
-def test_the_keeper_gives_the_workers_back_when_its_parent_is_killed(tmp_path):
+@pytest.mark.parametrize("end", ["kill", "exit"])
+def test_the_keeper_gives_the_workers_back_when_its_parent_ends_without_stopping_it(
+        tmp_path, end):
     child = _named_sleeper(tmp_path, "imnkw-orphan", nice=5)
     try:
         if not _can_raise(child):
             pytest.skip("this system refuses real-time priority (the refusal is tested above)")
         wait_until(lambda: os.getpriority(os.PRIO_PROCESS, child.pid) == 5)
         parent = subprocess.Popen([sys.executable, "-c", _PARENT, "imnkw-orphan",
-                                   str(tmp_path / "ledger.json")], cwd=REPO,
+                                   str(tmp_path / "ledger.json"), end], cwd=REPO,
                                   stdout=subprocess.PIPE, text=True)
         try:
             keeper_pid, status = parent.stdout.readline().split(" ", 1)
             assert json.loads(status)["threads"] == 1
-            assert _policy(child.pid)[:2] == (os.SCHED_FIFO, FIFO_PRIORITY)
+            if end == "exit":
+                assert parent.wait(timeout=30) == 0  # not held up by the keeper
         finally:
             parent.kill()
             parent.wait()

@@ -1,0 +1,32 @@
+"""How the service's child processes take SIGTERM and Ctrl-C.
+
+Ctrl-C reaches every process of the terminal's group; only ``serve`` acts on it, and it ends
+its children in order. SIGTERM (``terminate()`` of a child that did not end when asked, or an
+administrator) asks a child to end as if its parent had. The handler only sets a flag: setting
+a ``multiprocessing`` Event there could wait forever for the Event's own lock, held by the
+very code the signal interrupted; the child's loops look at the flag as often as they look
+at their stop Event.
+"""
+
+from __future__ import annotations
+
+import signal
+
+
+class TermFlag:
+    """True once SIGTERM has arrived (after :meth:`install`)."""
+
+    def __init__(self) -> None:
+        self.raised = False
+
+    def install(self) -> TermFlag:
+        """Handle SIGTERM with this flag and ignore SIGINT, in the calling (main) thread."""
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, self._on_term)
+        return self
+
+    def _on_term(self, signum: int, frame: object) -> None:
+        self.raised = True
+
+    def __bool__(self) -> bool:
+        return self.raised
