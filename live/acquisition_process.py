@@ -33,7 +33,7 @@ from typing import Any
 
 from live.block_ring import DEFAULT_CAPACITY, BlockRing
 from live.restart_pause import RestartPause, describe_exit
-from live.termination import TermFlag
+from live.termination import TermFlag, end_process
 
 STATUS_EVERY_S = 0.25
 """How often the child publishes its counters."""
@@ -358,12 +358,7 @@ class AcquisitionProcess:
     def close(self, timeout_s: float = 15.0) -> None:
         """Wait for the child (terminating it if it hangs) and release the ring."""
         self._stopping = True
-        self._stop.set()
-        if self._proc is not None:
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(5)
+        end_process(self._proc, self._stop, timeout_s, grace_s=5.0)
         self._remember_files()
         if self._kernel_workers is not None:
             self._kernel_workers.stop()

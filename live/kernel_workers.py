@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from live.termination import TermFlag
+from live.termination import TermFlag, end_process
 
 WORKER_PREFIX = "kworker/u"
 """Name prefix of the kernel's unbound workqueue threads (the suffix after ``-`` names the
@@ -356,9 +356,4 @@ class KernelWorkerKeeper:
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Ask the process to give the workers back and end; wait for it."""
-        self._stop.set()
-        if self._proc is not None:
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(2)
+        end_process(self._proc, self._stop, timeout_s)

@@ -19,6 +19,8 @@ import multiprocessing as mp
 import os
 from typing import Any
 
+from live.termination import end_process
+
 START_TIMEOUT_S = 60.0
 
 
@@ -101,9 +103,4 @@ class SimulatorProcess:
         return self._proc.pid if self._proc is not None else None
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        self._stop.set()
-        if self._proc is not None:
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(2)
+        end_process(self._proc, self._stop, timeout_s)

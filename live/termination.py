@@ -11,6 +11,7 @@ at their stop Event.
 from __future__ import annotations
 
 import signal
+from typing import Any
 
 
 class TermFlag:
@@ -30,3 +31,15 @@ class TermFlag:
 
     def __bool__(self) -> bool:
         return self.raised
+
+
+def end_process(proc: Any, stop: Any, timeout_s: float, grace_s: float = 2.0) -> None:
+    """Ask a child to end (set its ``stop`` Event), wait ``timeout_s`` for it, then send it
+    SIGTERM and wait ``grace_s`` more. ``proc`` may be None (never started)."""
+    stop.set()
+    if proc is None:
+        return
+    proc.join(timeout_s)
+    if proc.is_alive():
+        proc.terminate()
+        proc.join(grace_s)

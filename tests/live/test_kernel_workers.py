@@ -280,45 +280,15 @@ def _at_fifo_1(pid: int) -> bool:
         return False
 
 
-def test_serve_reports_the_workers_in_health_and_restores_them_when_it_ends(tmp_path):
+def _serve(tmp_path: Path, *options: str) -> tuple[subprocess.Popen, dict, set[int]]:
+    """``serve`` on the simulated ADIS16350 with ``options``: the process, its /health
+    ``kernel_workers`` once samples arrive, and the unbound workers then at SCHED_FIFO 1."""
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "imunoise", "serve", "--device",
                              "sim:adis16350", "--port", str(port), "--out", str(tmp_path),
-                             "--priority", "normal", "--realtime-kernel-workers"],
+                             *options],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     health: dict = {}
-    raised: set[int] = set()
-    try:
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline and not health.get("samples", {}).get("received"):
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5) as r:
-                    health = json.load(r)
-            except OSError:
-                time.sleep(0.5)
-        assert health, f"serve did not come up: {proc.stderr.read()[-2000:]}"
-        workers = health["acquisition_process"]["kernel_workers"]
-        assert workers["policy"] == f"SCHED_FIFO {FIFO_PRIORITY}"
-        visible = [pid for pid, comm in processes() if is_unbound_worker(pid, comm)]
-        if workers["refused"] is None and not visible:
-            assert workers["threads"] == 0  # in a container that does not show them
-        elif workers["refused"] is None:
-            raised = {pid for pid in visible if _at_fifo_1(pid)}
-            assert raised and workers["threads"] > 0
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.communicate(timeout=60)
-    assert proc.returncode == 0
-    assert not [pid for pid in raised if _at_fifo_1(pid)]  # ended workers count as given back
-
-
-def test_serve_raises_the_workers_by_default_and_gives_them_back_when_killed(tmp_path):
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "imunoise", "serve", "--device",
-                             "sim:adis16350", "--port", str(port), "--out", str(tmp_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    health: dict = {}
-    raised: set[int] = set()
     try:
         deadline = time.monotonic() + 90
         while time.monotonic() < deadline and not health.get("samples", {}).get("received"):
@@ -331,12 +301,31 @@ def test_serve_raises_the_workers_by_default_and_gives_them_back_when_killed(tmp
         workers = health["acquisition_process"]["kernel_workers"]
         assert workers is not None and workers["policy"] == f"SCHED_FIFO {FIFO_PRIORITY}"
         visible = [pid for pid, comm in processes() if is_unbound_worker(pid, comm)]
-        if workers["refused"] is None and visible:
+        raised: set[int] = set()
+        if workers["refused"] is None and not visible:
+            assert workers["threads"] == 0  # in a container that does not show them
+        elif workers["refused"] is None:
             raised = {pid for pid in visible if _at_fifo_1(pid)}
             assert raised and workers["threads"] > 0
-    finally:
-        proc.kill()  # SIGKILL: serve cannot give anything back itself
-        _, err = proc.communicate(timeout=60)
+    except BaseException:
+        proc.kill()
+        proc.communicate(timeout=60)
+        raise
+    return proc, workers, raised
+
+
+def test_serve_reports_the_workers_in_health_and_restores_them_when_it_ends(tmp_path):
+    proc, _, raised = _serve(tmp_path, "--priority", "normal", "--realtime-kernel-workers")
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=60)
+    assert proc.returncode == 0
+    assert not [pid for pid in raised if _at_fifo_1(pid)]  # ended workers count as given back
+
+
+def test_serve_raises_the_workers_by_default_and_gives_them_back_when_killed(tmp_path):
+    proc, workers, raised = _serve(tmp_path)
+    proc.kill()  # SIGKILL: serve cannot give anything back itself
+    _, err = proc.communicate(timeout=60)
     if raised:
         assert f"imunoise: {workers['threads']} kernel worker threads at SCHED_FIFO 1" in err
     assert wait_until(lambda: not [pid for pid in raised if _at_fifo_1(pid)], timeout=10)
