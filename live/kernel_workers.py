@@ -193,8 +193,10 @@ class KernelWorkerBoost:
                 return 0
             try:
                 with self.ledger.locked() as state:
-                    if self._me not in state["holders"]:
-                        state["holders"].append(self._me)
+                    # holders that died without stopping are dropped; what they raised stays
+                    # recorded, for the last live holder to give back
+                    state["holders"] = [h for h in state["holders"]
+                                        if h != self._me and _alive(h)] + [self._me]
                     self._joined = True
                     raised = self._raise(state)
                     self._threads = len(state["changed"])

@@ -19,7 +19,7 @@ import multiprocessing as mp
 import os
 from typing import Any
 
-from live.termination import end_process
+from live.termination import TermFlag, end_process
 
 START_TIMEOUT_S = 60.0
 
@@ -29,7 +29,6 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
     import sys
 
     from live.acquisition_process import GIL_SWITCH_S, raise_priority, settle_heap
-    from live.termination import TermFlag
 
     term = TermFlag().install()
     sys.setswitchinterval(GIL_SWITCH_S)

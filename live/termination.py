@@ -2,10 +2,10 @@
 
 Ctrl-C reaches every process of the terminal's group; only ``serve`` acts on it, and it ends
 its children in order. SIGTERM (``terminate()`` of a child that did not end when asked, or an
-administrator) asks a child to end as if its parent had. The handler only sets a flag: setting
-a ``multiprocessing`` Event there could wait forever for the Event's own lock, held by the
-very code the signal interrupted; the child's loops look at the flag as often as they look
-at their stop Event.
+administrator) asks a child to end as if its parent had. The handler only sets a flag:
+setting a ``multiprocessing`` Event there can wait forever, since the Event's wake-up waits
+for every waiting thread to acknowledge it, and the waiting thread may be the very one the
+signal interrupted. The child's loops look at the flag as often as at their stop Event.
 """
 
 from __future__ import annotations

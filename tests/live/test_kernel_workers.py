@@ -184,7 +184,9 @@ def test_a_holder_that_died_without_stopping_is_dropped(tmp_path):
         ledger.write_text(json.dumps({"holders": [[gone.pid, 12345]],
                                       "changed": {str(child.pid): ["sleep", os.SCHED_OTHER, 5]}}))
         boost = KernelWorkerBoost(match=_only(child), ledger=WorkerLedger(ledger)).start()
-        assert boost.status()["holders"] == 2 and boost.status()["threads"] == 1
+        assert boost.status()["holders"] == 1 and boost.status()["threads"] == 1  # dropped
+        assert json.loads(ledger.read_text())["holders"] == [[os.getpid(),
+                                                              process_start(os.getpid())]]
         boost.stop()
         assert _policy(child.pid) == (os.SCHED_OTHER, 0, 5)
     finally:
