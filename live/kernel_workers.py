@@ -12,14 +12,15 @@ with them at SCHED_FIFO 1; over 10 minutes (same load) with the workers raised, 
 (60 of 123,153 without, in an earlier run).
 
 :class:`KernelWorkerBoost` puts every unbound worker at SCHED_FIFO 1, the lowest real-time
-priority (below the acquisition process's), looks again every :data:`RESCAN_S` since the
-kernel starts and ends workers as it likes, and puts back the policy and nice value of each
+priority (below the acquisition process's), and puts back the policy and nice value of each
 worker raised when the last holder stops. Several ``serve`` processes on one machine share
 the workers through a :class:`WorkerLedger` (a small file under an exclusive lock): a worker
 is given back only when no live holder remains, and a holder that died without stopping is
-dropped by the next one that looks. :class:`KernelWorkerKeeper` runs a boost in a process of
-its own, which gives the workers back as soon as its parent has gone, even when the parent
-was killed with SIGKILL. I2C transfers run in the calling thread and do not need any of it.
+dropped by the next one that looks. :class:`KernelWorkerKeeper` holds a boost in a process of
+its own: it looks for new workers every :data:`RESCAN_S`, since the kernel starts and ends
+them as it likes, and gives the workers back as soon as its parent has gone, even when the
+parent was killed with SIGKILL. I2C transfers run in the calling thread and do not need any
+of it.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ import json
 import multiprocessing as mp
 import os
 import tempfile
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -143,66 +143,53 @@ def _alive(holder: list[int]) -> bool:
 
 
 class KernelWorkerBoost:
-    """Hold the matching threads at SCHED_FIFO :data:`FIFO_PRIORITY` until :meth:`stop`.
+    """Hold the matching threads at SCHED_FIFO :data:`FIFO_PRIORITY` from :meth:`start` until
+    :meth:`stop`; each :meth:`boost_once` raises those that appeared since (the kernel starts
+    and ends workers as it likes). It has no thread of its own: :class:`KernelWorkerKeeper`
+    calls it every :data:`RESCAN_S` in its process.
 
     Args:
         match: which (pid, name) to raise; the kernel's unbound workers by default.
-        every_s: how often :meth:`start`'s thread looks for new ones (s).
         ledger: the record shared with other holders on this machine (default: the
             machine's, :func:`default_ledger`).
     """
 
-    def __init__(self, match: Match = is_unbound_worker, every_s: float = RESCAN_S,
+    def __init__(self, match: Match = is_unbound_worker,
                  ledger: WorkerLedger | None = None) -> None:
         self.match = match
-        self.every_s = float(every_s)
         self.ledger = ledger or WorkerLedger()
         self.refused: str | None = None
         self._me = [os.getpid(), process_start(os.getpid()) or 0]
         self._threads = 0
         self._holders = 0
         self._joined = False
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._stopped = False
 
     def start(self) -> KernelWorkerBoost:
-        """Raise the workers now (so that a refusal is known at once), then keep watching in a
-        thread of this process."""
+        """Join the holders and raise the workers now (a refusal is then in :attr:`refused`)."""
         self.boost_once()
-        if self.refused is None:
-            self._thread = threading.Thread(target=self._run, name="imunoise-kworker-boost",
-                                            daemon=True)
-            self._thread.start()
         return self
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.every_s):
-            self.boost_once()
-            if self.refused is not None:
-                return
 
     def boost_once(self) -> int:
         """Raise every matching thread still at SCHED_OTHER; how many were raised now."""
         if not hasattr(os, "sched_setscheduler"):
             self.refused = "real-time scheduling is not available on this system"
             return 0
+        if self._stopped or self.refused is not None:
+            return 0
         raised = 0
-        with self._lock:
-            if self._stop.is_set() or self.refused is not None:
-                return 0
-            try:
-                with self.ledger.locked() as state:
-                    # holders that died without stopping are dropped; what they raised stays
-                    # recorded, for the last live holder to give back
-                    state["holders"] = [h for h in state["holders"]
-                                        if h != self._me and _alive(h)] + [self._me]
-                    self._joined = True
-                    raised = self._raise(state)
-                    self._threads = len(state["changed"])
-                    self._holders = len(state["holders"])
-            except OSError as exc:
-                self.refused = f"ledger {self.ledger.path}: {exc.strerror or exc}"
+        try:
+            with self.ledger.locked() as state:
+                # holders that died without stopping are dropped; what they raised stays
+                # recorded, for the last live holder to give back
+                state["holders"] = [h for h in state["holders"]
+                                    if h != self._me and _alive(h)] + [self._me]
+                self._joined = True
+                raised = self._raise(state)
+                self._threads = len(state["changed"])
+                self._holders = len(state["holders"])
+        except OSError as exc:
+            self.refused = f"ledger {self.ledger.path}: {exc.strerror or exc}"
         return raised
 
     def _raise(self, state: dict[str, Any]) -> int:
@@ -232,34 +219,30 @@ class KernelWorkerBoost:
         return raised
 
     def stop(self) -> None:
-        """Stop watching and leave the ledger; when no live holder remains, give every thread
-        raised its policy and nice value back (a thread that has ended, or whose pid now names
-        something else, is left alone)."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-        with self._lock:
-            if not self._joined:
-                return
-            self._joined = False
-            try:
-                with self.ledger.locked() as state:
-                    state["holders"] = [h for h in state["holders"]
-                                        if h != self._me and _alive(h)]
-                    if not state["holders"]:
-                        _restore(state["changed"])
-                        state["changed"] = {}
-                    self._threads = 0
-                    self._holders = len(state["holders"])
-            except OSError:
-                pass  # the ledger vanished: nothing recorded to give back
+        """Leave the ledger; when no live holder remains, give every thread raised its policy
+        and nice value back (a thread that has ended, or whose pid now names something else,
+        is left alone)."""
+        self._stopped = True
+        if not self._joined:
+            return
+        self._joined = False
+        try:
+            with self.ledger.locked() as state:
+                state["holders"] = [h for h in state["holders"]
+                                    if h != self._me and _alive(h)]
+                if not state["holders"]:
+                    _restore(state["changed"])
+                    state["changed"] = {}
+                self._threads = 0
+                self._holders = len(state["holders"])
+        except OSError:
+            pass  # the ledger vanished: nothing recorded to give back
 
     def status(self) -> dict[str, Any]:
         """For /health: the policy given, how many threads hold it (raised by any holder),
         how many processes hold them, or why none does."""
-        with self._lock:
-            return {"policy": f"SCHED_FIFO {FIFO_PRIORITY}", "threads": self._threads,
-                    "holders": self._holders, "refused": self.refused}
+        return {"policy": f"SCHED_FIFO {FIFO_PRIORITY}", "threads": self._threads,
+                "holders": self._holders, "refused": self.refused}
 
 
 def _restore(changed: dict[str, list]) -> None:
@@ -283,10 +266,9 @@ def _keeper_main(prefix: str, every_s: float, ledger_path: str | None, parent_pi
         status.value = json.dumps(st).encode()[:STATUS_BYTES - 1]
 
     boost = KernelWorkerBoost(match=lambda pid, comm: comm.startswith(prefix),
-                              every_s=every_s,
                               ledger=WorkerLedger(Path(ledger_path) if ledger_path else None))
     try:
-        boost.boost_once()
+        boost.start()
         publish(boost.status())
         while boost.refused is None and not term and not stop.wait(every_s):
             if os.getppid() != parent_pid:

@@ -101,38 +101,11 @@ def test_raised_while_running_and_given_back_at_stop(tmp_path):
         child.wait()
 
 
-def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone(tmp_path):
-    pids: set[int] = set()
-    rt = _sleeper()
-    try:
-        try:
-            os.sched_setscheduler(rt.pid, os.SCHED_FIFO, os.sched_param(2))
-        except PermissionError:
-            pytest.skip("this system refuses real-time priority (the refusal is tested above)")
-        pids.add(rt.pid)
-        boost = KernelWorkerBoost(match=lambda pid, comm: pid in pids, every_s=0.05,
-                                  ledger=WorkerLedger(tmp_path / "ledger.json")).start()
-        late = _sleeper()
-        try:
-            assert boost.status()["threads"] == 0  # the real-time one is not taken over
-            pids.add(late.pid)
-            assert wait_until(lambda: os.sched_getscheduler(late.pid) == os.SCHED_FIFO)
-            assert boost.status()["threads"] == 1
-        finally:
-            boost.stop()
-            assert os.sched_getscheduler(late.pid) == os.SCHED_OTHER
-            assert _policy(rt.pid)[:2] == (os.SCHED_FIFO, 2)  # never changed, never "restored"
-            late.kill()
-            late.wait()
-    finally:
-        rt.kill()
-        rt.wait()
-
-
 def _named_sleeper(tmp_path: Path, name: str, nice: int = 0) -> subprocess.Popen:
     """A ``sleep`` whose process name is ``name`` (a copy of the program under that name)."""
     program = tmp_path / name
-    shutil.copy(shutil.which("sleep") or "/bin/sleep", program)
+    if not program.exists():
+        shutil.copy(shutil.which("sleep") or "/bin/sleep", program)
     return subprocess.Popen(["nice", "-n", str(nice), str(program), "60"])
 
 
@@ -143,6 +116,32 @@ def _can_raise(child: subprocess.Popen) -> bool:
         return True
     except PermissionError:
         return False
+
+
+def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone(tmp_path):
+    """The keeper's own rescan (every 0.05 s here) finds a worker started after it."""
+    rt = _named_sleeper(tmp_path, "imnkw-late")
+    try:
+        try:
+            os.sched_setscheduler(rt.pid, os.SCHED_FIFO, os.sched_param(2))
+        except PermissionError:
+            pytest.skip("this system refuses real-time priority (the refusal is tested above)")
+        keeper = KernelWorkerKeeper(prefix="imnkw-late", every_s=0.05,
+                                    ledger=tmp_path / "ledger.json").start()
+        late = _named_sleeper(tmp_path, "imnkw-late", nice=3)
+        try:
+            assert keeper.status()["threads"] == 0  # the real-time one is not taken over
+            assert wait_until(lambda: os.sched_getscheduler(late.pid) == os.SCHED_FIFO)
+            assert wait_until(lambda: keeper.status()["threads"] == 1)
+        finally:
+            keeper.stop()
+            assert _policy(late.pid) == (os.SCHED_OTHER, 0, 3)
+            assert _policy(rt.pid)[:2] == (os.SCHED_FIFO, 2)  # never changed, never "restored"
+            late.kill()
+            late.wait()
+    finally:
+        rt.kill()
+        rt.wait()
 
 
 def test_shared_workers_are_given_back_only_when_the_last_holder_stops(tmp_path):
