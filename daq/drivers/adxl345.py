@@ -59,6 +59,10 @@ RANGE_CODES_G: dict[int, int] = {2: 0b00, 4: 0b01, 8: 0b10, 16: 0b11}
 FIFO_BYPASS, FIFO_FIFO, FIFO_STREAM, FIFO_TRIGGER = 0, 1, 2, 3
 FIFO_DEPTH = 32
 FIFO_AVAILABLE = 33  # 32 in the FIFO and one in the output registers
+CONTINUE_MARGIN = 4
+"""Entries kept free when a drain goes on without reading the FIFO's status first."""
+RATE_TOLERANCE = 0.1
+"""Output data rate above nominal assumed when bounding how full the FIFO can be."""
 INT_DATA_READY = 1 << 7
 INT_WATERMARK = 1 << 1
 INT_OVERRUN = 1 << 0
@@ -141,6 +145,8 @@ class Adxl345:
                                 self.rate_hz, lambda raw: raw * scale)
         self.overruns = 0
         self.fifo_left = 0  # entries a drain cut short left in the FIFO
+        self._status_at = -math.inf  # when the FIFO's status was last read (clock, s)
+        self._filling_since = 0.0  # when measurement began, for the bound before a drain
         self._last_drain: float | None = None
         self._reopened = False
         self.config: dict[str, str] = self._describe(None)
@@ -171,6 +177,7 @@ class Adxl345:
                     "POWER_CTL": POWER_MEASURE}
         if back != expected:
             raise TransientDeviceError(f"{self.where}: configuration did not stick ({back})")
+        self._filling_since = self.clock.now()
         self.clock.sleep(TURN_ON_S + 1.0 / self.rate_hz)
         # Reopened after a fault: the FIFO was flushed, so the first drain has to count the
         # samples made since the last good one from the host clock.
@@ -197,12 +204,22 @@ class Adxl345:
         """Drain the FIFO; the number of samples read.
 
         With ``deadline`` (on ``clock``), stop reading entries once it has passed (at least
-        one is read); :attr:`fifo_left` then says how many stayed in the FIFO.
+        one is read); :attr:`fifo_left` then says how many stayed in the FIFO. The drain that
+        follows such a cut-short one reads those entries without the two status reads first,
+        while the FIFO cannot have filled since the last status read (:meth:`_can_continue`):
+        on a shared bus (the Razor's) the status reads took most of the time a drain is given
+        between two gyro samples, so a backlog went down by about one entry per drain.
         """
         a = self.address
-        source = self.bus.read_u8(a, REG["INT_SOURCE"])
-        entries = int(REGISTERS["FIFO_ENTRIES"].counts(self.bus.read_u8(a, REG["FIFO_STATUS"])))
         now = self.clock.now()
+        if self._can_continue(now):
+            source, entries = 0, self.fifo_left  # all still there: nothing overwritten
+        else:
+            source = self.bus.read_u8(a, REG["INT_SOURCE"])
+            entries = int(REGISTERS["FIFO_ENTRIES"].counts(
+                self.bus.read_u8(a, REG["FIFO_STATUS"])))
+            now = self.clock.now()
+            self._status_at = now
         rows = []
         for _ in range(entries):
             rows.append(self.bus.read_block(a, REG["DATAX"], DATA_BYTES))
@@ -232,6 +249,23 @@ class Adxl345:
             self.imu.add_many(decode_data(np.asarray(rows)), missed=missed,
                               host_time=self.clock.wall())
         return len(rows)
+
+    def entries_at_most(self, now: float) -> float:
+        """An upper bound of the entries in the FIFO at ``now`` (clock, s): those the last
+        drain left (or, before the first drain, none at the start of measurement) and those
+        made since, at :data:`RATE_TOLERANCE` above the nominal rate."""
+        since = self._filling_since if self._last_drain is None else self._last_drain
+        return self.fifo_left + (now - since) * self.rate_hz * (1.0 + RATE_TOLERANCE)
+
+    def _can_continue(self, now: float) -> bool:
+        """Whether the entries a cut-short drain left can be read without the status reads:
+        at most :data:`FIFO_DEPTH` - :data:`CONTINUE_MARGIN` entries can be in the FIFO now
+        (those left, and as many as the chip makes, at :data:`RATE_TOLERANCE` above its
+        nominal rate, since the last status read), so none was overwritten."""
+        if not self.fifo_left or self._last_drain is None or self._reopened:
+            return False
+        made = (now - self._status_at) * self.rate_hz * (1.0 + RATE_TOLERANCE)
+        return self.fifo_left + made <= FIFO_DEPTH - CONTINUE_MARGIN
 
     def take_blocks(self) -> list:
         return self.imu.take()

@@ -4,10 +4,11 @@ Each chip keeps its own clock and rate, so each is its own stream (``/razor/itg3
 with the gyro channels, ``/razor/adxl345/imu`` with the accelerometer channels) with its own
 sample times. The gyro has no FIFO and is polled on its sample phase
 (:class:`daq.poll_schedule.DataReadySchedule`); the accelerometer's FIFO is drained right after
-a gyro sample has been read, when the gyro's next sample is furthest away, at most every
-``adxl.poll_period_s`` and only until :data:`ADXL_SHARE` of a gyro period has passed since the
-poll began (the rest stays in the FIFO for the next gyro period), so that at high gyro rates
-the shared bus is free, and the poll over, well before the gyro's next sample is due.
+a gyro sample has been read, when the gyro's next sample is furthest away, once
+:data:`ADXL_EVERY_ENTRIES` have come (or ``adxl.poll_period_s`` has passed, if sooner) and
+only until :data:`ADXL_SHARE` of a gyro period has passed since the poll began (the rest stays
+in the FIFO for the next gyro period), so that at high gyro rates the shared bus is free, and
+the poll over, well before the gyro's next sample is due.
 """
 
 from __future__ import annotations
@@ -23,6 +24,19 @@ ADXL_SHARE = 0.5
 """The accelerometer's drain ends this fraction of a gyro period after the poll began; when
 the gyro's own read took that long (the simulated chip drawing its next chunk of noise, a slow
 bus), the drain waits for the next gyro sample (the FIFO holds 32 samples)."""
+ADXL_EVERY_ENTRIES = 8
+"""The accelerometer is drained once about this many entries have come, a quarter of its FIFO,
+so that the FIFO keeps room for a stall of the whole host of three quarters of its length
+(30 ms at 800 Hz); drained only at its watermark (16), with drains cut short by the gyro's
+next sample, it was often half full and a 38 ms stall overran it (simulated Razor at 1 kHz,
+90 s: one overrun)."""
+ADXL_URGENT_ENTRIES = 20
+"""With this many entries possibly in the FIFO, it is drained after every gyro sample even
+when the gyro's read used up its share of the period, and for :data:`ADXL_SHARE` of a gyro
+period from the drain's own start: a stretch of slow gyro reads must not starve it until it
+overruns, nor hold it full with one entry read per drain (both seen in the simulated Razor at
+1 kHz on a slow host: 22 gyro reads in a row over half a period each took the FIFO from 15
+entries to full, and drains that read one entry each kept it there)."""
 
 
 class Razor:
@@ -37,6 +51,7 @@ class Razor:
         self.rate_hz = itg.rate_hz
         self.poll_period_s = itg.poll_period_s
         self._adxl_due = -math.inf
+        self._adxl_every_s = min(adxl.poll_period_s, ADXL_EVERY_ENTRIES / adxl.rate_hz)
         self.config: dict[str, str] = self._describe()
 
     @property
@@ -69,18 +84,21 @@ class Razor:
         now = clock.now()
         deadline = started + ADXL_SHARE / self.itg.rate_hz
         if n > 0 and now >= self._adxl_due:
-            if now >= deadline:
+            urgent = self.adxl.entries_at_most(now) >= ADXL_URGENT_ENTRIES
+            if now >= deadline and not urgent:
                 return n  # no time left before the next gyro sample; the FIFO waits
+            if urgent:
+                deadline = max(deadline, now + ADXL_SHARE / self.itg.rate_hz)
             # Right after a gyro sample, until ADXL_SHARE of a gyro period has passed; a
             # drain cut short goes on after the next gyro sample.
             n += self.adxl.poll(deadline=deadline)
-        elif n == 0 and now >= self._adxl_due + 0.5 * self.adxl.poll_period_s:
+        elif n == 0 and now >= self._adxl_due + 0.5 * self._adxl_every_s:
             # The gyro delivers nothing (data-ready stuck until it is reopened): no gyro
             # sample to make way for, and the accelerometer's FIFO must not overrun.
             n += self.adxl.poll()
         else:
             return n
-        self._adxl_due = now if self.adxl.fifo_left else now + self.adxl.poll_period_s
+        self._adxl_due = now if self.adxl.fifo_left else now + self._adxl_every_s
         return n
 
     def take_blocks(self) -> list[SampleBlock]:

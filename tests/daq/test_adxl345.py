@@ -130,3 +130,55 @@ def test_wrong_devid_is_refused():
     drv = ax.Adxl345(I2CBus(1, opener=SimulatedI2CAdapter({0x53: sim}).open_bus), clock=clock)
     with pytest.raises(PermanentDeviceError, match="DEVID reads 0x00, expected 0xE5"):
         drv.open()
+
+
+def _drained_by_hand(rate_hz: float = 800.0):
+    """The driver on the model at ``rate_hz`` (virtual clock, opened, first drain done) and the
+    list of registers it reads with single-byte reads (the status reads) from now on."""
+    acq = open_device("sim:adxl345", rate_hz=rate_hz, realtime=False, accel=constant(ACCEL))
+    acq.open()
+    drv = acq.driver
+    drv.poll()
+    status: list[int] = []
+    read_u8 = drv.bus.read_u8
+    drv.bus.read_u8 = lambda addr, reg: status.append(reg) or read_u8(addr, reg)
+    return acq, drv, status
+
+
+def _read_and_gaps(drv) -> tuple[int, int]:
+    blocks = drv.take_blocks()
+    return sum(len(b) for b in blocks), sum(max(0, b.gap_before) for b in blocks)
+
+
+def test_a_drain_cut_short_goes_on_without_the_status_reads_and_loses_nothing():
+    acq, drv, status = _drained_by_hand()
+    sim, clock = acq.simulator.adxl, acq.clock
+    clock.advance(0.02)  # 16 entries at 800 Hz
+    assert drv.poll(deadline=clock.now()) == 1  # cut short after the first entry
+    left = drv.fifo_left
+    assert left >= 14
+    status.clear()
+    assert drv.poll() == left  # those left, read on at once...
+    assert status == []  # ...without INT_SOURCE and FIFO_STATUS first
+    assert drv.fifo_left == 0
+    clock.advance(0.01)
+    drv.poll()  # nothing left over: the next drain reads the status again
+    assert status == [ax.REG["INT_SOURCE"], ax.REG["FIFO_STATUS"]]
+    n, gaps = _read_and_gaps(drv)
+    assert gaps == 0 and sim.samples_lost == 0
+    assert n + len(sim.fifo) == sim.samples_made  # every sample made was read or waits
+
+
+def test_a_drain_after_a_long_pause_reads_the_status_and_finds_the_overrun():
+    acq, drv, status = _drained_by_hand()
+    sim, clock = acq.simulator.adxl, acq.clock
+    clock.advance(0.02)
+    drv.poll(deadline=clock.now())
+    assert drv.fifo_left >= 14
+    clock.advance(0.1)  # 80 more: the FIFO could have filled, so the entries left say little
+    status.clear()
+    drv.poll()
+    assert status == [ax.REG["INT_SOURCE"], ax.REG["FIFO_STATUS"]]
+    assert sim.samples_lost > 50 and drv.overruns == 1
+    n, gaps = _read_and_gaps(drv)
+    assert gaps == pytest.approx(sim.samples_lost, abs=2)
