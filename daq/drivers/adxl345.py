@@ -145,8 +145,7 @@ class Adxl345:
                                 self.rate_hz, lambda raw: raw * scale)
         self.overruns = 0
         self.fifo_left = 0  # entries a drain cut short left in the FIFO
-        self._status_at = -math.inf  # when the FIFO's status was last read (clock, s)
-        self._filling_since = 0.0  # when measurement began, for the bound before a drain
+        self._status_at = -math.inf  # when the FIFO's count was last known (clock, s)
         self._last_drain: float | None = None
         self._reopened = False
         self.config: dict[str, str] = self._describe(None)
@@ -177,7 +176,7 @@ class Adxl345:
                     "POWER_CTL": POWER_MEASURE}
         if back != expected:
             raise TransientDeviceError(f"{self.where}: configuration did not stick ({back})")
-        self._filling_since = self.clock.now()
+        self._status_at = self.clock.now()  # flushed: none in the FIFO (fifo_left adds more)
         self.clock.sleep(TURN_ON_S + 1.0 / self.rate_hz)
         # Reopened after a fault: the FIFO was flushed, so the first drain has to count the
         # samples made since the last good one from the host clock.
@@ -251,21 +250,19 @@ class Adxl345:
         return len(rows)
 
     def entries_at_most(self, now: float) -> float:
-        """An upper bound of the entries in the FIFO at ``now`` (clock, s): those the last
-        drain left (or, before the first drain, none at the start of measurement) and those
-        made since, at :data:`RATE_TOLERANCE` above the nominal rate."""
-        since = self._filling_since if self._last_drain is None else self._last_drain
-        return self.fifo_left + (now - since) * self.rate_hz * (1.0 + RATE_TOLERANCE)
+        """An upper bound of the entries in the FIFO at ``now`` (clock, s): those known to be
+        left at the last status read (or at the start of measurement), less those read since,
+        and as many as the chip makes from then on at :data:`RATE_TOLERANCE` above its
+        nominal rate."""
+        return self.fifo_left + (now - self._status_at) * self.rate_hz * (1.0 + RATE_TOLERANCE)
 
     def _can_continue(self, now: float) -> bool:
         """Whether the entries a cut-short drain left can be read without the status reads:
-        at most :data:`FIFO_DEPTH` - :data:`CONTINUE_MARGIN` entries can be in the FIFO now
-        (those left, and as many as the chip makes, at :data:`RATE_TOLERANCE` above its
-        nominal rate, since the last status read), so none was overwritten."""
+        at most :data:`FIFO_DEPTH` - :data:`CONTINUE_MARGIN` entries can be in the FIFO now, so
+        none was overwritten."""
         if not self.fifo_left or self._last_drain is None or self._reopened:
             return False
-        made = (now - self._status_at) * self.rate_hz * (1.0 + RATE_TOLERANCE)
-        return self.fifo_left + made <= FIFO_DEPTH - CONTINUE_MARGIN
+        return self.entries_at_most(now) <= FIFO_DEPTH - CONTINUE_MARGIN
 
     def take_blocks(self) -> list:
         return self.imu.take()
