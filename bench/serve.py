@@ -62,7 +62,9 @@ CONFIGS = {
 }
 CLIENTS = 50
 CLIENT_PERIOD_S = 0.2
-_HOG = "while True: pass"
+_HOG = ("import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n"
+        "    for _ in range(1_000_000):\n        pass\n")
+"""A CPU-bound process that ends once the benchmark is gone, however it ended."""
 
 
 def config_of(name: str) -> tuple[str, float]:
@@ -221,6 +223,7 @@ def run_one(name: str, load: str, seconds: float, serve_args: tuple[str, ...] = 
                               *serve_args],
                              cwd=ROOT, stderr=subprocess.PIPE, text=True,
                              env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    client = floor = None
     try:
         health = None
         for _ in range(240):
@@ -269,10 +272,15 @@ def run_one(name: str, load: str, seconds: float, serve_args: tuple[str, ...] = 
         serve.send_signal(signal.SIGTERM)
         serve.wait(120)
     finally:
-        for h in hogs:
-            h.kill()
-        if serve.poll() is None:
-            serve.kill()
+        for p in [*hogs, client, floor]:
+            if p is not None and p.poll() is None:
+                p.kill()
+        if serve.poll() is None:  # stopped early: serve closes its file and gives back
+            serve.send_signal(signal.SIGTERM)  # the kernel workers it raised
+            try:
+                serve.wait(60)
+            except subprocess.TimeoutExpired:
+                serve.kill()
     streams = recorded(out)
     return {"run": name, "load": load, "seconds": wall, "streams": streams,
             "losses": health.get("losses", {}), "process": health.get("acquisition_process"),
@@ -335,6 +343,8 @@ def main() -> None:
                          "serve's own default (on for the ADIS16350 where permitted)")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args()
+    # SIGTERM ends the benchmark through its cleanup, as Ctrl-C does
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     serve_args = {None: (), True: ("--realtime-kernel-workers",),
                   False: ("--no-realtime-kernel-workers",)}[args.realtime_kernel_workers]
     try:

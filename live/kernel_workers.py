@@ -30,6 +30,7 @@ import fcntl
 import json
 import multiprocessing as mp
 import os
+import re
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -39,8 +40,8 @@ from typing import Any
 from live.termination import TermFlag, end_process
 
 WORKER_PREFIX = "kworker/u"
-"""Name prefix of the kernel's unbound workqueue threads (the suffix after ``-`` names the
-work they run at the moment)."""
+"""Name prefix of the kernel's unbound workqueue threads (a suffix names the work they ran
+last, after ``-``, or run at the moment, after ``+``)."""
 FIFO_PRIORITY = 1
 """The real-time priority given: the lowest, so that the acquisition process (20) and the
 kernel's own real-time threads keep precedence."""
@@ -56,6 +57,13 @@ Match = Callable[[int, str], bool]
 def is_unbound_worker(pid: int, comm: str) -> bool:
     """Whether a thread named ``comm`` is one of the kernel's unbound workers."""
     return comm.startswith(WORKER_PREFIX)
+
+
+def worker_name(comm: str) -> str:
+    """A kernel worker's own name, without the work it ran last or runs now: the kernel
+    names a worker ``kworker/u8:1-events_unbound`` when idle and ``kworker/u8:1+events_unbound``
+    while it runs that work, so the part before either sign is what stays while it lives."""
+    return re.split(r"[-+]", comm, maxsplit=1)[0]
 
 
 def process_name(pid: int, proc: Path = Path("/proc")) -> str | None:
@@ -199,7 +207,7 @@ class KernelWorkerBoost:
         for pid, comm in processes():
             if not self.match(pid, comm):
                 continue
-            seen[str(pid)] = comm.split("-", 1)[0]
+            seen[str(pid)] = worker_name(comm)
             try:
                 policy = os.sched_getscheduler(pid)
                 if policy != os.SCHED_OTHER:
@@ -249,7 +257,7 @@ def _restore(changed: dict[str, list]) -> None:
     for key, (name, policy, nice) in changed.items():
         pid = int(key)
         comm = process_name(pid)
-        if comm is None or comm.split("-", 1)[0] != name:
+        if comm is None or worker_name(comm) != name:
             continue
         try:
             os.sched_setscheduler(pid, policy, os.sched_param(0))

@@ -32,6 +32,7 @@ from live.kernel_workers import (
     is_unbound_worker,
     process_start,
     processes,
+    worker_name,
 )
 from tests.live_helpers import free_port, wait_until
 
@@ -57,6 +58,13 @@ def test_unbound_workers_are_told_apart_by_name():
     assert is_unbound_worker(1, "kworker/u9:0")
     assert not is_unbound_worker(1, "kworker/0:1H-kblockd")
     assert not is_unbound_worker(1, "python")
+
+
+def test_a_worker_keeps_its_name_whatever_work_it_runs():
+    assert worker_name("kworker/u8:2-events_unbound") == "kworker/u8:2"
+    assert worker_name("kworker/u8:2+events_unbound") == "kworker/u8:2"  # running it now
+    assert worker_name("kworker/u8:2+ext4-rsv-conversion") == "kworker/u8:2"
+    assert worker_name("kworker/u9:0") == "kworker/u9:0"
 
 
 def test_processes_lists_live_processes_with_their_names():
@@ -116,6 +124,62 @@ def _can_raise(child: subprocess.Popen) -> bool:
         return True
     except PermissionError:
         return False
+
+
+_RENAMED = """
+import sys
+def name(n):
+    with open("/proc/self/comm", "w") as f:
+        f.write(n)
+name(sys.argv[1])
+print("named", flush=True)
+for line in sys.stdin:
+    name(line.strip())
+    print("named", flush=True)
+"""
+
+
+def _rename(child: subprocess.Popen, name: str) -> None:
+    child.stdin.write(name + "\n")
+    child.stdin.flush()
+    assert child.stdout.readline() == "named\n"
+
+
+def test_a_worker_seen_while_it_runs_work_is_still_given_back(tmp_path):
+    """The kernel names a worker that runs work at the moment with ``+`` where an idle one
+    has ``-`` (``kworker/u8:1+events_unbound``). A rescan that sees it so keeps it on record,
+    and the stop gives it back under either name (it was left at SCHED_FIFO for good)."""
+    child = subprocess.Popen(["nice", "-n", "4", sys.executable, "-c", _RENAMED,
+                              "imnkw/u1:0-idle"], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline() == "named\n"
+        boost = KernelWorkerBoost(match=lambda pid, comm: comm.startswith("imnkw/u"),
+                                  ledger=WorkerLedger(tmp_path / "ledger.json")).start()
+        try:
+            if boost.refused is not None:
+                pytest.skip("this system refuses real-time priority (the refusal is tested "
+                            "above)")
+            assert _policy(child.pid)[:2] == (os.SCHED_FIFO, FIFO_PRIORITY)
+            _rename(child, "imnkw/u1:0+busy")
+            boost.boost_once()
+            assert boost.status()["threads"] == 1
+        finally:
+            boost.stop()
+        assert _policy(child.pid) == (os.SCHED_OTHER, 0, 4)
+        # raised while it runs work, given back while it runs work again
+        boost = KernelWorkerBoost(match=lambda pid, comm: comm.startswith("imnkw/u"),
+                                  ledger=WorkerLedger(tmp_path / "ledger.json")).start()
+        try:
+            _rename(child, "imnkw/u1:0-idle")
+            boost.boost_once()
+            _rename(child, "imnkw/u1:0+busy")
+        finally:
+            boost.stop()
+        assert _policy(child.pid) == (os.SCHED_OTHER, 0, 4)
+    finally:
+        child.kill()
+        child.wait()
 
 
 def test_a_worker_that_appears_later_is_raised_and_a_real_time_one_left_alone(tmp_path):
