@@ -93,8 +93,14 @@ def test_streamed_equals_loaded(recording):
         # (about 1e-5 relative; the coefficients' 95 % intervals are a few % wide)
         for ta, tb in zip(a["model"], b["model"], strict=True):
             assert ta["term"] == tb["term"]
+            assert tb["unresolved"] == ta["unresolved"], key
             for p, v in ta["params"].items():
-                assert tb["params"][p] == pytest.approx(v, rel=1e-4, abs=1e-12), (key, p)
+                if p in ta["unresolved"]:
+                    # not a measurement (its interval reaches zero): the optimizer leaves it
+                    # anywhere near zero (gyro_y's B, loaded and streamed, on one machine: 6.5e-16
+                    # and 4.1e-12 rad/s)
+                    continue
+                assert tb["params"][p] == pytest.approx(v, rel=1e-4), (key, p)
         assert b["error"]["chi2_per_dof"] == pytest.approx(a["error"]["chi2_per_dof"], rel=1e-4)
 
 
