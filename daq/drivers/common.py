@@ -130,6 +130,18 @@ class StreamBuffer:
         return blocks
 
 
+STALE_MOVE_MAX = 0.25
+"""How far (periods) empty polls may move a polled part's phase later than the last fresh
+read left it. An empty poll bounds the phase only if every loss before it was counted: after
+a read that hid a loss, each empty poll would move the phase later by part of a period, and
+together they would take the hidden loss for a late phase."""
+COUNT_MARGIN = 0.15
+"""A read of a part behind a bridge less than this (periods) after the time its sample
+should have appeared counts that sample as not yet there. The phase is known to about a
+bracket's width; a loss counted short is found by the next bracket, one counted in excess
+could not be taken back."""
+
+
 class PolledSampleClock:
     """Counts samples lost by a polled device (no FIFO, no sample counter on the chip).
 
@@ -152,7 +164,11 @@ class PolledSampleClock:
     found data moves it only when it is off by more than half a period.
 
     Either way the estimate follows the device's clock, and a poll late by up to a period less
-    the anchor's uncertainty counts exactly the samples lost. A device that stalls still
+    the anchor's uncertainty counts exactly the samples lost. A read that takes a later
+    sample than its time says (the host stalled after taking the time, or the request waited
+    in a bridge) hides the loss before it; the next bracket then implies a phase a whole
+    period later, which the part's steady clock cannot have, and counts the hidden samples
+    there (:meth:`_slipped`). A device that stalls still
     leaves a gap as long as the stall: "nothing new" moves the anchor by at most half a
     period, and not at all once the device is overdue.
     """
@@ -164,6 +180,7 @@ class PolledSampleClock:
         self.anchor: float | None = None
         self._resyncing = False
         self._last_fresh: float | None = None
+        self._found_anchor: float | None = None  # the anchor as the last fresh read left it
         self._stale: tuple[float, int] | None = None
 
     def reconnected(self) -> None:
@@ -183,7 +200,8 @@ class PolledSampleClock:
             return
         self._stale = (t, last_index)
         not_before = t - (last_index + 1) * self.period_s
-        if 0.0 < not_before - self.anchor <= 0.5 * self.period_s:
+        found = self.anchor if self._found_anchor is None else self._found_anchor
+        if 0.0 < not_before - self.anchor and not_before - found <= STALE_MOVE_MAX * self.period_s:
             self.anchor = not_before
 
     def fresh(self, t: float, next_index: int, seen_at: float | None = None) -> int:
@@ -193,6 +211,11 @@ class PolledSampleClock:
         ``seen_at``: when the status read that found the sample new began, for a part read
         as status then data (the ITG-3200); the sample had appeared by then.
         """
+        missed = self._fresh(t, next_index, seen_at)
+        self._found_anchor = self.anchor
+        return missed
+
+    def _fresh(self, t: float, next_index: int, seen_at: float | None) -> int:
         seen = t if seen_at is None else seen_at
         bracket, self._stale = self._stale, None
         restarted, self._resyncing = self._resyncing, False
@@ -211,22 +234,44 @@ class PolledSampleClock:
         if self.reads_latch_at_once:
             # Sample next_index (or a later one) had appeared when it was seen.
             self.anchor = min(self.anchor, seen - next_index * self.period_s)
-            if in_bracket:  # it appeared between the two polls: none was lost
-                self.anchor = max(self.anchor, bracket[0] - next_index * self.period_s)
-                return 0
+            if in_bracket:  # it appeared between the two polls
+                return self._slipped(bracket[0] - next_index * self.period_s, tight=True)
             return max(0, int(math.floor((t - self.anchor) * self.fs_hz)) - next_index)
         # A bridge's latency varies from read to read: one poll's time bounds the phase only
         # to within that variation, so a bracket sets its middle, and a finding poll moves the
         # phase only when it is off by more than half a period.
         if in_bracket:
-            self.anchor = 0.5 * (bracket[0] + seen) - next_index * self.period_s
-            return 0
-        newest = int(math.floor((t - self.anchor) * self.fs_hz))
+            return self._slipped(0.5 * (bracket[0] + seen) - next_index * self.period_s,
+                                 tight=False)
+        newest = int(math.floor((t - self.anchor) * self.fs_hz - COUNT_MARGIN))
         if newest < next_index:
             if (seen - self.anchor) * self.fs_hz < next_index - 0.5:
                 self.anchor = seen - next_index * self.period_s
             return 0
         return newest - next_index
+
+    def _slipped(self, anchor: float, tight: bool) -> int:
+        """Set the phase from a bracket that puts sample ``next_index`` at ``anchor`` (the
+        time of sample 0 it implies); the samples lost that no count had found.
+
+        A bracket is exact about the sample it found only if every loss before it was
+        counted. A read whose time was taken before the host stalled (or whose request waited
+        in a bridge) reads a later sample than its time says, and the loss before it goes
+        uncounted; the bracket that follows then implies a phase a whole period or more later
+        than the one the polls have followed. The part's clock does not jump, so such a
+        difference is samples lost: they are counted here, and the phase kept. A difference
+        of less than half a period is the bracket refining the phase (``tight``: a lower
+        bound, applied only as far as it requires; otherwise the bracket's middle)."""
+        assert self.anchor is not None
+        # against the phase the last fresh read left: empty polls since may have moved it
+        # later (up to STALE_MOVE_MAX), on the word of the same miscounted index
+        found = self.anchor if self._found_anchor is None else self._found_anchor
+        slip = int(math.floor((anchor - found) * self.fs_hz + 0.5))
+        if slip > 0:
+            anchor -= slip * self.period_s
+            self.anchor = min(self.anchor, found)
+        self.anchor = max(self.anchor, anchor) if tight else anchor
+        return max(slip, 0)
 
 
 def sign_extend(values: np.ndarray | int, bits: int) -> np.ndarray:

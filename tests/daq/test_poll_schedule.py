@@ -34,8 +34,11 @@ class CountPaced:
         return self.due
 
 
-def run(schedule, lateness, seconds=60.0, seed=0, phase=0.37):
-    """Poll the model part; per fresh read (true lost, counted lost, phase of the read)."""
+def run(schedule, lateness, seconds=60.0, seed=0, phase=0.37, held=None):
+    """Poll the model part; per fresh read (true lost, counted lost, phase of the read).
+
+    ``held(rng)``: how long a read is held up after its time was taken (s; the host stalled
+    between taking the time and sending the request, or the request waited in a bridge)."""
     rng = np.random.default_rng(seed)
     clock = PolledSampleClock(FS)
     schedule.start(0.0)
@@ -43,7 +46,8 @@ def run(schedule, lateness, seconds=60.0, seed=0, phase=0.37):
     events = []
     while t < seconds:
         start = max(schedule.due, t) + lateness(rng)
-        read_at = start + rng.uniform(0.02, 0.06) * T  # the bus's latency to the register
+        delay = held(rng) if held is not None else 0.0
+        read_at = start + delay + rng.uniform(0.02, 0.06) * T  # the bus's latency
         newest = math.floor((read_at - phase * T) * FS)
         fresh = newest > last_read and newest >= 0
         if fresh:
@@ -92,8 +96,10 @@ def test_retries_stay_few_and_polls_sit_just_after_each_appearance():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_stalled_host_gets_its_losses_counted(seed):
-    """Stalls of 1.2 to 3.8 periods: each read whose phase after the part's newest appearance
-    is clear of the bracket's width (0.25 to 0.9 of a period) counts exactly what was lost."""
+    """Stalls of 1.2 to 3.8 periods. A read just after an appearance may count one sample
+    short (the phase is known to a bracket's width); the next bracket finds the slip and
+    counts it, so the running count, which places every later sample in time, is never more
+    than one sample off (before: up to 13, and the total 1.4-2.5 % short; now exact)."""
 
     def stalls(rng):
         if rng.random() < 0.02:
@@ -103,12 +109,31 @@ def test_a_stalled_host_gets_its_losses_counted(seed):
     ev = run(DataReadySchedule(T), stalls, seed=seed)
     lossy = ev[ev[:, 0] > 0]
     assert len(lossy) > 100
-    clear = (ev[:, 2] > 0.25) & (ev[:, 2] < 0.9)
-    assert clear[ev[:, 0] > 0].sum() > 0.5 * len(lossy)
-    assert np.array_equal(ev[clear, 0], ev[clear, 1])
-    # Reads inside the bracket's width may be off by one sample, no more.
     assert np.abs(ev[:, 0] - ev[:, 1]).max() <= 1
-    assert ev[:, 1].sum() == pytest.approx(ev[:, 0].sum(), rel=0.1)
+    assert np.abs(np.cumsum(ev[:, 0] - ev[:, 1])).max() <= 1
+    assert ev[:, 1].sum() == pytest.approx(ev[:, 0].sum(), rel=0.01)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_read_held_up_after_its_time_was_taken_loses_no_count_for_good(seed):
+    """One read in a hundred held up 0.6 to 2.5 periods after its time was taken (the host
+    stopped between the two, or the request waited in the bridge): it reads a later sample
+    than its time says and the loss before it goes uncounted. The part's clock does not jump,
+    so the bracket after it, a whole period later than the phase followed, counts the slip
+    (empty polls in between may not move the phase far: they rest on the same miscounted
+    index). 120 s at 204.8 Hz: counted 235 of 235 and 281 of 282 lost, the running count at
+    most 3 off (before: 163 and 200, and every sample after each slip placed a period early
+    for good: 72 and 84 periods by the end)."""
+
+    def held(rng):
+        return rng.uniform(0.6, 2.5) * T if rng.random() < 0.01 else 0.0
+
+    ev = run(DataReadySchedule(T), lambda rng: rng.exponential(0.03 * T), seconds=120.0,
+             seed=seed, held=held)
+    lost, counted = ev[:, 0].sum(), ev[:, 1].sum()
+    assert lost > 200
+    assert counted == pytest.approx(lost, rel=0.02)
+    assert np.abs(np.cumsum(ev[:, 0] - ev[:, 1])).max() <= 4
 
 
 def run_status_then_data(lateness, seconds=120.0, seed=0, phase=0.37, status_s=0.12 * T,
@@ -152,9 +177,11 @@ def test_a_status_then_data_poll_counts_its_losses(drift_ppm):
     """Stalls of 0.5 to 3 periods, so that many reads land near a period boundary. The
     anchor follows the bounds the polls set (an empty poll comes just before the appearance,
     the schedule makes sure of it) instead of a bracket's middle, and a found sample bounds it
-    from the status read's start: at 204.8 Hz, 120 s, the count is off by one in 1-3 % of the
-    lossy reads (16-19 % with a bracket's middle and the data read's time) and the total is
-    within 1.3 % (9 % short before)."""
+    from the status read's start: at 204.8 Hz, 120 s, the count is off by one in 1-5 % of the
+    lossy reads (16-19 % with a bracket's middle and the data read's time), a read counted
+    short is made good at the next bracket, and the running count is never more than 5
+    samples off (before the brackets found slips: 6 and 9 short at the end of the runs with
+    0 and +300 ppm; now 0)."""
 
     def stalls(rng):
         if rng.random() < 0.02:
@@ -165,6 +192,7 @@ def test_a_status_then_data_poll_counts_its_losses(drift_ppm):
     lossy = int((ev[:, 0] > 0).sum())
     wrong = int((ev[:, 0] != ev[:, 1]).sum())
     assert lossy > 300
-    assert wrong < 0.05 * lossy
+    assert wrong < 0.06 * lossy
     assert np.abs(ev[:, 0] - ev[:, 1]).max() <= 1
-    assert ev[:, 1].sum() == pytest.approx(ev[:, 0].sum(), rel=0.02)
+    assert np.abs(np.cumsum(ev[:, 0] - ev[:, 1])).max() <= 5
+    assert ev[:, 1].sum() == pytest.approx(ev[:, 0].sum(), rel=0.01)

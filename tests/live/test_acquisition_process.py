@@ -15,6 +15,7 @@ import time
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 
@@ -132,6 +133,38 @@ def test_the_samples_counted_lost_at_the_device_are_the_ones_the_simulator_never
     assert abs(final["dropped"] - final["process"]["simulator"]["samples_never_read"]) <= 1
     (path,) = tmp_path.glob("*.mcap")
     assert _imu_in_file(path)[1] == final["dropped"]
+
+
+@pytest.mark.parametrize("who", ["acquisition", "simulator"])
+def test_short_stalls_of_either_side_are_counted_as_the_simulator_counts_them(tmp_path, who):
+    """Fifty stalls of 0.6 to 2.5 periods (SIGSTOP), of the acquisition process or of the
+    simulator's: each may hide the sample it cost from the read that follows it (a read
+    whose time was taken before the stall, or whose request waited behind it), and the
+    count must find it later. 78 stalls of 3-12 ms at 204.8 Hz, before the count found such
+    slips: 198 counted of 244 lost (acquisition), 75 of 108 (simulator); after: 104 of 104
+    and 85 of 85, 1,081 of 1,082 and 66 of 66."""
+    src = _source(tmp_path)
+    it = src.blocks()
+    rng = np.random.default_rng(7)
+    try:
+        _consume(it, 1.0)
+        before = src.stats
+        pid = src.pid if who == "acquisition" else before["process"]["simulator"]["pid"]
+        for _ in range(50):
+            _consume(it, float(rng.uniform(0.2, 0.4)))
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(float(rng.uniform(0.6, 2.5)) / RATE)
+            os.kill(pid, signal.SIGCONT)
+        _consume(it, 1.0)
+        time.sleep(2 * 0.25)  # two status periods of the child
+        stats = src.stats
+    finally:
+        _finish(src, it)
+    truth = (stats["process"]["simulator"]["samples_never_read"]
+             - before["process"]["simulator"]["samples_never_read"])
+    lost = stats["dropped"] - before["dropped"]
+    assert truth >= 15
+    assert abs(lost - truth) <= max(3, 0.06 * truth)
 
 
 def test_a_ring_too_small_for_the_stall_loses_only_analysis_samples(tmp_path):
