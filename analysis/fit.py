@@ -801,6 +801,8 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
 
 
 _CHI2_95_1DOF = 3.841458820694124
+_PROFILE_WIDTH = 0.02
+"""An interval's end is found to within this (log units: 2 % of the value)."""
 
 
 def _profile_interval(resid: Any, theta: np.ndarray, idx: int, layout: _Layout, sd: float,
@@ -828,7 +830,7 @@ def _profile_interval(resid: Any, theta: np.ndarray, idx: int, layout: _Layout, 
     step = max(2.0 * _Z95 * sd, 0.05) if np.isfinite(sd) and sd > 0 else 1.0
     return profile_bounds(excess, float(theta[idx]), float(layout.lo[idx]),
                           float(layout.hi[idx]), step, _CHI2_95_1DOF, theta[others],
-                          bisections=5)
+                          bisections=5, width=_PROFILE_WIDTH)
 
 
 def _fixed_keys(names: list[str], fixed: dict[str | int, dict[str, float]], fs: float

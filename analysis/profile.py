@@ -16,14 +16,21 @@ Excess = Callable[[float, np.ndarray], tuple[float, np.ndarray]]
 
 def profile_bounds(excess: Excess, best: float, lo: float, hi: float, step: float,
                    threshold: float, guess: np.ndarray, bisections: int,
-                   max_doublings: int = 12) -> tuple[float, float]:
+                   max_doublings: int = 12, width: float | None = None,
+                   max_bisections: int = 24) -> tuple[float, float]:
     """Lower and upper end of ``{v : excess(v) <= threshold}`` around ``best``.
 
     From ``best`` the search steps outwards, doubling ``step`` each time, until the rise
     exceeds ``threshold`` or the parameter's bound (``lo`` or ``hi``) is reached; an end that
     never exceeds it is the bound itself. The bracket is then narrowed by ``bisections``
-    halvings and its midpoint returned. The other parameters' optimum found at each accepted
-    point seeds the next evaluation.
+    halvings, and further (up to ``max_bisections`` in all) while it is wider than ``width``,
+    and its midpoint returned. The other parameters' optimum found at each accepted point
+    seeds the next evaluation.
+
+    ``width`` matters for a parameter the data do not need: its best value sits at the bottom
+    of its range, tens of log units below where the objective starts to rise, so the doubling
+    steps end in a bracket many units wide, which a fixed number of halvings leaves wide
+    enough to move the end found by a factor of two with the start.
     """
     out = []
     for direction, bound in ((-1.0, lo), (1.0, hi)):
@@ -41,7 +48,10 @@ def profile_bounds(excess: Excess, best: float, lo: float, hi: float, step: floa
         if outside is None:
             out.append(float(bound))
             continue
-        for _ in range(bisections):
+        done = 0
+        while done < bisections or (width is not None and abs(outside - inside) > width
+                                    and done < max_bisections):
+            done += 1
             mid = 0.5 * (inside + outside)
             e, g_new = excess(mid, g)
             if e > threshold:

@@ -103,10 +103,11 @@ def test_dashboard_coefficients_equal_imunoise_fit_on_the_same_samples(tmp_path,
             assert _cis(live["model"])[key] == pytest.approx([lo, hi], abs=1e-3 * (hi - lo)), key
         else:
             # A term the data do not need sits at the bottom of its range (~1e-19), where
-            # the likelihood is flat; the profile search brackets the upper end of [0, upper]
-            # from there with a few bisections, so its last digits follow the exact start.
+            # the likelihood is flat; the profile search narrows the upper end of [0, upper]
+            # to 2 % from there (with five halvings only, the two ends differed by a factor
+            # of 2.2 on one machine)
             live_lo, live_hi = _cis(live["model"])[key]
-            assert live_lo == 0 and hi / 2 < live_hi < 2 * hi, key
+            assert live_lo == 0 and live_hi == pytest.approx(hi, rel=0.03), key
     # the same solution to the solver's tolerance (its parameters agree to 1e-6 above); a
     # term left at the bottom of its range still moves chi2/dof in the sixth digit
     assert live["error"]["chi2_per_dof"] == pytest.approx(cli["error"]["chi2_per_dof"],
