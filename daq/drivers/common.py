@@ -193,14 +193,15 @@ class PolledSampleClock:
         """A poll at host time ``t`` found nothing newer than ``last_index``."""
         if last_index < 0 or self._resyncing or self._last_fresh is None:
             return
-        if t - self._last_fresh > 1.5 * self.period_s or self.anchor is None:
+        found = self._found_anchor  # set by every fresh read, as _last_fresh is
+        assert self.anchor is not None and found is not None
+        if t - self._last_fresh > 1.5 * self.period_s:
             # Overdue: the device stalls. The poll that finally finds data brackets nothing;
             # the stall is counted from the phase it had.
             self._stale = None
             return
         self._stale = (t, last_index)
         not_before = t - (last_index + 1) * self.period_s
-        found = self.anchor if self._found_anchor is None else self._found_anchor
         if 0.0 < not_before - self.anchor and not_before - found <= STALE_MOVE_MAX * self.period_s:
             self.anchor = not_before
 
@@ -262,10 +263,10 @@ class PolledSampleClock:
         difference is samples lost: they are counted here, and the phase kept. A difference
         of less than half a period is the bracket refining the phase (``tight``: a lower
         bound, applied only as far as it requires; otherwise the bracket's middle)."""
-        assert self.anchor is not None
         # against the phase the last fresh read left: empty polls since may have moved it
         # later (up to STALE_MOVE_MAX), on the word of the same miscounted index
-        found = self.anchor if self._found_anchor is None else self._found_anchor
+        found = self._found_anchor  # a bracket needs an empty poll, which needs a fresh read
+        assert self.anchor is not None and found is not None
         slip = int(math.floor((anchor - found) * self.fs_hz + 0.5))
         if slip > 0:
             anchor -= slip * self.period_s
