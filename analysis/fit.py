@@ -550,7 +550,8 @@ def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
 
     A sensor's anti-aliasing and decimation filters make the shortest taus fall below any sum
     of the terms; they are reported as failures without dragging the parameters. A refit that
-    no longer leaves every tau set aside below the model is undone and trimming stops there:
+    leaves a tau set aside above the model by more than the failure threshold is undone and
+    trimming stops there:
     without its shortest tau a term can trade places with another (a Markov term taking the
     white noise's part), and the tau set aside then lies far above the model, which no filter
     does. Without that check the choice hung on a z a hair either side of the threshold and
@@ -576,7 +577,7 @@ def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
         trial_used[first] = False
         trial = _solve(lay, theta, prob.y[trial_used], tau[trial_used], m[trial_used],
                        n_terms[trial_used], prob.fs, prob.max_nfev)
-        if np.any(z_of(trial, ~trial_used) >= -threshold):
+        if np.any(z_of(trial, ~trial_used) > threshold):
             break
         theta, used = trial, trial_used
     return _Point(theta, used, _chi2(prob, theta))
