@@ -550,13 +550,12 @@ def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
 
     A sensor's anti-aliasing and decimation filters make the shortest taus fall below any sum
     of the terms; they are reported as failures without dragging the parameters. A refit that
-    leaves a tau set aside above the model by more than the failure threshold is undone and
-    trimming stops there:
-    without its shortest tau a term can trade places with another (a Markov term taking the
-    white noise's part), and the tau set aside then lies far above the model, which no filter
-    does. Without that check the choice hung on a z a hair either side of the threshold and
-    the same curve's fit moved by a factor of two with the floating-point rounding of the
-    machine's linear algebra."""
+    leaves a tau set aside above the model by more than the failure threshold (no filter lifts
+    a tau) and raises chi2 over the whole curve is undone and trimming stops there: without its
+    shortest tau a term can take over another's part (a Markov term the white noise's), and the
+    choice hung on a z a hair either side of the threshold, so the same curve's fit moved by a
+    factor of two with the rounding of the machine's linear algebra. Where such a refit lowers
+    the whole curve's chi2 it is kept, as before."""
     lay, tau, m, n_terms = prob.layout, prob.tau, prob.m, prob.n_terms
     used = np.ones(len(tau), dtype=bool)
     threshold = failure_threshold(len(tau), prob.family_rate)
@@ -577,7 +576,8 @@ def _trim(prob: _Problem, theta: np.ndarray) -> _Point:
         trial_used[first] = False
         trial = _solve(lay, theta, prob.y[trial_used], tau[trial_used], m[trial_used],
                        n_terms[trial_used], prob.fs, prob.max_nfev)
-        if np.any(z_of(trial, ~trial_used) > threshold):
+        if np.any(z_of(trial, ~trial_used) > threshold) and \
+                _chi2(prob, trial) > _chi2(prob, theta):
             break
         theta, used = trial, trial_used
     return _Point(theta, used, _chi2(prob, theta))
