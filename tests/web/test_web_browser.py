@@ -156,7 +156,11 @@ def test_a_young_record_with_short_tau_range_renders_without_errors(browser, tmp
     """Less than two decades of tau and no PSD yet: the log axes must still draw."""
     svc = LiveService(SyntheticImu(fs_hz=102.4, block=100, n_blocks=6), realtime=False).start()
     assert svc.wait(30)
-    svc.stop()
+    # the replay's last analysis (a full fit and a diagnosis of each of the six channels,
+    # about 4.5 s of CPU each on a 600-sample record) must end before the worker closes:
+    # with stop's default 10 s the diagnosis of gyro_y, the second, was sometimes cut off
+    # and the page then waited for it for good
+    svc.stop(timeout=120)
     page = browser.new_page(viewport={"width": 1200, "height": 1400})
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
