@@ -5,8 +5,11 @@ ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1
 
 WORKDIR /app
 COPY pyproject.toml README.md ./
+COPY core ./core
 COPY analysis ./analysis
 COPY daq ./daq
+COPY live ./live
+COPY fleet ./fleet
 COPY web ./web
 COPY imunoise ./imunoise
 RUN pip install . \

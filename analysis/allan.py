@@ -18,7 +18,7 @@ Estimators (N = n + 1 phase points per contiguous segment, m = averaging factor)
 
 Segments (``segment_starts``) are processed on their own; squared differences are pooled
 (sum and count) over segments and no difference ever spans a gap. Confidence intervals use
-Greenhall's equivalent degrees of freedom (``analysis.edf``), summed over segments, at the
+Greenhall's equivalent degrees of freedom (``imunoise.analysis.edf``), summed over segments, at the
 noise type identified per tau by the lag-1 autocorrelation method unless ``alpha`` is given.
 """
 
@@ -31,16 +31,16 @@ from functools import lru_cache
 
 import numpy as np
 
-from analysis import allan_kernels
-from analysis.blas import single_thread_blas
-from analysis.edf import (
+from imunoise.analysis import allan_kernels
+from imunoise.analysis.blas import single_thread_blas
+from imunoise.analysis.edf import (
     LAG1_MIN_POINTS,
     chi2_interval,
     greenhall_edf,
     noise_id_b1_rn,
     noise_id_lag1_phase,
 )
-from core.units import ONE_SIGMA_CI
+from imunoise.core.units import ONE_SIGMA_CI
 
 #: Confidence level of a one-sigma interval, as printed by Stable32.
 
@@ -492,7 +492,7 @@ def allan(
         kind: ``"oadev"``, ``"adev"``, ``"mdev"`` or ``"ohdev"``.
         m: a grid name or count for ``tau_grid``, or explicit averaging factors.
         segment_starts: indices where contiguous segments begin (as
-            ``core.series.ChannelSeries``); each is processed on its own.
+            ``imunoise.core.series.ChannelSeries``); each is processed on its own.
         ci: two-sided confidence level of ``ci_low``/``ci_high``; ``None`` for the deviations
             only (no noise identification: ``edf``, ``ci_low``, ``ci_high`` and ``ci`` are
             nan, ``alpha`` is the given one or 0).
@@ -584,7 +584,8 @@ def identify_noise(
     Stable32 prints for its phase data sets (decimating the phase instead disagrees with
     them at long tau). With at least ``LAG1_MIN_POINTS`` averages the lag-1 ACF decides
     (Hadamard allows one more differencing than Allan: dmax 3 instead of 2); with fewer, the
-    B1 ratio and R(n) (``analysis.edf.noise_id_b1_rn``), evaluated at ``n_terms``, the number
+    B1 ratio and R(n) (``imunoise.analysis.edf.noise_id_b1_rn``), evaluated at ``n_terms``, the
+    number
     of terms of the statistic at each m (default: those of ``kind`` on this one segment).
     """
     ms = np.asarray(ms, dtype=np.int64)

@@ -2,11 +2,11 @@
 and diagnosis. Pure data and computation: no threads, no processes, no clock.
 
 The numbers are those of the batch tools on the same samples: the Allan curve is
-:class:`analysis.streaming_allan.StreamingAllan` on the octave grid of ``imunoise fit``
-(exact up to ``m0``, strided beyond), the model is fitted by :func:`analysis.fit.fit_allan`
-and the diagnosis is :func:`analysis.diagnosis.diagnose`.
+:class:`imunoise.analysis.streaming_allan.StreamingAllan` on the octave grid of ``imunoise fit``
+(exact up to ``m0``, strided beyond), the model is fitted by :func:`imunoise.analysis.fit.fit_allan`
+and the diagnosis is :func:`imunoise.analysis.diagnosis.diagnose`.
 
-The costly work comes in three steps so that the live runtime (:mod:`live.channel`) can run
+The costly work comes in three steps so that the live runtime (:mod:`imunoise.live.channel`) can run
 it wherever it likes, holding its locks only for the first and the last: ``plan_*`` takes
 what a job needs from the state (a :class:`FitJob` or :class:`DiagnosisJob`, plain data and a
 plain function, so that it can run in a worker process), the caller runs ``job.fn(*job.args)``,
@@ -31,14 +31,14 @@ from typing import Any
 
 import numpy as np
 
-from analysis.allan import AllanCurve
-from analysis.diagnosis import diagnose
-from analysis.fit import FitResult, find_line, fit_allan
-from analysis.psd import StreamingPsd
-from analysis.streaming_allan import StreamingAllan
-from analysis.terms import get_term, parse_model, term_names
-from core.series import channel_units
-from core.units import CI95
+from imunoise.analysis.allan import AllanCurve
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.fit import FitResult, find_line, fit_allan
+from imunoise.analysis.psd import StreamingPsd
+from imunoise.analysis.streaming_allan import StreamingAllan
+from imunoise.analysis.terms import get_term, parse_model, term_names
+from imunoise.core.series import channel_units
+from imunoise.core.units import CI95
 
 DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
 # ``temperature`` needs the whole temperature record regressed out of the rate series first,
@@ -62,7 +62,7 @@ class ErrorPoint:
 
 def check_terms(terms: Iterable[str]) -> None:
     """Raise ``ValueError`` naming the valid terms when one is unknown or not live (the model
-    grammar of :func:`analysis.terms.parse_model`; ``TermError`` is a ``ValueError``)."""
+    grammar of :func:`imunoise.analysis.terms.parse_model`; ``TermError`` is a ``ValueError``)."""
     spec = parse_model(list(terms))
     for name in spec.names:
         if not get_term(name).live:
@@ -98,7 +98,8 @@ def _lifted(params: Sequence[tuple[str, dict[str, float]]], curve: AllanCurve,
 
 def _ordered(terms: Iterable[str]) -> list[str]:
     """The model's entries (``name`` or ``name:P=V``, the grammar of
-    :func:`analysis.terms.parse_model`) in vocabulary order, repeated terms kept in order."""
+    :func:`imunoise.analysis.terms.parse_model`) in vocabulary order, repeated terms kept in
+    order."""
     entries = parse_model(list(terms)).entries
     rank = {n: k for k, n in enumerate(VALID_TERMS)}
     return [e.text() for e in sorted(entries, key=lambda e: rank.get(e.name, len(rank)))]
@@ -149,7 +150,8 @@ def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
 
 def _job_diagnose(values: np.ndarray, fs_hz: float, model: list[str], starts: np.ndarray,
                   units: str) -> tuple[list[dict], list[dict]]:
-    """``analysis.diagnosis.diagnose``: suggestions and the significant findings that are not
+    """``imunoise.analysis.diagnosis.diagnose``: suggestions and the significant findings that are
+    not
     a term (outliers, gaps, a changing noise level), as JSON-ready dicts."""
     # the live service cannot cut its stream: no warm-up or step remedies
     result = diagnose(values, fs_hz, model, segment_starts=starts, units=units,
@@ -304,7 +306,7 @@ class ChannelState:
         recent_samples: samples kept for the diagnosis's evidence and a sinusoid's starting
             line (bounded; 2^18 samples is 44 min at 100 Hz, 2 MB).
         m0: largest averaging factor of the Allan curve computed on every start index.
-        targets: wanted 95 % half-widths (``K=20%,B=10%``, see :mod:`analysis.planning`);
+        targets: wanted 95 % half-widths (``K=20%,B=10%``, see :mod:`imunoise.analysis.planning`);
             the coefficients then say how much longer to record for each.
     """
 
@@ -407,7 +409,7 @@ class ChannelState:
         return dataclasses.replace(c, n_terms=self._full_counts(np.asarray(c.m)))
 
     def psd_estimate(self) -> Any:
-        """The streaming PSD estimate (:class:`analysis.psd.PsdEstimate`), or None before
+        """The streaming PSD estimate (:class:`imunoise.analysis.psd.PsdEstimate`), or None before
         one full segment."""
         try:
             return self._psd.estimate()
@@ -583,7 +585,8 @@ class ChannelState:
 
     # --- diagnosis -----------------------------------------------------------------------
     def plan_diagnosis(self, now: float) -> DiagnosisJob:
-        """:func:`analysis.diagnosis.diagnose` of the recent samples under the current model.
+        """:func:`imunoise.analysis.diagnosis.diagnose` of the recent samples under the current
+        model.
         ``now``: monotonic seconds, for :meth:`due`."""
         self._last_diag_t = now
         values, starts = self._recent.series()

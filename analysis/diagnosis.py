@@ -3,11 +3,12 @@
 Given a channel and a model, the model is fitted to the overlapping Allan curve; then every
 term of the vocabulary that the model lacks is added in turn and the model refitted. The
 misfit of the fit (``chi2``: the whitened, correlation-aware sum of squared standardised
-residuals of :mod:`analysis.misfit`) falls when the term is right. Under the hypothesis that
+residuals of :mod:`imunoise.analysis.misfit`) falls when the term is right. Under the hypothesis
+that
 the term is absent, the fall is approximately chi-square distributed with as many degrees of
 freedom as the term has parameters (a likelihood-ratio test on the decorrelated misfit).
 
-Evidence the Allan curve cannot give (:mod:`analysis.evidence`) joins in: a spectral line
+Evidence the Allan curve cannot give (:mod:`imunoise.analysis.evidence`) joins in: a spectral line
 supports ``sinusoid``, correlation with the temperature record supports ``temperature``, a
 steady slope supports ``rate_ramp``. Each candidate's p-value is the smaller of its sources'
 (Bonferroni over the sources) and the candidates are ranked by it; a candidate is
@@ -27,10 +28,10 @@ from typing import Any
 import numpy as np
 from scipy import special, stats
 
-from analysis import evidence
-from analysis.evidence.finding import Finding, family_p
-from analysis.fit import FitResult, fit_series
-from analysis.terms import (
+from imunoise.analysis import evidence
+from imunoise.analysis.evidence.finding import Finding, family_p
+from imunoise.analysis.fit import FitResult, fit_series
+from imunoise.analysis.terms import (
     TERMS,
     Entry,
     ModelSpec,
@@ -39,7 +40,7 @@ from analysis.terms import (
     model_psd,
     parse_model,
 )
-from core.series import ChannelSeries
+from imunoise.core.series import ChannelSeries
 
 DEFAULT_ALPHA = 0.05
 """Family-wise probability that a correctly specified model gets any significant suggestion."""
@@ -406,19 +407,20 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         values: rate samples (SI units), all gap-free segments concatenated.
         fs_hz: sampling rate in Hz.
         model: the model (a specification string such as ``"white,gauss_markov:T=100"`` or
-            a list of names; see :func:`analysis.terms.parse_model`).
+            a list of names; see :func:`imunoise.analysis.terms.parse_model`).
         segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
         t0_s: time of the first sample, seconds (same base as the temperature times).
         temperature: ``(times_s, degC)`` of the temperature record, any rate.
         units: units of ``values`` (for explanations).
         alpha: family-wise significance level over all candidates.
-        fixed: parameters held fixed in the given model (see :func:`analysis.fit.fit_allan`).
+        fixed: parameters held fixed in the given model (see
+        :func:`imunoise.analysis.fit.fit_allan`).
         sensor_filter: the output filter the device's configuration states, ``(term,
             params)`` (e.g. ``("bartlett", {"taps": 4})``); it is then the one filter
             offered, with those parameters held. Without it the filter terms are offered,
             fitted, when the shortest taus lie below the model.
         transients: test for a bias step and a warm-up against the fitted model
-            (:func:`analysis.evidence.transients`); their remedies are cuts of the record
+            (:func:`imunoise.analysis.evidence.transients`); their remedies are cuts of the record
             (``apply.args``: ``--split T``, ``--skip S``), so a caller that cannot cut (the
             live service) leaves them out.
         time_origin_s: the time of the first sample analysed on the scale step times are

@@ -41,9 +41,9 @@ import numpy as np
 from scipy.optimize import nnls
 from scipy.signal import lfilter
 
-from analysis.terms import TermError, get_term
-from analysis.terms.gauss_markov import TERM as GAUSS_MARKOV
-from analysis.terms.random_walk import sampled_walk_avar as random_walk_avar
+from imunoise.analysis.terms import TermError, get_term
+from imunoise.analysis.terms.gauss_markov import TERM as GAUSS_MARKOV
+from imunoise.analysis.terms.random_walk import sampled_walk_avar as random_walk_avar
 
 # Relative share of the model's Allan variance below which bias instability gets no states.
 NEGLIGIBLE_FLICKER = 1e-4

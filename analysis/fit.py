@@ -1,6 +1,7 @@
 """Composite noise-model fit to a measured Allan curve, with honest intervals and misfit.
 
-The model's Allan variance is the sum of its terms' (:mod:`analysis.terms`). The fit works on
+The model's Allan variance is the sum of its terms' (:mod:`imunoise.analysis.terms`). The fit works
+on
 ``ln(avar)`` at every tau of the curve:
 
 1. Starting values without hand-picked tau windows: the linear terms (white, quantization,
@@ -11,13 +12,14 @@ The model's Allan variance is the sum of its terms' (:mod:`analysis.terms`). The
    spectral line when the caller supplies one (see :func:`find_line`), else from a grid in f.
 2. Generalised least squares on ``ln(avar)`` with parameters in log form (positivity): the
    residuals are whitened with the covariance of the log estimates across taus computed from
-   the model itself (:func:`analysis.misfit.avar_covariance`), corrected for the chi-square law
+   the model itself (:func:`imunoise.analysis.misfit.avar_covariance`), corrected for the
+   chi-square law
    of each estimate (mean ``psi(nu/2) - ln(nu/2)``, variance ``psi'(nu/2)``). The covariance is
    computed for the starting model, the fit solved, and the covariance recomputed for the
    result.
 3. 95 % intervals from the whitened Jacobian (``(J^T J)^-1`` in log-parameter space,
    so intervals are asymmetric and positive); the misfit (chi2 per degree of freedom, z per
-   tau, failing tau ranges) from :func:`analysis.misfit.misfit`.
+   tau, failing tau ranges) from :func:`imunoise.analysis.misfit.misfit`.
 
 ``temperature`` is not part of the Allan fit: :func:`regress_temperature` removes it from the
 series first (see :func:`fit_series`).
@@ -35,9 +37,9 @@ from typing import Any, Protocol
 import numpy as np
 from scipy import ndimage, optimize, signal, special
 
-from analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
-from analysis.profile import profile_bounds
-from analysis.terms import (
+from imunoise.analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
+from imunoise.analysis.profile import profile_bounds
+from imunoise.analysis.terms import (
     Entry,
     ModelSpec,
     TermError,
@@ -56,7 +58,8 @@ _WHOLE_WINS = 0.5
 
 
 class CurveLike(Protocol):
-    """What the fit needs from an Allan curve (``analysis.allan.AllanCurve`` provides it)."""
+    """What the fit needs from an Allan curve (``imunoise.analysis.allan.AllanCurve`` provides
+    it)."""
 
     fs_hz: float
     tau_s: np.ndarray
@@ -92,7 +95,7 @@ class FitResult:
         avar_measured: measured Allan variance (units^2).
         avar_fit: model Allan variance at ``tau_s``.
         term_avar: per-term model Allan variance at ``tau_s`` (for plotting).
-        misfit: z per tau, chi2 and the rest (:class:`analysis.misfit.Misfit`).
+        misfit: z per tau, chi2 and the rest (:class:`imunoise.analysis.misfit.Misfit`).
         failures: CONTRACT.md ``failures`` entries.
         param_cov: covariance of the log-parameters (order of :attr:`free_params`).
         free_params: ``(term index, parameter name)`` of each fitted parameter.
@@ -305,7 +308,7 @@ _COV_LOCK = threading.Lock()
 
 def _covariance(model: list[tuple[str, dict[str, float]]], fs: float, m: np.ndarray,
                 n_terms: np.ndarray) -> np.ndarray:
-    """:func:`analysis.misfit.avar_covariance`, remembered for the last 64 distinct inputs
+    """:func:`imunoise.analysis.misfit.avar_covariance`, remembered for the last 64 distinct inputs
     (a fit asks for the same model's covariance when it solves, trims, scores and reports)."""
     key = (repr(model), fs, m.tobytes(), n_terms.tobytes())
     with _COV_LOCK:
@@ -414,7 +417,8 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
     """Fit a sum of noise terms to a measured overlapping Allan curve.
 
     Args:
-        curve: the measured curve (``analysis.allan.AllanCurve`` or any object with ``fs_hz``,
+        curve: the measured curve (``imunoise.analysis.allan.AllanCurve`` or any object with
+        ``fs_hz``,
             ``tau_s``, ``m``, ``dev``, ``n_terms``; ``edf`` is used for starting values when
             present).
         model: term names (``"white,random_walk"`` or a list) or ``[(term, params)]``; given
@@ -984,7 +988,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
     Args:
         values: rate samples in SI units, all segments concatenated.
         fs_hz: sampling rate, Hz.
-        model: a model specification (:func:`analysis.terms.parse_model`).
+        model: a model specification (:func:`imunoise.analysis.terms.parse_model`).
         segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
         temperature: temperature in degC at each sample (required with ``temperature``).
         fixed: parameters held at known values (see :func:`fit_allan`).
@@ -999,7 +1003,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
         ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
         when the model holds ``temperature``.
     """
-    from analysis.allan import oadev
+    from imunoise.analysis.allan import oadev
 
     memo = {} if memo is None else memo
     spec = parse_model(model)

@@ -22,7 +22,7 @@ about them is left inside the blocks, while the number of blocks stays small eno
 dense factorisation. Intervals are profile-likelihood intervals (log-likelihood drop 1.92).
 
 Units: rates in SI units of the channel, ``fs`` in Hz, ``T`` in s, ``N`` per sqrt(Hz), ``K``
-per sqrt(s), as in :mod:`analysis.terms`.
+per sqrt(s), as in :mod:`imunoise.analysis.terms`.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg, optimize
 
-from analysis.profile import profile_bounds
-from analysis.terms import TERMS, ar1_avar_shape
+from imunoise.analysis.profile import profile_bounds
+from imunoise.analysis.terms import TERMS, ar1_avar_shape
 
 ESTIMATOR = "block_likelihood"
 """The name terms list in ``Term.estimators`` when this likelihood supports them."""
@@ -181,7 +181,7 @@ def choose_block(model: Model, fs_hz: float, n_samples: int, fraction: float = 0
     """Block length (samples, a power of two) for the likelihood: the longest one at which the
     non-white terms of ``model`` hold at most ``fraction`` of the Allan variance, kept between
     ``n/4096`` and ``n/64`` blocks' worth."""
-    from analysis.terms import get_term
+    from imunoise.analysis.terms import get_term
 
     lo = max(1, int(2 ** math.ceil(math.log2(max(n_samples / _MAX_BLOCKS, 1.0)))))
     hi = max(lo, int(2 ** math.floor(math.log2(max(n_samples / _MIN_BLOCKS, 1.0)))))

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from analysis.bin_average import SIN4, bin_avg_cos, sin4_table
-from analysis.terms import get_term, model_psd
+from imunoise.analysis.bin_average import SIN4, bin_avg_cos, sin4_table
+from imunoise.analysis.terms import get_term, model_psd
 
 Model = Sequence[tuple[str, dict[str, float]]]
 

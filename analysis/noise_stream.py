@@ -5,9 +5,10 @@ of the model's terms. Each term draws from its own child generator of ``seed``, 
 order, so a run taken in blocks equals one long run: ``take(1000)`` ten times gives exactly the
 samples of a fresh ``take(10000)``. Memory is a few numbers per term whatever the run length.
 
-Each term's simulator lives in its module of :mod:`analysis.terms` (``Term.simulator``); the
+Each term's simulator lives in its module of :mod:`imunoise.analysis.terms` (``Term.simulator``);
+the
 docstrings there say how each is drawn. ``bias_instability`` is a sum of first-order Markov
-processes across a band of correlation times (:mod:`analysis.terms.bias_instability`).
+processes across a band of correlation times (:mod:`imunoise.analysis.terms.bias_instability`).
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from analysis.terms import BIAS_INSTABILITY_FACTOR, get_term
-from analysis.terms.bias_instability import (
+from imunoise.analysis.terms import BIAS_INSTABILITY_FACTOR, get_term
+from imunoise.analysis.terms.bias_instability import (
     DEFAULT_FLICKER_TMAX_S,
     FLICKER_PER_DECADE,
     flicker_avar,
@@ -34,7 +35,7 @@ class NoiseStream:
     """Seeded generator of a noise model's samples, continuing across calls.
 
     Args:
-        model: ``[(term, {param: value})]`` in SI units (see :mod:`analysis.terms`).
+        model: ``[(term, {param: value})]`` in SI units (see :mod:`imunoise.analysis.terms`).
         fs_hz: sampling rate in Hz.
         seed: seed of the generator (``None``: fresh entropy).
         flicker_band_s: ``(t_min, t_max)`` correlation-time band of the flicker simulator in s
@@ -74,7 +75,8 @@ class NoiseStream:
             else:
                 other += sim.take(n, temperature)
         for sim in filters:
-            # an output filter acts on the Gaussian noise (see analysis.terms.output_filter)
+            # an output filter acts on the Gaussian noise (see
+            # imunoise.analysis.terms.output_filter)
             noise = sim.apply(noise)
         self.samples_taken += n
         return noise + other
@@ -98,7 +100,7 @@ def simulate(model: Model, n: int, fs_hz: float, rng: int | np.random.Generator 
 
 def stream_factory(model: Model, fs_hz: float, seed: int):
     """``take(n)`` of a :class:`NoiseStream`: what a device simulator draws its channels with
-    (``daq.sim.signals.NoiseFactory``)."""
+    (``imunoise.daq.sim.signals.NoiseFactory``)."""
     return NoiseStream(model, fs_hz, seed).take
 
 

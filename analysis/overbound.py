@@ -14,7 +14,8 @@ For fixed Markov time constants every state's Allan variance and PSD are linear 
 ``sum_i A(tau_i) x / U_i`` subject to ``A x >= U`` (and the PSD rows) with ``x >= 0``, over a
 grid of Markov time constants (``MARKOV_PER_DECADE`` per decade between two sample periods and
 half the record); the simplex picks the few states it needs. Each state's Allan variance and
-PSD are those of the discrete-time model the filter runs (``analysis.discrete``): white samples,
+PSD are those of the discrete-time model the filter runs (``imunoise.analysis.discrete``): white
+samples,
 a point-sampled random walk, AR(1) Markov sequences.
 
 The excess reported per tau is ``model_adev / upper_adev - 1`` (>= 0 where the bound holds).
@@ -29,8 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linprog
 
-from analysis.discrete import DiscreteModel, markov_avar, markov_state, random_walk_avar
-from analysis.terms import get_term
+from imunoise.analysis.discrete import DiscreteModel, markov_avar, markov_state, random_walk_avar
+from imunoise.analysis.terms import get_term
 
 MARKOV_PER_DECADE = 2
 _TOL = 1e-9  # relative slack of the constraints after the solver (it works in floating point)

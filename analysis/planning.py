@@ -5,12 +5,12 @@ Two predictions, each with its assumption stated:
 * ``"allan"`` (every term): the interval ``imunoise fit`` reports. The expected overlapping Allan
   curve of the model for a gap-free record of n samples (the model's exact Allan variance at
   the octave taus, with the number of terms such a record has) is fitted exactly as a measured
-  one is; the estimates' covariance there is the model's (:func:`analysis.misfit.
+  one is; the estimates' covariance there is the model's (:func:`imunoise.analysis.misfit.
   avar_covariance`), so the interval of that fit is the interval a typical record of that
   length gives (to first order: the linearised interval, or the profile one where the
   parameter is weakly determined).
 * ``"likelihood"`` (white noise, first-order Markov and rate random walk only): the Cramer-Rao
-  bound of the exact Gaussian likelihood of the record (:func:`analysis.likelihood.
+  bound of the exact Gaussian likelihood of the record (:func:`imunoise.analysis.likelihood.
   fisher_information`): the narrowest interval any unbiased estimator can give, reached by the
   block-likelihood fit.
 
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.allan import tau_grid
-from analysis.terms import get_term, labels, model_avar, parse_model
+from imunoise.analysis.allan import tau_grid
+from imunoise.analysis.terms import get_term, labels, model_avar, parse_model
 
 Z95 = 1.959963984540054
 MIN_SAMPLES = 1 << 8
@@ -133,7 +133,7 @@ def _model_pairs(model) -> list[tuple[str, dict[str, float]]]:
 def allan_halfwidths(model, fs_hz: float, n_samples: int) -> dict[tuple[str, str], float]:
     """Relative 95 % half-widths ``(hi - lo)/(2 v)`` of every parameter that ``imunoise fit``
     would report for a typical gap-free record of ``n_samples`` samples of ``model``."""
-    from analysis.fit import fit_allan
+    from imunoise.analysis.fit import fit_allan
 
     pairs = _model_pairs(model)
     curve = _ExpectedCurve(pairs, fs_hz, n_samples)
@@ -149,7 +149,7 @@ def allan_halfwidths(model, fs_hz: float, n_samples: int) -> dict[tuple[str, str
 def likelihood_halfwidths(model, fs_hz: float, n_samples: int) -> dict[tuple[str, str], float]:
     """Relative 95 % half-widths at the Cramer-Rao bound of the exact Gaussian likelihood
     (``sinh(1.96 sd(ln v))``); the model must be one the likelihood supports."""
-    from analysis.likelihood import fisher_information, supports
+    from imunoise.analysis.likelihood import fisher_information, supports
 
     pairs = _model_pairs(model)
     names = [n for n, _ in pairs]

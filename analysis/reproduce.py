@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.units import DEG, G0
+from imunoise.core.units import DEG, G0
 
 PETKOV_GYRO = {"B_dps": 1.55e-2, "T_s": 120.0, "N_dps_rts": 5.75e-2, "K_dps_s32": 9e-4,
                "rms_dps": 0.581614, "a_d": 0.999917}
@@ -134,8 +134,8 @@ def petkov2010(seed: int = 2010, simulate_models: bool = True) -> list[Row]:
 
 
 def _petkov_refit(seed: int) -> list[Row]:
-    from analysis.fit import fit_series
-    from analysis.noise_stream import simulate
+    from imunoise.analysis.fit import fit_series
+    from imunoise.analysis.noise_stream import simulate
 
     fs = 1.0 / PETKOV_DT_S
     n = int(PETKOV_DURATION_S * fs)
@@ -164,7 +164,7 @@ def _asymptotes(x: np.ndarray, fs: float) -> tuple[float, float, float]:
     """N, B, K read off the Allan deviation the classic way: the -1/2 slope line at tau = 1 s,
     the minimum over 0.664, the +1/2 slope line at tau = 3 s (each from the best-matching
     tau of an octave curve)."""
-    from analysis.allan import oadev
+    from imunoise.analysis.allan import oadev
 
     c = oadev(x, fs, m="octave")
     tau, dev = np.asarray(c.tau_s), np.asarray(c.dev)
@@ -180,8 +180,8 @@ def _asymptotes(x: np.ndarray, fs: float) -> tuple[float, float, float]:
 def hemerly2017(seed: int = 2017, runs: int = 20) -> list[Row]:
     """Hemerly (2017): ARMA(0,1) relations, condition number of the moment equations, and a
     Monte Carlo of Allan-asymptote errors beside our composite fit's errors."""
-    from analysis.fit import fit_series
-    from analysis.noise_stream import simulate
+    from imunoise.analysis.fit import fit_series
+    from imunoise.analysis.noise_stream import simulate
 
     h = HEMERLY
     e0, e1 = arma01_from_sigmas(h["sigma1"], h["sigma2"])

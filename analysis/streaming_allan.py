@@ -8,7 +8,7 @@ Exact and strided parts
 * ``m <= m0`` (default 4096): **exact**. Every start index is used, as in the batch
   estimator. The accumulator keeps the last ``span * m0`` samples of the current segment
   (span = 2 for OADEV, 3 for OHDEV); each new sample completes one term per averaging factor,
-  whose square is added to a running sum. The result equals ``analysis.allan`` on the same
+  whose square is added to a running sum. The result equals ``imunoise.analysis.allan`` on the same
   data to about 1e-12 relative.
 * ``m > m0``: **strided**. The phase (running sum of the rate) of the current segment is kept
   at every ``d``-th sample, ``d`` a power of two. When that history holds ``history_points``
@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.allan import (
+from imunoise.analysis.allan import (
     KINDS,
     OVERLAP_KERNELS,
     AllanCurve,
@@ -54,8 +54,13 @@ from analysis.allan import (
     normalise,
     segment_sums,
 )
-from analysis.blas import single_thread_blas
-from analysis.edf import LAG1_MIN_POINTS, chi2_interval, noise_id_b1_rn, noise_id_lag1_series
+from imunoise.analysis.blas import single_thread_blas
+from imunoise.analysis.edf import (
+    LAG1_MIN_POINTS,
+    chi2_interval,
+    noise_id_b1_rn,
+    noise_id_lag1_series,
+)
 
 STREAMING_KINDS = tuple(OVERLAP_KERNELS)
 

@@ -6,7 +6,7 @@ Run from the repository root:
     python bench/allan.py --quick    # 1e6 only
 
 For each size, white rate noise is analysed on about 100 log-spaced averaging factors by
-``analysis.allan.oadev`` (with noise identification and confidence intervals) and by
+``imunoise.analysis.allan.oadev`` (with noise identification and confidence intervals) and by
 ``allantools.oadev`` on the same data. Printed: the best-of-N times, their ratio, and the
 largest relative difference of the deviations. Then the same data are fed to
 ``StreamingAllan`` in blocks of 1,000 samples: ingest throughput (samples per second of
@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from analysis import allan_kernels
-from analysis.allan import oadev, tau_grid
-from analysis.streaming_allan import StreamingAllan
+from imunoise.analysis import allan_kernels
+from imunoise.analysis.allan import oadev, tau_grid
+from imunoise.analysis.streaming_allan import StreamingAllan
 
 FS_HZ = 100.0
 N_TAUS = 100

@@ -1,5 +1,6 @@
 """CSV reading speed: 10^6 rows x 8 columns (t, 6 IMU channels, temp) through
-daq.readers.csv_file.read_csv, against the standard-library csv module with float() per field
+imunoise.daq.readers.csv_file.read_csv, against the standard-library csv module with float() per
+field
 (the usual hand-written reader), measured in the same run.
 Run: python bench/bench_csv.py
 """
@@ -13,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.readers.csv_file import read_csv
+from imunoise.daq.readers.csv_file import read_csv
 
 ROWS = 1_000_000
 HEADER = "t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,temp"

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import scipy.signal
 
-from analysis.psd import StreamingPsd, log_psd
+from imunoise.analysis.psd import StreamingPsd, log_psd
 
 FS = 100.0
 N = 10_000_000

@@ -28,8 +28,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from analysis.diagnosis import diagnose  # noqa: E402
-from analysis.noise_stream import simulate  # noqa: E402
+from imunoise.analysis.diagnosis import diagnose  # noqa: E402
+from imunoise.analysis.noise_stream import simulate  # noqa: E402
 
 FS = 50.0
 N = int(2 * 3600 * FS)

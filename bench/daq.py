@@ -21,10 +21,10 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 import serial
 
-from daq.devices import open_device
-from daq.sim.buspirate_pty import BusPirateEmulator
-from daq.sim.fake_i2c import BITS_PER_BYTE, BITS_START_STOP
-from daq.transports.buspirate import encode_frames
+from imunoise.daq.devices import open_device
+from imunoise.daq.sim.buspirate_pty import BusPirateEmulator
+from imunoise.daq.sim.fake_i2c import BITS_PER_BYTE, BITS_START_STOP
+from imunoise.daq.transports.buspirate import encode_frames
 
 BAUD = 115200
 I2C_HZ = 400e3

@@ -19,8 +19,8 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from analysis.diagnosis import diagnose  # noqa: E402
-from analysis.noise_stream import simulate  # noqa: E402
+from imunoise.analysis.diagnosis import diagnose  # noqa: E402
+from imunoise.analysis.noise_stream import simulate  # noqa: E402
 
 FS = 100.0
 N = int(3 * 3600 * FS)

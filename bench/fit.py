@@ -17,9 +17,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from analysis.allan import oadev
-from analysis.fit import fit_allan
-from analysis.noise_stream import NoiseStream
+from imunoise.analysis.allan import oadev
+from imunoise.analysis.fit import fit_allan
+from imunoise.analysis.noise_stream import NoiseStream
 
 FS = 100.0
 N_SAMPLES = 3 * 3600 * 100

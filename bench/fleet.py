@@ -29,7 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from daq.sim.fleet_units import SimUnit, write_recording  # noqa: E402
+from imunoise.daq.sim.fleet_units import SimUnit, write_recording  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "fleet"
 DASK = Path(sys.executable).parent / "dask"

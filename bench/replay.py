@@ -6,7 +6,8 @@ Writes the file once with the recorder (1 s chunks, as a live recording has), th
 same run:
   (a) ``imunoise analyze FILE --json`` from file to JSON (a separate process; its peak RSS),
   (b) the ``mcap`` library's own reader merely iterating the messages (a separate process),
-  (c) the bulk reader alone (``daq.readers.open_record``) in this process: messages per second.
+  (c) the bulk reader alone (``imunoise.daq.readers.open_record``) in this process: messages per
+  second.
 Targets: (a) <= half of (b), peak memory of (a) under 400 MB, (c) >= 3 million messages/s.
 With ``--memory-hours``, (a)'s peak memory is also measured for recordings of those lengths
 (written once each, kept in ``bench/out/memory``), as users run it and with ``--stream
@@ -29,9 +30,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.blocks import SampleBlock  # noqa: E402
-from daq.readers import open_record  # noqa: E402
-from daq.recorder import McapRecorder  # noqa: E402
+from imunoise.core.blocks import SampleBlock  # noqa: E402
+from imunoise.daq.readers import open_record  # noqa: E402
+from imunoise.daq.recorder import McapRecorder  # noqa: E402
 
 OUT = ROOT / "bench" / "out"
 GYRO_LSB = 0.07326 * np.pi / 180
@@ -128,7 +129,7 @@ print(n)
 
 BULK_LOAD = """
 import sys
-from daq.readers import open_record
+from imunoise.daq.readers import open_record
 r = open_record(sys.argv[1])
 print(sum(s.n_samples for s in r.channels.values()))
 """

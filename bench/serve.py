@@ -54,7 +54,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from daq.readers.mcap import read_mcap  # noqa: E402
+from imunoise.daq.readers.mcap import read_mcap  # noqa: E402
 
 CONFIGS = {
     "adis204": ("sim:adis16350", 204.8),
@@ -128,8 +128,8 @@ def floor_main(rate_hz: float, seconds: float) -> None:
     how often it woke later than a data-ready poll may be (``1 - RETRY_FRACTION`` of a
     period: the polls sit up to a tenth of a period after each appearance), and how many
     samples a part without FIFO would have lost to those late wake-ups alone."""
-    from daq.poll_schedule import RETRY_FRACTION
-    from live.acquisition_process import raise_priority
+    from imunoise.daq.poll_schedule import RETRY_FRACTION
+    from imunoise.live.acquisition_process import raise_priority
 
     policy = raise_priority("realtime")["policy"]
     period = 1.0 / rate_hz

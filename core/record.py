@@ -6,8 +6,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from core.errors import InputError
-from core.series import ChannelSeries
+from imunoise.core.errors import InputError
+from imunoise.core.series import ChannelSeries
 
 TEMPERATURE_KEY = "temp"
 

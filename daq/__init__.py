@@ -1,4 +1,4 @@
 """Hardware and files: transports, device drivers, simulators, acquisition, recorder, readers.
 
-Produces :class:`core.blocks.SampleBlock` objects; holds no statistics.
+Produces :class:`imunoise.core.blocks.SampleBlock` objects; holds no statistics.
 """

@@ -1,14 +1,14 @@
 """The acquisition loop: paces a device driver at its rate and hands out sample blocks.
 
 A part that flags new data but keeps no FIFO (the driver says so with ``polls_data_ready``)
-is polled on its own sample phase (:class:`daq.poll_schedule.DataReadySchedule`). Other
+is polled on its own sample phase (:class:`imunoise.daq.poll_schedule.DataReadySchedule`). Other
 drivers (FIFO drains, replay) are paced by count: the k-th poll is due at
 ``t_start + k * period`` on a monotonic clock, so oversleeping one poll never shifts the next
 ones and nothing drifts over hours. Transient
 faults (timeouts, garbage, NACK bursts, an unplugged cable, stuck data-ready) close the device
 and reopen it with backoff; the samples lost meanwhile show up as ``gap_before`` of the next
 block. Permanent faults, or an outage longer than ``max_outage_s``, end the loop with
-:class:`~daq.errors.AcquisitionFailed` and the state ``"failed: <reason>"``.
+:class:`~imunoise.daq.errors.AcquisitionFailed` and the state ``"failed: <reason>"``.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from core.blocks import SampleBlock
-from daq.clock import Clock, RealClock
-from daq.drivers.common import StreamBuffer
-from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
-from daq.poll_schedule import DataReadySchedule
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq.clock import Clock, RealClock
+from imunoise.daq.drivers.common import StreamBuffer
+from imunoise.daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
+from imunoise.daq.poll_schedule import DataReadySchedule
 
 LATE_SKIP_PERIODS = 2.0  # polls this far behind schedule re-anchor it (no burst catch-up)
 LATE_SKIP_MIN_S = 0.02

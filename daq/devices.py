@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from daq.acquisition import Acquisition
-from daq.clock import Clock, RealClock, VirtualClock
+from imunoise.daq.acquisition import Acquisition
+from imunoise.daq.clock import Clock, RealClock, VirtualClock
 
 DEVICES: dict[str, str] = {
     "adis16350": "ADIS16350 through a Bus Pirate serial-SPI bridge (--port)",
@@ -49,8 +49,8 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
         max_outage_s: how long the device may stay unreachable before the run fails.
         options: driver options (``range_dps``, ``taps``, ``range_g``, ``address``...) and
             simulator options (``gyro``, ``accel``, ``temperature`` sources; ``noise``, the
-            :data:`daq.sim.signals.NoiseFactory` that draws the default sources, e.g.
-            :func:`analysis.noise_stream.stream_factory`; without it they are white noise).
+            :data:`imunoise.daq.sim.signals.NoiseFactory` that draws the default sources, e.g.
+            :func:`imunoise.analysis.noise_stream.stream_factory`; without it they are white noise).
 
     Raises:
         ValueError: unknown spec, or a missing ``port``/``bus``, naming the valid choices.
@@ -82,16 +82,16 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
 
 def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, seed: int,
           clock: Clock, options: dict) -> Acquisition:
-    from daq.drivers.adis16350 import Adis16350, sample_rate_hz, smpl_prd_for_rate
-    from daq.transports.buspirate import BusPirateSPI
+    from imunoise.daq.drivers.adis16350 import Adis16350, sample_rate_hz, smpl_prd_for_rate
+    from imunoise.daq.transports.buspirate import BusPirateSPI
 
     cleanup: list[Callable[[], None]] = []
     sim = None
     emulator = None
     if simulated:
-        from daq.sim.adis16350 import Adis16350Sim
-        from daq.sim.buspirate_pty import BusPirateEmulator, ChipClock
-        from daq.sim.signals import default_sources
+        from imunoise.daq.sim.adis16350 import Adis16350Sim
+        from imunoise.daq.sim.buspirate_pty import BusPirateEmulator, ChipClock
+        from imunoise.daq.sim.signals import default_sources
 
         fs = sample_rate_hz(smpl_prd_for_rate(rate))
         gyro, accel = default_sources("adis16350", fs, seed, options.pop("noise", None))
@@ -122,10 +122,10 @@ class SimulatedRig:
 def _i2c(*, simulated: bool, port: str | None, bus: int | None, rate: float, seed: int,
          clock: Clock, options: dict, which: str) -> Acquisition:
     """Acquisition of ``itg3200``, ``adxl345`` or ``razor`` on bus ``bus`` or a simulator."""
-    from daq.drivers.adxl345 import Adxl345, odr_hz, rate_code
-    from daq.drivers.itg3200 import Itg3200, rate_settings
-    from daq.drivers.razor import Razor
-    from daq.transports.i2c import I2CBus
+    from imunoise.daq.drivers.adxl345 import Adxl345, odr_hz, rate_code
+    from imunoise.daq.drivers.itg3200 import Itg3200, rate_settings
+    from imunoise.daq.drivers.razor import Razor
+    from imunoise.daq.transports.i2c import I2CBus
 
     itg_addr = int(options.pop("itg_address", 0x68))
     adxl_addr = int(options.pop("adxl_address", 0x53))
@@ -135,10 +135,10 @@ def _i2c(*, simulated: bool, port: str | None, bus: int | None, rate: float, see
     opener: Callable | None = None
     rig = None
     if simulated:
-        from daq.sim.adxl345 import Adxl345Sim
-        from daq.sim.fake_i2c import SimulatedI2CAdapter
-        from daq.sim.itg3200 import Itg3200Sim
-        from daq.sim.signals import default_sources
+        from imunoise.daq.sim.adxl345 import Adxl345Sim
+        from imunoise.daq.sim.fake_i2c import SimulatedI2CAdapter
+        from imunoise.daq.sim.itg3200 import Itg3200Sim
+        from imunoise.daq.sim.signals import default_sources
 
         chips: dict = {}
         itg_sim = adxl_sim = None

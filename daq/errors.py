@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from core.errors import ImunoiseError, InputError
+from imunoise.core.errors import ImunoiseError, InputError
 
 
 class DeviceError(ImunoiseError):

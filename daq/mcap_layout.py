@@ -19,7 +19,7 @@ import zstandard
 from mcap.opcode import Opcode
 from mcap.writer import MCAP0_MAGIC
 
-from daq.errors import ReadError
+from imunoise.daq.errors import ReadError
 
 MAGIC = MCAP0_MAGIC
 

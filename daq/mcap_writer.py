@@ -37,7 +37,7 @@ from mcap.records import (
     SummaryOffset,
 )
 
-from daq.mcap_layout import MAGIC, MESSAGE_HEADER, RECORD_PREFIX
+from imunoise.daq.mcap_layout import MAGIC, MESSAGE_HEADER, RECORD_PREFIX
 
 COMPRESSION = "zstd"
 ZSTD_LEVEL = 3  # the level zstandard.compress, and so mcap's Writer, uses

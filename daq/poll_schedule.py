@@ -13,7 +13,7 @@ each poll that finds data at the first try expects the next sample a little earl
 hundredth of a period), so that now and then a poll comes too early and a retry brackets the
 appearance again. The polls then sit within about a tenth of a period after each appearance
 (about one poll in fifty is a retry), and a poll may be late by nearly a whole period before a
-sample is lost. The brackets also give :class:`daq.drivers.common.PolledSampleClock` the
+sample is lost. The brackets also give :class:`imunoise.daq.drivers.common.PolledSampleClock` the
 phase it counts lost samples with.
 """
 

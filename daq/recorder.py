@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.blocks import SampleBlock
-from daq import ros2_msgs as msgs
-from daq.mcap_writer import McapBlockWriter
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq import ros2_msgs as msgs
+from imunoise.daq.mcap_writer import McapBlockWriter
 
 SOFTWARE = "imunoise"
 GYRO = ("gyro_x", "gyro_y", "gyro_z")
@@ -419,7 +419,7 @@ class McapRecorder:
         reason = "disk full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else str(exc.strerror)
         finished = False
         if self._file is not None:
-            from daq.repair import finish_in_place
+            from imunoise.daq.repair import finish_in_place
 
             self._release_reserve()
             try:

@@ -31,8 +31,8 @@ from mcap.records import (
     Statistics,
 )
 
-from daq import mcap_layout as ml
-from daq.mcap_writer import summary_bytes
+from imunoise.daq import mcap_layout as ml
+from imunoise.daq.mcap_writer import summary_bytes
 
 
 @dataclass

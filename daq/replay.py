@@ -2,7 +2,7 @@
 
 ``replay`` paces the blocks on the sample clock (``speed`` times real time, or as fast as
 possible) and reports progress; the consumer is any callable taking a
-:class:`core.blocks.SampleBlock`, e.g. ``RollingAnalyzer.update``.
+:class:`imunoise.core.blocks.SampleBlock`, e.g. ``RollingAnalyzer.update``.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.blocks import SampleBlock
-from core.series import ChannelSeries
-from daq.readers import ReadError, open_record
+from imunoise.core.blocks import SampleBlock
+from imunoise.core.series import ChannelSeries
+from imunoise.daq.readers import ReadError, open_record
 
 PACE_S = 0.1  # sample-time length of the pieces a paced replay hands over
 CHUNK_S = 1.0  # sample-time length of the blocks a record read whole is cut into
@@ -63,8 +63,8 @@ def open_blocks(path: str | Path) -> tuple[Iterator[SampleBlock], int]:
     samples to expect (for progress). MCAP files stream; other inputs are loaded first."""
     path = Path(path)
     if path.is_file() and path.suffix.lower() == ".mcap":
-        from daq.mcap_layout import McapFormatError
-        from daq.readers.mcap import UnsupportedLayout, iter_blocks, open_mcap
+        from imunoise.daq.mcap_layout import McapFormatError
+        from imunoise.daq.readers.mcap import UnsupportedLayout, iter_blocks, open_mcap
 
         try:
             src = open_mcap(path)
@@ -150,7 +150,7 @@ class ReplaySummary:
             key = f"{multi}:{name}"
             s = self.channels.get(key)
             if s is None:
-                from core.series import channel_units
+                from imunoise.core.series import channel_units
 
                 s = self.channels[key] = _ChannelSummary(fs_hz=block.fs_hz,
                                                          units=channel_units(name))

@@ -1,4 +1,4 @@
-"""The fleet summary (:func:`fleet.view.fleet_summary`) as one self-contained HTML page.
+"""The fleet summary (:func:`imunoise.fleet.view.fleet_summary`) as one self-contained HTML page.
 
 Plots are inline SVG on logarithmic value axes (decades labelled, as coefficients span
 decades): per population and coefficient, every unit's pooled value with its 95 % interval,
@@ -13,7 +13,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from fleet.catalog import COEFFICIENTS
+from imunoise.fleet.catalog import COEFFICIENTS
 
 _W, _H, _PAD_L, _PAD_B, _PAD_T, _PAD_R = 340, 220, 62, 60, 14, 10
 _RED, _BLUE = "#c62828", "#1f5fa8"

@@ -4,7 +4,7 @@
 ``/fleet`` and rendered by ``imunoise fleet-report``):
 
 * ``populations``: per sensor model and channel, every unit's value of each coefficient (its
-  recordings pooled, :func:`analysis.fleet_stats.pool_replicates`) and the units that are
+  recordings pooled, :func:`imunoise.analysis.fleet_stats.pool_replicates`) and the units that are
   outliers against the others (modified z-score on log values, |M| > 3.5);
 * ``units``: per unit and channel, each coefficient over time with its 95 % interval, the
   pooled value with Cochran's test that the recordings agree, and whether the latest
@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from analysis.fleet_stats import (
+from imunoise.analysis.fleet_stats import (
     MIN_POPULATION,
     OUTLIER_M,
     grew,
@@ -31,8 +31,8 @@ from analysis.fleet_stats import (
     pool_replicates,
     robust_outliers,
 )
-from core.units import from_conventional, param_units, si_unit
-from fleet.catalog import COEFFICIENTS, read_catalog
+from imunoise.core.units import from_conventional, param_units, si_unit
+from imunoise.fleet.catalog import COEFFICIENTS, read_catalog
 
 OUTLIER_TEST = (f"modified z-score (Iglewicz and Hoaglin 1993) of log values against the "
                 f"population's median and MAD; outlier when |M| > {OUTLIER_M}, with at least "

@@ -1,6 +1,6 @@
 """Errors that the command line turns into one line on stderr and an exit code."""
 
-from core.errors import ImunoiseError, InputError
+from imunoise.core.errors import ImunoiseError, InputError
 
 
 class UsageError(InputError):

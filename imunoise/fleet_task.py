@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from core.units import channel_kind, conventional, si_unit
+from imunoise.core.units import channel_kind, conventional, si_unit
 
 HASH_CHUNK = 1 << 20
 UNIT_KEYS = ("unit", "unit_id", "serial", "serial_number", "device_serial")
@@ -167,7 +167,7 @@ def channel_rows(location: str, path: str, digest: str, version: str,
                  unit_pattern: str | None, static: str, diagnose: bool) -> list[dict[str, Any]]:
     """The catalogue rows of every IMU channel of one local recording (numbers as
     ``imunoise analyze --json`` gives them)."""
-    from analysis.evidence.outliers import outlier_indices
+    from imunoise.analysis.evidence.outliers import outlier_indices
     from imunoise.commands.analyze import DEFAULT_MODEL, analysis_json, analyze_record
     from imunoise.commands.common import read_record, select
 

@@ -32,7 +32,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from core.errors import InputError
+from imunoise.core.errors import InputError
 
 COMBINE = ("max", "rms", "mean")
 N_FROM_FIT = "Allan fit, white term"
@@ -149,7 +149,7 @@ def _n_unresolved(channel_doc: Mapping, n: tuple[float, tuple | None]) -> str | 
 
 def _psd_white(channel_doc: Mapping) -> tuple[float, tuple[float, float]] | None:
     """N and its 95 % interval from the PSD's full-rate (Welch) band of an analyze document."""
-    from analysis.psd import white_level
+    from imunoise.analysis.psd import white_level
 
     psd = channel_doc.get("psd") or {}
     top = [i for i, m in enumerate(psd.get("method") or []) if m == "welch"]

@@ -3,7 +3,8 @@
 ``extend_channel`` adds to a channel's ``fit`` document (CONTRACT.md keys):
 
 - ``discrete_model`` (always): the filter-ready model at the sample period
-  (:mod:`analysis.discrete`), its bias-instability approximation fitted over the measured tau
+  (:mod:`imunoise.analysis.discrete`), its bias-instability approximation fitted over the measured
+  tau
   range;
 - with ``full=True`` (the HTML report): ``discrete_check``, ``terms_adev``, ``model_psd`` and,
   from :func:`complete_document`, the diagnosis ``suggestions`` and the record's facts.
@@ -22,7 +23,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from analysis.discrete import DiscreteModel, discretize, simulate
+from imunoise.analysis.discrete import DiscreteModel, discretize, simulate
 
 MAX_CHECK_SAMPLES = 1 << 23  # 8.4 M samples: 67 MB per array, about two seconds to simulate
 DEFAULT_MODEL = ("white", "bias_instability", "random_walk")  # as imunoise analyze fits
@@ -41,7 +42,7 @@ def discrete_for_channel(doc: Mapping) -> DiscreteModel | None:
         return None
     tau = np.asarray((doc.get("allan") or {}).get("tau_s") or [], dtype=np.float64)
     tau_range = (float(tau.min()), float(tau.max())) if tau.size >= 2 else None
-    from analysis.terms import get_term
+    from imunoise.analysis.terms import get_term
 
     bias_instability = get_term("bias_instability")
 
@@ -54,7 +55,7 @@ def discrete_for_channel(doc: Mapping) -> DiscreteModel | None:
 
 def discrete_check(dm: DiscreteModel, doc: Mapping, seed: int = 0) -> dict | None:
     """Allan deviation of a simulation of ``dm`` on the measured grid, and the agreement."""
-    from analysis.allan import oadev
+    from imunoise.analysis.allan import oadev
 
     al = doc.get("allan") or {}
     tau = np.asarray(al.get("tau_s") or [], dtype=np.float64)
@@ -95,7 +96,7 @@ def discrete_check(dm: DiscreteModel, doc: Mapping, seed: int = 0) -> dict | Non
 
 def term_curves(doc: Mapping) -> dict[str, list[float]]:
     """Each fitted term's own Allan deviation on the measured tau grid."""
-    from analysis.terms import get_term
+    from imunoise.analysis.terms import get_term
 
     tau = np.asarray((doc.get("allan") or {}).get("tau_s") or [], dtype=np.float64)
     fs = float(doc.get("fs_hz") or 0.0)
@@ -113,7 +114,7 @@ def term_curves(doc: Mapping) -> dict[str, list[float]]:
 
 def model_psd(doc: Mapping) -> dict[str, list[float]] | None:
     """The fitted model's one-sided PSD on the measured frequency grid."""
-    from analysis.terms import model_psd as psd_of
+    from imunoise.analysis.terms import model_psd as psd_of
 
     f = np.asarray((doc.get("psd") or {}).get("f_hz") or [], dtype=np.float64)
     fs = float(doc.get("fs_hz") or 0.0)
@@ -125,10 +126,11 @@ def model_psd(doc: Mapping) -> dict[str, list[float]] | None:
 
 def overbound_for_channel(doc: Mapping, markov: bool = True,
                           band_hz: tuple[float, float] | None = None) -> dict | None:
-    """The over-bounding model of a channel document (:mod:`analysis.overbound`): on or above
+    """The over-bounding model of a channel document (:mod:`imunoise.analysis.overbound`): on or
+    above
     the measured Allan deviation's upper 95 % bound at every tau (and the PSD's in
     ``band_hz``), or None without a curve."""
-    from analysis.overbound import overbound
+    from imunoise.analysis.overbound import overbound
 
     al = doc.get("allan") or {}
     fs = float(doc.get("fs_hz") or 0.0)
@@ -207,7 +209,7 @@ REPORT_ONLY_KEYS = ("terms_adev", "model_psd", "discrete_check", "suggestions")
 
 def suggestions(record, key: str, model=DEFAULT_MODEL) -> list[dict]:
     """The diagnosis of one channel of ``record`` for ``model``: ranked suggestion documents."""
-    from analysis.diagnosis import diagnose
+    from imunoise.analysis.diagnosis import diagnose
 
     series = record.series(key)
     temp = getattr(record, "temperature", None)

@@ -2,7 +2,7 @@
 
 Input is the ``analyze --json`` document (CONTRACT.md keys per channel) extended with:
 
-- ``discrete_model`` per channel: :meth:`analysis.discrete.DiscreteModel.to_dict`;
+- ``discrete_model`` per channel: :meth:`imunoise.analysis.discrete.DiscreteModel.to_dict`;
 - ``discrete_check`` per channel: ``{"tau_s", "adev", "inside", "total"}``, the Allan deviation
   of a simulation of the discrete model and how many of its points lie inside the measured band;
 - ``suggestions`` per channel (``diagnose`` keys), optional;
@@ -23,8 +23,8 @@ from html import escape
 
 import numpy as np
 
-from core.units import conventional, si_unit
 from imunoise import __version__
+from imunoise.core.units import conventional, si_unit
 from imunoise.svg_plot import PALETTE, Plot
 
 _CSS = """

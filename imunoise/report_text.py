@@ -6,11 +6,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from core import units
-from core.series import ChannelSeries
+from imunoise.core import units
+from imunoise.core.series import ChannelSeries
 
 if TYPE_CHECKING:
-    from analysis.psd import PsdEstimate
+    from imunoise.analysis.psd import PsdEstimate
 
 
 def _kind(name: str) -> str | None:

@@ -6,15 +6,16 @@ copy; loading it is what made the analysis's memory grow with the record's lengt
 at a time, and never held:
 
 1. the first pass finds each IMU topic's sampling (rate, gaps, backward steps, jitter), the
-   motion windows (:class:`analysis.motion.MotionWindows`, exactly the statistics of the
+   motion windows (:class:`imunoise.analysis.motion.MotionWindows`, exactly the statistics of the
    in-memory detection) and the temperature record (small: one sample a second);
 2. the second pass feeds the selected channels' samples inside the still stretches to
-   bounded-memory estimators: :class:`analysis.streaming_allan.StreamingAllan` on the octave
-   grid and :class:`analysis.psd.StreamingPsd` (the in-memory PSD is the same estimator).
+   bounded-memory estimators: :class:`imunoise.analysis.streaming_allan.StreamingAllan` on the
+   octave
+   grid and :class:`imunoise.analysis.psd.StreamingPsd` (the in-memory PSD is the same estimator).
 
 The numbers equal the in-memory analysis except in three documented ways: the Allan deviation
 is exact up to ``m = 4096`` and beyond that uses every ``d``-th start index (``d`` at most
-1/64 of ``m`` on a 32 h record, see :mod:`analysis.streaming_allan`), its noise
+1/64 of ``m`` on a 32 h record, see :mod:`imunoise.analysis.streaming_allan`), its noise
 identification looks at the last segment instead of the longest, and the rate is the
 end-to-end one (samples, missing samples included, over the span) instead of the
 least-squares grid period. Memory is a few MB per channel plus the motion windows (two floats
@@ -30,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from core.record import Record
-from core.series import ChannelSeries
+from imunoise.core.record import Record
+from imunoise.core.series import ChannelSeries
 
 STREAM_ABOVE_BYTES = 160_000_000
 """float64 bytes of IMU samples (all channels) above which ``analyze`` streams an MCAP file:
@@ -44,7 +45,7 @@ _OCTAVES = 1 << np.arange(41, dtype=np.int64)  # averaging factors 1 .. 2^40, cu
 @dataclass
 class SeriesSummary:
     """What the reports need of a channel that was never held: the shape of
-    :class:`core.series.ChannelSeries` without ``values``.
+    :class:`imunoise.core.series.ChannelSeries` without ``values``.
 
     Attributes:
         name: channel key.
@@ -70,13 +71,14 @@ class SeriesSummary:
 
 
 def _open_streamable(path: str):
-    """The opened MCAP file (``daq.readers.mcap.McapSource``) when the bulk reader takes it,
+    """The opened MCAP file (``imunoise.daq.readers.mcap.McapSource``) when the bulk reader takes
+    it,
     else None (another format, or a file the loader reads and explains)."""
     p = Path(path)
     if not (p.is_file() and p.suffix.lower() == ".mcap"):
         return None
-    from daq.mcap_layout import McapFormatError
-    from daq.readers.mcap import UnsupportedLayout, open_mcap
+    from imunoise.daq.mcap_layout import McapFormatError
+    from imunoise.daq.readers.mcap import UnsupportedLayout, open_mcap
 
     try:
         return open_mcap(p)
@@ -125,7 +127,7 @@ class _TopicScan:
     jitter_sq: float = 0.0
     jitter_max: float = 0.0
     nonfinite: dict[str, int] = field(default_factory=dict)
-    windows: Any = None  # analysis.motion.MotionWindows
+    windows: Any = None  # imunoise.analysis.motion.MotionWindows
     last_finite: dict[str, float] = field(default_factory=dict)
 
 
@@ -208,8 +210,8 @@ class _Feed:
     key: str
     name: str
     summary: SeriesSummary
-    allan: Any  # analysis.streaming_allan.StreamingAllan
-    psd: Any  # analysis.psd.StreamingPsd
+    allan: Any  # imunoise.analysis.streaming_allan.StreamingAllan
+    psd: Any  # imunoise.analysis.psd.StreamingPsd
     next_index: int = -1  # stream index that continues the current segment
     starts: list[int] = field(default_factory=list)
 
@@ -251,8 +253,8 @@ def _longest(starts: list[int], n: int, ranges: list[tuple[int, int]]) -> int:
 def _first_pass(path: str, src, scans: dict[str, _TopicScan], temp_topic: str | None,
                 advance, warnings: list[str]) -> ChannelSeries | None:
     """Scan every IMU topic; return the temperature series (small enough to hold)."""
-    from analysis.motion import MotionWindows
-    from daq.readers.mcap import iter_blocks, make_series, topic_timing
+    from imunoise.analysis.motion import MotionWindows
+    from imunoise.daq.readers.mcap import iter_blocks, make_series, topic_timing
 
     temp_t: list[np.ndarray] = []
     temp_v: list[np.ndarray] = []
@@ -282,8 +284,8 @@ def _plan(record: Record, scans: dict[str, _TopicScan], keys: list[str],
                                                        dict[str, list[tuple[int, int]]]]:
     """After the first pass: each topic's rate, timing and motion facts (into ``record``),
     the stream ranges to analyse and the estimators of the selected channels."""
-    from analysis.psd import StreamingPsd, default_nperseg
-    from analysis.streaming_allan import StreamingAllan
+    from imunoise.analysis.psd import StreamingPsd, default_nperseg
+    from imunoise.analysis.streaming_allan import StreamingAllan
     from imunoise.commands.common import motion_verdict
 
     timings, motions, feeds = {}, {}, {}
@@ -318,7 +320,7 @@ def _plan(record: Record, scans: dict[str, _TopicScan], keys: list[str],
 def _second_pass(path: str, src, scans: dict[str, _TopicScan], feeds: dict[str, _Feed],
                  ranges: dict[str, list[tuple[int, int]]], advance) -> None:
     """Feed the analysed ranges of the selected channels to their estimators."""
-    from daq.readers.mcap import iter_blocks
+    from imunoise.daq.readers.mcap import iter_blocks
 
     at: dict[str, int] = dict.fromkeys(scans, 0)
     for block in iter_blocks(path, src):
@@ -343,8 +345,8 @@ def _second_pass(path: str, src, scans: dict[str, _TopicScan], feeds: dict[str, 
 
 def _result(f: _Feed):
     """The ``analyze`` result of one fed channel."""
-    from core.units import CI95
     from imunoise.commands.analyze import ChannelAnalysis, _fit
+    from imunoise.core.units import CI95
 
     f.summary.segment_starts = np.asarray(f.starts or [0], dtype=np.int64)
     out = ChannelAnalysis(key=f.key, series=f.summary)  # type: ignore[arg-type]
@@ -379,14 +381,14 @@ def analyze_streamed(path: str, selectors: list[str], rate_hz: float | None = No
     opened by :func:`stream_source`).
 
     Returns:
-        (record, results): a :class:`core.record.Record` whose channels are
+        (record, results): a :class:`imunoise.core.record.Record` whose channels are
         :class:`SeriesSummary` objects (temperature, metadata, warnings and ``timing`` /
         ``motion`` facts as the in-memory reader gives them) and the ``analyze`` results
         (:class:`imunoise.commands.analyze.ChannelAnalysis`) of the selected channels.
     """
-    from daq.readers.mcap import open_mcap
-    from daq.readers.mcap_decode import _columns
     from imunoise.commands.common import select
+    from imunoise.daq.readers.mcap import open_mcap
+    from imunoise.daq.readers.mcap_decode import _columns
     from imunoise.progress import progress_bar
 
     src = open_mcap(path) if src is None else src

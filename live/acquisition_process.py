@@ -5,9 +5,10 @@ the rolling analysis, the HTTP server and the event stream, any stall there (a l
 call, JSON encoding of a curve, garbage collection) delays the reads, and samples are lost.
 So ``serve`` runs the device driver in a child process started here, at the highest
 scheduling priority the system grants, doing nothing per sample but read and stamp; the MCAP
-recorder runs in a child of that one (:mod:`live.recorder_process`), so that encoding,
+recorder runs in a child of that one (:mod:`imunoise.live.recorder_process`), so that encoding,
 compressing and fsyncing never hold up a poll. Blocks reach the analysis side through a
-:class:`live.block_ring.BlockRing` in shared memory that never makes the child wait: when the
+:class:`imunoise.live.block_ring.BlockRing` in shared memory that never makes the child wait: when
+the
 analysis side falls behind, the block is not handed over (a counted hand-over loss, and a gap
 for the analysis), while the recording has it.
 
@@ -31,9 +32,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from live.block_ring import DEFAULT_CAPACITY, BlockRing
-from live.restart_pause import RestartPause, describe_exit
-from live.termination import TermFlag, end_process
+from imunoise.live.block_ring import DEFAULT_CAPACITY, BlockRing
+from imunoise.live.restart_pause import RestartPause, describe_exit
+from imunoise.live.termination import TermFlag, end_process
 
 STATUS_EVERY_S = 0.25
 """How often the child publishes its counters."""
@@ -64,7 +65,7 @@ class AcquisitionConfig:
     """What the child needs to open the device and the recorder (picklable).
 
     Attributes:
-        spec: device name (``daq.devices.DEVICES``).
+        spec: device name (``imunoise.daq.devices.DEVICES``).
         device_kwargs: ``port``, ``bus``, ``rate_hz``, ``seed`` for ``open_device``.
         out: folder for the MCAP files, or None (no recording).
         record_rate_hz: nominal rate written to the file's metadata (None: the device's).
@@ -72,11 +73,12 @@ class AcquisitionConfig:
         priority: ``"realtime"`` (SCHED_FIFO if permitted, else the lowest nice value
             permitted), ``"nice"`` (nice value only) or ``"normal"``.
         simulator_process: run ``sim:adis16350`` in a process of its own behind its
-            pseudo-terminal (``live.simulator_process``), opened like real hardware; the I2C
+            pseudo-terminal (``imunoise.live.simulator_process``), opened like real hardware; the
+            I2C
             simulators live under smbus2's ioctl layer and stay in the acquisition process.
         realtime_kernel_workers: while the child runs, a process of the parent's holds the
             kernel's unbound workers, which carry a serial adapter's bytes, at SCHED_FIFO 1
-            (:class:`live.kernel_workers.KernelWorkerKeeper`; changes the whole machine's
+            (:class:`imunoise.live.kernel_workers.KernelWorkerKeeper`; changes the whole machine's
             scheduling until the parent ends, however it ends).
     """
 
@@ -162,15 +164,15 @@ class _SimulatorTruth:
 
 def _open(config: AcquisitionConfig, note: str | None):
     """The device (and its simulator process), the recorder and its sink of one child."""
-    from analysis.noise_stream import stream_factory
-    from daq.devices import open_device
-    from live.recorder_process import RecorderProcess
-    from live.recorder_sink import RecorderSink
+    from imunoise.analysis.noise_stream import stream_factory
+    from imunoise.daq.devices import open_device
+    from imunoise.live.recorder_process import RecorderProcess
+    from imunoise.live.recorder_sink import RecorderSink
 
     acq = recorder = sink = simulator = None
     try:
         if config.spec == "sim:adis16350" and config.simulator_process:
-            from live.simulator_process import SimulatorProcess
+            from imunoise.live.simulator_process import SimulatorProcess
 
             kw = dict(config.device_kwargs)
             simulator = SimulatorProcess(kw.get("rate_hz") or 102.4, kw.pop("seed", 0) or 0,
@@ -295,7 +297,8 @@ class AcquisitionProcess:
         self._final: dict[str, Any] | None = None  # the last status, once the ring is released
         self._respawn_at: float | None = None  # when a dead child is to be replaced
         self._pause = RestartPause()
-        self._kernel_workers: Any = None  # live.kernel_workers.KernelWorkerKeeper, when asked
+        # imunoise.live.kernel_workers.KernelWorkerKeeper, when asked
+        self._kernel_workers: Any = None
 
     # -- life cycle
     def _spawn(self, note: str | None = None) -> None:
@@ -308,11 +311,11 @@ class AcquisitionProcess:
 
     def open(self, timeout_s: float = START_TIMEOUT_S) -> None:
         """Start the child and wait until it has opened the device (or failed to: raises
-        ``daq.errors.DeviceError`` with its reason)."""
-        from daq.errors import DeviceError
+        ``imunoise.daq.errors.DeviceError`` with its reason)."""
+        from imunoise.daq.errors import DeviceError
 
         if self.config.realtime_kernel_workers and self._kernel_workers is None:
-            from live.kernel_workers import KernelWorkerKeeper
+            from imunoise.live.kernel_workers import KernelWorkerKeeper
 
             self._kernel_workers = KernelWorkerKeeper().start()
         self._spawn()

@@ -1,6 +1,7 @@
 """One channel of the live analysis, safe to share between threads.
 
-:class:`LiveChannel` wraps the pure :class:`analysis.channel_state.ChannelState`: it holds the
+:class:`LiveChannel` wraps the pure :class:`imunoise.analysis.channel_state.ChannelState`: it holds
+the
 locks (HTTP threads read and change the model while the analysis thread feeds samples and
 runs the scheduled jobs), reads the clocks, and runs the costly jobs through a runner (in the
 calling thread, or in a worker process off the interpreter lock). The state's lock is held
@@ -18,16 +19,16 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from analysis.allan import AllanCurve
-from analysis.channel_state import (
+from imunoise.analysis.allan import AllanCurve
+from imunoise.analysis.channel_state import (
     DEFAULT_MODEL,
     ChannelSnapshot,
     ChannelState,
     FitJob,
     ModelChangeResult,
 )
-from analysis.fit import FitResult
-from analysis.terms import TermError
+from imunoise.analysis.fit import FitResult
+from imunoise.analysis.terms import TermError
 
 
 def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
@@ -55,9 +56,9 @@ class LiveChannel:
     """Live analysis of one channel (see the module docstring).
 
     Args:
-        channel, fs_hz, units, model: as :class:`analysis.channel_state.ChannelState`.
+        channel, fs_hz, units, model: as :class:`imunoise.analysis.channel_state.ChannelState`.
         runner: runs the fits and the diagnosis (:func:`run_inline`, or a
-            :class:`live.scheduler.WorkerProcess` to keep them off the interpreter lock).
+            :class:`imunoise.live.scheduler.WorkerProcess` to keep them off the interpreter lock).
         **state_kwargs: the cadences and sizes of :class:`ChannelState`.
     """
 

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from live.termination import TermFlag, end_process
+from imunoise.live.termination import TermFlag, end_process
 
 WORKER_PREFIX = "kworker/u"
 """Name prefix of the kernel's unbound workqueue threads (a suffix names the work they ran

@@ -6,7 +6,7 @@ the polls of a device that has no FIFO, and the polls it held up lost samples. H
 recorder runs in a child of the acquisition process; the acquisition process only pickles each
 block (once, for both rings) and copies it into shared memory.
 
-Two :class:`live.block_ring.BlockRing` segments, both made by the acquisition process:
+Two :class:`imunoise.live.block_ring.BlockRing` segments, both made by the acquisition process:
 
 - the *feed* carries pickled records ``("block", wall, pickled SampleBlock)``,
   ``("event", wall, (level, message, fields, t))`` and ``("close", wall, None)`` in order. It
@@ -34,8 +34,8 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
-from live.block_ring import BlockRing
-from live.restart_pause import RestartPause, describe_exit
+from imunoise.live.block_ring import BlockRing
+from imunoise.live.restart_pause import RestartPause, describe_exit
 
 FEED_BYTES = 64 * 1024 * 1024
 """Data area of the feed ring: about 2.5 min of an ADIS16350 at 819 Hz and 10 min of a 1 kHz
@@ -52,9 +52,9 @@ fsync would take a core from the analysis side without need; the feed absorbs it
 def _recorder_main(feed_name: str, back_name: str, recorder_args: dict[str, Any],
                    priority: str, parent_pid: int, note: str | None) -> None:
     """Entry point of the recorder process."""
-    from daq import ros2_msgs
-    from daq.recorder import McapRecorder
-    from live.acquisition_process import raise_priority, settle_heap
+    from imunoise.daq import ros2_msgs
+    from imunoise.daq.recorder import McapRecorder
+    from imunoise.live.acquisition_process import raise_priority, settle_heap
 
     # The acquisition process closes the file (a "close" record) after its last block and
     # event; a signal to the whole process group must not end the recorder before those.
@@ -120,8 +120,8 @@ def _recorder_main(feed_name: str, back_name: str, recorder_args: dict[str, Any]
 class RecorderProcess:
     """The acquisition process's handle on its recorder process.
 
-    It takes the place of :class:`daq.recorder.McapRecorder` for
-    :class:`live.recorder_sink.RecorderSink`: :meth:`write`, :meth:`event`, :meth:`close`,
+    It takes the place of :class:`imunoise.daq.recorder.McapRecorder` for
+    :class:`imunoise.live.recorder_sink.RecorderSink`: :meth:`write`, :meth:`event`, :meth:`close`,
     ``stats`` (``file``, ``files``, ``samples``, ``blocks_dropped``) and ``error``.
 
     Args:
@@ -184,7 +184,8 @@ class RecorderProcess:
         """Replace a recorder process that died (True when it did); cheap, call it often.
 
         One that dies soon after its start (e.g. a folder that became unwritable) is replaced
-        after a pause that doubles each time (:class:`live.restart_pause.RestartPause`); the
+        after a pause that doubles each time (:class:`imunoise.live.restart_pause.RestartPause`);
+        the
         feed keeps what comes meanwhile. ``now_or_never``: no pause (at close)."""
         if self._closing or self._proc is None or self._proc.is_alive():
             return False

@@ -10,8 +10,8 @@ class RecorderSink:
     """Feeds a recorder and records device state changes.
 
     Args:
-        recorder: the open recorder: a :class:`daq.recorder.McapRecorder`, or in the
-            acquisition process a :class:`live.recorder_process.RecorderProcess`.
+        recorder: the open recorder: a :class:`imunoise.daq.recorder.McapRecorder`, or in the
+            acquisition process a :class:`imunoise.live.recorder_process.RecorderProcess`.
         acquisition: the source whose ``stats`` (``state``, ``reconnects``, ``last_error``)
             are watched; any object (its missing attributes read as empty).
     """
@@ -24,7 +24,8 @@ class RecorderSink:
 
     def write(self, block: Any, payload: bytes | None = None) -> None:
         """Record a block; ``payload``: the block already pickled, for a recorder in another
-        process (:class:`live.recorder_process.RecorderProcess`), which then sends it as is."""
+        process (:class:`imunoise.live.recorder_process.RecorderProcess`), which then sends it as
+        is."""
         if payload is None:
             self.recorder.write(block)
         else:
@@ -48,7 +49,7 @@ class RecorderSink:
     def note(self, level: str, message: str, fields: dict[str, str],
              t: float | None = None) -> None:
         """A status event in the file (``level``: ``"ok"``, ``"warn"`` or ``"error"``)."""
-        from daq import ros2_msgs
+        from imunoise.daq import ros2_msgs
 
         lv = {"ok": ros2_msgs.OK, "warn": ros2_msgs.WARN}.get(level, ros2_msgs.WARN)
         self.recorder.event(lv, message, fields, t=t)

@@ -1,4 +1,4 @@
-"""The scheduler of the live analysis: one :class:`live.channel.LiveChannel` per channel,
+"""The scheduler of the live analysis: one :class:`imunoise.live.channel.LiveChannel` per channel,
 their fits and diagnoses run one at a time within a CPU budget, in a worker process.
 
 Feeding (``update``) only runs the streaming estimators, which are vectorised and cheap. The
@@ -25,14 +25,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from analysis.channel_state import DEFAULT_MODEL, check_terms
-from core.series import channel_units
-from live.channel import LiveChannel, run_inline, timed
+from imunoise.analysis.channel_state import DEFAULT_MODEL, check_terms
+from imunoise.core.series import channel_units
+from imunoise.live.channel import LiveChannel, run_inline, timed
 
 
 class BlockLike(Protocol):
     """What :meth:`RollingAnalyzer.update` takes: a block of samples of one stream (e.g.
-    :class:`core.blocks.SampleBlock`)."""
+    :class:`imunoise.core.blocks.SampleBlock`)."""
 
     stream: str
     channels: dict[str, np.ndarray]

@@ -6,7 +6,7 @@ Three roles, two threads:
   file) and hands each one to the recorder and to a queue for the analyzer. It never waits on
   analysis or HTTP: for a live device the queue is large and ``put_nowait`` is used, so a stalled
   analyzer costs analysis coverage (counted in ``health()``) but never a recorded sample;
-- the *analysis thread* drains the queue into a :class:`live.scheduler.RollingAnalyzer` and
+- the *analysis thread* drains the queue into a :class:`imunoise.live.scheduler.RollingAnalyzer` and
   runs its fits and diagnoses one at a time, within the analyzer's CPU budget;
 - HTTP handlers only read published results (and change a model, which refits that channel).
 """
@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
-from live.scheduler import BlockLike, RollingAnalyzer
+from imunoise.live.scheduler import BlockLike, RollingAnalyzer
 
 
 class Sink(Protocol):
@@ -57,7 +57,7 @@ class LiveService:
     """Acquisition + recording + rolling analysis, with a thread-safe view for the API.
 
     Args:
-        source: a ``daq.acquisition.Acquisition`` (its ``blocks()`` are iterated) or any
+        source: a ``imunoise.daq.acquisition.Acquisition`` (its ``blocks()`` are iterated) or any
             iterable of sample blocks (a file reader, a generator). Its ``stats`` (a dict,
             dataclass or object), if any, are reported in ``health()``; its ``stop()`` and
             ``close()``, if any, are called on shutdown.

@@ -8,7 +8,8 @@ process opens that terminal with the real driver and the real pyserial, exactly 
 a Bus Pirate on ``/dev/ttyUSB0``.
 
 The simulated part counts the samples it made that were never read
-(:attr:`daq.sim.adis16350.Adis16350Sim.samples_never_read`) into shared memory as they occur:
+(:attr:`imunoise.daq.sim.adis16350.Adis16350Sim.samples_never_read`) into shared memory as they
+occur:
 :attr:`SimulatorProcess.samples_never_read` is the truth against which the driver's own
 estimate of the samples lost at the device (from the host's clock) can be checked.
 """
@@ -19,7 +20,7 @@ import multiprocessing as mp
 import os
 from typing import Any
 
-from live.termination import TermFlag, end_process
+from imunoise.live.termination import TermFlag, end_process
 
 START_TIMEOUT_S = 60.0
 
@@ -28,17 +29,17 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
                     priority: str, never_read: Any) -> None:
     import sys
 
-    from live.acquisition_process import GIL_SWITCH_S, raise_priority, settle_heap
+    from imunoise.live.acquisition_process import GIL_SWITCH_S, raise_priority, settle_heap
 
     term = TermFlag().install()
     sys.setswitchinterval(GIL_SWITCH_S)
     raise_priority(priority)
-    from analysis.noise_stream import stream_factory
-    from daq.clock import RealClock
-    from daq.drivers.adis16350 import sample_rate_hz, smpl_prd_for_rate
-    from daq.sim.adis16350 import Adis16350Sim
-    from daq.sim.buspirate_pty import BusPirateEmulator, ChipClock
-    from daq.sim.signals import default_sources
+    from imunoise.analysis.noise_stream import stream_factory
+    from imunoise.daq.clock import RealClock
+    from imunoise.daq.drivers.adis16350 import sample_rate_hz, smpl_prd_for_rate
+    from imunoise.daq.sim.adis16350 import Adis16350Sim
+    from imunoise.daq.sim.buspirate_pty import BusPirateEmulator, ChipClock
+    from imunoise.daq.sim.signals import default_sources
 
     fs = sample_rate_hz(smpl_prd_for_rate(rate_hz))
     gyro, accel = default_sources("adis16350", fs, seed, stream_factory)

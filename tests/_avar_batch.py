@@ -1,7 +1,7 @@
 """Overlapping Allan variance of many equal-length records at once, for Monte Carlo tests.
 
 Vectorised over records (rows) so that hundreds of seeds cost one cumulative sum. It checks the
-simulators against their formulas; the product's estimator is analysis.allan.
+simulators against their formulas; the product's estimator is imunoise.analysis.allan.
 """
 
 import numpy as np

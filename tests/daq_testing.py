@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from daq.acquisition import Acquisition
+from imunoise.daq.acquisition import Acquisition
 
 
 def constant(values) -> callable:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import uvicorn
 
-from core.blocks import SampleBlock
+from imunoise.core.blocks import SampleBlock
 
 GYRO_N = 3e-3      # rad/s/sqrt(Hz)
 GYRO_K = 2e-5      # rad/s/sqrt(s)

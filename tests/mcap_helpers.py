@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.blocks import SampleBlock
-from daq.recorder import McapRecorder
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq.recorder import McapRecorder
 
 GYRO_LSB = 0.07326 * np.pi / 180  # rad/s per count (ADIS16350)
 ACCEL_LSB = 2.522e-3 * 9.80665  # m/s^2 per count

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.noise_stream import NoiseStream
-from core.blocks import SampleBlock
-from daq.recorder import McapRecorder
+from imunoise.analysis.noise_stream import NoiseStream
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq.recorder import McapRecorder
 
 FS = 100.0
 N_SAMPLES = 40_000  # 400 s: short, but long enough for three-term fits on octave taus

@@ -17,10 +17,10 @@ import uvicorn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from live.scheduler import RollingAnalyzer
-from live.service import LiveService
+from imunoise.live.scheduler import RollingAnalyzer
+from imunoise.live.service import LiveService
+from imunoise.web.app import create_app
 from tests.live_helpers import CountingSink, SyntheticImu
-from web.app import create_app
 
 
 def main() -> None:

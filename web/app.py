@@ -16,10 +16,10 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from live.service import LiveService
-from web.deps import TOKEN_HEADER
-from web.routes import curves, fleet, model, pages, status
-from web.routes.pages import STATIC_DIR
+from imunoise.live.service import LiveService
+from imunoise.web.deps import TOKEN_HEADER
+from imunoise.web.routes import curves, fleet, model, pages, status
+from imunoise.web.routes.pages import STATIC_DIR
 
 __all__ = ["LOOPBACK_HOSTS", "STATIC_DIR", "TOKEN_HEADER", "create_app"]
 
@@ -39,8 +39,8 @@ def create_app(service: LiveService, token: str | None = None,
                event_interval_s: float = 0.5,
                allowed_hosts: tuple[str, ...] | None = LOOPBACK_HOSTS,
                catalog: str | None = None) -> FastAPI:
-    """Build the app around a running :class:`LiveService`: the routers of ``web.routes``,
-    what they depend on in ``app.state`` (``web.deps``), the static files.
+    """Build the app around a running :class:`LiveService`: the routers of ``imunoise.web.routes``,
+    what they depend on in ``app.state`` (``imunoise.web.deps``), the static files.
 
     Args:
         service: the live service whose state is served.

@@ -1,6 +1,7 @@
 """What the routes depend on: the live service, a channel's analyzer, the change token.
 
-Set up by :func:`web.app.create_app` in ``app.state``; the routers take them through FastAPI's
+Set up by :func:`imunoise.web.app.create_app` in ``app.state``; the routers take them through
+FastAPI's
 ``Depends`` so that none of them holds state of its own.
 """
 
@@ -11,8 +12,8 @@ from typing import Annotated
 
 from fastapi import Depends, HTTPException, Query, Request
 
-from live.channel import LiveChannel
-from live.service import LiveService
+from imunoise.live.channel import LiveChannel
+from imunoise.live.service import LiveService
 
 TOKEN_HEADER = "X-Imunoise-Token"
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal, special, stats
 
-from analysis.evidence.finding import Finding, family_p
+from imunoise.analysis.evidence.finding import Finding, family_p
 
 _MAINS_HZ = (50.0, 60.0)
 _HALF_WINDOW = 12      # neighbour bins on each side used for the continuum

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from analysis.evidence.finding import Finding, family_p
+from imunoise.analysis.evidence.finding import Finding, family_p
 
 _MAD_TO_SIGMA = 1.482602218505602
 _MAX_LISTED = 100

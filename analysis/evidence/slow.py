@@ -1,7 +1,7 @@
 """Slow effects on the bias: temperature sensitivity and drift.
 
 Both are regressions of the slow (bin-averaged) rate on a regressor, temperature or time,
-with the autocorrelation-aware test of :func:`analysis.evidence.slowgrid.slow_regression`.
+with the autocorrelation-aware test of :func:`imunoise.analysis.evidence.slowgrid.slow_regression`.
 """
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from analysis.evidence.finding import Finding
-from analysis.evidence.slowgrid import bin_means, slow_grid, slow_regression
+from imunoise.analysis.evidence.finding import Finding
+from imunoise.analysis.evidence.slowgrid import bin_means, slow_grid, slow_regression
 
 _TARGET_BINS = 300
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from analysis.evidence.finding import Finding
+from imunoise.analysis.evidence.finding import Finding
 
 _MA1_VARIANCE_FACTOR = 1.5
 MIN_LEVEL_RATIO = 1.05

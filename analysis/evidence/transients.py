@@ -38,8 +38,8 @@ import numpy as np
 from scipy import stats
 from scipy.linalg import solve_triangular
 
-from analysis.evidence.finding import Finding
-from analysis.terms import get_term, model_psd
+from imunoise.analysis.evidence.finding import Finding
+from imunoise.analysis.terms import get_term, model_psd
 
 BLOCKS = 120
 """Number of blocks the longest segment is cut into."""

@@ -1,19 +1,19 @@
 """Terms of a noise model: one module per term, a registry and one model parser.
 
-* :mod:`analysis.terms.base`: the :class:`Term` base class and :class:`Param`.
+* :mod:`imunoise.analysis.terms.base`: the :class:`Term` base class and :class:`Param`.
 * one module per term (``white``, ``quantization``, ``bias_instability``, ``random_walk``,
   ``rate_ramp``, ``gauss_markov``, ``sinusoid``, ``temperature``), each defining ``TERM``.
-* :mod:`analysis.terms.registry`: the vocabulary (:data:`TERMS`), found by scanning this
+* :mod:`imunoise.analysis.terms.registry`: the vocabulary (:data:`TERMS`), found by scanning this
   package, and the Allan variance / PSD of a whole model.
-* :mod:`analysis.terms.spec`: :func:`parse_model`, the one parser of ``--model`` strings.
+* :mod:`imunoise.analysis.terms.spec`: :func:`parse_model`, the one parser of ``--model`` strings.
 
 See docs/terms.md for the formulas and for how to add a term.
 """
 
-from analysis.terms.base import Param, Term, TermError, TermSimulator, param_unit
-from analysis.terms.bias_instability import BIAS_INSTABILITY_FACTOR
-from analysis.terms.gauss_markov import ar1_avar_shape
-from analysis.terms.registry import (
+from imunoise.analysis.terms.base import Param, Term, TermError, TermSimulator, param_unit
+from imunoise.analysis.terms.bias_instability import BIAS_INSTABILITY_FACTOR
+from imunoise.analysis.terms.gauss_markov import ar1_avar_shape
+from imunoise.analysis.terms.registry import (
     TERMS,
     _discover,
     get_term,
@@ -23,7 +23,7 @@ from analysis.terms.registry import (
     term_names,
     validate_params,
 )
-from analysis.terms.spec import Entry, ModelSpec, labels, parse_model, parse_terms
+from imunoise.analysis.terms.spec import Entry, ModelSpec, labels, parse_model, parse_terms
 
 _discover()
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.terms.base import Param
-from analysis.terms.moving_average import MAX_TAPS, boxcar
-from analysis.terms.moving_average import TERM as MOVING_AVERAGE
-from analysis.terms.output_filter import OutputFilter
+from imunoise.analysis.terms.base import Param
+from imunoise.analysis.terms.moving_average import MAX_TAPS, boxcar
+from imunoise.analysis.terms.moving_average import TERM as MOVING_AVERAGE
+from imunoise.analysis.terms.output_filter import OutputFilter
 
 
 class Bartlett(OutputFilter):

@@ -4,8 +4,9 @@ A term knows everything the rest of the package needs about it: its parameters (
 physical ranges, fit bounds), its exact sampled-data Allan variance, its one-sided PSD, its
 role in the covariance of the Allan estimates, a seeded block-by-block simulator, its
 discrete-time states, its explanation, which estimators support it and which parameter is its
-amplitude. One term per module in this package; :mod:`analysis.terms.registry` collects them
-and :mod:`analysis.terms.spec` parses the model strings users write.
+amplitude. One term per module in this package; :mod:`imunoise.analysis.terms.registry` collects
+them
+and :mod:`imunoise.analysis.terms.spec` parses the model strings users write.
 
 Sampling model (what "exact" means here). A rate sample ``y_k`` is the average of the
 continuous rate over its sampling interval (integrate-and-dump, as the decimation filter of a
@@ -22,10 +23,10 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from core.errors import InputError
+from imunoise.core.errors import InputError
 
 if TYPE_CHECKING:
-    from analysis.discrete import DiscreteModel
+    from imunoise.analysis.discrete import DiscreteModel
 
 
 class TermError(InputError):
@@ -121,7 +122,7 @@ class Term:
         kind: ``"additive"`` (its Allan variance and PSD add to the others') or ``"filter"``
             (it multiplies the PSD of the noise terms; see docs/terms.md).
         role: how it enters the covariance of the Allan estimates
-            (:mod:`analysis.misfit`): ``"noise"`` (Gaussian, through its PSD), ``"line"``
+            (:mod:`imunoise.analysis.misfit`): ``"noise"`` (Gaussian, through its PSD), ``"line"``
             (a deterministic sinusoid: :meth:`line`), ``"ramp"`` (a deterministic drift:
             :meth:`ramp_slope`) or ``"regressor"`` (removed from the series before the Allan
             curve is computed; no Allan variance of its own).
@@ -130,7 +131,7 @@ class Term:
         live: usable by the bounded-memory live service (not one that needs a whole record).
         needs_record: name of an auxiliary record the term needs (``"temperature"``), or None.
         estimators: estimators that support it: ``"allan"`` (the Allan-curve fit) and
-            ``"block_likelihood"`` (the exact likelihood of :mod:`analysis.likelihood`).
+            ``"block_likelihood"`` (the exact likelihood of :mod:`imunoise.analysis.likelihood`).
         avar_extras: extra keyword arguments :meth:`avar`/:meth:`psd` accept beside the
             parameters (e.g. the temperature record's Allan variance).
         allan_signature, effect, explanation: user-facing text.
@@ -270,7 +271,8 @@ class Term:
         """Allan variance (units^2) of the ``noise`` terms seen through this filter."""
         raise NotImplementedError
 
-    # --- covariance of the Allan estimates (see analysis.misfit) -------------------------------
+    # --- covariance of the Allan estimates (see imunoise.analysis.misfit)
+    # -------------------------------
     def line(self, params: dict[str, float]) -> tuple[float, float]:
         """``(amplitude, frequency_hz)`` of a ``role == "line"`` term."""
         raise NotImplementedError
@@ -304,12 +306,12 @@ class Term:
     # --- simulation and discrete-time states -------------------------------------------------
     def simulator(self, params: dict[str, float], fs_hz: float, rng: np.random.Generator,
                   **options: Any) -> TermSimulator:
-        """A seeded simulator of this term (see :mod:`analysis.noise_stream`)."""
+        """A seeded simulator of this term (see :mod:`imunoise.analysis.noise_stream`)."""
         raise TermError(f"{self.name} cannot be simulated")
 
     def add_discrete(self, dm: DiscreteModel, params: dict[str, float]) -> None:
         """Add this term's discrete-time states at the sample period to ``dm``
-        (see :mod:`analysis.discrete`)."""
+        (see :mod:`imunoise.analysis.discrete`)."""
         raise TermError(f"{self.name} has no discrete-time model")
 
     def __repr__(self) -> str:

@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
-from analysis.terms.base import Param, Term
-from analysis.terms.gauss_markov import TERM as GAUSS_MARKOV
-from analysis.terms.gauss_markov import Ar1Bank, ar1_avar_shape
+from imunoise.analysis.terms.base import Param, Term
+from imunoise.analysis.terms.gauss_markov import TERM as GAUSS_MARKOV
+from imunoise.analysis.terms.gauss_markov import Ar1Bank, ar1_avar_shape
 
 BIAS_INSTABILITY_FACTOR = 2.0 * math.log(2.0) / math.pi
 """Allan variance plateau of flicker noise per B^2: sigma^2 = (2 ln2/pi) B^2."""
@@ -94,7 +94,7 @@ class BiasInstability(Term):
         return Ar1Bank(rng, fs_hz, times, np.full(len(times), sd))
 
     def add_discrete(self, dm, params):
-        # approximated by Markov states once the whole model is known (analysis.discrete)
+        # approximated by Markov states once the whole model is known (imunoise.analysis.discrete)
         dm.flicker_B = float(np.hypot(dm.flicker_B, params["B"]))
 
 

@@ -12,7 +12,7 @@ import math
 import numpy as np
 from scipy.signal import lfilter
 
-from analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.base import Param, Term, TermSimulator
 
 _BIG = 1.0e3
 
@@ -102,7 +102,7 @@ class GaussMarkov(Term):
                        np.array([float(params["sigma"])]))
 
     def add_discrete(self, dm, params):
-        from analysis.discrete import markov_state
+        from imunoise.analysis.discrete import markov_state
         dm.markov.append(markov_state(self.name, params["sigma"], params["T"], dm.fs_hz))
 
 

@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 
-from analysis.terms.base import Param, TermError
-from analysis.terms.output_filter import OutputFilter
+from imunoise.analysis.terms.base import Param, TermError
+from imunoise.analysis.terms.output_filter import OutputFilter
 
 _MIN_CUTOFF_OVER_FS = 1.0e-3
 _TAIL = 1.0e-12

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from analysis.terms.base import Param
-from analysis.terms.output_filter import OutputFilter
+from imunoise.analysis.terms.base import Param
+from imunoise.analysis.terms.output_filter import OutputFilter
 
 MAX_TAPS = 1024.0
 

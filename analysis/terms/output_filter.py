@@ -19,7 +19,7 @@ Filtered Allan variance, exact where it matters:
   to within ``(f L/fs)^2``; their filtered Allan variance is their own plus
   ``(fs/2) int_0^{1/2} S(u fs) (|G(u)|^2 - 1) 4 sin^4(pi u m) / (m^2 sin^2(pi u)) du``, summed
   on a grid in ``u = f/fs`` with the ``sin^4`` factor bin-averaged where it oscillates faster
-  than the grid (:mod:`analysis.bin_average`). The correction relative to the term's own
+  than the grid (:mod:`imunoise.analysis.bin_average`). The correction relative to the term's own
   Allan variance shrinks as ``(L/m)^2`` (``L`` the filter length); beyond ``m = 300 L`` it is
   below 1e-5 and left out. As ``0 <= |G|^2 <= 1`` it is also smaller than the term's own
   Allan variance, and is left out where that is below 1e-4 of the model's.
@@ -35,8 +35,8 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter, lfilter_zi
 
-from analysis.bin_average import sin4_table
-from analysis.terms.base import Term, TermError, TermSimulator
+from imunoise.analysis.bin_average import sin4_table
+from imunoise.analysis.terms.base import Term, TermError, TermSimulator
 
 _CORRECTION_REACH = 300.0
 """Multiples of the filter length beyond which the non-white correction is left out."""

@@ -6,12 +6,12 @@ import math
 
 import numpy as np
 
-from analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.base import Param, Term, TermSimulator
 
 
 def sampled_walk_avar(tau_s: np.ndarray, fs_hz: float, K: float) -> np.ndarray:
     """Exact Allan variance (units^2) of a point-sampled random walk ``b_{k+1} = b_k + w_k``
-    with step ``K sqrt(dt)`` (the discrete-time state of :mod:`analysis.discrete`):
+    with step ``K sqrt(dt)`` (the discrete-time state of :mod:`imunoise.analysis.discrete`):
     ``K^2 dt (2 m^2 + 1) / (6 m)``, ``m = tau fs``. The interval-averaged walk of the
     continuous model gives ``K^2 tau/3`` instead."""
     m = np.asarray(tau_s, dtype=np.float64) * fs_hz

@@ -1,5 +1,5 @@
 """The vocabulary of terms: every module of this package that defines ``TERM`` (a
-:class:`~analysis.terms.base.Term` instance) or ``TERMS`` (several) is registered, ordered
+:class:`~imunoise.analysis.terms.base.Term` instance) or ``TERMS`` (several) is registered, ordered
 by ``Term.order``. Adding a term is adding its module; nothing else lists term names."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from analysis.terms.base import Term, TermError
+from imunoise.analysis.terms.base import Term, TermError
 
 _SKIP = {"base", "registry", "spec"}
 
@@ -30,11 +30,11 @@ def register(term: Term) -> Term:
 
 
 def _discover() -> None:
-    import analysis.terms as package
+    import imunoise.analysis.terms as package
     for info in pkgutil.iter_modules(package.__path__):
         if info.name in _SKIP or info.name.startswith("_"):
             continue
-        module = importlib.import_module(f"analysis.terms.{info.name}")
+        module = importlib.import_module(f"imunoise.analysis.terms.{info.name}")
         found = list(getattr(module, "TERMS", ()))
         if hasattr(module, "TERM"):
             found.append(module.TERM)

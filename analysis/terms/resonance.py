@@ -6,7 +6,7 @@ AR(2) process ``x_k = 2 r cos(w0) x_{k-1} - r^2 x_{k-2} + e_k`` with ``w0 = 2 pi
 pole radius ``r = exp(-pi f0/(Q fs))`` (half-power bandwidth f0/Q), scaled to stationary
 standard deviation sigma. Its autocorrelation is ``rho(k) = 2 Re(c p^|k|)`` with the pole
 ``p = r e^{i w0}``, so its Allan variance is the first-order Markov formula
-(:func:`analysis.terms.gauss_markov.ar1_avar_shape`'s closed form) evaluated at the complex
+(:func:`imunoise.analysis.terms.gauss_markov.ar1_avar_shape`'s closed form) evaluated at the complex
 pole and weighted by ``c``. A pure sinusoid is the limit Q -> infinity; the diagnosis tells
 the two apart by the width of the spectral peak.
 """
@@ -18,7 +18,7 @@ import math
 import numpy as np
 from scipy.signal import lfilter
 
-from analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.base import Param, Term, TermSimulator
 
 _MAX_Q = 1.0e4
 

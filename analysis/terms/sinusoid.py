@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.base import Param, Term, TermSimulator
 
 _BIG = 1.0e3
 

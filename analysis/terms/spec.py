@@ -7,7 +7,7 @@ Grammar (whitespace around items is ignored)::
     entry  := label (":" PARAM "=" VALUE)*
     label  := NAME | NAME "#" K
 
-``NAME`` is a registered term (:mod:`analysis.terms.registry`); ``PARAM=VALUE`` holds that
+``NAME`` is a registered term (:mod:`imunoise.analysis.terms.registry`); ``PARAM=VALUE`` holds that
 parameter of this entry fixed at ``VALUE`` (SI units). A term whose ``repeatable`` flag is set
 may appear several times; each occurrence is its own entry with its own parameters, in the
 order written. Occurrence ``K`` (counted from 1) of a term is labelled ``NAME#K`` for ``K > 1``
@@ -18,7 +18,8 @@ where ``K`` must equal its occurrence. Examples::
     white,gauss_markov:T=100,gauss_markov#2:T=5
 
 A term that is not repeatable appears at most once. Unknown terms, unknown parameters,
-malformed or out-of-range values raise :class:`~analysis.terms.base.TermError` naming what is
+malformed or out-of-range values raise :class:`~imunoise.analysis.terms.base.TermError` naming what
+is
 valid.
 """
 
@@ -29,8 +30,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from analysis.terms.base import TermError
-from analysis.terms.registry import TERMS, get_term
+from imunoise.analysis.terms.base import TermError
+from imunoise.analysis.terms.registry import TERMS, get_term
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.base import Param, Term, TermSimulator
 
 
 class _TemperatureSim(TermSimulator):

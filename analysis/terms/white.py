@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.base import Param, Term, TermSimulator
 
 
 class _WhiteSim(TermSimulator):

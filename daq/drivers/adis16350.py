@@ -12,12 +12,12 @@ import math
 
 import numpy as np
 
-from core.units import DEG, G0
-from daq.clock import Clock, RealClock
-from daq.drivers.common import PolledSampleClock, StreamBuffer
-from daq.errors import PermanentDeviceError, TransientDeviceError
-from daq.registers import Field, RegisterMap
-from daq.transports.buspirate import SPI_SPEEDS_HZ, BusPirateSPI, speed_index
+from imunoise.core.units import DEG, G0
+from imunoise.daq.clock import Clock, RealClock
+from imunoise.daq.drivers.common import PolledSampleClock, StreamBuffer
+from imunoise.daq.errors import PermanentDeviceError, TransientDeviceError
+from imunoise.daq.registers import Field, RegisterMap
+from imunoise.daq.transports.buspirate import SPI_SPEEDS_HZ, BusPirateSPI, speed_index
 
 OUTPUT_REGISTERS = ("SUPPLY_OUT", "XGYRO_OUT", "YGYRO_OUT", "ZGYRO_OUT", "XACCL_OUT",
                     "YACCL_OUT", "ZACCL_OUT", "XTEMP_OUT", "YTEMP_OUT", "ZTEMP_OUT", "AUX_ADC")
@@ -202,7 +202,7 @@ class Adis16350:
     name = "adis16350"
     model = "ADIS16350"
     stale_timeout_s = 0.5
-    polls_data_ready = True  # no FIFO: polled on its sample phase (daq.poll_schedule)
+    polls_data_ready = True  # no FIFO: polled on its sample phase (imunoise.daq.poll_schedule)
 
     def __init__(self, spi: BusPirateSPI, *, rate_hz: float = 102.4, range_dps: int = 300,
                  taps: int | None = None, temp_period_s: float = 1.0, self_test: bool = True,

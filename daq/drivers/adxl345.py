@@ -14,12 +14,12 @@ from functools import lru_cache
 
 import numpy as np
 
-from core.units import G0
-from daq.clock import Clock, RealClock
-from daq.drivers.common import StreamBuffer
-from daq.errors import PermanentDeviceError, TransientDeviceError
-from daq.registers import Field, RegisterMap
-from daq.transports.i2c import I2CBus
+from imunoise.core.units import G0
+from imunoise.daq.clock import Clock, RealClock
+from imunoise.daq.drivers.common import StreamBuffer
+from imunoise.daq.errors import PermanentDeviceError, TransientDeviceError
+from imunoise.daq.registers import Field, RegisterMap
+from imunoise.daq.transports.i2c import I2CBus
 
 ADDRESSES = (0x53, 0x1D)  # ALT ADDRESS low / high
 LSB_PER_G = 256.0  # FULL_RES, any range (3.9 mg/LSB typical)

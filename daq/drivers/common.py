@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from core.blocks import SampleBlock
+from imunoise.core.blocks import SampleBlock
 
 
 class StreamBuffer:
@@ -154,7 +154,8 @@ class PolledSampleClock:
 
     With ``reads_latch_at_once`` (a part on a local bus, the ITG-3200: a read takes the
     registers a short, steady time after it begins) the anchor moves only as far as each
-    bound requires. The :class:`daq.poll_schedule.DataReadySchedule` creeps its polls earlier
+    bound requires. The :class:`imunoise.daq.poll_schedule.DataReadySchedule` creeps its polls
+    earlier
     until one finds nothing, so the lower bound sits just before each appearance; the middle
     of a bracket (an empty poll, then one that found the sample) would be late by a good part
     of the bracket (at 1 kHz about 5 % of a period), and a poll late by nearly a whole period

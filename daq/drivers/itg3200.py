@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.units import DEG
-from daq.clock import Clock, RealClock
-from daq.drivers.common import PolledSampleClock, StreamBuffer
-from daq.errors import PermanentDeviceError, TransientDeviceError
-from daq.registers import Field, RegisterMap
-from daq.transports.i2c import I2CBus
+from imunoise.core.units import DEG
+from imunoise.daq.clock import Clock, RealClock
+from imunoise.daq.drivers.common import PolledSampleClock, StreamBuffer
+from imunoise.daq.errors import PermanentDeviceError, TransientDeviceError
+from imunoise.daq.registers import Field, RegisterMap
+from imunoise.daq.transports.i2c import I2CBus
 
 ADDRESSES = (0x68, 0x69)  # AD0 low / high
 WHO_AM_I_ID = 0x34  # bits [6:1]
@@ -119,7 +119,7 @@ class Itg3200:
     name = "itg3200"
     model = "ITG-3200"
     stale_timeout_s = 0.5
-    polls_data_ready = True  # no FIFO: polled on its sample phase (daq.poll_schedule)
+    polls_data_ready = True  # no FIFO: polled on its sample phase (imunoise.daq.poll_schedule)
 
     def __init__(self, bus: I2CBus, *, rate_hz: float = 100.0, address: int = 0x68,
                  prefix: str = "/itg3200", temp_period_s: float = 1.0,

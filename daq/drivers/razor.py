@@ -3,7 +3,8 @@
 Each chip keeps its own clock and rate, so each is its own stream (``/razor/itg3200/imu``
 with the gyro channels, ``/razor/adxl345/imu`` with the accelerometer channels) with its own
 sample times. The gyro has no FIFO and is polled on its sample phase
-(:class:`daq.poll_schedule.DataReadySchedule`); the accelerometer's FIFO is drained right after
+(:class:`imunoise.daq.poll_schedule.DataReadySchedule`); the accelerometer's FIFO is drained right
+after
 a gyro sample has been read, when the gyro's next sample is furthest away, once
 :data:`ADXL_EVERY_ENTRIES` have come (or ``adxl.poll_period_s`` has passed, if sooner) and
 only until :data:`ADXL_SHARE` of a gyro period has passed since the poll began (the rest stays
@@ -15,10 +16,10 @@ from __future__ import annotations
 
 import math
 
-from core.blocks import SampleBlock
-from daq.drivers.adxl345 import Adxl345
-from daq.drivers.common import StreamBuffer
-from daq.drivers.itg3200 import Itg3200
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq.drivers.adxl345 import Adxl345
+from imunoise.daq.drivers.common import StreamBuffer
+from imunoise.daq.drivers.itg3200 import Itg3200
 
 ADXL_SHARE = 0.5
 """The accelerometer's drain ends this fraction of a gyro period after the poll began; when

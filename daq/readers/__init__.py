@@ -1,8 +1,9 @@
-"""Input files to :class:`core.record.Record`: one entry point, dispatching on the path.
+"""Input files to :class:`imunoise.core.record.Record`: one entry point, dispatching on the path.
 
-- ``.csv``: :mod:`daq.readers.csv_file` (CONTRACT.md's column layout).
-- ``.mcap``: the bulk numpy reader (:mod:`daq.readers.mcap`), falling back to per-message
-  decoding through rosbags (:mod:`daq.readers.rosbag`) for layouts the bulk reader does not take.
+- ``.csv``: :mod:`imunoise.daq.readers.csv_file` (CONTRACT.md's column layout).
+- ``.mcap``: the bulk numpy reader (:mod:`imunoise.daq.readers.mcap`), falling back to per-message
+  decoding through rosbags (:mod:`imunoise.daq.readers.rosbag`) for layouts the bulk reader does
+  not take.
 - a rosbag2 folder (``metadata.yaml``): rosbags; a folder holding exactly one ``.mcap`` file is
   read as that file.
 """
@@ -11,8 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from core.record import Record
-from daq.errors import ReadError
+from imunoise.core.record import Record
+from imunoise.daq.errors import ReadError
 
 __all__ = ["ReadError", "open_record"]
 
@@ -43,13 +44,13 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{p}: is a folder but not a rosbag2 bag (no metadata.yaml)")
     suffix = p.suffix.lower()
     if suffix == ".csv":
-        from daq.readers.csv_file import read_csv
+        from imunoise.daq.readers.csv_file import read_csv
 
         return read_csv(p, rate_hz=rate_hz)
     if suffix == ".mcap":
         return _read_mcap_file(p, rate_hz)
     if suffix == ".bag":
-        from daq.readers.rosbag1 import Rosbag1Error, read_rosbag1
+        from imunoise.daq.readers.rosbag1 import Rosbag1Error, read_rosbag1
 
         try:
             return read_rosbag1(p, rate_hz)
@@ -62,7 +63,7 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
 
 
 def _read_bag(path: Path, rate_hz: float | None = None) -> Record:
-    from daq.readers.rosbag import RosbagReadError, read_rosbag
+    from imunoise.daq.readers.rosbag import RosbagReadError, read_rosbag
 
     try:
         return read_rosbag(path, rate_hz)
@@ -71,9 +72,9 @@ def _read_bag(path: Path, rate_hz: float | None = None) -> Record:
 
 
 def _read_mcap_file(path: Path, rate_hz: float | None = None) -> Record:
-    from daq.mcap_layout import McapFormatError
-    from daq.readers.mcap import UnsupportedLayout, read_mcap
-    from daq.readers.rosbag import RosbagReadError, read_rosbag
+    from imunoise.daq.mcap_layout import McapFormatError
+    from imunoise.daq.readers.mcap import UnsupportedLayout, read_mcap
+    from imunoise.daq.readers.rosbag import RosbagReadError, read_rosbag
 
     try:
         return read_mcap(path, rate_hz)

@@ -4,7 +4,7 @@ columns ``gyro_x gyro_y gyro_z`` (rad/s) and ``accel_x accel_y accel_z`` (m/s^2)
 
 How imperfect files are read (each case adds a one-line warning to the record):
 
-- the time stamps go through the shared timing model (:mod:`core.timing`): samples really
+- the time stamps go through the shared timing model (:mod:`imunoise.core.timing`): samples really
   missing start a new segment, which the estimators never bridge; jittered stamps are re-timed
   on the sample grid and the jitter is reported;
 - time going backwards or repeating also starts a new segment (the samples are kept);
@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.record import TEMPERATURE_KEY, Record
-from core.series import ChannelSeries, channel_units
-from core.timing import Timing, analyse_stamps
-from daq.readers import ReadError
+from imunoise.core.record import TEMPERATURE_KEY, Record
+from imunoise.core.series import ChannelSeries, channel_units
+from imunoise.core.timing import Timing, analyse_stamps
+from imunoise.daq.readers import ReadError
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
@@ -224,7 +224,8 @@ def _columns(names: list[str], path: Path) -> list[str]:
 
 def _timing(cols: dict[str, np.ndarray], t_offset: float, rate_hz: float | None, path: Path,
             warnings: list[str]) -> tuple[dict[str, np.ndarray], Timing, float]:
-    """Rows without a valid time dropped, the timing of the rest (:mod:`core.timing`) and the
+    """Rows without a valid time dropped, the timing of the rest (:mod:`imunoise.core.timing`) and
+    the
     record's start time (s). ``t_offset`` is added to ``t`` for absolute time."""
     t = cols[TIME_COLUMN]
     good_t = np.isfinite(t)

@@ -10,7 +10,7 @@ time with ``pread``; :func:`read_mcap` preallocates its output from the index co
 
 Topics are chosen by schema name. A file this reader cannot take (message records outside
 chunks, frame_id length changing within a topic, big-endian or XCDR2 payloads) raises
-:class:`UnsupportedLayout`, and :func:`daq.readers.open_record` falls back to rosbags.
+:class:`UnsupportedLayout`, and :func:`imunoise.daq.readers.open_record` falls back to rosbags.
 Crashed or truncated files are read up to the last complete chunk, with a warning.
 """
 
@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.blocks import SampleBlock
-from core.record import Record
-from core.series import ChannelSeries
-from core.timing import Timing, analyse_stamps, relative_seconds, segment_starts_from_times
-from daq import mcap_layout as ml
-from daq.readers.mcap_decode import ACCEL, GYRO, _columns, iter_decoded, read_ahead
-from daq.readers.mcap_scan import McapSource, UnsupportedLayout, _Topic, open_mcap
+from imunoise.core.blocks import SampleBlock
+from imunoise.core.record import Record
+from imunoise.core.series import ChannelSeries
+from imunoise.core.timing import Timing, analyse_stamps, relative_seconds, segment_starts_from_times
+from imunoise.daq import mcap_layout as ml
+from imunoise.daq.readers.mcap_decode import ACCEL, GYRO, _columns, iter_decoded, read_ahead
+from imunoise.daq.readers.mcap_scan import McapSource, UnsupportedLayout, _Topic, open_mcap
 
 __all__ = ["ACCEL", "GYRO", "McapSource", "UnsupportedLayout", "iter_blocks", "iter_decoded",
            "make_series", "open_mcap", "raw_counts", "read_ahead", "read_mcap", "topic_timing"]
@@ -38,7 +38,8 @@ def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = None,
                  rate_hz: float | None = None) -> Timing:
-    """Timing of one topic's int64 nanosecond stamps (:func:`core.timing.analyse_stamps`); with
+    """Timing of one topic's int64 nanosecond stamps (:func:`imunoise.core.timing.analyse_stamps`);
+    with
     fewer than two increasing stamps the rate comes from the ``rate_hz`` metadata, else
     ValueError. A given ``rate_hz`` replaces the inferred rate."""
     try:
@@ -183,7 +184,8 @@ def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[Sam
             starts = timing.segment_starts if timing else np.zeros(1, np.int64)
             inner = dict(zip(starts[1:].tolist(), timing.gaps.tolist(), strict=True)) \
                 if timing else {}
-            bounds = np.append(starts, t.size)  # jitter is no gap here either (core.timing)
+            # jitter is no gap here either (imunoise.core.timing)
+            bounds = np.append(starts, t.size)
             for a, b in zip(bounds[:-1], bounds[1:], strict=True):
                 if b <= a:
                     continue

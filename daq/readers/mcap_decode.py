@@ -1,6 +1,6 @@
 """Decoding a batch of MCAP chunks at once: the stamp and field columns of every Imu and
 Temperature message, gathered with one vectorised indexing operation per field (see
-:mod:`daq.readers.mcap` for the whole reader)."""
+:mod:`imunoise.daq.readers.mcap` for the whole reader)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from daq import mcap_layout as ml
-from daq import ros2_msgs as msgs
-from daq.readers.mcap_scan import McapSource, UnsupportedLayout, _Topic
+from imunoise.daq import mcap_layout as ml
+from imunoise.daq import ros2_msgs as msgs
+from imunoise.daq.readers.mcap_scan import McapSource, UnsupportedLayout, _Topic
 
 GYRO = ("gyro_x", "gyro_y", "gyro_z")
 ACCEL = ("accel_x", "accel_y", "accel_z")
@@ -233,7 +233,7 @@ def iter_decoded(src: McapSource, sink: Sink | None = None
     next batch is read and decompressed on a second thread (zstd and pread release the GIL)
     while this one is decoded; at most two batches are in memory."""
     # batches are taken from the chunk table one at a time: the table is compact, its rows
-    # as objects are not (see daq.mcap_layout.ChunkTable)
+    # as objects are not (see imunoise.daq.mcap_layout.ChunkTable)
     chunks = src.layout.chunks
     sizes = chunks.uncompressed_sizes()
     bounds = _batch_bounds(sizes)

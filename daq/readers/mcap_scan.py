@@ -1,4 +1,5 @@
-"""Opening a ROS 2 MCAP file for the bulk reader: its layout (:mod:`daq.mcap_layout`) and the
+"""Opening a ROS 2 MCAP file for the bulk reader: its layout (:mod:`imunoise.daq.mcap_layout`) and
+the
 Imu and Temperature topics, chosen by schema name, with their fixed CDR layouts."""
 
 from __future__ import annotations
@@ -7,8 +8,8 @@ import mmap
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from daq import mcap_layout as ml
-from daq import ros2_msgs as msgs
+from imunoise.daq import mcap_layout as ml
+from imunoise.daq import ros2_msgs as msgs
 
 
 class UnsupportedLayout(Exception):

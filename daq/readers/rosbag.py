@@ -2,7 +2,7 @@
 
 Handles rosbag2 folders (``metadata.yaml`` with one or several split files), un-chunked MCAP
 files, ``frame_id`` changing from message to message, and any CDR variant rosbags decodes.
-It is about a hundred times slower than :mod:`daq.readers.mcap` and needs a complete (not
+It is about a hundred times slower than :mod:`imunoise.daq.readers.mcap` and needs a complete (not
 crashed) file.
 """
 
@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.record import Record
-from daq import ros2_msgs as msgs
-from daq.errors import ReadError
-from daq.readers.mcap import ACCEL, GYRO, make_series, topic_timing
+from imunoise.core.record import Record
+from imunoise.daq import ros2_msgs as msgs
+from imunoise.daq.errors import ReadError
+from imunoise.daq.readers.mcap import ACCEL, GYRO, make_series, topic_timing
 
 
 class RosbagReadError(ReadError):

@@ -7,7 +7,7 @@ a warning, as ``imunoise repair`` does for MCAP. Messages are decoded in bulk: w
 every Imu message with the same ``frame_id`` length has one fixed binary layout, which numpy
 reads as a structured array, instead of one Python object per message. Time is
 ``header.stamp``; ``header.seq`` decides where samples are missing when the publisher numbered
-its messages (see :mod:`core.timing`).
+its messages (see :mod:`imunoise.core.timing`).
 
 Format facts (ROS wiki, "Bags/Format/2.0"): records are ``<header length u32><header><data
 length u32><data>``; header fields are ``<field length u32>name=value``; ``op`` 0x03 bag header,
@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.record import Record
-from core.series import ChannelSeries
-from core.timing import analyse_stamps
-from daq.errors import ReadError
+from imunoise.core.record import Record
+from imunoise.core.series import ChannelSeries
+from imunoise.core.timing import analyse_stamps
+from imunoise.daq.errors import ReadError
 
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = (

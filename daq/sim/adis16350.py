@@ -14,11 +14,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from daq.clock import Clock
-from daq.drivers import adis16350 as reg
-from daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
+from imunoise.daq.clock import Clock
+from imunoise.daq.drivers import adis16350 as reg
+from imunoise.daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
 
-CHUNK = 256  # samples generated per call of a signal source (see daq.sim.i2c_chip.CHUNK)
+CHUNK = 256  # samples generated per call of a signal source (see imunoise.daq.sim.i2c_chip.CHUNK)
 SELF_TEST_S = 0.035
 TEMP_AXIS_OFFSET_C = (0.0, 0.4, -0.3)  # the three sensors do not sit at one temperature
 
@@ -29,7 +29,7 @@ class Adis16350Sim:
     """An ADIS16350 as seen from its SPI pins.
 
     Args:
-        clock: time source (a :class:`~daq.clock.VirtualClock` for faster than real time).
+        clock: time source (a :class:`~imunoise.daq.clock.VirtualClock` for faster than real time).
         gyro: source of angular rate (rad/s, shape (n, 3)) at ``source_rate_hz``.
         accel: source of specific force (m/s^2).
         temperature: degC as a function of time since power-up.

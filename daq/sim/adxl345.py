@@ -15,10 +15,10 @@ from collections import deque
 
 import numpy as np
 
-from daq.clock import Clock
-from daq.drivers import adxl345 as ax
-from daq.sim.i2c_chip import RegisterChip, SourceBuffer
-from daq.sim.signals import SignalSource
+from imunoise.daq.clock import Clock
+from imunoise.daq.drivers import adxl345 as ax
+from imunoise.daq.sim.i2c_chip import RegisterChip, SourceBuffer
+from imunoise.daq.sim.signals import SignalSource
 
 MAX_CATCH_UP = 1 << 16  # samples produced at once after a long pause (older ones are lost)
 

@@ -28,8 +28,8 @@ from typing import Protocol
 import numpy as np
 import serial
 
-from daq.clock import Clock
-from daq.transports.buspirate import (
+from imunoise.daq.clock import Clock
+from imunoise.daq.transports.buspirate import (
     ACK,
     BBIO_ENTER_SPI,
     BBIO_EXIT_TO_TERMINAL,
@@ -191,7 +191,7 @@ class BusPirateEmulator:
 
     def serial_opener(self, clock: Clock | None = None
                       ) -> Callable[[str, int, float], serial.Serial]:
-        """A port opener for :class:`~daq.transports.buspirate.BusPirateSPI` whose reply
+        """A port opener for :class:`~imunoise.daq.transports.buspirate.BusPirateSPI` whose reply
         timeouts pass on ``clock`` (the host clock when None)."""
         def opener(port: str, baudrate: int, timeout_s: float) -> serial.Serial:
             return EmulatedBridgePort(self, port, baudrate, timeout_s, clock)

@@ -20,7 +20,7 @@ from typing import Protocol
 import smbus2
 import smbus2.smbus2 as smb
 
-from daq.clock import Clock
+from imunoise.daq.clock import Clock
 
 I2C_FUNCS_SUPPORTED = 0x0EFF0001  # I2C, SMBus byte/word/block, I2C block
 BITS_PER_BYTE = 9  # 8 data bits and the acknowledge

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.blocks import SampleBlock
-from daq.recorder import McapRecorder
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq.recorder import McapRecorder
 
 AXES = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
 GRAVITY_Z = -9.80665

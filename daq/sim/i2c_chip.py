@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from daq.clock import Clock
+from imunoise.daq.clock import Clock
 
 CHUNK = 256
 """Samples drawn from a signal source at a time. A real chip never stalls; drawing 4096 samples
@@ -67,7 +67,7 @@ class SourceBuffer:
     """Draws a triad signal source in chunks and hands out the next samples in order.
 
     A source that exposes its three channels (``source.channels``: the per-channel
-    ``take(n)`` functions and the triad's offset, as :func:`daq.sim.signals.model_source`
+    ``take(n)`` functions and the triad's offset, as :func:`imunoise.daq.sim.signals.model_source`
     does) is drawn ahead one channel per :meth:`prefetch`, so that no single read of the
     chip carries the cost of a whole chunk of three channels.
     """

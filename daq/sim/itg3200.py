@@ -13,10 +13,10 @@ import math
 
 import numpy as np
 
-from daq.clock import Clock
-from daq.drivers import itg3200 as itg
-from daq.sim.i2c_chip import RegisterChip, SourceBuffer
-from daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
+from imunoise.daq.clock import Clock
+from imunoise.daq.drivers import itg3200 as itg
+from imunoise.daq.sim.i2c_chip import RegisterChip, SourceBuffer
+from imunoise.daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
 
 INTERNAL_OSC_ERROR = -0.03  # the datasheet allows -15..+10 % over temperature
 PLL_LOCK_S = 0.001

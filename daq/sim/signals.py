@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from core.units import DEG, G0
+from imunoise.core.units import DEG, G0
 
 SignalSource = Callable[[int], np.ndarray]
 TemperatureSource = Callable[[np.ndarray], np.ndarray]
@@ -88,7 +88,7 @@ def model_source(model: list[tuple[str, dict[str, float]]], fs_hz: float, *,
     def take(n: int) -> np.ndarray:
         return offset + np.column_stack([s(n) for s in streams])
 
-    take.channels = (streams, offset)  # drawn one channel at a time by daq.sim.i2c_chip
+    take.channels = (streams, offset)  # drawn one channel at a time by imunoise.daq.sim.i2c_chip
     return take
 
 

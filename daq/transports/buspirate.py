@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import serial
 
-from daq.errors import PermanentDeviceError, TransientDeviceError
+from imunoise.daq.errors import PermanentDeviceError, TransientDeviceError
 
 # Bitbang-mode commands and replies (Bus Pirate firmware binIO.c / SPI.c).
 BBIO_RESET = 0x00

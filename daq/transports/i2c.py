@@ -12,8 +12,8 @@ from typing import Any, TypeVar
 
 import smbus2
 
-from daq.clock import Clock, RealClock
-from daq.errors import PermanentDeviceError, TransientDeviceError
+from imunoise.daq.clock import Clock, RealClock
+from imunoise.daq.errors import PermanentDeviceError, TransientDeviceError
 
 T = TypeVar("T")
 BLOCK_MAX = 32  # smbus2 / Linux SMBus block limit

@@ -10,14 +10,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from core.record import Record
-from core.series import ChannelSeries
-from core.units import CI95
 from imunoise.commands.common import add_rate_option, read_record, select
+from imunoise.core.record import Record
+from imunoise.core.series import ChannelSeries
+from imunoise.core.units import CI95
 from imunoise.progress import progress_bar, spinner
 
 if TYPE_CHECKING:  # scipy-backed modules load only when a command runs, not for --help
-    from analysis.psd import PsdEstimate
+    from imunoise.analysis.psd import PsdEstimate
 
 """Confidence level of the Allan and PSD intervals in the output."""
 
@@ -56,9 +56,9 @@ class ChannelAnalysis:
 
     key: str
     series: ChannelSeries
-    allan: Any | None = None  # analysis.allan.AllanCurve
+    allan: Any | None = None  # imunoise.analysis.allan.AllanCurve
     psd: PsdEstimate | None = None
-    fit: Any | None = None  # analysis.fit.FitResult of DEFAULT_MODEL
+    fit: Any | None = None  # imunoise.analysis.fit.FitResult of DEFAULT_MODEL
     warnings: list[str] = field(default_factory=list)
 
 
@@ -80,8 +80,8 @@ def _band(text: str) -> tuple[float, float]:
 
 
 def _fit(out: ChannelAnalysis) -> None:
-    from analysis.fit import fit_allan
-    from analysis.terms import TermError
+    from imunoise.analysis.fit import fit_allan
+    from imunoise.analysis.terms import TermError
 
     if out.allan is None:
         return
@@ -92,7 +92,7 @@ def _fit(out: ChannelAnalysis) -> None:
 
 
 def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
-    from analysis.allan import oadev
+    from imunoise.analysis.allan import oadev
 
     try:
         out.allan = oadev(series.values, series.fs_hz, m="octave",
@@ -102,7 +102,7 @@ def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
 
 
 def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
-    from analysis.psd import default_nperseg, log_psd
+    from imunoise.analysis.psd import default_nperseg, log_psd
 
     bounds = np.append(series.segment_starts, series.n_samples)
     longest = int(np.max(np.diff(bounds))) if series.n_samples else 0
@@ -138,8 +138,8 @@ def analyze_record(record: Record, keys: list[str], show_progress: bool | None =
 
 def analysis_json(path: str, record: Record, results: list[ChannelAnalysis]) -> dict[str, Any]:
     """The ``analyze`` JSON document of analysed channels."""
-    from web.views import documents
-    from web.views.documents import fit_fields
+    from imunoise.web.views import documents
+    from imunoise.web.views.documents import fit_fields
 
     channels = {
         r.key: documents.channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
@@ -210,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
         results = analyze_record(record, keys)
     if args.json or args.report:
         from imunoise import outputs
-        from web.views import documents
+        from imunoise.web.views import documents
 
         doc = outputs.complete_document(analysis_json(args.file, record, results), record,
                                         full=bool(args.report), band_hz=args.overbound_band,

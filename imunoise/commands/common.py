@@ -12,12 +12,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from core.record import TEMPERATURE_KEY, ChannelSelectionError, Record, select_channels
-from daq.readers import ReadError, open_record
+from imunoise.core.record import TEMPERATURE_KEY, ChannelSelectionError, Record, select_channels
+from imunoise.daq.readers import ReadError, open_record
 from imunoise.errors import RuntimeFailure, UsageError
 
 if TYPE_CHECKING:
-    from analysis.fit import FitResult
+    from imunoise.analysis.fit import FitResult
 
 RATE_HELP = ("sampling rate in Hz (needed for a CSV without a time column 't'; otherwise it "
              "overrides the rate found from the time stamps)")
@@ -87,7 +87,7 @@ def apply_window(record: Record, key: str, skip_s: float, split_s: list[float]) 
 
 
 def read_record(path: str, rate_hz: float | None = None, static: str = "all") -> Record:
-    """:func:`daq.readers.open_record`, a read error becoming a usage error (exit 2); with
+    """:func:`imunoise.daq.readers.open_record`, a read error becoming a usage error (exit 2); with
     ``static="auto"`` the IMU channels keep only the stretches where the sensor rested
     (:func:`keep_still`)."""
     try:
@@ -108,7 +108,7 @@ def _topics(record: Record) -> dict[str, list[str]]:
 
 def _detect(record: Record, keys: list[str]):
     """Motion of one topic's channels, or None when they cannot be taken together."""
-    from analysis.motion import detect_motion
+    from imunoise.analysis.motion import detect_motion
 
     series = [record.channels[k] for k in keys]
     n = series[0].n_samples
@@ -209,7 +209,7 @@ def open_imu_channel(path: str, rate_hz: float | None, selector: str,
 def model_lines(result: FitResult | Any, units: str) -> list[str]:
     """The fitted model with its 95 % intervals (one line per parameter, units labelled) and
     the error line."""
-    from analysis.terms import get_term, param_unit
+    from imunoise.analysis.terms import get_term, param_unit
 
     lines = ["  model (95 % intervals)"]
     for t in result.terms:
@@ -242,7 +242,7 @@ def failure_lines(result: FitResult | Any) -> list[str]:
 def parse_model(text: str) -> tuple[list[str], dict[str, float]]:
     """Term names and held parameters of ``--model TERMS``; an unknown term, a bad or
     out-of-range parameter or an empty model is a usage error naming the valid terms."""
-    from analysis.terms import TermError, parse_model
+    from imunoise.analysis.terms import TermError, parse_model
 
     if not text.strip(" ,"):
         raise UsageError(f"--model {text!r} names no term")
@@ -257,7 +257,7 @@ def parse_model(text: str) -> tuple[list[str], dict[str, float]]:
 def fit_errors(key: str) -> Iterator[None]:
     """Turn a fit's exceptions into the command line's: a bad model or a record the fit
     cannot use is a usage error (exit 2), a numerical breakdown a runtime failure (exit 1)."""
-    from analysis.terms import TermError
+    from imunoise.analysis.terms import TermError
 
     try:
         yield

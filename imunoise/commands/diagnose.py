@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from core.record import Record
 from imunoise.commands.common import (
     add_rate_option,
     add_window_options,
@@ -25,6 +24,7 @@ from imunoise.commands.common import (
     parse_model,
 )
 from imunoise.commands.fit import fit_json, fit_text
+from imunoise.core.record import Record
 
 ADIS_INTERNAL_RATE_HZ = 819.2
 """Internal sample rate of the ADIS16350, at which its Bartlett filter runs (Hz)."""
@@ -47,11 +47,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def diagnose_channel(record: Record, key: str, model_text: str,
                      time_origin_s: float = 0.0) -> Any:
-    """Run :func:`analysis.diagnosis.diagnose` on one channel of a record (its first sample
+    """Run :func:`imunoise.analysis.diagnosis.diagnose` on one channel of a record (its first sample
     ``time_origin_s`` seconds after the start of the file: the ``--skip`` applied).
 
     Raises UsageError for an unknown term or a record too short to fit."""
-    from analysis.diagnosis import diagnose
+    from imunoise.analysis.diagnosis import diagnose
 
     names, fixed = parse_model(model_text)
     series = record.series(key)
@@ -123,7 +123,7 @@ def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float]
                      unit: str) -> str:
     """One parameter of a suggested term's refit; an amplitude whose interval reaches zero is
     no estimate (as in the fit's model lines), and a dimensionless unit "1" is left out."""
-    from analysis.terms import get_term
+    from imunoise.analysis.terms import get_term
 
     if not get_term(term).resolved(name, ci):
         text = f"{name} not resolved (95 % upper bound {ci[1]:.4g} {unit})"
@@ -135,7 +135,7 @@ def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float]
 def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                    model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
-    from analysis.terms import TERMS, param_unit
+    from imunoise.analysis.terms import TERMS, param_unit
 
     u = series.units
     lines = [fit_text(key, series, diag.fit, diag.curve), "", "  suggestions (best first; "
@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     if args.json:
-        from web.views import documents
+        from imunoise.web.views import documents
 
         sys.stdout.write(documents.dumps(diagnosis_json(record, key, diag)) + "\n")
     else:

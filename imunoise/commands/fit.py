@@ -13,8 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from core.record import Record
-from core.units import CI95
 from imunoise.commands.common import (
     add_rate_option,
     add_window_options,
@@ -25,7 +23,9 @@ from imunoise.commands.common import (
     open_imu_channel,
     parse_model,
 )
-from web.views.documents import z_on_curve
+from imunoise.core.record import Record
+from imunoise.core.units import CI95
+from imunoise.web.views.documents import z_on_curve
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -58,7 +58,7 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     """Fit ``model_text`` to channel ``key`` of ``record``: ``(FitResult, AllanCurve)``.
 
     Raises UsageError for an unknown term, a bad parameter or a record too short to fit."""
-    from analysis.fit import fit_series
+    from imunoise.analysis.fit import fit_series
 
     names, fixed = parse_model(model_text)
     series = record.series(key)
@@ -71,7 +71,7 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
 
 def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
     """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
-    from web.views import documents
+    from imunoise.web.views import documents
 
     doc = documents.channel_json(record.series(key), curve, channel=key,
                                  warnings=record.warnings, **documents.fit_fields(result, curve))
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     apply_window(record, key, args.skip, args.split)
     result, curve = fit_channel(record, key, args.model)
     if args.json:
-        from web.views import documents
+        from imunoise.web.views import documents
 
         sys.stdout.write(documents.dumps(fit_json(record, key, result, curve)) + "\n")
     else:

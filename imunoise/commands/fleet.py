@@ -171,7 +171,7 @@ class _Sink:
             self.flush()
 
     def flush(self) -> None:
-        from fleet.catalog import write_part
+        from imunoise.fleet.catalog import write_part
 
         if write_part(self.folder, self.rows) is not None:
             self.parts += 1
@@ -230,7 +230,7 @@ def _run_on(client: Any, todo: list[str], args: argparse.Namespace, known: froze
 
 
 def run(args: argparse.Namespace) -> int:
-    from fleet.catalog import CatalogError, seen
+    from imunoise.fleet.catalog import CatalogError, seen
 
     if args.workers is not None and args.workers < 1:
         raise UsageError("fleet: --workers must be at least 1")

@@ -35,8 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from fleet.catalog import CatalogError, part_paths
-    from fleet.view import LimitsError, fleet_summary, load_limits
+    from imunoise.fleet.catalog import CatalogError, part_paths
+    from imunoise.fleet.view import LimitsError, fleet_summary, load_limits
 
     if not Path(args.catalog).is_dir() or not part_paths(args.catalog):
         raise UsageError(f"fleet-report: {args.catalog}: no catalogue there (run imunoise "
@@ -49,15 +49,15 @@ def run(args: argparse.Namespace) -> int:
     except (LimitsError, CatalogError) as exc:
         raise UsageError(f"fleet-report: {exc}") from None
     if args.output:
-        from fleet.html import render_fleet
         from imunoise.files import check_output_folder, write_text_atomically
+        from imunoise.fleet.html import render_fleet
 
         check_output_folder(args.output)
         write_text_atomically(args.output, render_fleet(doc))
         print(f"wrote {args.output}: {doc['files']} recording(s), {len(doc['outliers'])} "
               f"outlier(s), {len(doc['grew'])} grown", file=sys.stderr)
     if args.json:
-        from web.views import documents
+        from imunoise.web.views import documents
 
         sys.stdout.write(documents.dumps(doc) + "\n")
     return 0

@@ -54,7 +54,7 @@ def _duration(s: float) -> str:
 
 def _from_file(args: argparse.Namespace) -> tuple[str, float, dict[str, Any]]:
     """The fitted model as a spec with values, the rate, and facts about the recording."""
-    from analysis.fit import fit_series
+    from imunoise.analysis.fit import fit_series
 
     if not args.channel:
         raise UsageError("plan: give --channel with a recording (e.g. --channel gyro_x)")
@@ -113,7 +113,7 @@ def _line(row: dict[str, Any], p: Any, recorded: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.planning import parse_targets, plan
+    from imunoise.analysis.planning import parse_targets, plan
 
     if args.file:
         spec, fs, facts = _from_file(args)
@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"plan: {exc}") from None
     rows = [_row(p, facts) for p in plans]
     if args.json:
-        from web.views import documents
+        from imunoise.web.views import documents
 
         doc = {"model": spec, "fs_hz": fs, "targets": rows,
                "assumption": plans[0].assumption if plans else ""}

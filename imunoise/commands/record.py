@@ -15,7 +15,7 @@ from imunoise.options import parse_duration
 
 
 def _default_rates() -> str:
-    from daq.devices import DEFAULT_RATES_HZ
+    from imunoise.daq.devices import DEFAULT_RATES_HZ
 
     return ", ".join(f"{name} {hz:g} Hz" for name, hz in DEFAULT_RATES_HZ.items())
 
@@ -88,12 +88,12 @@ def _status_line(rec, acq, t_start: float) -> str:
 def _open(args: argparse.Namespace, out: Path, rotate_s: float | None) -> tuple[Any, Any]:
     """The opened device and its recorder; usage errors exit 2, device or disk failures 1."""
     try:
-        from daq.devices import open_device
+        from imunoise.daq.devices import open_device
     except ImportError as exc:
         raise RuntimeFailure(f"device drivers are not available ({exc})") from exc
-    from analysis.noise_stream import stream_factory
-    from daq.errors import DeviceError
-    from daq.recorder import McapRecorder
+    from imunoise.analysis.noise_stream import stream_factory
+    from imunoise.daq.errors import DeviceError
+    from imunoise.daq.recorder import McapRecorder
 
     try:  # noise: the simulators' seed-paper models, not white noise alone
         acq = open_device(args.device, port=args.port, bus=args.bus, rate_hz=args.rate,
@@ -121,9 +121,9 @@ def _open(args: argparse.Namespace, out: Path, rotate_s: float | None) -> tuple[
 def _record(acq: Any, rec: Any, duration: float | None) -> tuple[bool, str | None]:
     """Copy blocks to the recorder until the duration, Ctrl-C or a device failure; device
     state changes become events in the file. Returns (interrupted, failure)."""
-    from daq import ros2_msgs
-    from daq.errors import DeviceError
-    from live.acquisition_process import settle_heap
+    from imunoise.daq import ros2_msgs
+    from imunoise.daq.errors import DeviceError
+    from imunoise.live.acquisition_process import settle_heap
 
     settle_heap()  # no long garbage-collector pause between two polls
     tty = sys.stderr.isatty()

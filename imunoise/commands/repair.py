@@ -26,8 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.mcap_layout import McapFormatError
-    from daq.repair import repair
+    from imunoise.daq.mcap_layout import McapFormatError
+    from imunoise.daq.repair import repair
 
     src = Path(args.file)
     if not src.is_file():

@@ -49,7 +49,7 @@ def _speed(text: str) -> float | None:
 def _consumers(summary):
     consumers = [summary]
     try:
-        from live.scheduler import RollingAnalyzer
+        from imunoise.live.scheduler import RollingAnalyzer
 
         analyzer = RollingAnalyzer()
     except (ImportError, TypeError):  # not available, or needs set-up replay cannot give
@@ -96,7 +96,7 @@ def _print_rows(rows: list[dict]) -> None:
 
 def _run_replay(blocks, total: int | None, feed, speed: float | None, show: bool) -> None:
     """Replay the blocks into ``feed``, with a progress bar when ``show``."""
-    from daq.replay import replay
+    from imunoise.daq.replay import replay
 
     if not show:
         replay(blocks, feed, speed)
@@ -114,8 +114,8 @@ def _run_replay(blocks, total: int | None, feed, speed: float | None, show: bool
 
 
 def run(args: argparse.Namespace) -> int:
-    from daq.readers import ReadError
-    from daq.replay import ReplaySummary, open_blocks
+    from imunoise.daq.readers import ReadError
+    from imunoise.daq.replay import ReplaySummary, open_blocks
 
     speed = _speed(args.speed)
     if args.serve:
@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"replay: {args.file}: {exc}") from exc
     rows = summary.rows()
     if args.json:
-        from web.views.documents import dumps, number
+        from imunoise.web.views.documents import dumps, number
 
         for r in rows:
             r["white_noise_density"] = number(r["white_noise_density"])

@@ -29,7 +29,7 @@ def _fmt(v: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.reproduce import PAPERS
+    from imunoise.analysis.reproduce import PAPERS
 
     fn = PAPERS[args.paper]
     rows = fn() if args.seed is None else fn(seed=args.seed)

@@ -19,7 +19,7 @@ from typing import Any
 
 from imunoise import SOFTWARE
 from imunoise.errors import RuntimeFailure, UsageError
-from live.recorder_sink import RecorderSink
+from imunoise.live.recorder_sink import RecorderSink
 
 TOKEN_ENV = "IMUNOISE_TOKEN"
 DEVICES = ("adis16350", "itg3200", "adxl345", "razor", "sim:adis16350", "sim:razor")
@@ -105,8 +105,8 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
         path = Path(args.replay)
         if not path.exists():
             raise UsageError(f"serve: no such file: {path}")
-        from daq.readers import ReadError
-        from daq.replay import open_blocks
+        from imunoise.daq.readers import ReadError
+        from imunoise.daq.replay import open_blocks
 
         try:
             blocks, total = open_blocks(path)
@@ -114,15 +114,15 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
             raise UsageError(f"serve: {exc}") from None
         speed = getattr(args, "speed", None)  # set by ``imunoise replay --serve``
         if speed is not None:
-            from daq.replay import paced
+            from imunoise.daq.replay import paced
 
             blocks = paced(blocks, speed)
         return blocks, {"spec": f"replay:{path.name}", "samples_in_file": total}, False
     spec = args.device or "sim:adis16350"
     if spec not in DEVICES:
         raise UsageError(f"serve: unknown device {spec!r}; valid: {', '.join(DEVICES)}")
-    from daq.devices import open_device
-    from daq.errors import DeviceError
+    from imunoise.daq.devices import open_device
+    from imunoise.daq.errors import DeviceError
 
     kwargs: dict[str, Any] = {}
     base = spec.removeprefix("sim:")
@@ -136,7 +136,7 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
         return _open_process(args, spec, kwargs)
     if getattr(args, "realtime_kernel_workers", None):
         raise UsageError("serve: --realtime-kernel-workers needs --acquisition process")
-    from analysis.noise_stream import stream_factory
+    from imunoise.analysis.noise_stream import stream_factory
 
     try:  # noise: the simulators' seed-paper models, not white noise alone
         acq = open_device(spec, noise=stream_factory, **kwargs)
@@ -166,9 +166,10 @@ def raise_kernel_workers(args: argparse.Namespace, spec: str) -> bool:
 
 def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
                   ) -> tuple[Any, dict[str, Any], bool]:
-    """The device read and recorded by an acquisition process (``live.acquisition_process``)."""
-    from daq.errors import DeviceError
-    from live.acquisition_process import AcquisitionConfig, AcquisitionProcess
+    """The device read and recorded by an acquisition process
+    (``imunoise.live.acquisition_process``)."""
+    from imunoise.daq.errors import DeviceError
+    from imunoise.live.acquisition_process import AcquisitionConfig, AcquisitionProcess
 
     config = AcquisitionConfig(spec, dict(kwargs), out=args.out, record_rate_hz=args.rate,
                                software=SOFTWARE, priority=getattr(args, "priority", "realtime"),
@@ -196,7 +197,7 @@ def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
 
 def open_recorder(out: str, device: str, config: dict[str, str] | None,
                   rate_hz: float | None) -> Any:
-    from daq.recorder import McapRecorder
+    from imunoise.daq.recorder import McapRecorder
 
     try:
         return McapRecorder(out, device, config=config, rate_hz=rate_hz, software=SOFTWARE)
@@ -224,17 +225,17 @@ def _make_server(config: Any, stop_streams: threading.Event,
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from analysis.channel_state import check_terms
-    from live.scheduler import RollingAnalyzer
-    from live.service import LiveService
-    from web.app import LOOPBACK_HOSTS, create_app
+    from imunoise.analysis.channel_state import check_terms
+    from imunoise.live.scheduler import RollingAnalyzer
+    from imunoise.live.service import LiveService
+    from imunoise.web.app import LOOPBACK_HOSTS, create_app
 
     token = args.token or os.environ.get(TOKEN_ENV) or None
     check_security(args.host, token)
     if not 0 < args.port < 65536:
         raise UsageError(f"serve: bad port {args.port}")
     try:
-        from analysis.terms import parse_model
+        from imunoise.analysis.terms import parse_model
         model = [e.text() for e in parse_model(args.model).entries]
         check_terms(model)
     except ValueError as exc:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.allan import adev, allan, default_max_m, mdev, oadev, ohdev, tau_grid
+from imunoise.analysis.allan import adev, allan, default_max_m, mdev, oadev, ohdev, tau_grid
 
 
 def _white(n: int, seed: int = 0) -> np.ndarray:

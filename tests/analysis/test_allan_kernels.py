@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis import allan_kernels
-from analysis.allan import allan
-from analysis.streaming_allan import StreamingAllan
+from imunoise.analysis import allan_kernels
+from imunoise.analysis.allan import allan
+from imunoise.analysis.streaming_allan import StreamingAllan
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -6,7 +6,7 @@ import ast
 
 import numpy as np
 
-from analysis.channel_state import ChannelState
+from imunoise.analysis.channel_state import ChannelState
 from tests.shared_paths import REPO
 
 FS = 100.0

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.diagnosis import diagnose
-from analysis.evidence import spectral_lines
-from analysis.noise_stream import NoiseStream, simulate
-from analysis.terms import model_psd
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.evidence import spectral_lines
+from imunoise.analysis.noise_stream import NoiseStream, simulate
+from imunoise.analysis.terms import model_psd
 
 FS = 100.0
 MODEL = [("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4}), ("random_walk", {"K": 1e-5})]

@@ -6,7 +6,7 @@ import allantools
 import numpy as np
 import pytest
 
-from analysis.discrete import (
+from imunoise.analysis.discrete import (
     discretize,
     markov_avar,
     random_walk_avar,
@@ -169,8 +169,8 @@ def test_discrete_model_allan_curve_inside_measured_band():
     # this module's simulator). The discrete model of the same continuous parameters, with
     # bias instability as a few Markov states, must give an Allan curve inside the measured
     # 95 % band: exactly (its own Allan variance) and as a simulation.
-    from analysis.allan import oadev
-    from analysis.noise_stream import NoiseStream
+    from imunoise.analysis.allan import oadev
+    from imunoise.analysis.noise_stream import NoiseStream
 
     fs, n = 100.0, 200_000
     model = [("white", {"N": 3e-4}), ("bias_instability", {"B": 1e-4}),

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import special, stats
 
-from analysis.edf import (
+from imunoise.analysis.edf import (
     LAG1_MIN_POINTS,
     chi2_interval,
     greenhall_edf,
@@ -124,7 +124,7 @@ def test_lag1_too_few_points_carries_the_last_identified_alpha():
 
 @pytest.mark.parametrize("n", [31, 1000, 200_000])
 def test_fast_detrended_acf_equals_the_explicit_one(n):
-    from analysis.edf import _detrend, lag1_acf, lag1_acf_detrended_from_phase
+    from imunoise.analysis.edf import _detrend, lag1_acf, lag1_acf_detrended_from_phase
 
     rng = np.random.default_rng(n)
     for z in (
@@ -140,7 +140,7 @@ def test_fast_detrended_acf_equals_the_explicit_one(n):
 def test_differenced_path_matches_the_explicit_series(alpha, dmax):
     """Noise steep enough to need differencing: the phase-based identification (which skips
     the detrending before differencing) gives the explicit series' alpha at every m."""
-    from analysis.edf import _lag1_differenced, noise_id_lag1_phase
+    from imunoise.analysis.edf import _lag1_differenced, noise_id_lag1_phase
 
     y = _power_law(alpha, 1 << 15, 20 - alpha)
     y += 1e-3 * np.arange(y.size) / y.size  # a trend, which the detrending would remove

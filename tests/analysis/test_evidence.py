@@ -5,12 +5,12 @@ import pytest
 from scipy import stats
 from scipy.signal import lfilter
 
-from analysis.evidence.finding import family_p
-from analysis.evidence.lines import spectral_lines, welch_bins
-from analysis.evidence.outliers import gaps, outliers
-from analysis.evidence.slow import drift, temperature_correlation
-from analysis.evidence.slowgrid import bin_means, slow_grid
-from analysis.evidence.stationarity import noise_level_windows
+from imunoise.analysis.evidence.finding import family_p
+from imunoise.analysis.evidence.lines import spectral_lines, welch_bins
+from imunoise.analysis.evidence.outliers import gaps, outliers
+from imunoise.analysis.evidence.slow import drift, temperature_correlation
+from imunoise.analysis.evidence.slowgrid import bin_means, slow_grid
+from imunoise.analysis.evidence.stationarity import noise_level_windows
 
 FS = 100.0
 N_SEEDS = 40

@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from analysis.allan import oadev
-from analysis.fit import find_line, fit_allan, regress_temperature
-from analysis.misfit import avar_covariance, failure_threshold
-from analysis.noise_stream import NoiseStream
-from analysis.terms import TermError, parse_model
+from imunoise.analysis.allan import oadev
+from imunoise.analysis.fit import find_line, fit_allan, regress_temperature
+from imunoise.analysis.misfit import avar_covariance, failure_threshold
+from imunoise.analysis.noise_stream import NoiseStream
+from imunoise.analysis.terms import TermError, parse_model
 from imunoise.cli import main
 from tests._avar_batch import Curve, oavar_rows
 
@@ -226,7 +226,7 @@ def test_quick_intervals_of_weak_terms_never_collapse(seed):
     # White noise only, fitted with white + bias instability + random walk: B and K are not
     # in the data. Their quick (linearised) intervals must be real intervals holding the
     # estimate, never [x, x], and reach zero wherever the profile interval does.
-    from analysis.fit import fit_series
+    from imunoise.analysis.fit import fit_series
 
     x = NoiseStream([("white", {"N": 1e-3})], 100.0, seed).take(60_000)
     model = "white,bias_instability,random_walk"
@@ -249,8 +249,8 @@ def test_a_markov_term_added_after_a_resonance_finds_its_time_constant(seed):
     taus (T ~ 0.04 s) and a random walk keeps what the Markov term should take; the start
     that solves every amplitude at the smaller model's shapes finds T. Seed 0 ended at
     chi2/dof 6.5 with the Markov term at zero before."""
-    from analysis.fit import fit_series
-    from analysis.noise_stream import simulate
+    from imunoise.analysis.fit import fit_series
+    from imunoise.analysis.noise_stream import simulate
 
     fs = 100.0
     truth = [("white", {"N": 3e-3}), ("resonance", {"sigma": 0.02, "f0": 14.0, "Q": 1.0}),

@@ -10,8 +10,8 @@ uses its quick linearised intervals.
 import numpy as np
 import pytest
 
-from analysis.fit import find_line, fit_allan
-from analysis.noise_stream import NoiseStream
+from imunoise.analysis.fit import find_line, fit_allan
+from imunoise.analysis.noise_stream import NoiseStream
 from tests._avar_batch import Curve
 
 FS = 100.0

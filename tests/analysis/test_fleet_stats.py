@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.fleet_stats import (
+from imunoise.analysis.fleet_stats import (
     Z95,
     grew,
     limit_verdict,

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from analysis.diagnosis import diagnose
-from analysis.noise_stream import simulate
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.noise_stream import simulate
 
 FS = 50.0
 N = int(2 * 3600 * FS)
@@ -166,8 +166,8 @@ def test_csv_file_through_the_command_line(tmp_path: Path):
 
 
 def test_mcap_file_with_slow_temperature_topic(tmp_path: Path):
-    from core.blocks import SampleBlock
-    from daq.recorder import McapRecorder
+    from imunoise.core.blocks import SampleBlock
+    from imunoise.daq.recorder import McapRecorder
 
     term, truth = HIDDEN["temperature"]
     t, x, temp = make_case(BASE + [(term, truth)], 22)

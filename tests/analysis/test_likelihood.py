@@ -1,4 +1,4 @@
-"""Exact second moments of block means behind analysis.likelihood, against brute force: the
+"""Exact second moments of block means behind imunoise.analysis.likelihood, against brute force: the
 covariance of the samples built term by term, block-averaged and differenced by matrices."""
 
 import math
@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from analysis.likelihood import diff_block_acov, neg_loglik, reduce_blocks, within_block_ss
-from analysis.noise_stream import NoiseStream
+from imunoise.analysis.likelihood import diff_block_acov, neg_loglik, reduce_blocks, within_block_ss
+from imunoise.analysis.noise_stream import NoiseStream
 
 FS, M, NB = 10.0, 5, 6
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.motion import MotionWindows, detect_motion
-from analysis.noise_stream import simulate
+from imunoise.analysis.motion import MotionWindows, detect_motion
+from imunoise.analysis.noise_stream import simulate
 
 FS = 100.0
 GYRO_MODEL = [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from analysis.noise_stream import (
+from imunoise.analysis.noise_stream import (
     NoiseStream,
     flicker_avar,
     flicker_flat_band,
     flicker_psd,
     simulate,
 )
-from analysis.terms import BIAS_INSTABILITY_FACTOR, get_term
+from imunoise.analysis.terms import BIAS_INSTABILITY_FACTOR, get_term
 from tests._avar_batch import oavar_rows
 
 FS = 100.0

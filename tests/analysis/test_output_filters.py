@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.diagnosis import diagnose
-from analysis.fit import fit_series
-from analysis.noise_stream import NoiseStream
-from analysis.terms import TermError, get_term, model_avar, parse_model
-from analysis.terms.output_filter import avar_from_autocovariance
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.fit import fit_series
+from imunoise.analysis.noise_stream import NoiseStream
+from imunoise.analysis.terms import TermError, get_term, model_avar, parse_model
+from imunoise.analysis.terms.output_filter import avar_from_autocovariance
 
 FS = 100.0
 NOISE = [("white", {"N": 1e-3}), ("quantization", {"Q": 2e-5}), ("random_walk", {"K": 1e-4})]

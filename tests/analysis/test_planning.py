@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.allan import oadev
-from analysis.fit import fit_allan
-from analysis.noise_stream import simulate
-from analysis.planning import parse_targets, plan
+from imunoise.analysis.allan import oadev
+from imunoise.analysis.fit import fit_allan
+from imunoise.analysis.noise_stream import simulate
+from imunoise.analysis.planning import parse_targets, plan
 
 FS = 10.0
 CASES = [

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from analysis.psd import StreamingPsd, default_nperseg, log_psd, welch_psd
+from imunoise.analysis.psd import StreamingPsd, default_nperseg, log_psd, welch_psd
 
 FS = 100.0
 

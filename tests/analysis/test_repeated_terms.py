@@ -7,10 +7,10 @@ from types import SimpleNamespace
 
 import pytest
 
-from analysis.diagnosis import Suggestion, _simplest_first, diagnose
-from analysis.fit import fit_series
-from analysis.noise_stream import NoiseStream, simulate
-from analysis.terms import get_term
+from imunoise.analysis.diagnosis import Suggestion, _simplest_first, diagnose
+from imunoise.analysis.fit import fit_series
+from imunoise.analysis.noise_stream import NoiseStream, simulate
+from imunoise.analysis.terms import get_term
 
 FS = 100.0
 

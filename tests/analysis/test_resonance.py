@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.diagnosis import diagnose
-from analysis.fit import fit_series
-from analysis.noise_stream import NoiseStream
-from analysis.terms import TermError, get_term
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.fit import fit_series
+from imunoise.analysis.noise_stream import NoiseStream
+from imunoise.analysis.terms import TermError, get_term
 
 FS = 100.0
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.allan import allan
-from analysis.streaming_allan import StreamingAllan, default_streaming_grid
+from imunoise.analysis.allan import allan
+from imunoise.analysis.streaming_allan import StreamingAllan, default_streaming_grid
 from tests.shared_paths import SHARED_DATA
 
 RUN1 = SHARED_DATA / "adis16405/run1.npz"

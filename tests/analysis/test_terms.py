@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from analysis import terms
-from analysis.terms import TERM_NAMES, TermError, get_term, parse_terms, validate_params
+from imunoise.analysis import terms
+from imunoise.analysis.terms import TERM_NAMES, TermError, get_term, parse_terms, validate_params
 
 CONTRACT = {
     "white": ("N",), "quantization": ("Q",), "bias_instability": ("B",), "random_walk": ("K",),

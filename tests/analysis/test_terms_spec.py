@@ -3,10 +3,18 @@
 import numpy as np
 import pytest
 
-from analysis.channel_state import ChannelState, check_terms
-from analysis.fit import fit_allan
-from analysis.noise_stream import NoiseStream
-from analysis.terms import TERMS, Term, TermError, get_term, labels, parse_model, term_names
+from imunoise.analysis.channel_state import ChannelState, check_terms
+from imunoise.analysis.fit import fit_allan
+from imunoise.analysis.noise_stream import NoiseStream
+from imunoise.analysis.terms import (
+    TERMS,
+    Term,
+    TermError,
+    get_term,
+    labels,
+    parse_model,
+    term_names,
+)
 
 
 def test_grammar_fixed_parameters_and_repeated_terms():
@@ -66,7 +74,7 @@ def test_fit_and_live_service_accept_the_same_fixed_parameter():
     model = [("white", {"N": 1e-3}), ("gauss_markov", {"sigma": 2e-3, "T": 5.0})]
     fs = 100.0
     x = NoiseStream(model, fs, 4).take(1 << 16)
-    from analysis.allan import oadev
+    from imunoise.analysis.allan import oadev
     curve = oadev(x, fs, m="octave")
     res = fit_allan(curve, "white,gauss_markov:T=5")
     assert res.terms[1].params["T"] == 5.0 and res.terms[1].ci95["T"] == (5.0, 5.0)

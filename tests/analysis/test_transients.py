@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from analysis.diagnosis import diagnose
-from analysis.evidence.transients import _variogram, transients
-from analysis.fit import fit_series
-from analysis.noise_stream import NoiseStream, simulate
-from analysis.terms import model_avar
-from core.series import ChannelSeries
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.evidence.transients import _variogram, transients
+from imunoise.analysis.fit import fit_series
+from imunoise.analysis.noise_stream import NoiseStream, simulate
+from imunoise.analysis.terms import model_avar
+from imunoise.core.series import ChannelSeries
 
 FS = 100.0
 MODEL = [("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4}),

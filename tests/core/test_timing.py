@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.blocks import SampleBlock
-from core.timing import analyse_stamps
-from daq.readers import open_record
+from imunoise.core.blocks import SampleBlock
+from imunoise.core.timing import analyse_stamps
+from imunoise.daq.readers import open_record
 from tests.mcap_helpers import record_blocks
 
 FS = 250.0
@@ -104,7 +104,7 @@ def test_csv_and_mcap_of_the_same_stamps_give_the_same_timing(tmp_path):
     assert len(a.segment_starts) > 1
     np.testing.assert_array_equal(a.values, b.values)
     # replaying the file block by block sees the same gaps, not one per late stamp
-    from daq.readers.mcap import iter_blocks
+    from imunoise.daq.readers.mcap import iter_blocks
 
     blocks = [blk for blk in iter_blocks(mcap) if "gyro_x" in blk.channels]
     assert sum(blk.gap_before != 0 for blk in blocks) == len(b.segment_starts) - 1

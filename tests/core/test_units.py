@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from core import units as u
+from imunoise.core import units as u
 
 
 def test_rate_conversions():

@@ -11,18 +11,18 @@ import time
 import numpy as np
 import pytest
 
-from analysis.allan import oadev
-from core.blocks import SampleBlock
-from core.units import DEG, G0
-from daq import acquisition as daq_acquisition
-from daq.acquisition import Acquisition
-from daq.clock import RealClock, VirtualClock
-from daq.devices import DEVICES, open_device
-from daq.drivers import adis16350 as adis
-from daq.drivers import adxl345 as ax
-from daq.drivers import itg3200 as itg
-from daq.drivers.common import StreamBuffer
-from daq.sim.signals import white_source
+from imunoise.analysis.allan import oadev
+from imunoise.core.blocks import SampleBlock
+from imunoise.core.units import DEG, G0
+from imunoise.daq import acquisition as daq_acquisition
+from imunoise.daq.acquisition import Acquisition
+from imunoise.daq.clock import RealClock, VirtualClock
+from imunoise.daq.devices import DEVICES, open_device
+from imunoise.daq.drivers import adis16350 as adis
+from imunoise.daq.drivers import adxl345 as ax
+from imunoise.daq.drivers import itg3200 as itg
+from imunoise.daq.drivers.common import StreamBuffer
+from imunoise.daq.sim.signals import white_source
 from tests.daq_testing import expected_variance, record, white_level_interval
 
 

@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from core.units import DEG, G0
-from daq.clock import VirtualClock
-from daq.devices import open_device
-from daq.drivers import adis16350 as adis
-from daq.errors import PermanentDeviceError
-from daq.sim.adis16350 import Adis16350Sim
-from daq.sim.buspirate_pty import BusPirateEmulator
-from daq.transports.buspirate import BusPirateSPI
+from imunoise.core.units import DEG, G0
+from imunoise.daq.clock import VirtualClock
+from imunoise.daq.devices import open_device
+from imunoise.daq.drivers import adis16350 as adis
+from imunoise.daq.errors import PermanentDeviceError
+from imunoise.daq.sim.adis16350 import Adis16350Sim
+from imunoise.daq.sim.buspirate_pty import BusPirateEmulator
+from imunoise.daq.transports.buspirate import BusPirateSPI
 from tests.daq_testing import constant, record
 
 

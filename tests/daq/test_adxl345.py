@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.units import G0
-from daq.clock import VirtualClock
-from daq.devices import open_device
-from daq.drivers import adxl345 as ax
-from daq.errors import PermanentDeviceError
-from daq.sim.adxl345 import Adxl345Sim
-from daq.sim.fake_i2c import SimulatedI2CAdapter
-from daq.transports.i2c import I2CBus
+from imunoise.core.units import G0
+from imunoise.daq.clock import VirtualClock
+from imunoise.daq.devices import open_device
+from imunoise.daq.drivers import adxl345 as ax
+from imunoise.daq.errors import PermanentDeviceError
+from imunoise.daq.sim.adxl345 import Adxl345Sim
+from imunoise.daq.sim.fake_i2c import SimulatedI2CAdapter
+from imunoise.daq.transports.i2c import I2CBus
 from tests.daq_testing import constant, record
 
 

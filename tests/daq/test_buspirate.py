@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import serial
 
-from daq.clock import VirtualClock
-from daq.errors import PermanentDeviceError, TransientDeviceError
-from daq.sim.buspirate_pty import BusPirateEmulator
-from daq.transports.buspirate import (
+from imunoise.daq.clock import VirtualClock
+from imunoise.daq.errors import PermanentDeviceError, TransientDeviceError
+from imunoise.daq.sim.buspirate_pty import BusPirateEmulator
+from imunoise.daq.transports.buspirate import (
     BusPirateSPI,
     config_byte,
     decode_frames,

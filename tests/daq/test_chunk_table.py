@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from daq.mcap_layout import ChunkInfo, ChunkTable
+from imunoise.daq.mcap_layout import ChunkInfo, ChunkTable
 
 
 def _chunk(i: int, mi: dict[int, tuple[int, int]] | None = None) -> ChunkInfo:

@@ -13,8 +13,8 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from daq.readers import open_record
-from daq.recorder import McapRecorder, SyncedFile
+from imunoise.daq.readers import open_record
+from imunoise.daq.recorder import McapRecorder, SyncedFile
 from tests.mcap_helpers import make_blocks
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -23,8 +23,8 @@ ROOT = Path(__file__).resolve().parents[2]
 RECORDER_SCRIPT = """
 import sys, time
 import numpy as np
-from core.blocks import SampleBlock
-from daq.recorder import McapRecorder
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq.recorder import McapRecorder
 fs, n = 1000.0, 20
 rec = McapRecorder(sys.argv[1], "adis16350", rotate_s=None)
 rng = np.random.default_rng(0)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from core.record import ChannelSelectionError, Record, select_channels
-from daq.readers import ReadError, open_record
-from daq.readers.csv_file import read_csv
+from imunoise.core.record import ChannelSelectionError, Record, select_channels
+from imunoise.daq.readers import ReadError, open_record
+from imunoise.daq.readers.csv_file import read_csv
 
 
 def _write(tmp_path, text, name="rec.csv"):
@@ -166,7 +166,7 @@ def test_dispatch_errors(tmp_path):
 
 
 def _record(keys, temp=False):
-    from core.series import ChannelSeries
+    from imunoise.core.series import ChannelSeries
 
     def s(k):
         return ChannelSeries(name=k, units="rad/s", fs_hz=1.0, values=np.zeros(4))

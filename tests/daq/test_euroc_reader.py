@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from daq.readers import open_record
+from imunoise.daq.readers import open_record
 
 EUROC_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
                 "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")

@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from core.units import G0
-from daq.devices import open_device
-from daq.drivers.common import PolledSampleClock
-from daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
-from daq.transports.i2c import I2CBus
+from imunoise.core.units import G0
+from imunoise.daq.devices import open_device
+from imunoise.daq.drivers.common import PolledSampleClock
+from imunoise.daq.errors import AcquisitionFailed, DeviceError, PermanentDeviceError
+from imunoise.daq.transports.i2c import I2CBus
 from tests.daq_testing import constant
 
 GYRO = (0.01, 0.02, -0.03)

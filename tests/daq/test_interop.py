@@ -14,9 +14,9 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as BagWriter
 from rosbags.typesys import Stores, get_typestore
 
-from daq import ros2_msgs as m
-from daq.readers import open_record
-from daq.readers.mcap import UnsupportedLayout, read_mcap
+from imunoise.daq import ros2_msgs as m
+from imunoise.daq.readers import open_record
+from imunoise.daq.readers.mcap import UnsupportedLayout, read_mcap
 from tests.mcap_helpers import make_blocks, record_blocks
 
 FS = 200.0

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import smbus2
 
-from core.units import DEG
-from daq.clock import VirtualClock
-from daq.devices import open_device
-from daq.drivers import itg3200 as itg
-from daq.errors import PermanentDeviceError
-from daq.sim.fake_i2c import SimulatedI2CAdapter, SimulatedSMBus
-from daq.sim.itg3200 import Itg3200Sim
-from daq.transports.i2c import I2CBus
+from imunoise.core.units import DEG
+from imunoise.daq.clock import VirtualClock
+from imunoise.daq.devices import open_device
+from imunoise.daq.drivers import itg3200 as itg
+from imunoise.daq.errors import PermanentDeviceError
+from imunoise.daq.sim.fake_i2c import SimulatedI2CAdapter, SimulatedSMBus
+from imunoise.daq.sim.itg3200 import Itg3200Sim
+from imunoise.daq.transports.i2c import I2CBus
 from tests.daq_testing import constant, record
 
 

@@ -2,12 +2,12 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType, IndexType, Writer
 
-from core.blocks import SampleBlock
-from daq import ros2_msgs as m
-from daq.readers import mcap as bulk
-from daq.readers import mcap_decode, open_record
-from daq.readers.mcap import iter_blocks, read_mcap
-from daq.recorder import McapRecorder
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq import ros2_msgs as m
+from imunoise.daq.readers import mcap as bulk
+from imunoise.daq.readers import mcap_decode, open_record
+from imunoise.daq.readers.mcap import iter_blocks, read_mcap
+from imunoise.daq.recorder import McapRecorder
 from tests.mcap_helpers import make_blocks, record_blocks
 
 

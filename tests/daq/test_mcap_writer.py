@@ -9,7 +9,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType, Writer
 
-from daq.mcap_writer import McapBlockWriter
+from imunoise.daq.mcap_writer import McapBlockWriter
 
 
 def _operations(seed: int) -> list[tuple]:

@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from daq.drivers.common import PolledSampleClock
-from daq.poll_schedule import DataReadySchedule
+from imunoise.daq.drivers.common import PolledSampleClock
+from imunoise.daq.poll_schedule import DataReadySchedule
 
 FS = 204.8
 T = 1.0 / FS

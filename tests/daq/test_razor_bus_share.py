@@ -4,8 +4,8 @@ then it is drained all the same (simulated chips under the real smbus2, virtual 
 
 from __future__ import annotations
 
-from daq.devices import open_device
-from daq.drivers.razor import ADXL_SHARE, ADXL_URGENT_ENTRIES
+from imunoise.daq.devices import open_device
+from imunoise.daq.drivers.razor import ADXL_SHARE, ADXL_URGENT_ENTRIES
 
 RATE_HZ = 1000.0
 

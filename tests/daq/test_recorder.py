@@ -3,10 +3,10 @@ import time
 import numpy as np
 from mcap.reader import make_reader
 
-from daq import ros2_msgs as m
-from daq.readers import open_record
-from daq.readers.mcap import iter_blocks, raw_counts
-from daq.recorder import McapRecorder
+from imunoise.daq import ros2_msgs as m
+from imunoise.daq.readers import open_record
+from imunoise.daq.readers.mcap import iter_blocks, raw_counts
+from imunoise.daq.recorder import McapRecorder
 from tests.mcap_helpers import ACCEL_LSB, GYRO_LSB, TEMP_LSB, make_blocks, record_blocks
 
 
@@ -113,7 +113,7 @@ def test_threaded_recorder_makes_data_durable_within_a_second(tmp_path):
 
 
 def test_malformed_block_stops_recording_with_message_and_keeps_file(tmp_path):
-    from core.blocks import SampleBlock
+    from imunoise.core.blocks import SampleBlock
 
     rec = McapRecorder(tmp_path, "adis16350", fsync=False, rotate_s=None)
     good = make_blocks(2, 100)

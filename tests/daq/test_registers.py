@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from daq.drivers import adis16350 as adis
-from daq.drivers import adxl345 as ax
-from daq.drivers import itg3200 as itg
-from daq.registers import Field, RegisterMap
+from imunoise.daq.drivers import adis16350 as adis
+from imunoise.daq.drivers import adxl345 as ax
+from imunoise.daq.drivers import itg3200 as itg
+from imunoise.daq.registers import Field, RegisterMap
 
 
 def test_signed_field_with_flags_above_it() -> None:

@@ -1,8 +1,8 @@
 import numpy as np
 
-from core.blocks import SampleBlock
-from daq.replay import ReplaySummary, open_blocks, replay
 from imunoise.cli import main
+from imunoise.core.blocks import SampleBlock
+from imunoise.daq.replay import ReplaySummary, open_blocks, replay
 from tests.mcap_helpers import make_blocks, record_blocks
 
 

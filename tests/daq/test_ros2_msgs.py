@@ -4,7 +4,7 @@ from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.msg import get_types_from_msg
 
-from daq import ros2_msgs as m
+from imunoise.daq import ros2_msgs as m
 
 REFERENCE_IMU_TEXT = """std_msgs/Header header
 geometry_msgs/Quaternion orientation

@@ -7,7 +7,7 @@ import pytest
 from rosbags.rosbag1 import Writer
 from rosbags.typesys import Stores, get_typestore
 
-from daq.readers import ReadError, open_record
+from imunoise.daq.readers import ReadError, open_record
 
 STORE = get_typestore(Stores.ROS1_NOETIC)
 Imu = STORE.types["sensor_msgs/msg/Imu"]

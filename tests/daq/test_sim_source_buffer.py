@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.noise_stream import stream_factory
-from daq.sim.i2c_chip import CHUNK, SourceBuffer
-from daq.sim.signals import model_source
+from imunoise.analysis.noise_stream import stream_factory
+from imunoise.daq.sim.i2c_chip import CHUNK, SourceBuffer
+from imunoise.daq.sim.signals import model_source
 
 MODEL = [("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4})]
 

@@ -8,8 +8,8 @@ from datetime import UTC, datetime
 import pyarrow.parquet as pq
 import pytest
 
-from fleet.catalog import SCHEMA, CatalogError, part_paths, read_catalog, seen, write_part
-from fleet.view import LimitsError, fleet_summary, load_limits
+from imunoise.fleet.catalog import SCHEMA, CatalogError, part_paths, read_catalog, seen, write_part
+from imunoise.fleet.view import LimitsError, fleet_summary, load_limits
 
 
 def _row(file: str, unit: str = "U1", status: str = "ok", n: float = 1e-3, **kw) -> dict:

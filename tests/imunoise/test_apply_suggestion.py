@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.noise_stream import NoiseStream
+from imunoise.analysis.noise_stream import NoiseStream
 
 FS = 100.0
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 
-from daq import ros2_msgs as m
-from daq.readers import ReadError, open_record
 from imunoise.cli import main
+from imunoise.daq import ros2_msgs as m
+from imunoise.daq.readers import ReadError, open_record
 from tests.mcap_helpers import make_blocks, record_blocks
 
 

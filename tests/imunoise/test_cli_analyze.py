@@ -161,9 +161,9 @@ def test_too_short_record_still_reports(tmp_path, capsys):
 
 
 def test_progress_bar_goes_to_stderr_only(capsys):
-    from core.record import Record
-    from core.series import ChannelSeries
     from imunoise.commands.analyze import analyze_record
+    from imunoise.core.record import Record
+    from imunoise.core.series import ChannelSeries
 
     rec = Record(source="mem", channels={"gyro_x": ChannelSeries(
         "gyro_x", "rad/s", FS, np.random.default_rng(0).normal(size=20_000))})

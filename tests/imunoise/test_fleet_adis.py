@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from analysis.fleet_stats import Z95, log_se
-from core.blocks import SampleBlock
-from core.units import DEG, G0
-from daq.recorder import McapRecorder
-from fleet.catalog import read_catalog
+from imunoise.analysis.fleet_stats import Z95, log_se
 from imunoise.cli import main
+from imunoise.core.blocks import SampleBlock
+from imunoise.core.units import DEG, G0
+from imunoise.daq.recorder import McapRecorder
+from imunoise.fleet.catalog import read_catalog
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 UNIT = "ADIS16405-A"

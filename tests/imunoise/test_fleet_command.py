@@ -17,10 +17,10 @@ from pathlib import Path
 
 import pytest
 
-from daq.sim.fleet_units import SimUnit, write_recording
-from fleet.catalog import part_paths, read_catalog
-from fleet.view import fleet_summary
 from imunoise.cli import main
+from imunoise.daq.sim.fleet_units import SimUnit, write_recording
+from imunoise.fleet.catalog import part_paths, read_catalog
+from imunoise.fleet.view import fleet_summary
 from imunoise.fleet_task import analyse_file, content_hash, unit_of
 from tests.shared_paths import REPO
 

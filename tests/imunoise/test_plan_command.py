@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from analysis.noise_stream import simulate
+from imunoise.analysis.noise_stream import simulate
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:

@@ -4,9 +4,9 @@ import re
 
 import numpy as np
 
-from daq.readers import open_record
-from daq.readers.mcap import raw_counts
 from imunoise.cli import main
+from imunoise.daq.readers import open_record
+from imunoise.daq.readers.mcap import raw_counts
 
 
 def test_record_simulated_adis16350(tmp_path, capsys):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.discrete import discretize
+from imunoise.analysis.discrete import discretize
 from imunoise.report_html import render_report
 from imunoise.svg_plot import Plot
 
@@ -344,7 +344,7 @@ def test_report_names_a_missing_effect(tmp_path):
     # must list the sinusoid as significant, with the misfit falling when it is added.
     import re
 
-    from analysis.noise_stream import NoiseStream
+    from imunoise.analysis.noise_stream import NoiseStream
     from imunoise.cli import main
 
     fs, n = 100.0, 40_000

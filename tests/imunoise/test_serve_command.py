@@ -86,9 +86,9 @@ def test_recorder_sink_records_an_outage_that_ended_between_two_blocks(tmp_path:
 
     import numpy as np
 
-    from core.blocks import SampleBlock
-    from daq.recorder import McapRecorder
-    from live.recorder_sink import RecorderSink
+    from imunoise.core.blocks import SampleBlock
+    from imunoise.daq.recorder import McapRecorder
+    from imunoise.live.recorder_sink import RecorderSink
 
     stats = SimpleNamespace(state="running", reconnects=0, last_error="")
     rec = McapRecorder(tmp_path, "test", rate_hz=100.0, fsync=False, threaded=False)

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from core.blocks import SampleBlock
 from imunoise import streamed_analysis
+from imunoise.core.blocks import SampleBlock
 from tests.mcap_helpers import ACCEL_LSB, GYRO_LSB, record_blocks
 
 FS = 100.0

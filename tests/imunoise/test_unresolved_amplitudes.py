@@ -34,7 +34,7 @@ def test_a_suggested_amplitude_whose_interval_reaches_zero_is_not_printed_as_a_n
 
 
 def test_a_suggestion_names_its_unresolved_amplitudes_in_json() -> None:
-    from analysis.diagnosis import Suggestion
+    from imunoise.analysis.diagnosis import Suggestion
 
     s = Suggestion(term="rate_ramp", params={"R": 1.5e-24}, ci95={"R": (0.0, 2.2e-7)},
                    chi2_per_dof_before=1.58, chi2_per_dof_after=1.7, p_value=1.0, log_p=0.0,

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from daq.readers.mcap import open_mcap, read_mcap
-from live.acquisition_process import AcquisitionConfig, AcquisitionProcess
+from imunoise.daq.readers.mcap import open_mcap, read_mcap
+from imunoise.live.acquisition_process import AcquisitionConfig, AcquisitionProcess
 from tests.live_helpers import wait_until
 
 RATE = 102.4  # the simulated ADIS16350's default rate, Hz
@@ -350,7 +350,7 @@ def test_serve_killed_leaves_a_complete_file_with_every_sample_received(tmp_path
 
 def test_priority_granted_or_refused_is_reported():
     # in a process of its own: the real-time class must not leak into the test runner
-    code = ("import json; from live.acquisition_process import raise_priority; "
+    code = ("import json; from imunoise.live.acquisition_process import raise_priority; "
             "print(json.dumps(raise_priority('realtime')))")
     got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60)
@@ -366,7 +366,7 @@ def test_settled_heap_leaves_a_full_collection_little_to_walk():
     numpy, scipy and the drivers (a 36 ms pause, seven ADIS16350 samples at 204.8 Hz)."""
     import gc
 
-    from live.acquisition_process import settle_heap
+    from imunoise.live.acquisition_process import settle_heap
 
     try:
         gc.unfreeze()  # an in-process `record` earlier in the session froze it already
@@ -380,7 +380,7 @@ def test_settled_heap_leaves_a_full_collection_little_to_walk():
 
 
 def test_a_simulator_process_that_cannot_start_says_why_and_stops_cleanly(monkeypatch):
-    from live.simulator_process import SimulatorProcess
+    from imunoise.live.simulator_process import SimulatorProcess
 
     sim = SimulatorProcess(204.8)
 

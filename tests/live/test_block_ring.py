@@ -8,8 +8,8 @@ import struct
 import numpy as np
 import pytest
 
-from core.blocks import SampleBlock
-from live.block_ring import _HEADER, BlockRing
+from imunoise.core.blocks import SampleBlock
+from imunoise.live.block_ring import _HEADER, BlockRing
 
 
 def _block(k: int, n: int = 10) -> SampleBlock:

@@ -24,7 +24,7 @@ import pytest
 
 from imunoise.cli import build_parser
 from imunoise.commands.serve import raise_kernel_workers
-from live.kernel_workers import (
+from imunoise.live.kernel_workers import (
     FIFO_PRIORITY,
     KernelWorkerBoost,
     KernelWorkerKeeper,
@@ -277,7 +277,7 @@ def test_an_unreadable_ledger_is_started_afresh_and_a_link_refused(tmp_path):
 _PARENT = """
 import json, sys, time
 from pathlib import Path
-from live.kernel_workers import KernelWorkerKeeper
+from imunoise.live.kernel_workers import KernelWorkerKeeper
 keeper = KernelWorkerKeeper(prefix=sys.argv[1], every_s=0.1, ledger=Path(sys.argv[2])).start()
 print(keeper.pid, json.dumps(keeper.status()), flush=True)
 if sys.argv[3] == "exit":

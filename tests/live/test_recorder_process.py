@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from daq import ros2_msgs
-from daq.readers.mcap import open_mcap, read_mcap
-from live.recorder_process import RecorderProcess
+from imunoise.daq import ros2_msgs
+from imunoise.daq.readers.mcap import open_mcap, read_mcap
+from imunoise.live.recorder_process import RecorderProcess
 from tests.mcap_helpers import make_blocks
 
 SIZE, FS = 20, 100.0

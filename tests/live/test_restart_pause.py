@@ -1,7 +1,7 @@
 """The pause before a child process is replaced: none after a long life, doubling after each
 quick death in a row, capped."""
 
-from live.restart_pause import MAX_PAUSE_S, QUICK_DEATH_S, RestartPause, describe_exit
+from imunoise.live.restart_pause import MAX_PAUSE_S, QUICK_DEATH_S, RestartPause, describe_exit
 
 
 def test_quick_deaths_double_the_pause_up_to_the_cap_and_a_long_life_resets_it():

@@ -10,14 +10,14 @@ import time
 import numpy as np
 import pytest
 
-from analysis.allan import oadev
-from analysis.channel_state import RecentSamples
-from analysis.fit import fit_allan, fit_series
-from core.blocks import SampleBlock
+from imunoise.analysis.allan import oadev
+from imunoise.analysis.channel_state import RecentSamples
+from imunoise.analysis.fit import fit_allan, fit_series
 from imunoise.cli import main
-from live.channel import LiveChannel
-from live.scheduler import RollingAnalyzer
-from web.views import live as views
+from imunoise.core.blocks import SampleBlock
+from imunoise.live.channel import LiveChannel
+from imunoise.live.scheduler import RollingAnalyzer
+from imunoise.web.views import live as views
 
 FS = 100.0
 N_TRUE = 3e-3   # rad/s/sqrt(Hz)
@@ -328,9 +328,9 @@ def test_worker_process_gives_the_inline_numbers_and_its_cpu_is_counted() -> Non
 
 def test_coefficients_say_the_interval_now_and_the_time_to_a_target():
     """serve --target: each targeted parameter's interval now and the recording still needed,
-    from the plan for the fitted model (analysis.planning)."""
-    from analysis.noise_stream import simulate
-    from analysis.planning import parse_targets, plan
+    from the plan for the fitted model (imunoise.analysis.planning)."""
+    from imunoise.analysis.noise_stream import simulate
+    from imunoise.analysis.planning import parse_targets, plan
 
     fs, n = 10.0, 6000  # ten minutes; K to +-20 % needs about 33 (test_planning)
     y = simulate([("white", {"N": 1e-3}), ("random_walk", {"K": 1e-4})], n, fs, rng=5)

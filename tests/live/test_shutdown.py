@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from live.scheduler import WorkerClosed, WorkerProcess
-from live.service import LiveService
+from imunoise.live.scheduler import WorkerClosed, WorkerProcess
+from imunoise.live.service import LiveService
 from tests.live_helpers import SyntheticImu, touch_then_sleep
 
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import os
 import signal
 
-from live.simulator_process import SimulatorProcess
-from live.termination import TermFlag
+from imunoise.live.simulator_process import SimulatorProcess
+from imunoise.live.termination import TermFlag
 from tests.live_helpers import wait_until
 
 

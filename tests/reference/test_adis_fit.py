@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from analysis.fit import fit_allan
+from imunoise.analysis.fit import fit_allan
 from tests._avar_batch import Curve
 from tests.shared_paths import SHARED_DATA
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from analysis.allan import oadev
+from imunoise.analysis.allan import oadev
 from tests.shared_paths import SHARED_DATA
 
 RUN1 = SHARED_DATA / "adis16405/run1.npz"

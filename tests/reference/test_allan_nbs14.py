@@ -8,7 +8,7 @@ from decimal import Decimal
 import numpy as np
 import pytest
 
-from analysis.allan import adev, allan, mdev, oadev, ohdev
+from imunoise.analysis.allan import adev, allan, mdev, oadev, ohdev
 from tests.shared_paths import SHARED_DATA
 
 REF = SHARED_DATA / "stable32/nbs14_reference.json"

@@ -13,8 +13,8 @@ from functools import cache
 import numpy as np
 import pytest
 
-from analysis.allan import allan, identify_noise, phase_from_rate
-from analysis.edf import LAG1_MIN_POINTS
+from imunoise.analysis.allan import allan, identify_noise, phase_from_rate
+from imunoise.analysis.edf import LAG1_MIN_POINTS
 from tests.shared_paths import SHARED_DATA
 
 DATA = SHARED_DATA / "stable32"

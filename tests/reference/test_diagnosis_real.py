@@ -5,9 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.diagnosis import diagnose
-from analysis.evidence import outliers, robust_z, spectral_lines
-from analysis.terms import get_term
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.evidence import outliers, robust_z, spectral_lines
+from imunoise.analysis.terms import get_term
 from tests.shared_paths import SHARED_DATA
 
 DATA = SHARED_DATA
@@ -66,7 +66,7 @@ def test_mtig_outliers_are_found():
 
 
 def test_mtig_noise_level_is_steady_once_outliers_are_left_out():
-    from analysis.evidence import noise_level_windows, outlier_indices
+    from imunoise.analysis.evidence import noise_level_windows, outlier_indices
 
     m = np.load(_need(DATA / "mtig_outliers" / "gyro_x.npz"))["gyro_x"].astype(float)
     with_spikes = noise_level_windows([m], 100.0)

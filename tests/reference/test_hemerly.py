@@ -18,9 +18,9 @@ import math
 import numpy as np
 import pytest
 
-from analysis.fit import fit_allan
-from analysis.likelihood import fisher_information
-from analysis.noise_stream import NoiseStream
+from imunoise.analysis.fit import fit_allan
+from imunoise.analysis.likelihood import fisher_information
+from imunoise.analysis.noise_stream import NoiseStream
 from tests._avar_batch import Curve
 
 DEG = math.pi / 180.0

@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from analysis.allan import oadev
-from analysis.discrete import DiscreteModel, discretize
-from analysis.fit import fit_allan
-from analysis.noise_stream import simulate
-from analysis.overbound import overbound
+from imunoise.analysis.allan import oadev
+from imunoise.analysis.discrete import DiscreteModel, discretize
+from imunoise.analysis.fit import fit_allan
+from imunoise.analysis.noise_stream import simulate
+from imunoise.analysis.overbound import overbound
 
 FS = 50.0  # filter rate, Hz
 SECONDS = 600.0

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.allan import oadev
-from analysis.overbound import overbound
+from imunoise.analysis.allan import oadev
+from imunoise.analysis.overbound import overbound
 
 
 def real_channels(shared_data):

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.allan import oadev
-from analysis.diagnosis import diagnose
-from analysis.fit import _CHI2_TIE, _chi2, _problem, _trim, fit_allan, fit_series
-from analysis.terms import parse_model
+from imunoise.analysis.allan import oadev
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.fit import _CHI2_TIE, _chi2, _problem, _trim, fit_allan, fit_series
+from imunoise.analysis.terms import parse_model
 
 DEFAULT = "white,bias_instability,random_walk"
 

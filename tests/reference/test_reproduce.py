@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from analysis.reproduce import (
+from imunoise.analysis.reproduce import (
     HEMERLY,
     PETKOV_GYRO,
     arma01_from_sigmas,

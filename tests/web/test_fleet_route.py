@@ -7,10 +7,10 @@ from datetime import UTC, datetime
 import httpx
 import pytest
 
-from fleet.catalog import write_part
-from live.service import LiveService
+from imunoise.fleet.catalog import write_part
+from imunoise.live.service import LiveService
+from imunoise.web.app import create_app
 from tests.live_helpers import SyntheticImu, running_server
-from web.app import create_app
 
 
 def _rows() -> list[dict]:

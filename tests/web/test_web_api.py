@@ -8,11 +8,11 @@ import math
 import httpx
 import pytest
 
-from analysis.fit import fit_allan
+from imunoise.analysis.fit import fit_allan
 from imunoise.cli import main
-from live.service import LiveService
+from imunoise.live.service import LiveService
+from imunoise.web.app import create_app
 from tests.live_helpers import SINE_A, SINE_F, SyntheticImu, running_server
-from web.app import create_app
 
 N_BLOCKS = 300  # of 1000 samples: 300,000 samples per channel at 100 Hz, 50 minutes
 

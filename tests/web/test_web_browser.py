@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from analysis.terms import term_names
-from live.service import LiveService
+from imunoise.analysis.terms import term_names
+from imunoise.live.service import LiveService
+from imunoise.web.app import create_app
 from tests.live_helpers import SyntheticImu, running_server
-from web.app import create_app
 
 try:
     from playwright.sync_api import TimeoutError as PlaywrightTimeout

@@ -13,9 +13,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from live.service import LiveService
+from imunoise.live.service import LiveService
+from imunoise.web.app import create_app
 from tests.live_helpers import free_port, running_server, wait_until
-from web.app import create_app
 
 TESTS = Path(__file__).resolve().parent.parent
 CLIENTS = 50
@@ -99,9 +99,9 @@ def test_unplug_and_replug_of_a_simulated_adis_shows_in_health_and_recording_goe
     """The real driver, pyserial, Bus Pirate emulator and MCAP recorder behind the service."""
     from mcap.reader import make_reader
 
-    from daq.devices import open_device
-    from daq.recorder import McapRecorder
-    from live.recorder_sink import RecorderSink
+    from imunoise.daq.devices import open_device
+    from imunoise.daq.recorder import McapRecorder
+    from imunoise.live.recorder_sink import RecorderSink
 
     acq = open_device("sim:adis16350", rate_hz=102.4, seed=3, timeout_s=0.1)
     acq.open()

@@ -6,9 +6,9 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from web import deps
-from web.schemas import AllanOut, CoefficientsOut, PsdOut
-from web.views import live as views
+from imunoise.web import deps
+from imunoise.web.schemas import AllanOut, CoefficientsOut, PsdOut
+from imunoise.web.views import live as views
 
 router = APIRouter()
 

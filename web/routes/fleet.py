@@ -1,6 +1,6 @@
 """``/fleet``: the fleet view of the catalogue given to ``serve --catalog DIR``.
 
-The page (``text/html``) by default; the JSON document (``fleet.view.fleet_summary``) with
+The page (``text/html``) by default; the JSON document (``imunoise.fleet.view.fleet_summary``) with
 ``?format=json`` or ``Accept: application/json``. The summary is computed again only when the
 catalogue's parts change.
 """
@@ -22,8 +22,8 @@ _cache: dict[str, Any] = {}
 
 def _summary(folder: str) -> dict[str, Any]:
     """The fleet document, recomputed when the set of parts changes."""
-    from fleet.catalog import part_paths
-    from fleet.view import fleet_summary
+    from imunoise.fleet.catalog import part_paths
+    from imunoise.fleet.view import fleet_summary
 
     parts = tuple((p.name, p.stat().st_mtime_ns) for p in part_paths(folder))
     with _cache_lock:
@@ -42,7 +42,7 @@ def fleet(request: Request, format: str | None = None) -> HTMLResponse | JSONRes
         raise HTTPException(404, "no fleet catalogue: start serve with --catalog DIR")
     if not Path(folder).is_dir():
         raise HTTPException(404, f"fleet catalogue {folder} does not exist (yet)")
-    from fleet.catalog import CatalogError
+    from imunoise.fleet.catalog import CatalogError
 
     try:
         doc = _summary(str(folder))
@@ -53,6 +53,6 @@ def fleet(request: Request, format: str | None = None) -> HTMLResponse | JSONRes
         and "text/html" not in request.headers.get("accept", ""))
     if wants_json:
         return JSONResponse(doc)
-    from fleet.html import render_fleet
+    from imunoise.fleet.html import render_fleet
 
     return HTMLResponse(render_fleet(doc))

@@ -6,10 +6,10 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request
 
-from analysis.channel_state import VALID_TERMS
-from analysis.terms import parse_model
-from web import deps
-from web.schemas import (
+from imunoise.analysis.channel_state import VALID_TERMS
+from imunoise.analysis.terms import parse_model
+from imunoise.web import deps
+from imunoise.web.schemas import (
     ChannelCoefficientsOut,
     DiagnosisOut,
     ModelChangeOut,
@@ -17,7 +17,7 @@ from web.schemas import (
     ModelOut,
     RefitRequest,
 )
-from web.views import live as views
+from imunoise.web.views import live as views
 
 router = APIRouter()
 

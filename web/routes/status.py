@@ -9,9 +9,9 @@ from typing import Any
 from fastapi import APIRouter, Request
 from fastapi.responses import StreamingResponse
 
-from analysis.channel_state import VALID_TERMS
-from web import deps
-from web.schemas import HealthOut
+from imunoise.analysis.channel_state import VALID_TERMS
+from imunoise.web import deps
+from imunoise.web.schemas import HealthOut
 
 router = APIRouter()
 

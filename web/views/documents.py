@@ -1,5 +1,5 @@
 """JSON documents of the command line (``analyze``, ``fit``, ``diagnose``) and the parts that
-the live views (:mod:`web.views.live`) share with them.
+the live views (:mod:`imunoise.web.views.live`) share with them.
 
 Every number is a plain float; a value that is not finite becomes ``null`` so the output is
 strict JSON. Shapes follow the contract: a channel document carries ``channel, units, fs_hz,
@@ -14,16 +14,16 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from analysis.terms import get_term
-from core.series import ChannelSeries
+from imunoise.analysis.terms import get_term
+from imunoise.core.series import ChannelSeries
 
 if TYPE_CHECKING:
-    from analysis.fit import FitResult
-    from analysis.psd import PsdEstimate
+    from imunoise.analysis.fit import FitResult
+    from imunoise.analysis.psd import PsdEstimate
 
 
 class AllanLike(Protocol):
-    """The parts of an Allan curve (``analysis.allan.AllanCurve``) that the JSON shows."""
+    """The parts of an Allan curve (``imunoise.analysis.allan.AllanCurve``) that the JSON shows."""
 
     tau_s: np.ndarray
     dev: np.ndarray

@@ -1,6 +1,7 @@
 """The API's views of a live channel (``/coefficients``, ``/allan``, ``/psd``, ``/diagnosis``,
-``/model``), built from one :class:`analysis.channel_state.ChannelSnapshot` with the parts of
-the command line's documents (:mod:`web.views.documents`)."""
+``/model``), built from one :class:`imunoise.analysis.channel_state.ChannelSnapshot` with the parts
+of
+the command line's documents (:mod:`imunoise.web.views.documents`)."""
 
 from __future__ import annotations
 
@@ -11,13 +12,13 @@ from typing import Any
 
 import numpy as np
 
-from analysis.channel_state import ChannelSnapshot, ModelChangeResult
-from analysis.fit import FitResult
-from analysis.terms import labels
-from analysis.terms import model_psd as terms_model_psd
-from core.units import param_units
-from live.channel import LiveChannel
-from web.views.documents import error_json, floats, model_json, number, z_on_curve
+from imunoise.analysis.channel_state import ChannelSnapshot, ModelChangeResult
+from imunoise.analysis.fit import FitResult
+from imunoise.analysis.terms import labels
+from imunoise.analysis.terms import model_psd as terms_model_psd
+from imunoise.core.units import param_units
+from imunoise.live.channel import LiveChannel
+from imunoise.web.views.documents import error_json, floats, model_json, number, z_on_curve
 
 
 def model_psd(f_hz: np.ndarray, params: Sequence[tuple[str, dict[str, float]]],
@@ -39,7 +40,7 @@ _PLANS_LOCK = threading.Lock()
 def _plans(fit: FitResult, targets: str, fs_hz: float) -> dict:
     """The recording plans of a fit's targeted, resolved parameters: ``{(label, param):
     Plan}`` (computed once per fit; the cache holds the fit, so its id stays its own)."""
-    from analysis.planning import parse_targets, plan
+    from imunoise.analysis.planning import parse_targets, plan
 
     key = (id(fit), targets, fs_hz)
     with _PLANS_LOCK:
@@ -162,8 +163,8 @@ def allan(channel: LiveChannel) -> dict[str, Any]:
 
 def _overbound(tau: np.ndarray, upper: np.ndarray, fs_hz: float,
                duration_s: float | None) -> dict[str, Any] | None:
-    """The over-bounding model of the live curve (:mod:`analysis.overbound`)."""
-    from analysis.overbound import overbound
+    """The over-bounding model of the live curve (:mod:`imunoise.analysis.overbound`)."""
+    from imunoise.analysis.overbound import overbound
 
     try:
         ob = overbound(tau, upper, fs_hz, duration_s=duration_s)
