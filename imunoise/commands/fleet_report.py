@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     except (LimitsError, CatalogError) as exc:
         raise UsageError(f"fleet-report: {exc}") from None
     if args.output:
-        from imunoise.files import check_output_folder, write_text_atomically
+        from imunoise.export.files import check_output_folder, write_text_atomically
         from imunoise.fleet.html import render_fleet
 
         check_output_folder(args.output)
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.output}: {doc['files']} recording(s), {len(doc['outliers'])} "
               f"outlier(s), {len(doc['grew'])} grown", file=sys.stderr)
     if args.json:
-        from imunoise.web.views import documents
+        from imunoise.pipeline import documents
 
         sys.stdout.write(documents.dumps(doc) + "\n")
     return 0

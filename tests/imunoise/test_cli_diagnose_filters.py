@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from imunoise.commands.diagnose import device_filter
+from imunoise.pipeline.fitting import device_filter
 
 
 def test_adis_bartlett_at_the_output_rate() -> None:

@@ -25,7 +25,7 @@ import numpy as np
 
 from imunoise import __version__
 from imunoise.core.units import conventional, si_unit
-from imunoise.svg_plot import PALETTE, Plot
+from imunoise.export.svg_plot import PALETTE, Plot
 
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,Helvetica,Arial,sans-serif;
