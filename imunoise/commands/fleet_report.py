@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from imunoise.extras import require
+
+    require("fleet", "imunoise fleet-report", ("pyarrow",))
     from imunoise.fleet.catalog import CatalogError, part_paths
     from imunoise.fleet.view import LimitsError, fleet_summary, load_limits
 

@@ -6,8 +6,8 @@ command line ``imunoise`` is the top. Inside the ``imunoise`` folder, the analys
 (``imunoise/pipeline``: reading, channel analysis, the JSON documents) and the file exports
 (``imunoise/export``) are layers of their own below the commands, and the package's few
 modules that carry no logic of the command line (its version, its error types, the progress
-display) form ``base``, which the pipeline and the exports may use. Every import counts, also
-one inside a function.
+display, the optional extras) form ``base``, which the pipeline and the exports may use.
+Every import counts, also one inside a function.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ ALLOWED: dict[str, set[str]] = {
     "fleet": {"core", "analysis"},
     "pipeline": {"core", "base", "analysis", "daq"},
     "export": {"core", "base", "analysis", "pipeline"},
-    "web": {"core", "analysis", "live", "fleet", "pipeline"},
+    "web": {"core", "base", "analysis", "live", "fleet", "pipeline"},
     "imunoise": {"core", "base", "analysis", "daq", "live", "web", "fleet", "pipeline", "export"},
 }
 
@@ -47,8 +47,9 @@ FOLDERS: dict[str, str] = {
     "web": "web", "pipeline": "imunoise/pipeline", "export": "imunoise/export",
     "imunoise": "imunoise", "base": "imunoise",
 }
-BASE_MODULES = {"imunoise", "imunoise.errors", "imunoise.progress"}
-"""The modules of the ``base`` layer: ``imunoise/__init__.py``, ``errors.py``, ``progress.py``."""
+BASE_MODULES = {"imunoise", "imunoise.errors", "imunoise.progress", "imunoise.extras"}
+"""The modules of the ``base`` layer: ``imunoise/__init__.py``, ``errors.py``, ``progress.py``,
+``extras.py``."""
 
 
 def _layer(module: str) -> str:
