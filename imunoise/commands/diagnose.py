@@ -18,7 +18,7 @@ import numpy as np
 from imunoise.commands.common import add_rate_option, add_window_options
 from imunoise.commands.fit import fit_text
 from imunoise.pipeline.documents import diagnosis_json
-from imunoise.pipeline.fitting import diagnose_channel, parse_model
+from imunoise.pipeline.fitting import diagnose_channel, full_window_args, parse_model
 from imunoise.pipeline.reading import apply_window, open_imu_channel
 
 
@@ -35,24 +35,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_rate_option(p)
     add_window_options(p)
     p.set_defaults(func=run)
-
-
-def full_window_args(own: list[str], skip_s: float, split_s: list[float]) -> list[str]:
-    """A suggestion's ``apply.args`` for the whole command: the ``--skip``/``--split`` this
-    diagnosis ran with, joined with the suggestion's own cut (whose times count from the
-    first sample the diagnosis saw, i.e. after ``skip_s``), so that applying it keeps the
-    cuts already made."""
-    skip, splits = float(skip_s), [float(t) for t in split_s]
-    if len(own) == 2 and own[0] == "--skip":
-        skip += float(own[1])
-    elif len(own) == 2 and own[0] == "--split":
-        splits.append(float(skip_s) + float(own[1]))
-    out: list[str] = []
-    if skip:
-        out += ["--skip", f"{skip:.10g}"]
-    if splits:
-        out += ["--split", ",".join(f"{t:.10g}" for t in sorted(set(splits)))]
-    return out
 
 
 def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float] | None,

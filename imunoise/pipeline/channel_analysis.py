@@ -21,7 +21,7 @@ from imunoise.progress import progress_bar
 if TYPE_CHECKING:  # scipy-backed modules load only when an analysis runs
     from imunoise.analysis.psd import PsdEstimate
 
-__all__ = ["DEFAULT_MODEL", "ChannelAnalysis", "analyze_record"]
+__all__ = ["DEFAULT_MODEL", "ChannelAnalysis", "allan_curve", "analyze_record", "psd_estimate"]
 
 
 # Samples (summed over channels) above which the work takes more than a few seconds.
@@ -52,24 +52,41 @@ def _fit(out: ChannelAnalysis) -> None:
         out.warnings.append(f"no model fit: {exc}")
 
 
-def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
+def allan_curve(series: ChannelSeries) -> Any:
+    """The overlapping Allan deviation ``analyze`` reports for a channel
+    (``imunoise.analysis.allan.AllanCurve``): octave taus, no difference across a gap, 95 %
+    intervals.
+
+    Raises ValueError for a series too short for any tau."""
     from imunoise.analysis.allan import oadev
 
+    return oadev(series.values, series.fs_hz, m="octave", segment_starts=series.segment_starts,
+                 ci=CI95)
+
+
+def psd_estimate(series: ChannelSeries) -> PsdEstimate:
+    """The one-sided PSD ``analyze`` reports for a channel: log-spaced points, segments of the
+    length the longest gap-free stretch allows, 95 % intervals.
+
+    Raises ValueError for a series too short for a PSD."""
+    from imunoise.analysis.psd import default_nperseg, log_psd
+
+    bounds = np.append(series.segment_starts, series.n_samples)
+    longest = int(np.max(np.diff(bounds))) if series.n_samples else 0
+    return log_psd(series.values, series.fs_hz, segment_starts=series.segment_starts,
+                   ci=CI95, nperseg=default_nperseg(longest))
+
+
+def _allan(series: ChannelSeries, out: ChannelAnalysis) -> None:
     try:
-        out.allan = oadev(series.values, series.fs_hz, m="octave",
-                          segment_starts=series.segment_starts, ci=CI95)
+        out.allan = allan_curve(series)
     except ValueError as exc:
         out.warnings.append(f"no Allan deviation: {exc}")
 
 
 def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
-    from imunoise.analysis.psd import default_nperseg, log_psd
-
-    bounds = np.append(series.segment_starts, series.n_samples)
-    longest = int(np.max(np.diff(bounds))) if series.n_samples else 0
     try:
-        out.psd = log_psd(series.values, series.fs_hz, segment_starts=series.segment_starts,
-                          ci=CI95, nperseg=default_nperseg(longest))
+        out.psd = psd_estimate(series)
     except ValueError as exc:
         out.warnings.append(f"no PSD: {exc}")
 

@@ -126,3 +126,21 @@ def device_filter(metadata: dict[str, str], key: str) -> tuple[str, dict[str, fl
         if fc < 0.5 * rate:
             return "lowpass", {"fc": fc}
     return None
+
+
+def full_window_args(own: list[str], skip_s: float, split_s: list[float]) -> list[str]:
+    """A suggestion's ``apply.args`` for the whole command: the ``--skip``/``--split`` this
+    diagnosis ran with, joined with the suggestion's own cut (whose times count from the
+    first sample the diagnosis saw, i.e. after ``skip_s``), so that applying it keeps the
+    cuts already made."""
+    skip, splits = float(skip_s), [float(t) for t in split_s]
+    if len(own) == 2 and own[0] == "--skip":
+        skip += float(own[1])
+    elif len(own) == 2 and own[0] == "--split":
+        splits.append(float(skip_s) + float(own[1]))
+    out: list[str] = []
+    if skip:
+        out += ["--skip", f"{skip:.10g}"]
+    if splits:
+        out += ["--split", ",".join(f"{t:.10g}" for t in sorted(set(splits)))]
+    return out

@@ -4,10 +4,11 @@
 each other; the live runtime, the fleet catalogue and the HTTP layer come above them; the
 command line ``imunoise`` is the top. Inside the ``imunoise`` folder, the analysis pipeline
 (``imunoise/pipeline``: reading, channel analysis, the JSON documents) and the file exports
-(``imunoise/export``) are layers of their own below the commands, and the package's few
-modules that carry no logic of the command line (its version, its error types, the progress
-display, the optional extras) form ``base``, which the pipeline and the exports may use.
-Every import counts, also one inside a function.
+(``imunoise/export``) are layers of their own below the commands; the Python API
+(``imunoise/api`` and the package's ``__init__``, which loads it on first use) sits on the
+pipeline beside the commands; the package's few modules that carry no logic of their own
+(its version, its error types, the progress display, the optional extras) form ``base``,
+which every layer above ``core`` may use. Every import counts, also one inside a function.
 """
 
 from __future__ import annotations
@@ -27,8 +28,10 @@ ALLOWED: dict[str, set[str]] = {
     "fleet": {"core", "analysis"},
     "pipeline": {"core", "base", "analysis", "daq"},
     "export": {"core", "base", "analysis", "pipeline"},
+    "api": {"core", "base", "analysis", "pipeline"},
     "web": {"core", "base", "analysis", "live", "fleet", "pipeline"},
-    "imunoise": {"core", "base", "analysis", "daq", "live", "web", "fleet", "pipeline", "export"},
+    "imunoise": {"core", "base", "analysis", "daq", "live", "web", "fleet", "pipeline", "export",
+                 "api"},
 }
 
 # Where an allowed edge is narrower than the whole layer: (importer, imported) -> the only
@@ -45,11 +48,11 @@ NARROW: dict[tuple[str, str], set[str]] = {
 FOLDERS: dict[str, str] = {
     "core": "core", "analysis": "analysis", "daq": "daq", "live": "live", "fleet": "fleet",
     "web": "web", "pipeline": "imunoise/pipeline", "export": "imunoise/export",
-    "imunoise": "imunoise", "base": "imunoise",
+    "api": "imunoise", "imunoise": "imunoise", "base": "imunoise",
 }
-BASE_MODULES = {"imunoise", "imunoise.errors", "imunoise.progress", "imunoise.extras"}
-"""The modules of the ``base`` layer: ``imunoise/__init__.py``, ``errors.py``, ``progress.py``,
-``extras.py``."""
+BASE_MODULES = {"imunoise.version", "imunoise.errors", "imunoise.progress", "imunoise.extras"}
+"""The modules of the ``base`` layer: ``version.py``, ``errors.py``, ``progress.py``,
+``extras.py`` of ``imunoise/``."""
 
 
 def _layer(module: str) -> str:
@@ -62,6 +65,8 @@ def _layer(module: str) -> str:
         return parts[0]
     if module in BASE_MODULES:
         return "base"
+    if module == "imunoise" or parts[1] == "api":
+        return "api"
     if len(parts) > 1 and parts[1] in ALLOWED and parts[1] not in ("imunoise", "base"):
         return parts[1]
     return "imunoise"
