@@ -6,18 +6,15 @@ from __future__ import annotations
 
 import contextlib
 import io
-import itertools
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 import imunoise
 from imunoise.cli import main
-from imunoise.core.blocks import SampleBlock
-from imunoise.core.units import DEG, G0
-from imunoise.daq.recorder import McapRecorder
+from imunoise.core.units import DEG
+from tests.adis_recording import write_adis_run
 from tests.shared_paths import REPO
 
 NOTEBOOK = REPO / "examples" / "python_api.ipynb"
@@ -27,26 +24,8 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def adis_run1(shared_data, tmp_path_factory) -> str:
-    """Run 1 as the recorder writes it: one topic, gyro in rad/s, accel in m/s^2."""
-    d = np.load(shared_data / "adis16405" / "run1.npz")
-    fs = float(d["fs_hz"])
-    gyro = d["gyro_counts"] * float(d["gyro_scale_dps"]) * DEG
-    acc = d["accel_counts"] * float(d["accel_scale_g"]) * G0
-    out = tmp_path_factory.mktemp("adis_run1")
-    start = 1.6e9
-    clock = itertools.count(start)
-    rec = McapRecorder(out, "adis16405_run1", config={"sensor_model": "adis16405"}, rate_hz=fs,
-                       rotate_s=None, fsync=False, threaded=False, reserve_bytes=0,
-                       clock=lambda: float(next(clock)))
-    block = 20_000
-    for k in range(0, gyro.shape[0], block):
-        t = start + (k + np.arange(min(block, gyro.shape[0] - k))) / fs
-        channels = {f"gyro_{a}": gyro[k:k + block, i].copy() for i, a in enumerate("xyz")}
-        channels |= {f"accel_{a}": acc[k:k + block, i].copy() for i, a in enumerate("xyz")}
-        rec.write(SampleBlock("/adis/imu", t, channels, fs))
-    rec.close()
-    (path,) = out.glob("*.mcap")
-    return str(path)
+    return str(write_adis_run(shared_data / "adis16405" / "run1.npz",
+                              tmp_path_factory.mktemp("adis_run1")))
 
 
 def test_the_four_line_cell_gives_analyze_json_numbers(adis_run1):
