@@ -96,7 +96,7 @@ class FitResult:
         avar_fit: model Allan variance at ``tau_s``.
         term_avar: per-term model Allan variance at ``tau_s`` (for plotting).
         misfit: z per tau, chi2 and the rest (:class:`imunoise.analysis.misfit.Misfit`).
-        failures: CONTRACT.md ``failures`` entries.
+        failures: ``failures`` entries of the JSON documents (docs/json.md).
         param_cov: covariance of the log-parameters (order of :attr:`free_params`).
         free_params: ``(term index, parameter name)`` of each fitted parameter.
     """
@@ -153,7 +153,7 @@ class FitResult:
 
     def allan_dict(self, ci_low: np.ndarray | None = None, ci_high: np.ndarray | None = None
                    ) -> dict[str, list[float]]:
-        """CONTRACT.md ``allan`` block (deviations, not variances)."""
+        """The JSON ``allan`` block (docs/json.md; deviations, not variances)."""
         adev = np.sqrt(self.avar_measured)
         return {"tau_s": self.tau_s.tolist(), "adev": adev.tolist(),
                 "ci_low": (ci_low if ci_low is not None else adev).tolist(),

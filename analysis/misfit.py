@@ -250,7 +250,7 @@ def _solve_psd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def failures(tau_s: np.ndarray, z: np.ndarray, threshold: float) -> list[dict]:
-    """Groups of consecutive taus with ``|z| > threshold`` and the same sign, as CONTRACT.md's
+    """Groups of consecutive taus with ``|z| > threshold`` and the same sign, as docs/json.md's
     ``failures`` entries."""
     out: list[dict] = []
     flagged = np.abs(z) > threshold

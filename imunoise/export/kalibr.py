@@ -178,7 +178,7 @@ def overbound_axis(name: str, channel_doc: Mapping) -> AxisValues:
 
 
 def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
-    """N and K of one fitted channel (contract JSON ``fit`` keys, plus ``psd`` when present).
+    """N and K of one fitted channel (``fit`` keys of docs/json.md, plus ``psd`` when present).
 
     When the random walk is not resolved (K zero, its interval reaching zero, or collapsed onto
     the estimate, as when the fit sits on its lower bound), K becomes the largest value the

@@ -1,6 +1,6 @@
 """The morning-after HTML report: one self-contained file with inline SVG plots.
 
-Input is the ``analyze --json`` document (CONTRACT.md keys per channel) extended with:
+Input is the ``analyze --json`` document (docs/json.md keys per channel) extended with:
 
 - ``discrete_model`` per channel: :meth:`imunoise.analysis.discrete.DiscreteModel.to_dict`;
 - ``discrete_check`` per channel: ``{"tau_s", "adev", "inside", "total"}``, the Allan deviation

@@ -1,6 +1,6 @@
 """Per-channel extras of ``analyze``: the discrete model, its simulated check, term curves.
 
-``extend_channel`` adds to a channel's ``fit`` document (CONTRACT.md keys):
+``extend_channel`` adds to a channel's ``fit`` document (docs/json.md keys):
 
 - ``discrete_model`` (always): the filter-ready model at the sample period
   (:mod:`imunoise.analysis.discrete`), its bias-instability approximation fitted over the measured
