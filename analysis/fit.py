@@ -59,13 +59,18 @@ _WHOLE_WINS = 0.5
 
 class CurveLike(Protocol):
     """What the fit needs from an Allan curve (``imunoise.analysis.allan.AllanCurve`` provides
-    it)."""
+    it; read-only, as its frozen dataclass)."""
 
-    fs_hz: float
-    tau_s: np.ndarray
-    m: np.ndarray
-    dev: np.ndarray
-    n_terms: np.ndarray
+    @property
+    def fs_hz(self) -> float: ...
+    @property
+    def tau_s(self) -> np.ndarray: ...
+    @property
+    def m(self) -> np.ndarray: ...
+    @property
+    def dev(self) -> np.ndarray: ...
+    @property
+    def n_terms(self) -> np.ndarray: ...
 
 
 ModelLike = Sequence[str] | Sequence[tuple[str, dict[str, float]]] | str | ModelSpec

@@ -25,15 +25,23 @@ if TYPE_CHECKING:
 
 
 class AllanLike(Protocol):
-    """The parts of an Allan curve (``imunoise.analysis.allan.AllanCurve``) that the JSON shows."""
+    """The parts of an Allan curve (``imunoise.analysis.allan.AllanCurve``) that the JSON shows
+    (read-only: the curve is a frozen dataclass)."""
 
-    tau_s: np.ndarray
-    dev: np.ndarray
-    ci_low: np.ndarray
-    ci_high: np.ndarray
-    edf: np.ndarray
-    alpha: np.ndarray
-    ci: float
+    @property
+    def tau_s(self) -> np.ndarray: ...
+    @property
+    def dev(self) -> np.ndarray: ...
+    @property
+    def ci_low(self) -> np.ndarray: ...
+    @property
+    def ci_high(self) -> np.ndarray: ...
+    @property
+    def edf(self) -> np.ndarray: ...
+    @property
+    def alpha(self) -> np.ndarray: ...
+    @property
+    def ci(self) -> float: ...
 
 
 def floats(values: Iterable[float] | np.ndarray) -> list[float | None]:
