@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter, lfilter_zi
 
-from imunoise.analysis.bin_average import sin4_table
+from imunoise.analysis.bin_average import sin4_table_shared
 from imunoise.analysis.terms.base import Term, TermError, TermSimulator
 
 _CORRECTION_REACH = 300.0
@@ -215,7 +215,7 @@ class OutputFilter(Term):
             s = term.psd(um * fs_hz, fs_hz, **{**shape, term.amplitude: 1.0})
             smooth = 0.5 * fs_hz * s * (gain - 1.0) * 4.0 / np.sin(np.pi * um) ** 2 * width
             mm = m[near][:, None]
-            return np.sum(sin4_table(mm, um, ua, ub) * smooth, axis=1) / (m[near] ** 2)
+            return np.sum(sin4_table_shared(mm, um, ua, ub) * smooth, axis=1) / (m[near] ** 2)
 
         out[near] = self._remember(key, make) * float(p[term.amplitude]) ** 2
         return out
