@@ -43,7 +43,7 @@ def sin4_table(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray) ->
 
 
 _TABLES: OrderedDict[tuple[bytes, bytes, bytes], np.ndarray] = OrderedDict()
-_TABLES_SIZE = 32
+_TABLES_SIZE = 16
 _TABLES_LOCK = threading.Lock()
 
 
