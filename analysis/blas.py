@@ -35,7 +35,9 @@ def one_blas_thread(fn: Callable[_P, _R]) -> Callable[_P, _R]:
 
     @functools.wraps(fn)
     def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
-        with single_thread_blas():
+        # a controller made now (under 1 ms) also sees a BLAS loaded after this module, as
+        # scipy's own OpenBLAS is when scipy is imported later
+        with ThreadpoolController().limit(limits=1, user_api="blas"):
             return fn(*args, **kwargs)
 
     return wrapper

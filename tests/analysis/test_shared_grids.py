@@ -72,3 +72,18 @@ def test_filtered_model_is_the_same_whatever_was_evaluated_before():
     for t, want in first.items():
         assert np.array_equal(model_avar(model + [("moving_average", {"taps": t})], tau, FS),
                               want)
+
+
+def test_one_blas_thread_limits_every_loaded_blas_during_the_call():
+    from threadpoolctl import threadpool_info
+
+    from imunoise.analysis.blas import one_blas_thread
+
+    seen = []
+
+    @one_blas_thread
+    def inside() -> None:
+        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    inside()
+    assert seen and all(n == 1 for n in seen)
