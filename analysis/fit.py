@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy import ndimage, optimize, signal, special
 
+from imunoise.analysis.blas import one_blas_thread
 from imunoise.analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
 from imunoise.analysis.profile import profile_bounds
 from imunoise.analysis.terms import (
@@ -414,6 +415,7 @@ def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndar
     return out
 
 
+@one_blas_thread
 def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
               line: tuple[float, float] | None = None, temperature: TermFit | None = None,
               fixed: dict[str | int, dict[str, float]] | None = None,
