@@ -168,3 +168,20 @@ def test_adis16405_run1_line_common_resonances_own(shared_data):
     for o in origins:
         if o.feature.term == "resonance":
             assert o.origin == "own", o.why
+
+
+def test_two_sensors_on_one_bench_common_line_is_environment_own_line_is_own():
+    a, _ = bench_record(31, n=1 << 16)
+    b, _ = bench_record(32, n=1 << 16, own=False)
+    # the same bench line reaches both sensors (same phase: one bench)
+    t = np.arange(1 << 16) / 100.0
+    line = 0.01 * np.sin(2 * np.pi * 0.8 * t)
+    a[:, 3] += line
+    b[:, 3] += 0.7 * line
+    names = [f"imu1/{c}" for c in NAMES[3:]] + [f"imu2/{c}" for c in NAMES[3:]]
+    x = np.column_stack([a[:, 3:], b[:, 3:]])
+    cs = cross_spectra(x, 100.0, names, nperseg=4096)
+    common, own = classify([_line("imu1/accel_x", 0.8), _line("imu1/accel_z", 3.3)], cs)
+    assert common.origin == "common" and "imu2/accel_x" in common.common_with
+    assert "more than one sensor" in common.reading
+    assert own.origin == "own"
