@@ -230,10 +230,17 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
+def _split(name: str) -> tuple[str, str]:
+    """``(device, channel)`` of a name: the device is what precedes the last ``/`` or ``:``
+    (``"imu1/gyro_x"``, ``"/imu:gyro_x"``), empty when there is none."""
+    cut = max(name.rfind("/"), name.rfind(":"))
+    return (name[:cut], name[cut + 1:]) if cut >= 0 else ("", name)
+
+
 def channel_kind(name: str) -> str:
     """``"accel"``, ``"gyro"``, ``"temperature"`` or ``"other"`` from a channel's name (the
-    part after a device prefix ``device/``)."""
-    base = name.rsplit("/", 1)[-1].lower()
+    part after a device prefix such as ``imu1/`` or ``/imu:``)."""
+    base = _split(name)[1].lower()
     for kind in ("accel", "gyro"):
         if base.startswith(kind):
             return kind
@@ -241,8 +248,8 @@ def channel_kind(name: str) -> str:
 
 
 def channel_device(name: str) -> str:
-    """The device prefix of a channel's name (``"imu1/gyro_x"`` -> ``"imu1"``; ``""`` if none)."""
-    return name.rsplit("/", 1)[0] if "/" in name else ""
+    """The device part of a channel's name (``"imu1/gyro_x"`` -> ``"imu1"``; ``""`` if none)."""
+    return _split(name)[0]
 
 
 def _feature_matrix(cs: CrossSpectra, feat: SpectralFeature) -> tuple[np.ndarray, float, float,

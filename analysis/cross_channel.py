@@ -1,0 +1,94 @@
+"""The cross-channel view of a record: coherence of every pair, the lines classified as common
+or own, and (on request) each channel's own noise after the common part is removed.
+
+This is what ``analyze --json`` reports under ``coherence`` and the report and the dashboard
+draw. Channels are compared only when they share one time base (same rate, same number of
+samples, same gap-free segments); SI units.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from imunoise.analysis.coherence import DEFAULT_ALPHA, cross_spectra, log_coherence
+from imunoise.analysis.environment import (
+    SpectralFeature,
+    classify,
+    features_from_diagnosis,
+)
+from imunoise.analysis.subtraction import Subtraction, subtract_common
+
+MAX_LINES_PER_CHANNEL = 5
+"""Lines of the spectral evidence classified per channel when no diagnosis is given."""
+
+
+def evidence_features(name: str, values: np.ndarray, fs_hz: float,
+                      segment_starts: np.ndarray | None = None,
+                      alpha: float = DEFAULT_ALPHA) -> list[SpectralFeature]:
+    """The significant lines of one channel's spectral-line evidence (strongest first)."""
+    from imunoise.analysis.evidence import spectral_lines
+
+    starts = np.zeros(1, dtype=np.int64) if segment_starts is None \
+        else np.asarray(segment_starts, dtype=np.int64)
+    bounds = np.append(starts, len(values))
+    segments = [values[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+    try:
+        found = spectral_lines(segments, fs_hz, alpha=alpha)
+    except ValueError:
+        return []
+    return features_from_diagnosis(name, {"findings": [found]})[:MAX_LINES_PER_CHANNEL]
+
+
+def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
+                       segment_starts: np.ndarray | None = None,
+                       suggestions: dict[str, list[Any]] | None = None,
+                       nperseg: int | None = None, points_per_decade: float = 10.0,
+                       alpha: float = DEFAULT_ALPHA, ci: float = 0.95,
+                       subtract: bool = False) -> tuple[dict[str, Any], dict[str, Subtraction]]:
+    """Coherence, classification and (``subtract``) own-noise residuals of a record's channels.
+
+    Args:
+        values: channel name -> samples (SI), all on one time base.
+        fs_hz: sampling rate, Hz.
+        segment_starts: gap-free segment starts shared by the channels.
+        suggestions: channel -> its diagnosis's suggestions (objects or dicts); their lines
+            and resonances are classified (and the spectral evidence's lines with them). Without
+            it each channel's spectral-line evidence is searched.
+        nperseg: Welch length (default :func:`imunoise.analysis.coherence.default_nperseg`).
+        points_per_decade: log-frequency points per decade of the coherence view.
+        alpha: level of the zero-coherence tests.
+        ci: confidence level of the intervals.
+        subtract: also remove from each channel what the others explain.
+
+    Returns:
+        ``(document, residuals)``: the JSON-ready ``coherence`` document and, with
+        ``subtract``, each channel's :class:`~imunoise.analysis.subtraction.Subtraction`.
+    """
+    names = list(values)
+    if len(names) < 2:
+        raise ValueError("the cross-channel view needs at least two channels on one time base")
+    lengths = {len(v) for v in values.values()}
+    if len(lengths) != 1:
+        raise ValueError("the channels do not share one time base (different lengths)")
+    x = np.column_stack([np.asarray(values[c], dtype=np.float64) for c in names])
+    cs = cross_spectra(x, fs_hz, names, nperseg=nperseg, segment_starts=segment_starts)
+    co = log_coherence(cs, points_per_decade=points_per_decade, ci=ci, alpha=alpha)
+    features: list[SpectralFeature] = []
+    for k, c in enumerate(names):
+        if suggestions is not None and c in suggestions:
+            features += features_from_diagnosis(c, suggestions[c])
+        else:
+            features += evidence_features(c, x[:, k], fs_hz, segment_starts, alpha)
+    means = {c: float(np.mean(x[:, k])) for k, c in enumerate(names)}
+    origins = classify(features, cs, means=means, alpha=alpha, ci=ci)
+    doc = co.to_dict()
+    doc["classification"] = [o.to_dict() for o in origins]
+    residuals: dict[str, Subtraction] = {}
+    if subtract:
+        for c in names:
+            residuals[c] = subtract_common(x, fs_hz, names, c, segment_starts=segment_starts,
+                                           alpha=alpha, cross=cs)
+        doc["subtraction"] = {c: r.to_dict() for c, r in residuals.items()}
+    return doc, residuals
