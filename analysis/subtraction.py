@@ -82,6 +82,31 @@ class Subtraction:
     n_avg: float
     error: dict[str, float] = field(default_factory=dict)
 
+    def avar_of(self, psd: np.ndarray, tau_s: np.ndarray | float) -> np.ndarray:
+        """Allan variance (units^2) at ``tau_s`` of a component with the one-sided PSD ``psd``
+        on :attr:`f_hz`: ``sum S(f) 2 sin^4(pi f tau) / (pi f tau)^2 df``."""
+        tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))[:, None]
+        x = np.pi * self.f_hz[None, :] * tau
+        df = float(self.f_hz[1] - self.f_hz[0]) if self.f_hz.size > 1 else 0.0
+        return np.sum(psd[None, :] * 2.0 * np.sin(x) ** 4 / x**2, axis=1) * df
+
+    def white_level(self, fs_hz: float, tau_s: float = 1.0, ci: float = 0.95,
+                    segment_starts: np.ndarray | None = None
+                    ) -> tuple[float, tuple[float, float]]:
+        """The residual's white level read at ``tau_s`` (``N = sigma(tau) sqrt(tau)``,
+        units/sqrt(Hz); right where the own noise is white there), with an interval that
+        holds both the Allan estimate's chi-square interval and the subtraction's error: its
+        lower end also takes off the references' noise the filter may have passed in
+        (:attr:`psd_leak` at that tau)."""
+        from imunoise.analysis.allan import oadev
+
+        m = max(int(round(tau_s * fs_hz)), 1)
+        curve = oadev(self.residual, fs_hz, m=[m], segment_starts=segment_starts, ci=ci)
+        tau = float(curve.tau_s[0])
+        leak = float(self.avar_of(self.psd_leak, tau)[0])
+        lo = math.sqrt(max(float(curve.ci_low[0]) ** 2 - leak, 0.0) * tau)
+        return float(curve.dev[0]) * math.sqrt(tau), (lo, float(curve.ci_high[0]) * math.sqrt(tau))
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no series)."""
         sub = self.subtracted

@@ -145,3 +145,23 @@ def test_adis16405_run1_accelerometers_need_no_line_after_subtraction(shared_dat
         sub = subtract_common(x, 100.0, NAMES, NAMES[k], cross=cs)
         own = evidence.spectral_lines([sub.residual], 100.0, units="m/s^2")
         assert not own.significant, own.why
+
+
+def test_white_level_of_the_residual_states_the_subtraction_error():
+    """Read at tau = 1 s (next to the 0.56 Hz line's Allan bump) the raw white level is twice
+    the truth; the residual's lies within its interval, whose lower end allows for the
+    references' noise passed in."""
+    from imunoise.analysis.allan import oadev
+
+    covered = 0
+    for seed in range(6):
+        x, truth = bench_record(200 + seed, n=1 << 16)
+        sub = subtract_common(x, 100.0, NAMES, "accel_y")
+        n_true = truth["N"][4]
+        value, (lo, hi) = sub.white_level(100.0, 1.0)
+        covered += lo <= n_true <= hi
+        assert value == pytest.approx(n_true, rel=0.08)
+        raw = oadev(x[:, 4], 100.0, m=[100], ci=0.95).dev[0]
+        assert raw > 1.5 * n_true
+        assert sub.avar_of(sub.psd_leak, 1.0)[0] < 0.05 * value**2
+    assert covered >= 5
