@@ -147,3 +147,21 @@ def two_sensor_bounds(cs: CrossSpectra, a: str, b: str) -> dict[str, np.ndarray]
     common_low = sab**2 / np.maximum(sbb, 1e-300)
     return {"f_hz": cs.f_hz, "psd": saa, "common_at_least": common_low,
             "own_at_most": saa - common_low, "own_equal_gain": saa - cs.s[:, i, j].real}
+
+
+def three_channel_own_psd(cs: CrossSpectra, a: str, b: str, c: str) -> np.ndarray:
+    """Own PSD of channel ``a`` per Welch bin when ``a``, ``b`` and ``c`` see one common source
+    through any gains: ``S_aa - Re(S_ab S_ca / S_cb)`` (units^2/Hz).
+
+    With ``x_i = g_i s + e_i`` and the own parts independent, ``S_ab S_ca / S_cb = |g_a|^2 S_s``
+    whatever the gains (the frequency-domain form of the three-cornered hat: Sleeman, van
+    Wettum and Trampert, Bull. Seismol. Soc. Am. 96 (2006) 258-271). Unlike the Allan form it
+    needs no equal gains: three axes of one sensor seeing one motion of the bench qualify. The
+    estimate scatters where the common part is weak (``S_cb`` near zero) and can come out
+    negative there.
+    """
+    i, j, k = cs.index(a), cs.index(b), cs.index(c)
+    s = cs.s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        common = s[:, i, j] * s[:, k, i] / s[:, k, j]
+    return s[:, i, i].real - np.nan_to_num(common.real)

@@ -167,3 +167,24 @@ def test_white_level_of_the_residual_states_the_subtraction_error():
         # bins), a fifth of the Allan variance at most
         assert 0 < sub.avar_of(sub.psd_leak, 1.0)[0] < 0.25 * value**2
     assert covered >= 5
+
+
+def test_three_channel_own_psd_with_unequal_gains():
+    from imunoise.analysis.hat import three_channel_own_psd
+
+    rng = np.random.default_rng(12)
+    n = 1 << 16
+    common = simulate([("white", {"N": 5e-3}), ("resonance", {"sigma": 0.05, "f0": 3.0,
+                                                               "Q": 3.0})], n, 100.0, rng)
+    own_n = np.array([1e-3, 2e-3, 1.5e-3])
+    gains = np.array([0.72, -0.45, 0.52])
+    x = np.column_stack([g * common + simulate([("white", {"N": v})], n, 100.0, rng)
+                         for g, v in zip(gains, own_n, strict=True)])
+    cs = cross_spectra(x, 100.0, ["a", "b", "c"], nperseg=1024)
+    band = (cs.f_hz > 1) & (cs.f_hz < 20)
+    for a, b, c, v in (("a", "b", "c", own_n[0]), ("b", "a", "c", own_n[1]),
+                       ("c", "a", "b", own_n[2])):
+        own = three_channel_own_psd(cs, a, b, c)
+        # one-sided own PSD of white noise N is 2 N^2; the raw PSD is several times more
+        assert np.mean(own[band]) == pytest.approx(2 * v**2, rel=0.1)
+        assert np.mean(cs.psd(a)[band]) > 2 * np.mean(own[band])
