@@ -46,7 +46,8 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
                        suggestions: dict[str, list[Any]] | None = None,
                        nperseg: int | None = None, points_per_decade: float = 10.0,
                        alpha: float = DEFAULT_ALPHA, ci: float = 0.95,
-                       subtract: bool = False) -> tuple[dict[str, Any], dict[str, Subtraction]]:
+                       subtract: bool = False, only: list[str] | None = None
+                       ) -> tuple[dict[str, Any], dict[str, Subtraction]]:
     """Coherence, classification and (``subtract``) own-noise residuals of a record's channels.
 
     Args:
@@ -61,6 +62,8 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
         alpha: level of the zero-coherence tests.
         ci: confidence level of the intervals.
         subtract: also remove from each channel what the others explain.
+        only: classify (and subtract) these channels only (default: every channel); the
+            others still serve as partners and references.
 
     Returns:
         ``(document, residuals)``: the JSON-ready ``coherence`` document and, with
@@ -76,7 +79,10 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
     cs = cross_spectra(x, fs_hz, names, nperseg=nperseg, segment_starts=segment_starts)
     co = log_coherence(cs, points_per_decade=points_per_decade, ci=ci, alpha=alpha)
     features: list[SpectralFeature] = []
+    chosen = names if only is None else [c for c in names if c in only]
     for k, c in enumerate(names):
+        if c not in chosen:
+            continue
         if suggestions is not None and c in suggestions:
             features += features_from_diagnosis(c, suggestions[c])
         else:
@@ -87,7 +93,7 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
     doc["classification"] = [o.to_dict() for o in origins]
     residuals: dict[str, Subtraction] = {}
     if subtract:
-        for c in names:
+        for c in chosen:
             residuals[c] = subtract_common(x, fs_hz, names, c, segment_starts=segment_starts,
                                            alpha=alpha, cross=cs)
         doc["subtraction"] = {c: r.to_dict() for c, r in residuals.items()}

@@ -43,3 +43,15 @@ def test_one_channel_or_unaligned_channels_are_value_errors():
         cross_channel_view({"a": np.zeros(100)}, 100.0)
     with pytest.raises(ValueError, match="time base"):
         cross_channel_view({"a": np.zeros(100), "b": np.zeros(90)}, 100.0)
+
+
+def test_only_the_chosen_channels_are_classified():
+    x, _ = bench_record(43, n=1 << 15)
+    values = {c: x[:, k] for k, c in enumerate(NAMES)}
+    sugg = {"accel_y": [{"term": "sinusoid", "params": {"A": 0.002, "f": 1.5},
+                         "significant": True, "why": "A line."}]}
+    doc, res = cross_channel_view(values, 100.0, suggestions=sugg, only=["accel_y"],
+                                  subtract=True)
+    assert {c["channel"] for c in doc["classification"]} == {"accel_y"}
+    assert list(res) == ["accel_y"]
+    assert doc["classification"][0]["common_with"] == ["gyro_x"]
