@@ -15,6 +15,7 @@ import numpy as np
 from imunoise.analysis.coherence import DEFAULT_ALPHA, cross_spectra, log_coherence
 from imunoise.analysis.environment import (
     SpectralFeature,
+    annotate,
     classify,
     features_from_diagnosis,
 )
@@ -55,8 +56,9 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
         fs_hz: sampling rate, Hz.
         segment_starts: gap-free segment starts shared by the channels.
         suggestions: channel -> its diagnosis's suggestions (objects or dicts); their lines
-            and resonances are classified (and the spectral evidence's lines with them). Without
-            it each channel's spectral-line evidence is searched.
+            and resonances are classified, and each one's ``why`` gets the verdict appended
+            (dicts also an ``origin``). A channel without suggestions has its spectral-line
+            evidence searched instead.
         nperseg: Welch length (default :func:`imunoise.analysis.coherence.default_nperseg`).
         points_per_decade: log-frequency points per decade of the coherence view.
         alpha: level of the zero-coherence tests.
@@ -89,6 +91,8 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
             features += evidence_features(c, x[:, k], fs_hz, segment_starts, alpha)
     means = {c: float(np.mean(x[:, k])) for k, c in enumerate(names)}
     origins = classify(features, cs, means=means, alpha=alpha, ci=ci)
+    if suggestions:
+        annotate(suggestions, origins)
     doc = co.to_dict()
     doc["classification"] = [o.to_dict() for o in origins]
     residuals: dict[str, Subtraction] = {}

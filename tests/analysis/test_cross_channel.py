@@ -55,3 +55,5 @@ def test_only_the_chosen_channels_are_classified():
     assert {c["channel"] for c in doc["classification"]} == {"accel_y"}
     assert list(res) == ["accel_y"]
     assert doc["classification"][0]["common_with"] == ["gyro_x"]
+    assert sugg["accel_y"][0]["why"].startswith("A line. Common, not accel_y's own")
+    assert sugg["accel_y"][0]["origin"] == "common"
