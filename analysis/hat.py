@@ -165,3 +165,59 @@ def three_channel_own_psd(cs: CrossSpectra, a: str, b: str, c: str) -> np.ndarra
     with np.errstate(divide="ignore", invalid="ignore"):
         common = s[:, i, j] * s[:, k, i] / s[:, k, j]
     return s[:, i, i].real - np.nan_to_num(common.real)
+
+
+WHITE_TAU_S = 1.0
+"""Averaging time at which :func:`sensors_document` reads each sensor's own white level."""
+
+
+def sensors_document(values: dict[str, np.ndarray], fs_hz: float, *,
+                     segment_starts: np.ndarray | None = None, ci: float = 0.95,
+                     white_tau_s: float = WHITE_TAU_S) -> dict[str, Any]:
+    """Several sensors of one kind on one bench: for each channel name that two or more
+    devices share (``imu1/gyro_x``, ``/imu2:gyro_x`` ...), the three-cornered hat of the first
+    three (own Allan variance per tau with intervals, and the own white level at
+    ``white_tau_s``) or, with two, the two-sensor bounds on log-frequency points.
+
+    ``values``: channel key -> samples (SI), all on one time base.
+    """
+    from imunoise.analysis.coherence import cross_spectra, log_coherence
+    from imunoise.analysis.environment import channel_device
+
+    by_name: dict[str, list[str]] = {}
+    for key in values:
+        device = channel_device(key)
+        if device:
+            by_name.setdefault(key[len(device) + 1:], []).append(key)
+    out: dict[str, Any] = {}
+    for name, keys in by_name.items():
+        if len(keys) >= 3:
+            trio = keys[:3]
+            x = np.column_stack([values[k] for k in trio])
+            hat = three_cornered_hat(x, fs_hz, tuple(trio), segment_starts=segment_starts, ci=ci)
+            doc = hat.to_dict()
+            doc["white_level"] = {}
+            for i, k in enumerate(trio):
+                level, (lo, hi) = hat.white_level(i, white_tau_s)
+                doc["white_level"][k] = {"N": level, "ci": [lo, hi],
+                                         "tau_s": float(hat.tau_s[int(np.argmin(np.abs(
+                                             np.log(hat.tau_s / white_tau_s))))])}
+            out[name] = doc
+        elif len(keys) == 2:
+            x = np.column_stack([values[k] for k in keys])
+            cs = cross_spectra(x, fs_hz, keys, segment_starts=segment_starts)
+            bounds = two_sensor_bounds(cs, keys[0], keys[1])
+            co = log_coherence(cs, intervals=False)
+            idx = np.floor(np.log10(cs.f_hz) * 10.0 + 1e-9).astype(np.int64)
+            _, first, counts = np.unique(idx, return_index=True, return_counts=True)
+
+            def merged(v: np.ndarray, first=first, counts=counts) -> list[float]:
+                return (np.add.reduceat(v, first) / counts).tolist()
+
+            out[name] = {"method": "two sensors: the cross-spectrum bounds the common part",
+                         "sensors": keys, "f_hz": co.f_hz.tolist(),
+                         "psd": merged(bounds["psd"]),
+                         "common_at_least": merged(bounds["common_at_least"]),
+                         "own_at_most": merged(bounds["own_at_most"]),
+                         "own_equal_gain": merged(bounds["own_equal_gain"])}
+    return out

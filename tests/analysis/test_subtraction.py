@@ -188,3 +188,24 @@ def test_three_channel_own_psd_with_unequal_gains():
         # one-sided own PSD of white noise N is 2 N^2; the raw PSD is several times more
         assert np.mean(own[band]) == pytest.approx(2 * v**2, rel=0.1)
         assert np.mean(cs.psd(a)[band]) > 2 * np.mean(own[band])
+
+
+def test_sensors_document_hat_for_three_bounds_for_two():
+    from imunoise.analysis.hat import sensors_document
+
+    own_n = np.array([1e-3, 2e-3, 0.5e-3])
+    x = _three_sensors(77, own_n)
+    values = {f"/imu{i}:gyro_x": x[:, i] for i in range(3)}
+    values["/imu0:gyro_y"] = x[:, 0] * 0.5
+    values["/imu1:gyro_y"] = x[:, 1] * 0.5
+    doc = sensors_document(values, 100.0, white_tau_s=0.1)
+    hat = doc["gyro_x"]
+    assert hat["method"].startswith("three-cornered hat")
+    for i, key in enumerate(values):
+        if key.endswith("gyro_x"):
+            lo, hi = hat["white_level"][key]["ci"]
+            assert lo <= own_n[i] <= hi
+    two = doc["gyro_y"]
+    assert two["sensors"] == ["/imu0:gyro_y", "/imu1:gyro_y"]
+    assert len(two["f_hz"]) == len(two["own_at_most"])
+    assert all(c <= p for c, p in zip(two["common_at_least"], two["psd"], strict=True))
