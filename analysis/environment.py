@@ -289,6 +289,16 @@ def _principal(m: np.ndarray) -> tuple[np.ndarray, float, float]:
     return vec.real / max(np.linalg.norm(vec.real), 1e-300), amplitude, float(np.max(phase))
 
 
+def _axis_vector(names: list[str], values: np.ndarray) -> np.ndarray:
+    """A 3-vector (x, y, z) from values of channels named ``..._x`` etc. (missing axes 0)."""
+    out = np.zeros(3)
+    for n, v in zip(names, values, strict=True):
+        axis = _split(n)[1][-1:].lower()
+        if axis in "xyz" and axis:
+            out["xyz".index(axis)] = v
+    return out
+
+
 def _reading(cs: CrossSpectra, feat: SpectralFeature, group: list[str], power: np.ndarray,
              f_hz: float, coherent: list[str], means: dict[str, float] | None
              ) -> tuple[str, dict[str, Any]]:
@@ -305,68 +315,69 @@ def _reading(cs: CrossSpectra, feat: SpectralFeature, group: list[str], power: n
     dev = channel_device(feat.channel)
     accel = [c for c in cs.channels if channel_kind(c) == "accel" and channel_device(c) == dev]
     gyro = [c for c in cs.channels if channel_kind(c) == "gyro" and channel_device(c) == dev]
-    accel_common = [c for c in group if c in accel]
-    gyro_coherent = [c for c in coherent if c in gyro] + \
-        ([feat.channel] if feat.channel in gyro else [])
-    if len(accel_common) >= 2 or (accel_common and gyro_coherent):
-        ia = [cs.index(c) for c in accel]
-        u, amp, phase = _principal(power[np.ix_(ia, ia)])
-        motion.update({"accel_channels": accel, "accel_direction": u.tolist(),
-                       "accel_amplitude": amp, "accel_phase_spread_deg": phase})
-        g_vec = np.array([means.get(c, np.nan) for c in accel]) if means else None
-        angle = None
-        if g_vec is not None and len(accel) == 3 and np.all(np.isfinite(g_vec)) \
-                and np.linalg.norm(g_vec) > 0:
-            g_hat = g_vec / np.linalg.norm(g_vec)
-            angle = math.degrees(math.acos(min(abs(float(u @ g_hat)), 1.0)))
-            motion["angle_to_gravity_deg"] = angle
-        g_norm = float(np.linalg.norm(g_vec)) if angle is not None else STANDARD_GRAVITY
-        explained = None
-        if gyro_coherent and len(gyro) == 3 and len(accel) == 3:
-            ig = [cs.index(c) for c in gyro]
-            # the gyros' part coherent with the accelerometer line: their cross-power with
-            # it over its amplitude (power |P_k0|^2 / P_00 on gyro k), sign from the phase
-            i0 = cs.index(feat.channel if feat.channel in accel else accel_common[0])
-            cross = power[ig, i0] / math.sqrt(max(float(power[i0, i0].real), 1e-300))
-            w_vec = np.abs(cross) * np.sign(np.cos(np.angle(cross)))
-            w_amp = math.sqrt(2.0 * float(np.sum(w_vec**2)))
-            w_dir = w_vec / max(float(np.linalg.norm(w_vec)), 1e-300)
-            g_dir = g_vec / g_norm if angle is not None else np.array([0.0, 0.0, -1.0])
-            predicted = w_amp / (2.0 * math.pi * f_hz) * g_norm * \
-                float(np.linalg.norm(np.cross(w_dir, g_dir)))
-            explained = predicted / amp if amp > 0 else float("nan")
-            motion.update({"gyro_channels": gyro, "rate_amplitude": w_amp,
-                           "rate_direction": w_dir.tolist(),
-                           "tilt_amplitude_rad": w_amp / (2.0 * math.pi * f_hz),
-                           "accel_from_rotation": predicted,
-                           "rotation_explains": explained})
-        axes = ", ".join(f"{c} {x:+.2f}" for c, x in zip(accel, u, strict=True))
-        in_phase = "in phase" if phase < 20 else f"phases up to {phase:.0f} deg apart"
-        if explained is not None and 0.5 <= explained <= 2.0:
-            text += (f"A rotation (rocking) of the bench: the gyros see its rate "
-                     f"({motion['rate_amplitude']:.3g} rad/s) and the accelerometers the tilt of "
-                     f"gravity it causes (predicted {motion['accel_from_rotation']:.3g} m/s^2, "
-                     f"measured {amp:.3g} m/s^2).")
-        elif angle is not None and angle >= _TILT_ANGLE_DEG:
-            text += (f"A tilt or sway of the bench: the accelerometers' common part "
-                     f"({amp:.3g} m/s^2, direction {axes}, {in_phase}) lies {angle:.0f} deg "
-                     f"from gravity, as the gravity projection of a tilt of "
-                     f"{amp / g_norm:.3g} rad makes it.")
-        else:
-            where = f", {angle:.0f} deg from gravity, so not a tilt" if angle is not None \
-                else ""
-            text += (f"One motion of the bench seen by the accelerometer axes together: "
-                     f"{amp:.3g} m/s^2 along {axes} ({in_phase}{where}): a linear vibration "
-                     f"of the bench, or an electrical source the axes share.")
-            if explained is not None and np.isfinite(explained):
-                text += (f" The gyros' coherent part ({motion['rate_amplitude']:.3g} rad/s) "
-                         f"would tilt gravity by {motion['tilt_amplitude_rad']:.2g} rad, "
-                         f"{explained:.0%} of the line: the rotation does not explain it.")
-    elif gyro_coherent and len([c for c in group if c in gyro]) >= 2:
-        text += ("A rotation of the bench seen by the gyros together (or an electrical source "
-                 "they share).")
-    elif not text:
-        text = "An environmental or shared electrical source."
+    accel_in = [c for c in group if c in accel]
+    gyro_in = [c for c in group if c in gyro]
+    gyro_seen = gyro_in or [c for c in coherent if c in gyro]
+    if not accel_in:
+        if len(gyro_in) >= 2:
+            text += ("A rotation of the bench seen by the gyros together (or an electrical "
+                     "source they share).")
+        return (text or "An environmental or shared electrical source.").strip(), motion
+    ia = [cs.index(c) for c in accel]
+    u, amp, phase = _principal(power[np.ix_(ia, ia)])
+    motion.update({"accel_channels": accel, "accel_direction": u.tolist(),
+                   "accel_amplitude": amp, "accel_phase_spread_deg": phase})
+    g_vec = _axis_vector(accel, [means.get(c, 0.0) for c in accel]) if means else np.zeros(3)
+    angle = None
+    if len(accel) == 3 and np.linalg.norm(g_vec) > 0.5 * STANDARD_GRAVITY:
+        angle = math.degrees(math.acos(min(abs(float(_axis_vector(accel, u) @ g_vec))
+                                           / float(np.linalg.norm(g_vec)), 1.0)))
+        motion["angle_to_gravity_deg"] = angle
+    if np.linalg.norm(g_vec) < 0.5 * STANDARD_GRAVITY:
+        g_vec = np.array([0.0, 0.0, -STANDARD_GRAVITY])  # the usual mounting, z vertical
+    g_norm = float(np.linalg.norm(g_vec))
+    explained = None
+    if gyro_seen and gyro:
+        ig = [cs.index(c) for c in gyro]
+        # the gyros' part coherent with the accelerometer line: their cross-power with it
+        # over its amplitude (power |P_k0|^2 / P_00 on gyro k), sign from the phase
+        i0 = cs.index(feat.channel if feat.channel in accel else accel_in[0])
+        cross = power[ig, i0] / math.sqrt(max(float(power[i0, i0].real), 1e-300))
+        w_vec = _axis_vector(gyro, np.abs(cross) * np.sign(np.cos(np.angle(cross))))
+        w_amp = math.sqrt(2.0 * float(np.sum(w_vec**2)))
+        w_dir = w_vec / max(float(np.linalg.norm(w_vec)), 1e-300)
+        predicted = w_amp / (2.0 * math.pi * f_hz) * g_norm * \
+            float(np.linalg.norm(np.cross(w_dir, g_vec / g_norm)))
+        explained = predicted / amp if amp > 0 else float("nan")
+        motion.update({"gyro_channels": gyro, "rate_amplitude": w_amp,
+                       "rate_direction": w_dir.tolist(),
+                       "tilt_amplitude_rad": w_amp / (2.0 * math.pi * f_hz),
+                       "accel_from_rotation": predicted, "rotation_explains": explained})
+    axes = ", ".join(f"{c} {x:+.2f}" for c, x in zip(accel, u, strict=True))
+    in_phase = "in phase" if phase < 20 else f"phases up to {phase:.0f} deg apart"
+    if explained is not None and 0.5 <= explained <= 2.0:
+        text += (f"A rotation (rocking) of the bench: the gyros see its rate "
+                 f"({motion['rate_amplitude']:.3g} rad/s) and the accelerometers the tilt of "
+                 f"gravity it causes (predicted {motion['accel_from_rotation']:.3g} m/s^2, "
+                 f"measured {amp:.3g} m/s^2).")
+    elif len(accel_in) < 2 and gyro_in:
+        text += (f"Gyro and accelerometer together, a rotation of the bench; its rate "
+                 f"({motion['rate_amplitude']:.3g} rad/s) predicts {explained:.0%} of the "
+                 f"accelerometer line's tilt acceleration.")
+    elif angle is not None and angle >= _TILT_ANGLE_DEG:
+        text += (f"A tilt or sway of the bench: the accelerometers' common part "
+                 f"({amp:.3g} m/s^2, direction {axes}, {in_phase}) lies {angle:.0f} deg "
+                 f"from gravity, as the gravity projection of a tilt of "
+                 f"{amp / g_norm:.3g} rad makes it.")
+    else:
+        where = f", {angle:.0f} deg from gravity, so not a tilt" if angle is not None else ""
+        text += (f"One motion of the bench seen by the accelerometer axes together: "
+                 f"{amp:.3g} m/s^2 along {axes} ({in_phase}{where}): a linear vibration "
+                 f"of the bench, or an electrical source the axes share.")
+        if explained is not None and np.isfinite(explained):
+            text += (f" The gyros' coherent part ({motion['rate_amplitude']:.3g} rad/s) "
+                     f"would tilt gravity by {motion['tilt_amplitude_rad']:.2g} rad, "
+                     f"{explained:.0%} of the line: the rotation does not explain it.")
     return text.strip(), motion
 
 

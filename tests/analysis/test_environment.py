@@ -185,3 +185,16 @@ def test_two_sensors_on_one_bench_common_line_is_environment_own_line_is_own():
     assert common.origin == "common" and "imu2/accel_x" in common.common_with
     assert "more than one sensor" in common.reading
     assert own.origin == "own"
+
+
+def test_rocking_with_some_axes_only_is_still_a_rotation(bench):
+    x, _, _ = bench
+    names = ["gyro_x", "accel_x", "accel_y"]
+    sub = x[:, [0, 3, 4]]
+    cs = cross_spectra(sub, 100.0, names, nperseg=4096)
+    (o,) = classify([_line("accel_y", ROCK_F)], cs,
+                    means=dict(zip(names, sub.mean(0), strict=True)))
+    assert o.origin == "common" and o.common_with == ["gyro_x"]
+    assert "rotation" in o.reading
+    # gravity assumed along -z when the z accelerometer is not among the channels
+    assert o.motion["rotation_explains"] == pytest.approx(1.0, abs=0.1)
