@@ -55,10 +55,11 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
         values: channel name -> samples (SI), all on one time base.
         fs_hz: sampling rate, Hz.
         segment_starts: gap-free segment starts shared by the channels.
-        suggestions: channel -> its diagnosis's suggestions (objects or dicts); their lines
-            and resonances are classified, and each one's ``why`` gets the verdict appended
-            (dicts also an ``origin``). A channel without suggestions has its spectral-line
-            evidence searched instead.
+        suggestions: channel -> its diagnosis's suggestions (objects or dicts), or the
+            :class:`~imunoise.analysis.diagnosis.Diagnosis` itself (its spectral-line evidence
+            then joins); their lines and resonances are classified, and each one's ``why``
+            gets the verdict appended (dicts also an ``origin``). A channel without
+            suggestions has its spectral-line evidence searched instead.
         nperseg: Welch length (default :func:`imunoise.analysis.coherence.default_nperseg`).
         points_per_decade: log-frequency points per decade of the coherence view.
         alpha: level of the zero-coherence tests.
@@ -92,7 +93,8 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
     means = {c: float(np.mean(x[:, k])) for k, c in enumerate(names)}
     origins = classify(features, cs, means=means, alpha=alpha, ci=ci)
     if suggestions:
-        annotate(suggestions, origins)
+        annotate({c: v if isinstance(v, list) else list(getattr(v, "suggestions", []))
+                  for c, v in suggestions.items()}, origins)
     doc = co.to_dict()
     doc["classification"] = [o.to_dict() for o in origins]
     residuals: dict[str, Subtraction] = {}

@@ -31,6 +31,28 @@ def time_base_group(series: dict[str, ChannelSeries], keys: list[str]) -> list[s
     return max(groups.values(), key=len, default=[])
 
 
+def same_time_base(series: dict[str, ChannelSeries], key: str) -> list[str]:
+    """The channels on the time base of ``key`` (``key`` first)."""
+    sig = _signature(series[key])
+    return [key] + [k for k, v in series.items() if k != key and _signature(v) == sig]
+
+
+def channel_coherence(record: Record, key: str, diagnosis: Any, group: list[str],
+                      skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = ()
+                      ) -> dict[str, Any] | None:
+    """One channel's diagnosis (its suggestions and its spectral-line evidence) judged against
+    the other channels of ``group`` (its time base before ``--skip``/``--split``, which cut
+    them all alike): its suggestions' ``why`` gets common or own; returns the coherence
+    document (None without another channel)."""
+    if len(group) < 2:
+        return None
+    series = {k: (record.channels[k] if k == key or not (skip_s or split_s)
+                  else record.channels[k].windowed(skip_s, list(split_s))) for k in group}
+    doc, _ = coherence_document(record, group, suggestions={key: diagnosis}, only=[key],
+                                series=series)
+    return doc
+
+
 def temperature_on(record: Record, series: ChannelSeries) -> np.ndarray | None:
     """The temperature interpolated onto the samples of ``series`` (nominal times), or None
     when the record has none or it does not cover the series."""
