@@ -1,0 +1,109 @@
+"""``analyze`` and ``diagnose`` across channels, end to end through the real CLI: the
+``coherence`` key, the suggestions' verdict, ``--subtract-common``."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.analysis.bench_records import NAMES, bench_record
+
+TRUE_N_ACCEL_Y = 1.5e-3
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "imunoise", *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def bench_csv(tmp_path_factory):
+    x, truth = bench_record(61, n=1 << 16)
+    assert truth["N"][4] == TRUE_N_ACCEL_Y
+    t = 10.0 + np.arange(len(x)) / 100.0
+    path = tmp_path_factory.mktemp("coherence") / "bench.csv"
+    np.savetxt(path, np.column_stack([t, x]), delimiter=",", fmt="%.10g", comments="",
+               header="t," + ",".join(NAMES))
+    return path
+
+
+def _finite(obj) -> bool:
+    if isinstance(obj, float):
+        return math.isfinite(obj)
+    if isinstance(obj, dict):
+        return all(_finite(v) for v in obj.values())
+    if isinstance(obj, list):
+        return all(_finite(v) for v in obj)
+    return True
+
+
+def test_analyze_json_has_the_coherence_of_every_pair(bench_csv):
+    proc = _run("analyze", bench_csv, "--json")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    co = doc["coherence"]
+    assert _finite(co)
+    assert co["channels"] == NAMES and len(co["pairs"]) == 15
+    assert np.shape(co["msc"]) == (15, len(co["f_hz"]))
+    assert np.shape(co["ci"]["low"]) == np.shape(co["msc"])
+    assert len(co["threshold"]) == len(co["f_hz"])
+    found = {(c["channel"], round(c["f_hz"], 1)): c for c in co["classification"]}
+    rock = found[("accel_y", 1.5)]
+    assert rock["origin"] == "common" and rock["common_with"] == ["gyro_x"]
+    assert "rotation" in rock["why"]
+    assert found[("accel_z", 3.3)]["origin"] == "own"
+    assert "own" not in doc["channels"]["accel_y"]
+
+
+def test_analyze_subtract_common_reports_the_own_noise_beside_the_raw(bench_csv):
+    proc = _run("analyze", bench_csv, "--json", "--subtract-common", "--channel", "accel_x",
+                "--channel", "accel_y", "--channel", "accel_z", "--channel", "gyro_x")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    ch = doc["channels"]["accel_y"]
+    own = ch["own"]
+    assert _finite(own)
+    assert own["subtraction"]["references"] == ["accel_x", "accel_z", "gyro_x"]
+    err = own["subtraction"]["error"]
+    assert 0 < err["removed_share"] < 0.5 and 0 <= err["leak_share"] < err["removed_share"]
+    lo, hi = own["white_level"]["ci"]
+    assert lo <= TRUE_N_ACCEL_Y <= hi
+    # the raw Allan deviation at 1 s carries the lines; the own one does not
+    raw = dict(zip(ch["allan"]["tau_s"], ch["allan"]["adev"], strict=True))
+    mine = dict(zip(own["allan"]["tau_s"], own["allan"]["adev"], strict=True))
+    assert raw[1.28] > 1.3 * mine[1.28]
+    assert own["error"]["chi2_per_dof"] < ch["error"]["chi2_per_dof"]
+
+
+def test_analyze_text_ends_with_the_coherence(bench_csv):
+    proc = _run("analyze", bench_csv, "--channel", "accel_y", "--channel", "gyro_x",
+                "--subtract-common")
+    assert proc.returncode == 0, proc.stderr
+    assert "accel_y own noise" in proc.stdout
+    assert "own white level at tau = 1 s" in proc.stdout
+    assert "coherence between channels" in proc.stdout
+    assert "accel_y sinusoid at 1.5 Hz: common" in proc.stdout
+
+
+def test_diagnose_says_common_or_own(bench_csv):
+    proc = _run("diagnose", bench_csv, "--channel", "accel_z", "--model", "white", "--json")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    own = [c for c in doc["coherence"]["classification"] if round(c["f_hz"], 1) == 3.3]
+    assert own and own[0]["origin"] == "own"
+    line = [s for s in doc["suggestions"] if s["term"] == "sinusoid"]
+    assert line and "Own to accel_z" in line[0]["why"]
+
+
+def test_subtract_common_on_a_streamed_file_is_a_usage_error(tmp_path):
+    from tests.outputs_inputs import write_mcap
+
+    path = write_mcap(tmp_path)
+    proc = _run("analyze", path, "--stream", "always", "--subtract-common", "--json")
+    assert proc.returncode == 2
+    assert "--subtract-common" in proc.stderr and "Traceback" not in proc.stderr
