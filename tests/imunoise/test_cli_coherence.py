@@ -107,3 +107,27 @@ def test_subtract_common_on_a_streamed_file_is_a_usage_error(tmp_path):
     proc = _run("analyze", path, "--stream", "always", "--subtract-common", "--json")
     assert proc.returncode == 2
     assert "--subtract-common" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_report_shows_the_coherence_matrix_pairs_and_own_noise(bench_csv):
+    from imunoise.export.report_html import render_report
+    from imunoise.pipeline import cross_channel
+    from imunoise.pipeline.channel_analysis import analyze_record
+    from imunoise.pipeline.documents import analysis_json
+    from imunoise.pipeline.reading import read_record
+
+    record = read_record(str(bench_csv), static="all")
+    keys = ["gyro_x", "accel_x", "accel_y", "accel_z"]
+    doc = analysis_json(str(bench_csv), record, analyze_record(record, keys))
+    co, residuals = cross_channel.coherence_document(record, keys, subtract=True)
+    doc["coherence"] = co
+    cross_channel.add_own(doc, record, residuals)
+    html = render_report(doc)
+    assert 'id="coherence"' in html and 'href="#coherence"' in html
+    assert html.count('class="matrix"') == 1
+    # the coherent pairs drawn on log-frequency axes: gyro_x-accel_y and the accelerometers'
+    assert "coherence gyro_x - accel_y" in html
+    assert "coherence accel_x - accel_y" in html
+    assert "environment or sensor" in html.lower()
+    assert html.count("Own noise: the other channels") == 4
+    assert "raw and own Allan deviation" in html
