@@ -16,9 +16,11 @@ from imunoise.analysis.coherence import DEFAULT_ALPHA, cross_spectra, log_cohere
 from imunoise.analysis.environment import (
     SpectralFeature,
     annotate,
+    channel_device,
     classify,
     features_from_diagnosis,
 )
+from imunoise.analysis.hat import sensors_document
 from imunoise.analysis.subtraction import Subtraction, subtract_common
 
 MAX_LINES_PER_CHANNEL = 5
@@ -68,6 +70,10 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
         only: classify (and subtract) these channels only (default: every channel); the
             others still serve as partners and references.
 
+    Channels of several devices with one name (``imu1/gyro_x``, ``imu2/gyro_x``) also give
+    ``sensors``: the three-cornered hat of three, the two-sensor bounds of two
+    (:func:`imunoise.analysis.hat.sensors_document`).
+
     Returns:
         ``(document, residuals)``: the JSON-ready ``coherence`` document and, with
         ``subtract``, each channel's :class:`~imunoise.analysis.subtraction.Subtraction`.
@@ -97,6 +103,12 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
                   for c, v in suggestions.items()}, origins)
     doc = co.to_dict()
     doc["classification"] = [o.to_dict() for o in origins]
+    shared = [c for c in names if channel_device(c)]
+    bases = [c[len(channel_device(c)) + 1:] for c in shared]
+    if any(bases.count(b) >= 2 for b in bases):
+        # several sensors of one kind on the bench: the hat (three) or the bounds (two)
+        doc["sensors"] = sensors_document({c: x[:, names.index(c)] for c in shared}, fs_hz,
+                                          segment_starts=segment_starts, ci=ci)
     residuals: dict[str, Subtraction] = {}
     if subtract:
         for c in chosen:

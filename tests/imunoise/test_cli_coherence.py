@@ -131,3 +131,44 @@ def test_report_shows_the_coherence_matrix_pairs_and_own_noise(bench_csv):
     assert "environment or sensor" in html.lower()
     assert html.count("Own noise: the other channels") == 4
     assert "raw and own Allan deviation" in html
+
+
+def test_three_sensors_on_one_bench_common_line_and_the_hat(tmp_path):
+    """Three simulated sensors recorded into one MCAP (a topic each) under a shared bench
+    vibration: the common resonance is named as seen by more than one sensor, and the hat
+    gives each one's own white level with an interval."""
+    from imunoise.analysis.noise_stream import simulate
+    from imunoise.core.blocks import SampleBlock
+    from tests.mcap_helpers import record_blocks
+
+    n, size, fs = 60000, 500, 100.0
+    rng = np.random.default_rng(3)
+    common = simulate([("white", {"N": 3e-3}), ("resonance", {"sigma": 0.02, "f0": 2.0,
+                                                               "Q": 5.0})], n, fs, rng)
+    own_n = [1e-3, 2e-3, 0.5e-3]
+    sensors = []
+    for v in own_n:  # a full IMU message per sample: the other axes own noise only
+        ch = {c: simulate([("white", {"N": 1e-3})], n, fs, rng) for c in NAMES}
+        ch["gyro_x"] = common + simulate([("white", {"N": v})], n, fs, rng)
+        ch["accel_z"] -= 9.80665
+        sensors.append(ch)
+    blocks = [SampleBlock(f"/imu{i + 1}/imu", 1.7e9 + np.arange(a, a + size) / fs,
+                          {c: v[a:a + size] for c, v in ch.items()}, fs)
+              for a in range(0, n, size) for i, ch in enumerate(sensors)]
+    out = tmp_path / "bench"
+    out.mkdir()
+    record_blocks(out, blocks)
+    (path,) = out.glob("*.mcap")
+    keys = [f"/imu{i}/imu:gyro_x" for i in (1, 2, 3)]
+    proc = _run("analyze", path, "--json", *[a for k in keys for a in ("--channel", k)])
+    assert proc.returncode == 0, proc.stderr
+    co = json.loads(proc.stdout)["coherence"]
+    assert co["channels"] == keys
+    lines = [c for c in co["classification"] if abs(c["f_hz"] - 2.0) < 0.3]
+    assert lines and all(c["origin"] == "common" for c in lines)
+    assert all("more than one sensor" in c["reading"] for c in lines)
+    levels = co["sensors"]["gyro_x"]["white_level"]
+    covered = [levels[k]["ci"][0] <= v <= levels[k]["ci"][1]
+               for k, v in zip(keys, own_n, strict=True)]
+    # 95 % intervals: at most one of three misses with probability 0.993
+    assert sum(covered) >= 2, levels
