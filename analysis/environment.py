@@ -8,10 +8,15 @@ module takes several channels' diagnoses and the record's cross-spectra
 - ``common``: coherent with at least one other channel beyond the zero-coherence test's
   threshold (level ``alpha``, Sidak over the channels tried) *and* with the lower bound of the
   coherence interval above one half: most of the feature's power in this channel is explained
-  linearly by the other channel. The environment (motion of the bench, a pump, the air
+  linearly by the other channel. For a line standing at least twice above its channel's floor
+  (the running median of the PSD around it) the floor's share of the bin is taken out first:
+  the coherence times ``S_ii/(S_ii - floor_i) S_jj/(S_jj - floor_j)`` is the share of the
+  line's own power that is common (the floors treated as known), so a weak common line is not
+  called own because its bin also holds noise. The environment (motion of the bench, a pump, the air
   conditioning) or an electronic source the channels share.
-- ``own``: the upper bound of every pair's interval lies below one half: most of the feature's
-  power is the channel's own (a small coherent part may still be significant; it is stated).
+- ``own``: the upper bound of every pair's interval (as a share of the line's power) lies below
+  one half: most of the feature's power is the channel's own (a small coherent part may still
+  be significant; it is stated).
 - ``mixed``: neither (an interval straddles one half).
 
 A line is judged at the Welch bin where the channel's PSD peaks within 1.5 bins of its
@@ -60,6 +65,10 @@ MAJORITY = 0.5
 """Coherence above which most of a feature's power is shared (the common/own boundary)."""
 
 LINE_TERMS = ("sinusoid", "resonance")
+
+LINE_OVER_FLOOR = 2.0
+"""A line this many times above its channel's floor is judged on its own power (the floor's
+share of the bin taken out of the coherence); weaker, on the bin's coherence as it is."""
 _FLOOR_BINS = 24  # bins either side whose median PSD is a line's floor
 _TILT_ANGLE_DEG = 70.0  # a tilt's change lies at 90 deg from gravity; this far off still counts
 
@@ -145,14 +154,30 @@ class Partner:
     ci_low: float
     ci_high: float
     threshold: float
+    gain: float = 1.0
+    """``S / (S - floor)`` of the two channels at a line (1 for a band): the coherence times it
+    is the share of the line's power, above the channels' floors, that is common."""
 
     @property
     def coherent(self) -> bool:
         return self.msc > self.threshold
 
+    @property
+    def share(self) -> float:
+        return min(self.msc * self.gain, 1.0)
+
+    @property
+    def share_low(self) -> float:
+        return min(self.ci_low * self.gain, 1.0)
+
+    @property
+    def share_high(self) -> float:
+        return min(self.ci_high * self.gain, 1.0)
+
     def to_dict(self) -> dict[str, Any]:
         return {"channel": self.channel, "msc": self.msc, "ci": [self.ci_low, self.ci_high],
-                "threshold": self.threshold, "coherent": self.coherent}
+                "threshold": self.threshold, "coherent": self.coherent,
+                "line_share": self.share, "line_share_ci": [self.share_low, self.share_high]}
 
 
 @dataclass
@@ -188,9 +213,15 @@ class Origin:
         f = self.feature
         top = self.partners[0] if self.partners else None
         what = "line" if f.term == "sinusoid" else "resonance"
+
+        def coh(p: Partner) -> str:
+            text = f"{p.channel} {p.msc:.2f} [{p.ci_low:.2f}, {p.ci_high:.2f}]"
+            if p.gain > 1.02:  # a weak line: say how much of the line itself is shared
+                text += f" ({p.share_low:.2f} to {p.share_high:.2f} of the line's own power)"
+            return text
+
         if self.origin == "common":
-            pairs = ", ".join(f"{p.channel} {p.msc:.2f} [{p.ci_low:.2f}, {p.ci_high:.2f}]"
-                              for p in self.partners if p.channel in self.common_with)
+            pairs = ", ".join(coh(p) for p in self.partners if p.channel in self.common_with)
             return (f"Common, not {f.channel}'s own: the {what} at {f.f_hz:.4g} Hz is coherent "
                     f"with {pairs} (magnitude-squared coherence, {self.ci:.0%} interval; "
                     f"zero-coherence threshold {top.threshold:.2g}). {self.reading}").strip()
@@ -199,15 +230,13 @@ class Origin:
         coherent = [p for p in self.partners if p.coherent]
         if self.origin == "own":
             text = (f"Own to {f.channel}: the {what} at {f.f_hz:.4g} Hz is not shared; its "
-                    f"highest coherence is with {top.channel}, {top.msc:.2f} [{top.ci_low:.2f}, "
-                    f"{top.ci_high:.2f}]")
+                    f"highest coherence is with {coh(top)}")
             if coherent:
-                text += (f" (a significant common part of at most {top.ci_high:.0%} of its "
+                text += (f" (a significant common part of at most {top.share_high:.0%} of its "
                          f"power)")
             return text + "."
-        return (f"Partly common: the {what} at {f.f_hz:.4g} Hz has coherence {top.msc:.2f} "
-                f"[{top.ci_low:.2f}, {top.ci_high:.2f}] with {top.channel}; neither mostly "
-                f"shared nor mostly {f.channel}'s own.")
+        return (f"Partly common: the {what} at {f.f_hz:.4g} Hz has coherence {coh(top)}; "
+                f"neither mostly shared nor mostly {f.channel}'s own.")
 
     def to_dict(self) -> dict[str, Any]:
         f = self.feature
@@ -252,17 +281,17 @@ def channel_device(name: str) -> str:
     return _split(name)[0]
 
 
-def _feature_matrix(cs: CrossSpectra, feat: SpectralFeature) -> tuple[np.ndarray, float, float,
-                                                                      np.ndarray]:
+def _feature_matrix(cs: CrossSpectra, feat: SpectralFeature
+                    ) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
     """``(matrix at the judged bin or band, n, frequency judged, matrix summed over the
-    feature's power in units^2)``."""
+    feature's power in units^2, each channel's PSD floor under a line (zeros for a band))``."""
     i = cs.index(feat.channel)
     df = cs.df_hz
     if feat.term == "resonance" and feat.band_hz[1] > feat.band_hz[0]:
         s, n = cs.band(*feat.band_hz)
         sel = (cs.f_hz >= feat.band_hz[0]) & (cs.f_hz <= feat.band_hz[1])
         power = cs.s[sel].sum(axis=0) * df if np.any(sel) else s * df
-        return s, n, 0.5 * (feat.band_hz[0] + feat.band_hz[1]), power
+        return s, n, 0.5 * (feat.band_hz[0] + feat.band_hz[1]), power, np.zeros(len(cs.channels))
     near = np.flatnonzero(np.abs(cs.f_hz - feat.f_hz) <= 1.5 * df)
     if near.size == 0:
         near = np.array([int(np.argmin(np.abs(cs.f_hz - feat.f_hz)))])
@@ -272,11 +301,12 @@ def _feature_matrix(cs: CrossSpectra, feat: SpectralFeature) -> tuple[np.ndarray
     # each channel's own floor under the lobe (median of the neighbouring bins) is not the
     # line's: off the diagonal independent floors average out, on it they are removed
     side = np.r_[max(k - _FLOOR_BINS, 0):max(k - 3, 0), k + 3:min(k + _FLOOR_BINS, cs.f_hz.size)]
+    floor = np.zeros(len(cs.channels))
     if side.size:
         floor = np.median(np.real(np.diagonal(cs.s[side], axis1=1, axis2=2)), axis=0)
         width = (lobe.stop - lobe.start) * df
         power = power - np.diag(np.minimum(floor * width, 0.999 * np.diag(power).real))
-    return cs.s[k], cs.n_avg, float(cs.f_hz[k]), power
+    return cs.s[k], cs.n_avg, float(cs.f_hz[k]), power, floor
 
 
 def _principal(m: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -381,6 +411,15 @@ def _reading(cs: CrossSpectra, feat: SpectralFeature, group: list[str], power: n
     return text.strip(), motion
 
 
+def _line_gain(psd: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """Per channel, ``S / (S - floor)`` where the line stands at least
+    :data:`LINE_OVER_FLOOR` times above the floor, else 1: the coherence at the bin times it
+    is the share of the line's own power (above the floor) that is shared."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = psd / (psd - floor)
+    return np.where((floor > 0) & (psd >= LINE_OVER_FLOOR * floor), g, 1.0)
+
+
 def classify(features: list[SpectralFeature], cs: CrossSpectra, *,
              means: dict[str, float] | None = None, alpha: float = DEFAULT_ALPHA,
              ci: float = 0.95, majority: float = MAJORITY) -> list[Origin]:
@@ -399,7 +438,7 @@ def classify(features: list[SpectralFeature], cs: CrossSpectra, *,
     for feat in features:
         if feat.channel not in cs.channels:
             continue
-        s, n, f_eval, power = _feature_matrix(cs, feat)
+        s, n, f_eval, power, floor = _feature_matrix(cs, feat)
         i = cs.index(feat.channel)
         others = [c for c in cs.channels if c != feat.channel]
         thr = float(msc_threshold(n, alpha, n_tests=max(len(others), 1)))
@@ -407,13 +446,15 @@ def classify(features: list[SpectralFeature], cs: CrossSpectra, *,
                                    s[cs.index(c), cs.index(c)].real)) for c in others])
         lo, hi = msc_interval(msc, np.full(msc.shape, n), ci) if others \
             else (np.empty(0), np.empty(0))
-        partners = sorted((Partner(c, float(m), float(a), float(b), thr)
+        gain = _line_gain(np.real(np.diagonal(s)), floor)
+        partners = sorted((Partner(c, float(m), float(a), float(b), thr,
+                                   float(gain[i] * gain[cs.index(c)]))
                            for c, m, a, b in zip(others, msc, lo, hi, strict=True)),
-                          key=lambda p: -p.msc)
-        common_with = [p.channel for p in partners if p.coherent and p.ci_low > majority]
+                          key=lambda p: -p.share)
+        common_with = [p.channel for p in partners if p.coherent and p.share_low > majority]
         if common_with:
             origin = "common"
-        elif all(p.ci_high < majority for p in partners):
+        elif all(p.share_high < majority for p in partners):
             origin = "own"
         else:
             origin = "mixed"
