@@ -112,7 +112,11 @@ def run(args: argparse.Namespace) -> int:
             write_text_atomically(args.report, render_report(doc))
             print(f"wrote {args.report}", file=sys.stderr)
     if args.json:
-        sys.stdout.write(documents.dumps(channel_extras.without_report_extras(doc)) + "\n")
+        out = channel_extras.without_report_extras(doc)
+        for ch in out["channels"].values():  # the own noise's diagnosis is the report's too
+            if "own" in ch:
+                ch["own"] = {k: v for k, v in ch["own"].items() if k != "suggestions"}
+        sys.stdout.write(documents.dumps(out) + "\n")
     else:
         if coherence is None and not streamed:
             coherence, residuals = cross_channel.coherence_document(
@@ -163,7 +167,7 @@ def _document(args: argparse.Namespace, record: Record, results: list, streamed:
     if coherence is not None:
         doc["coherence"] = coherence
     if residuals:
-        cross_channel.add_own(doc, record, residuals)
+        cross_channel.add_own(doc, record, residuals, diagnose=bool(args.report))
     return doc, coherence, residuals
 
 

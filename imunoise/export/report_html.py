@@ -321,6 +321,9 @@ def _own_block(name: str, ch: Mapping, units: str, kind: str) -> str:
         p.band(own_a["tau_s"], own_a["ci_low"], own_a["ci_high"], label="own 95 %")
         p.line(own_a["tau_s"], own_a["adev"], label="own (common part removed)")
         out.append(f'<div class="plots">{p.svg()}</div>')
+    if own.get("suggestions") is not None:
+        out.append(_diagnosis_block(own).replace("<h3>Diagnosis</h3>",
+                                                 "<h3>Diagnosis of the own noise</h3>", 1))
     return "\n".join(out)
 
 

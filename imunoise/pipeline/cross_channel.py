@@ -143,11 +143,31 @@ def own_channel_json(record: Record, key: str, sub: Any) -> dict[str, Any]:
     return doc
 
 
-def add_own(doc: dict[str, Any], record: Record, residuals: dict[str, Any]) -> None:
-    """Put each channel's own-noise document under ``channels[key]["own"]``."""
+def add_own(doc: dict[str, Any], record: Record, residuals: dict[str, Any],
+            diagnose: bool = False) -> None:
+    """Put each channel's own-noise document under ``channels[key]["own"]``; with
+    ``diagnose`` (the report) also the diagnosis of the residual under its ``suggestions``."""
     for key, sub in residuals.items():
-        if key in doc.get("channels", {}):
-            doc["channels"][key]["own"] = own_channel_json(record, key, sub)
+        if key not in doc.get("channels", {}):
+            continue
+        own = own_channel_json(record, key, sub)
+        if diagnose and own.get("model"):
+            own["suggestions"] = _own_suggestions(record, key, sub.residual)
+        doc["channels"][key]["own"] = own
+
+
+def _own_suggestions(record: Record, key: str, residual: np.ndarray) -> list[dict[str, Any]]:
+    """The diagnosis of a channel's residual for the default model (as the raw channel's)."""
+    from imunoise.analysis.default_model import DEFAULT_MODEL
+    from imunoise.analysis.diagnosis import diagnose
+
+    raw = record.series(key)
+    try:
+        dx = diagnose(residual, raw.fs_hz, list(DEFAULT_MODEL),
+                      segment_starts=raw.segment_starts, t0_s=raw.t0_s, units=raw.units)
+    except ValueError:
+        return []
+    return [s.to_dict() for s in dx.suggestions]
 
 
 def coherence_lines(co: dict[str, Any] | None) -> list[str]:

@@ -172,3 +172,32 @@ def test_three_sensors_on_one_bench_common_line_and_the_hat(tmp_path):
                for k, v in zip(keys, own_n, strict=True)]
     # 95 % intervals: at most one of three misses with probability 0.993
     assert sum(covered) >= 2, levels
+
+
+def test_report_has_the_own_noise_diagnosis(bench_csv):
+    from imunoise.export.report_html import render_report
+    from imunoise.pipeline import cross_channel
+    from imunoise.pipeline.channel_analysis import analyze_record
+    from imunoise.pipeline.documents import analysis_json
+    from imunoise.pipeline.reading import read_record
+
+    record = read_record(str(bench_csv), static="all")
+    keys = ["gyro_x", "accel_x", "accel_y", "accel_z"]
+    doc = analysis_json(str(bench_csv), record, analyze_record(record, keys))
+    co, residuals = cross_channel.coherence_document(record, keys, subtract=True,
+                                                     only=["accel_y"])
+    assert list(residuals) == ["accel_y"]
+    doc["coherence"] = co
+    cross_channel.add_own(doc, record, residuals, diagnose=True)
+    own = doc["channels"]["accel_y"]["own"]
+    # the bench line (0.56 Hz) and the rocking (1.5 Hz) are gone from the residual
+    lines = [s["params"]["f"] for s in own["suggestions"]
+             if s["term"] == "sinusoid" and s["significant"]]
+    assert not any(abs(f - 0.56) < 0.05 or abs(f - 1.5) < 0.05 for f in lines), lines
+    # the diagnosis is of the residual: its starting misfit is the own fit's, far below the raw
+    raw_chi2 = doc["channels"]["accel_y"]["error"]["chi2_per_dof"]
+    assert own["suggestions"][0]["chi2_per_dof_before"] == pytest.approx(
+        own["error"]["chi2_per_dof"], rel=1e-6)
+    assert own["error"]["chi2_per_dof"] < raw_chi2 / 10
+    html = render_report(doc)
+    assert html.count("Diagnosis of the own noise") == 1
