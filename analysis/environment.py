@@ -8,12 +8,14 @@ module takes several channels' diagnoses and the record's cross-spectra
 - ``common``: coherent with at least one other channel beyond the zero-coherence test's
   threshold (level ``alpha``, Sidak over the channels tried) *and* with the lower bound of the
   coherence interval above one half: most of the feature's power in this channel is explained
-  linearly by the other channel. For a line standing at least twice above its channel's floor
-  (the running median of the PSD around it) the floor's share of the bin is taken out first:
-  the coherence times ``S_ii/(S_ii - floor_i) S_jj/(S_jj - floor_j)`` is the share of the
-  line's own power that is common (the floors treated as known), so a weak common line is not
-  called own because its bin also holds noise. The environment (motion of the bench, a pump, the air
-  conditioning) or an electronic source the channels share.
+  linearly by the other channel: the environment (motion of the bench, a pump, the air
+  conditioning) or an electronic source the channels share. For a line standing at least 1.2
+  times above its channel's floor (the median PSD of the 42 bins around it) the continuum is
+  taken out first: the share of the line's own power that the other channel explains is
+  ``(C S_ii - E) / (S_ii - floor_i)``, ``E`` the median of what the other channel explains
+  (``|S_ij|^2 / S_jj``) in those bins, the continuum taken as known. A weak common line is then
+  not called own because its bin also holds noise, nor a weak own line common because the
+  continuum under it is (several sensors sharing broadband bench noise).
 - ``own``: the upper bound of every pair's interval (as a share of the line's power) lies below
   one half: most of the feature's power is the channel's own (a small coherent part may still
   be significant; it is stated).
@@ -66,9 +68,10 @@ MAJORITY = 0.5
 
 LINE_TERMS = ("sinusoid", "resonance")
 
-LINE_OVER_FLOOR = 2.0
-"""A line this many times above its channel's floor is judged on its own power (the floor's
-share of the bin taken out of the coherence); weaker, on the bin's coherence as it is."""
+LINE_OVER_FLOOR = 1.2
+"""A line this many times above its channel's floor is judged on its own power (what the
+other channel explains of the continuum around it taken out); weaker, on the bin's
+coherence as it is."""
 _FLOOR_BINS = 24  # bins either side whose median PSD is a line's floor
 _TILT_ANGLE_DEG = 70.0  # a tilt's change lies at 90 deg from gravity; this far off still counts
 
@@ -154,9 +157,10 @@ class Partner:
     ci_low: float
     ci_high: float
     threshold: float
-    gain: float = 1.0
-    """``S / (S - floor)`` of the two channels at a line (1 for a band): the coherence times it
-    is the share of the line's power, above the channels' floors, that is common."""
+    line_share: tuple[float, float, float] | None = None
+    """At a line standing out of its floor: ``(share, low, high)`` of the line's own power
+    (above the local continuum) that this channel explains (above what it explains of the
+    continuum); None where the coherence itself is the measure (a band, a weak line)."""
 
     @property
     def coherent(self) -> bool:
@@ -164,15 +168,15 @@ class Partner:
 
     @property
     def share(self) -> float:
-        return min(self.msc * self.gain, 1.0)
+        return self.msc if self.line_share is None else self.line_share[0]
 
     @property
     def share_low(self) -> float:
-        return min(self.ci_low * self.gain, 1.0)
+        return self.ci_low if self.line_share is None else self.line_share[1]
 
     @property
     def share_high(self) -> float:
-        return min(self.ci_high * self.gain, 1.0)
+        return self.ci_high if self.line_share is None else self.line_share[2]
 
     def to_dict(self) -> dict[str, Any]:
         return {"channel": self.channel, "msc": self.msc, "ci": [self.ci_low, self.ci_high],
@@ -216,7 +220,7 @@ class Origin:
 
         def coh(p: Partner) -> str:
             text = f"{p.channel} {p.msc:.2f} [{p.ci_low:.2f}, {p.ci_high:.2f}]"
-            if p.gain > 1.02:  # a weak line: say how much of the line itself is shared
+            if p.line_share is not None:  # the line's own power, not the bin's
                 text += f" ({p.share_low:.2f} to {p.share_high:.2f} of the line's own power)"
             return text
 
@@ -282,16 +286,17 @@ def channel_device(name: str) -> str:
 
 
 def _feature_matrix(cs: CrossSpectra, feat: SpectralFeature
-                    ) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
+                    ) -> tuple[np.ndarray, float, float, np.ndarray, Any]:
     """``(matrix at the judged bin or band, n, frequency judged, matrix summed over the
-    feature's power in units^2, each channel's PSD floor under a line (zeros for a band))``."""
+    feature's power in units^2, (each channel's PSD floor, the neighbouring bins it comes
+    from) under a line or None for a band)``."""
     i = cs.index(feat.channel)
     df = cs.df_hz
     if feat.term == "resonance" and feat.band_hz[1] > feat.band_hz[0]:
         s, n = cs.band(*feat.band_hz)
         sel = (cs.f_hz >= feat.band_hz[0]) & (cs.f_hz <= feat.band_hz[1])
         power = cs.s[sel].sum(axis=0) * df if np.any(sel) else s * df
-        return s, n, 0.5 * (feat.band_hz[0] + feat.band_hz[1]), power, np.zeros(len(cs.channels))
+        return s, n, 0.5 * (feat.band_hz[0] + feat.band_hz[1]), power, None
     near = np.flatnonzero(np.abs(cs.f_hz - feat.f_hz) <= 1.5 * df)
     if near.size == 0:
         near = np.array([int(np.argmin(np.abs(cs.f_hz - feat.f_hz)))])
@@ -306,7 +311,7 @@ def _feature_matrix(cs: CrossSpectra, feat: SpectralFeature
         floor = np.median(np.real(np.diagonal(cs.s[side], axis1=1, axis2=2)), axis=0)
         width = (lobe.stop - lobe.start) * df
         power = power - np.diag(np.minimum(floor * width, 0.999 * np.diag(power).real))
-    return cs.s[k], cs.n_avg, float(cs.f_hz[k]), power, floor
+    return cs.s[k], cs.n_avg, float(cs.f_hz[k]), power, (floor, side)
 
 
 def _principal(m: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -411,13 +416,29 @@ def _reading(cs: CrossSpectra, feat: SpectralFeature, group: list[str], power: n
     return text.strip(), motion
 
 
-def _line_gain(psd: np.ndarray, floor: np.ndarray) -> np.ndarray:
-    """Per channel, ``S / (S - floor)`` where the line stands at least
-    :data:`LINE_OVER_FLOOR` times above the floor, else 1: the coherence at the bin times it
-    is the share of the line's own power (above the floor) that is shared."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g = psd / (psd - floor)
-    return np.where((floor > 0) & (psd >= LINE_OVER_FLOOR * floor), g, 1.0)
+def _line_shares(cs: CrossSpectra, i: int, s: np.ndarray, floor_side: Any,
+                 msc: np.ndarray, lo: np.ndarray, hi: np.ndarray, others: list[str]
+                 ) -> list[tuple[float, float, float] | None]:
+    """Per partner, the share of the line's own power it explains (see :class:`Partner`):
+    ``(C S_ii - E_j) / (S_ii - floor_i)`` with ``E_j`` the median over the neighbouring bins of
+    what the partner explains there, ``|S_ij|^2 / S_jj``; None unless the line stands
+    :data:`LINE_OVER_FLOOR` times above the floor. The bounds map the coherence's interval the
+    same way (the continuum taken as known)."""
+    if floor_side is None:
+        return [None] * len(others)
+    floor, side = floor_side
+    sii = float(s[i, i].real)
+    if side.size == 0 or not sii >= LINE_OVER_FLOOR * floor[i] > 0:
+        return [None] * len(others)
+    excess = sii - float(floor[i])
+    out: list[tuple[float, float, float] | None] = []
+    for c, m, a, b in zip(others, msc, lo, hi, strict=True):
+        j = cs.index(c)
+        around = float(np.median(_msc(cs.s[side, i, j], cs.s[side, i, i].real,
+                                      cs.s[side, j, j].real) * cs.s[side, i, i].real))
+        out.append(tuple(float(np.clip((v * sii - around) / excess, 0.0, 1.0))
+                         for v in (m, a, b)))
+    return out
 
 
 def classify(features: list[SpectralFeature], cs: CrossSpectra, *,
@@ -438,7 +459,7 @@ def classify(features: list[SpectralFeature], cs: CrossSpectra, *,
     for feat in features:
         if feat.channel not in cs.channels:
             continue
-        s, n, f_eval, power, floor = _feature_matrix(cs, feat)
+        s, n, f_eval, power, floor = _feature_matrix(cs, feat)  # floor: (PSD floors, bins)
         i = cs.index(feat.channel)
         others = [c for c in cs.channels if c != feat.channel]
         thr = float(msc_threshold(n, alpha, n_tests=max(len(others), 1)))
@@ -446,10 +467,9 @@ def classify(features: list[SpectralFeature], cs: CrossSpectra, *,
                                    s[cs.index(c), cs.index(c)].real)) for c in others])
         lo, hi = msc_interval(msc, np.full(msc.shape, n), ci) if others \
             else (np.empty(0), np.empty(0))
-        gain = _line_gain(np.real(np.diagonal(s)), floor)
-        partners = sorted((Partner(c, float(m), float(a), float(b), thr,
-                                   float(gain[i] * gain[cs.index(c)]))
-                           for c, m, a, b in zip(others, msc, lo, hi, strict=True)),
+        shares = _line_shares(cs, i, s, floor, msc, lo, hi, others)
+        partners = sorted((Partner(c, float(m), float(a), float(b), thr, sh)
+                           for c, m, a, b, sh in zip(others, msc, lo, hi, shares, strict=True)),
                           key=lambda p: -p.share)
         common_with = [p.channel for p in partners if p.coherent and p.share_low > majority]
         if common_with:

@@ -135,8 +135,8 @@ def test_report_shows_the_coherence_matrix_pairs_and_own_noise(bench_csv):
 
 def test_three_sensors_on_one_bench_common_line_and_the_hat(tmp_path):
     """Three simulated sensors recorded into one MCAP (a topic each) under a shared bench
-    vibration: the common resonance is named as seen by more than one sensor, and the hat
-    gives each one's own white level with an interval."""
+    vibration: the common resonance is named as seen by more than one sensor, a line of one
+    sensor alone as its own, and the hat gives each one's own white level with an interval."""
     from imunoise.analysis.noise_stream import simulate
     from imunoise.core.blocks import SampleBlock
     from tests.mcap_helpers import record_blocks
@@ -152,6 +152,10 @@ def test_three_sensors_on_one_bench_common_line_and_the_hat(tmp_path):
         ch["gyro_x"] = common + simulate([("white", {"N": v})], n, fs, rng)
         ch["accel_z"] -= 9.80665
         sensors.append(ch)
+    # a line of sensor 2 alone, standing out of the shared broadband bench noise in the
+    # coherence's 0.2 Hz bins (at 2e-3 it stands 1.14 times above that continuum, and its bin
+    # is judged as it is: half common, "mixed")
+    sensors[1]["gyro_x"] += 5e-3 * np.sin(2 * np.pi * 7.3 * np.arange(n) / fs)
     blocks = [SampleBlock(f"/imu{i + 1}/imu", 1.7e9 + np.arange(a, a + size) / fs,
                           {c: v[a:a + size] for c, v in ch.items()}, fs)
               for a in range(0, n, size) for i, ch in enumerate(sensors)]
@@ -167,6 +171,9 @@ def test_three_sensors_on_one_bench_common_line_and_the_hat(tmp_path):
     lines = [c for c in co["classification"] if abs(c["f_hz"] - 2.0) < 0.3]
     assert lines and all(c["origin"] == "common" for c in lines)
     assert all("more than one sensor" in c["reading"] for c in lines)
+    own = [c for c in co["classification"] if abs(c["f_hz"] - 7.3) < 0.05]
+    assert [c["channel"] for c in own] == ["/imu2/imu:gyro_x"]
+    assert own[0]["origin"] == "own" and own[0]["why"].startswith("Own to /imu2/imu:gyro_x")
     levels = co["sensors"]["gyro_x"]["white_level"]
     covered = [levels[k]["ci"][0] <= v <= levels[k]["ci"][1]
                for k, v in zip(keys, own_n, strict=True)]
