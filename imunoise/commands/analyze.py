@@ -90,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
         check_output_folder(args.report)
     src = streamed_analysis.stream_source(args.file, getattr(args, "stream", "auto"))
     streamed = src is not None
+    subtract = bool(getattr(args, "subtract_common", False))
+    if subtract and streamed:
+        raise UsageError("--subtract-common needs the samples in memory: add --stream never")
     if streamed:
         record, results = streamed_analysis.analyze_streamed(args.file, args.channel, args.rate,
                                                              args.static, src=src)
@@ -97,9 +100,6 @@ def run(args: argparse.Namespace) -> int:
         record = _read(args.file, args.rate, args.static)
         keys = select(record, args.channel)
         results = analyze_record(record, keys)
-    subtract = bool(getattr(args, "subtract_common", False))
-    if subtract and streamed:
-        raise UsageError("--subtract-common needs the samples in memory: add --stream never")
     coherence = residuals = None
     if args.json or args.report:
         from imunoise.pipeline import channel_extras, documents
