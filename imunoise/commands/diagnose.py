@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         doc = diagnosis_json(record, key, diag)
         if coherence is not None:
             doc["coherence"] = coherence
+            cross_channel.mark_origins(doc["suggestions"], coherence, key)
         sys.stdout.write(documents.dumps(doc) + "\n")
     else:
         for w in record.warnings:

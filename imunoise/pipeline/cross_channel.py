@@ -53,6 +53,20 @@ def channel_coherence(record: Record, key: str, diagnosis: Any, group: list[str]
     return doc
 
 
+def mark_origins(suggestions: list[dict[str, Any]], coherence: dict[str, Any] | None,
+                 channel: str) -> None:
+    """Give each line or resonance suggestion document of ``channel`` the ``origin`` its
+    classification found (``common``, ``own`` or ``mixed``)."""
+    found = [c for c in (coherence or {}).get("classification", []) if c["channel"] == channel]
+    for sug in suggestions:
+        key = {"sinusoid": "f", "resonance": "f0"}.get(sug.get("term"))
+        f = (sug.get("params") or {}).get(key) if key else None
+        for c in found:
+            if f is not None and c["term"] == sug["term"] \
+                    and abs(c["f_hz"] - f) <= 1e-3 * f + 1e-9:
+                sug["origin"] = c["origin"]
+
+
 def temperature_on(record: Record, series: ChannelSeries) -> np.ndarray | None:
     """The temperature interpolated onto the samples of ``series`` (nominal times), or None
     when the record has none or it does not cover the series."""

@@ -97,7 +97,7 @@ def test_diagnose_says_common_or_own(bench_csv):
     own = [c for c in doc["coherence"]["classification"] if round(c["f_hz"], 1) == 3.3]
     assert own and own[0]["origin"] == "own"
     line = [s for s in doc["suggestions"] if s["term"] == "sinusoid"]
-    assert line and "Own to accel_z" in line[0]["why"]
+    assert line and "Own to accel_z" in line[0]["why"] and line[0]["origin"] == "own"
 
 
 def test_subtract_common_on_a_streamed_file_is_a_usage_error(tmp_path):
