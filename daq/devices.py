@@ -195,3 +195,41 @@ _BUILDERS: dict[str, Callable[..., Acquisition]] = {
     "adxl345": lambda **kw: _i2c(which="adxl345", **kw),
     "razor": lambda **kw: _i2c(which="razor", **kw),
 }
+
+
+def open_devices(specs: list[str], *, ports: list[str] | tuple = (), buses: list[int] | tuple = (),
+                 rate_hz: float | None = None, seed: int | None = None,
+                 bench: object | None = None, realtime: bool = True,
+                 port_option: str = "--port", **options: object):
+    """A :class:`imunoise.daq.device_group.DeviceGroup` of ``specs`` on one clock, not yet
+    opened: ports and buses paired, topics named and seeds drawn as
+    :mod:`imunoise.daq.device_group` says; ``bench`` (a :class:`imunoise.daq.sim.bench.Bench`)
+    is shared by the simulated ones, each at its place in the group.
+
+    Raises:
+        ValueError: an unknown spec, or ports and buses that do not pair.
+    """
+    from imunoise.daq.device_group import DeviceGroup, member_seed, pair_devices
+    from imunoise.daq.sim.bench import BenchPlacement
+
+    for spec in specs:
+        if spec not in DEVICES:
+            raise ValueError(f"unknown device {spec!r}: choose one of {valid_devices()}")
+    members = pair_devices(specs, ports, buses, port_option)
+    clock = RealClock() if realtime else VirtualClock()
+    epoch = clock.now()
+    opened: list[tuple[str, Acquisition]] = []
+    try:
+        for m in members:
+            kw = dict(options)
+            if bench is not None and m.simulated:
+                kw["bench"] = BenchPlacement(bench, m.position, seed=0 if seed is None
+                                             else int(seed), epoch=epoch)
+            opened.append((m.name, open_device(m.spec, port=m.port, bus=m.bus, rate_hz=rate_hz,
+                                               seed=member_seed(seed, m.position), clock=clock,
+                                               **kw)))
+    except Exception:
+        for _, acq in opened:
+            acq.close()
+        raise
+    return DeviceGroup(opened, specs)
