@@ -145,6 +145,17 @@ class Bench:
 
 _TILT_AXIS = (math.cos(math.radians(30.0)), math.sin(math.radians(30.0)), 0.0)
 
+LAB_MOUNTS = (
+    Mount(rotation_deg=(0.2, -0.3, 0.0), gyro_scale=(1.002, 0.998, 1.001),
+          accel_scale=(1.001, 0.999, 1.0)),
+    Mount(rotation_deg=(-0.4, 0.1, 90.0), gyro_scale=(0.997, 1.003, 1.0),
+          accel_scale=(1.0, 1.002, 0.998), own_lines=(OwnLine("accel", 0, 7.7, 0.01),)),
+    Mount(rotation_deg=(0.1, 0.2, 180.0), gyro_scale=(1.0, 1.001, 0.999),
+          accel_scale=(0.999, 1.0, 1.001)),
+)
+"""Three places on a bench: nearly aligned; turned by 90 degrees with a 7.7 Hz line of its own
+on accel x (0.01 m/s^2); turned by 180 degrees."""
+
 BENCHES: dict[str, Bench] = {
     "lab": Bench(
         name="lab",
@@ -157,21 +168,23 @@ BENCHES: dict[str, Bench] = {
             Motion("translation", (0.0, 0.0, 1.0), line_hz=24.3, amplitude=0.02,
                    label="pump hum"),
         ),
-        mounts=(
-            Mount(rotation_deg=(0.2, -0.3, 0.0), gyro_scale=(1.002, 0.998, 1.001),
-                  accel_scale=(1.001, 0.999, 1.0)),
-            Mount(rotation_deg=(-0.4, 0.1, 90.0), gyro_scale=(0.997, 1.003, 1.0),
-                  accel_scale=(1.0, 1.002, 0.998),
-                  own_lines=(OwnLine("accel", 0, 7.7, 0.01),)),
-            Mount(rotation_deg=(0.1, 0.2, 180.0), gyro_scale=(1.0, 1.001, 0.999),
-                  accel_scale=(0.999, 1.0, 1.001)),
+        mounts=LAB_MOUNTS,
+    ),
+    "sway": Bench(
+        name="sway",
+        motions=(
+            Motion("rotation", _TILT_AXIS, line_hz=0.56, amplitude=2e-3, label="sway"),
+            Motion("translation", (0.0, 0.0, 1.0), line_hz=24.3, amplitude=0.05,
+                   label="pump hum"),
         ),
+        mounts=LAB_MOUNTS,
     ),
 }
-"""Named benches. ``lab``: a bench that sways at 0.56 Hz (5e-4 rad about a horizontal axis
-30 degrees from x), tilts a little with the floor (0.5-20 Hz), shakes with it (2-40 Hz, mostly
-vertical) and carries a pump's hum (24.3 Hz, vertical); its second place holds a sensor
-turned by 90 degrees with a 7.7 Hz line of its own on accel x, its third one turned by 180."""
+"""Named benches (``--bench NAME``). ``lab``: a bench that sways at 0.56 Hz (5e-4 rad about a
+horizontal axis 30 degrees from x), tilts a little with the floor (0.5-20 Hz), shakes with it
+(2-40 Hz, mostly vertical) and carries a pump's hum (24.3 Hz, vertical). ``sway``: a strong
+sway (2e-3 rad) and hum alone, seen in a minute of data (for short tests). Both place sensors
+on :data:`LAB_MOUNTS`."""
 
 
 def bench_named(name: str) -> Bench:
