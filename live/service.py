@@ -36,6 +36,8 @@ def _as_dict(obj: Any) -> dict[str, Any]:
         return {}
     if isinstance(obj, dict):
         return dict(obj)
+    if callable(getattr(obj, "as_dict", None)):  # counters that say how they read
+        return dict(obj.as_dict())
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return dataclasses.asdict(obj)
     return {k: v for k, v in vars(obj).items() if not k.startswith("_")}
