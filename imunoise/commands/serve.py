@@ -145,14 +145,16 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     return acq, info, True
 
 
-def raise_kernel_workers(args: argparse.Namespace, spec: str) -> bool:
+def raise_kernel_workers(args: argparse.Namespace, spec: str | list[str] | None) -> bool:
     """Whether serve holds the kernel's unbound workers at real-time priority: as asked, else
     for a serial device read at real-time priority, whose bytes those workers carry (serve
-    then already changes the machine's scheduling for its acquisition process)."""
+    then already changes the machine's scheduling for its acquisition process). ``spec``: the
+    device, or the devices read at once (any serial one counts)."""
     asked = getattr(args, "realtime_kernel_workers", None)
     if asked is not None:
         return bool(asked)
-    return (spec.removeprefix("sim:") in SERIAL_DEVICES
+    specs = [spec] if isinstance(spec, str) else list(spec or ["sim:adis16350"])
+    return (any(s.removeprefix("sim:") in SERIAL_DEVICES for s in specs)
             and getattr(args, "priority", "realtime") == "realtime")
 
 
@@ -302,7 +304,7 @@ def _open_group(args: argparse.Namespace, specs: list[str], bench: Any
     config = AcquisitionConfig(
         info["spec"], {}, out=args.out, record_rate_hz=None, software=SOFTWARE,
         priority=getattr(args, "priority", "realtime"),
-        realtime_kernel_workers=any(raise_kernel_workers(args, s) for s in specs),
+        realtime_kernel_workers=raise_kernel_workers(args, specs),
         members=config_members)
     if args.out:
         try:
