@@ -66,6 +66,16 @@ class AcquisitionConfig:
             name, open_device keyword arguments)`` of each, read by one
             :class:`imunoise.daq.device_group.DeviceGroup` and recorded into one file; ``spec``
             and ``device_kwargs`` are then not used.
+        member_processes: read each device of ``members`` in a process of its own
+            (:class:`DeviceProcess`: an acquisition process without a recorder, as for a
+            single device), this process merging their blocks into the recording and the
+            analysis; False (the default): each on a thread of this process. On this 2-core
+            host under a load average of 13 to 18 (other users), simulated ADIS16350 +
+            razor under ``serve``, two 2-minute runs each, interleaved: threads lost 35 and
+            25 ADIS16350 samples of 12,300 and 36 and 20 ITG-3200 samples of 24,100;
+            processes 72 and 61, and 31 and 30 (four more processes at real-time priority
+            on two cores wait for each other). With more cores than devices the processes
+            may win; measure with bench/multi.py.
     """
 
     spec: str
@@ -77,6 +87,7 @@ class AcquisitionConfig:
     simulator_process: bool = True
     realtime_kernel_workers: bool = False
     members: list[tuple[str, str, dict[str, Any]]] | None = None
+    member_processes: bool = False
 
 
 # ----------------------------------------------------------------------------- the child
@@ -141,15 +152,21 @@ class _SimulatorTruth:
 class _GroupTruth:
     """:class:`_SimulatorTruth` of each device of a group that has a simulator process."""
 
-    def __init__(self, simulators: dict[str, Any]) -> None:
+    def __init__(self, simulators: dict[str, Any], group: Any = None) -> None:
         self.truths = {name: _SimulatorTruth(sim) for name, sim in simulators.items()}
+        self.group = group
 
     def first_block(self) -> None:
         for truth in self.truths.values():
             truth.first_block()
 
     def status(self) -> dict[str, Any] | None:
-        return {name: truth.status() for name, truth in self.truths.items()} or None
+        out = {name: truth.status() for name, truth in self.truths.items()}
+        for name, member in getattr(self.group, "members", []):
+            sim = getattr(member, "simulator_status", None)
+            if callable(sim) and sim() is not None:  # counted by the device's own process
+                out[name] = sim()
+        return out or None
 
 
 def _open_one(spec: str, kwargs: dict[str, Any], config: AcquisitionConfig,
@@ -188,6 +205,15 @@ def _open_group(config: AcquisitionConfig, note: str | None):
     group = recorder = sink = None
     try:
         for spec, name, kwargs in config.members:
+            if config.member_processes:
+                # every device's process starts at once: none polls while another one is
+                # still importing and opening its device
+                member = DeviceProcess(AcquisitionConfig(
+                    spec, dict(kwargs), out=None, software=config.software,
+                    priority=config.priority, simulator_process=config.simulator_process))
+                opened.append((name, member))
+                member.start()
+                continue
             acq, simulator = _open_one(spec, kwargs, config, clock)
             opened.append((name, acq))
             if simulator is not None:
@@ -324,7 +350,7 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
 
     threading.Thread(target=watch, name="imunoise-acq-watch", daemon=True).start()
     settle_heap()
-    truth: Any = (_GroupTruth(simulators) if config.members
+    truth: Any = (_GroupTruth(simulators, acq) if config.members
                   else _SimulatorTruth(simulators.get("")))
     handover_lost: dict[str, int] = {}  # by device (topic name), for a group
 
@@ -407,13 +433,21 @@ class AcquisitionProcess:
     def open(self, timeout_s: float = START_TIMEOUT_S) -> None:
         """Start the child and wait until it has opened the device (or failed to: raises
         ``imunoise.daq.errors.DeviceError`` with its reason)."""
-        from imunoise.daq.errors import DeviceError
+        self.start()
+        self.wait_opened(timeout_s)
 
+    def start(self) -> None:
+        """Start the child (:meth:`wait_opened` then waits for its device)."""
         if self.config.realtime_kernel_workers and self._kernel_workers is None:
             from imunoise.live.kernel_workers import KernelWorkerKeeper
 
             self._kernel_workers = KernelWorkerKeeper().start()
         self._spawn()
+
+    def wait_opened(self, timeout_s: float = START_TIMEOUT_S) -> None:
+        """Wait until the started child has opened the device (:meth:`open`)."""
+        from imunoise.daq.errors import DeviceError
+
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             st = self.ring.status()
@@ -572,3 +606,83 @@ class AcquisitionProcess:
                 files.append(f)
         rec["files"] = files
         return rec
+
+
+class _MemberStats:
+    """A device process's counters (the dict its child publishes) read as attributes."""
+
+    def __init__(self, stats: dict[str, Any]) -> None:
+        self._stats = stats
+
+    def __getattr__(self, key: str) -> Any:
+        try:
+            return self.__dict__["_stats"][key]
+        except KeyError:
+            raise AttributeError(key) from None
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self._stats)
+
+
+class DeviceProcess:
+    """One device of a group read by an acquisition process of its own (no recorder), as an
+    :class:`imunoise.daq.acquisition.Acquisition` for
+    :class:`imunoise.daq.device_group.DeviceGroup`: each device keeps a process, an
+    interpreter and a scheduling slot to itself, as it has alone, and what the merging
+    process does with the blocks never delays a poll.
+
+    Blocks come one per batch; samples its hand-over ring could not take reach the recording
+    as a gap (counted in ``stats.handover_lost_samples``); a child that dies is restarted as
+    for a single device.
+    """
+
+    def __init__(self, config: AcquisitionConfig) -> None:
+        self.process = AcquisitionProcess(config)
+        self._opened = False
+        self._started = False
+
+    def start(self) -> None:
+        """Start the device's process without waiting for it (:meth:`open` waits)."""
+        self.process.start()
+        self._started = True
+
+    def open(self) -> None:
+        if not self._opened:
+            if self._started:
+                self.process.wait_opened()
+            else:
+                self.process.open()
+            self._opened = True
+
+    @property
+    def config(self) -> dict[str, str]:
+        return dict(self.process.config_reported)
+
+    @property
+    def rate_hz(self) -> float:
+        return float(self.config.get("rate_hz", "nan"))
+
+    @property
+    def stats(self) -> _MemberStats:
+        st = dict(self.process.stats)
+        st.setdefault("state", "starting")
+        for key in ("samples", "dropped", "gaps", "reconnects"):
+            st.setdefault(key, 0)
+        st.setdefault("last_error", "")
+        return _MemberStats(st)
+
+    def simulator_status(self) -> dict[str, Any] | None:
+        return (self.process.stats.get("process") or {}).get("simulator")
+
+    def batches(self, duration_s: float | None = None):
+        """The device's blocks, one per batch, until it stops (``duration_s`` is not used:
+        the group stops it)."""
+        for block in self.process.blocks():
+            yield [block]
+
+    def stop(self) -> None:
+        self.process.stop()
+
+    def close(self) -> None:
+        self.process.stop()
+        self.process.close()

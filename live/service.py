@@ -346,7 +346,10 @@ class LiveService:
                 "losses": {"device": int(st.get("dropped", 0) or 0),
                            "handover": int(handover.get(name, 0) or 0),
                            "analysis": int(not_analysed.get(name, 0)),
-                           "recording": int(recording.get(name, 0) or 0)},
+                           # a device read in a process of its own hands its blocks to the
+                           # recording through a ring: what that could not take is a gap
+                           "recording": int(recording.get(name, 0) or 0)
+                           + int(st.get("handover_lost_samples", 0) or 0)},
                 "channels": [c for c in channels if c.startswith(f"/{name}/")],
             })
         return out

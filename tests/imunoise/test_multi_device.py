@@ -26,9 +26,9 @@ pytestmark = pytest.mark.realtime
 
 
 def _sway_coherence(path: str) -> tuple[float, float]:
-    """Coherence at the sway line between the ADIS16350 (place 1, aligned with the bench) and
-    the razor (place 2, turned by 90 degrees: its y is minus the bench's x), gyro and
-    accelerometer, on the ADIS16350's stamps."""
+    """Coherence at the sway line between the ADIS16350 and the razor (both nearly aligned
+    with the bench), gyro x and accelerometer y (the sway's stronger axes), on the ADIS16350's
+    stamps."""
     r = read_mcap(path)
     ch = r.channels
 
@@ -41,8 +41,8 @@ def _sway_coherence(path: str) -> tuple[float, float]:
     t = a.t0_s + np.arange(a.n_samples) / a.fs_hz
     t = t[(t > t[0] + 1) & (t < t[-1] - 1)]
     out = []
-    for a_name, r_name in (("/adis16350/imu:gyro_x", "/razor/itg3200/imu:gyro_y"),
-                           ("/adis16350/imu:accel_y", "/razor/adxl345/imu:accel_x")):
+    for a_name, r_name in (("/adis16350/imu:gyro_x", "/razor/itg3200/imu:gyro_x"),
+                           ("/adis16350/imu:accel_y", "/razor/adxl345/imu:accel_y")):
         f, c = signal.coherence(on_grid(a_name, t), on_grid(r_name, t), fs=a.fs_hz,
                                 nperseg=512)
         near = np.abs(f - SWAY_HZ) <= f[1]
@@ -59,9 +59,11 @@ def _check_file(path: str, seconds: float) -> None:
     for topic, fs in TOPICS.items():
         assert timing[topic]["fs_hz"] == pytest.approx(fs, rel=2e-3), (topic, timing[topic])
         n = r.channels[next(k for k in r.channels if k.startswith(topic + ":"))].n_samples
-        # the whole run is recorded, less at most a few samples a loaded machine loses
+        # the whole run is recorded, less what a loaded machine loses: up to 0.6 % of a
+        # simulated ADIS16350's samples in 2-minute runs here under a load average of 17 on
+        # 2 cores (bench/multi.py); 2 % catches one device starving the other
         assert n >= 0.9 * seconds * fs, (topic, n)
-        assert timing[topic]["missing_samples"] <= 0.005 * n, (topic, timing[topic])
+        assert timing[topic]["missing_samples"] <= 0.02 * n, (topic, timing[topic])
     assert set(r.metadata["devices"].split(",")) == {"adis16350", "razor"}
     gyro, accel = _sway_coherence(path)
     # the bench's sway is seen by both: coherence near 1 (strong line, 0.2 Hz bins)
@@ -119,7 +121,7 @@ def test_serve_two_simulated_sensors_on_one_bench(tmp_path):
         assert sorted(health["devices"][1]["channels"]) == sorted(
             [f"/razor/itg3200/imu:gyro_{a}" for a in "xyz"]
             + [f"/razor/adxl345/imu:accel_{a}" for a in "xyz"])
-        allan = httpx.get(base + "/allan", params={"channel": "/razor/itg3200/imu:gyro_y"},
+        allan = httpx.get(base + "/allan", params={"channel": "/razor/itg3200/imu:gyro_x"},
                           timeout=10)
         assert allan.status_code == 200 and allan.json()["tau_s"]
     finally:
