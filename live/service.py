@@ -37,6 +37,8 @@ def _as_dict(obj: Any) -> dict[str, Any]:
         return {}
     if isinstance(obj, dict):
         return dict(obj)
+    if callable(getattr(obj, "as_dict", None)):  # counters that say how they read
+        return dict(obj.as_dict())
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return dataclasses.asdict(obj)
     return {k: v for k, v in vars(obj).items() if not k.startswith("_")}
@@ -92,6 +94,7 @@ class LiveService:
         self.blocks_received = 0
         self.samples_analysed = 0
         self.samples_not_analysed = 0
+        self._not_analysed_by_stream: dict[str, int] = {}
         self.sink_errors = 0
         self.gaps_seen = 0
         self.error: str | None = None
@@ -190,6 +193,9 @@ class LiveService:
                     except queue.Full:
                         with self._lock:
                             self.samples_not_analysed += n
+                            stream = str(getattr(block, "stream", ""))
+                            self._not_analysed_by_stream[stream] = \
+                                self._not_analysed_by_stream.get(stream, 0) + n
                 else:
                     while not self._stop.is_set():
                         try:
@@ -303,7 +309,7 @@ class LiveService:
         status = "ok" if self.error is None else "degraded"
         if process is not None and not process.get("alive") and self.running:
             status = "degraded"
-        return {
+        out = {
             "status": status,
             "uptime_s": now - self.started_at,
             "acquiring": self.running,
@@ -318,6 +324,38 @@ class LiveService:
             "analysis": _jsonable(self.analyzers.stats()),
             "error": self.error,
         }
+        if isinstance(stats.get("devices"), dict):
+            out["devices"] = self._devices(stats, rec_stats or {}, out["channels"])
+        return out
+
+    def _devices(self, stats: dict[str, Any], rec_stats: dict[str, Any],
+                 channels: list[str]) -> list[dict[str, Any]]:
+        """Each device of a group: its state, samples, losses by stage and channels."""
+        described = {d.get("name"): d for d in self.device.get("devices") or []}
+        handover = stats.get("handover_lost_by_device") or {}
+        recording = rec_stats.get("lost_by_device") or {}
+        with self._lock:
+            not_analysed: dict[str, int] = {}
+            for stream, n in self._not_analysed_by_stream.items():
+                name = stream.lstrip("/").split("/", 1)[0]
+                not_analysed[name] = not_analysed.get(name, 0) + n
+        out = []
+        for name, st in stats["devices"].items():
+            out.append({
+                **{k: v for k, v in described.get(name, {}).items() if k != "name"},
+                "name": name, "state": st.get("state"), "samples": st.get("samples", 0),
+                "gaps": st.get("gaps", 0), "reconnects": st.get("reconnects", 0),
+                "last_error": st.get("last_error") or None,
+                "losses": {"device": int(st.get("dropped", 0) or 0),
+                           "handover": int(handover.get(name, 0) or 0),
+                           "analysis": int(not_analysed.get(name, 0)),
+                           # a device read in a process of its own hands its blocks to the
+                           # recording through a ring: what that could not take is a gap
+                           "recording": int(recording.get(name, 0) or 0)
+                           + int(st.get("handover_lost_samples", 0) or 0)},
+                "channels": [c for c in channels if c.startswith(f"/{name}/")],
+            })
+        return out
 
     @property
     def revision(self) -> int:
