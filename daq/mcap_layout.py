@@ -614,7 +614,27 @@ def _chunk_info(buf, pos: int, body: int, end: int) -> ChunkInfo:
         raise DamagedChunk("records length differs from the record's")
     if usize > _MAX_CHUNK or t0 > _MAX_TIME or t1 > _MAX_TIME:
         raise DamagedChunk("header fields out of range")
+    _check_declared_size(buf, comp, p + 8, rlen, usize)
     return ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, {}, end)
+
+
+def _check_declared_size(buf, compression: str, at: int, length: int, usize: int) -> None:
+    """A chunk's declared uncompressed size must be one its data can hold (readers allocate
+    it): equal to the data for no compression, at most what lz4 can expand to, at most the
+    zstd frame's own content size when the frame states it."""
+    if compression == "" and usize != length:
+        raise DamagedChunk("uncompressed size differs from its data's")
+    if compression == "lz4" and usize > 255 * length + (1 << 16):
+        raise DamagedChunk("uncompressed size larger than lz4 can expand to")
+    if compression == "zstd":
+        try:
+            stated = zstandard.frame_content_size(bytes(buf[at:at + min(length, 18)]))
+        except zstandard.ZstdError:
+            raise DamagedChunk("not a zstd frame") from None
+        if stated >= 0 and usize > max(stated, 0) + (1 << 16):
+            raise DamagedChunk(f"uncompressed size {usize} beyond its frame's {stated}")
+        if stated < 0 and usize > 32768 * length + (1 << 20):
+            raise DamagedChunk("uncompressed size larger than zstd can expand to")
 
 
 def _other_record(op: int, buf, pos: int, body: int, end: int, layout: McapLayout) -> None:
