@@ -539,6 +539,25 @@ def iter_cases(folder: Path, per_format: int, seed: int = 0,
 
 # ---- running the commands and checking the outcome ------------------------------------------
 
+def commands_for(case: Case, index: int, out_dir: Path, full: bool = False) -> list[list[str]]:
+    """The command lines run on mutant number ``index``: a cheap fit on every one, and in
+    turn analyze, replay, diagnose and export-kalibr (``full``: analyze on every one); repair
+    on every MCAP file (its output is the last argument)."""
+    p = str(case.path)
+    cmds = [["fit", p, "--channel", "gyro_x", "--model", "white", "--json"]]
+    if full or index % 4 == 0:
+        cmds.append(["analyze", p, "--json", "--channel", "gyro_x"])
+    if index % 6 == 1:
+        cmds.append(["replay", p, "--speed", "max", "--json", "--no-progress"])
+    if index % 9 == 2:
+        cmds.append(["diagnose", p, "--channel", "gyro_x", "--model", "white", "--json"])
+    if index % 40 == 3:
+        cmds.append(["export-kalibr", p, "-o", str(out_dir / "imu.yaml")])
+    if case.is_mcap:
+        cmds.append(["repair", p, "-o", str(case.path.parent / "repaired.mcap")])
+    return cmds
+
+
 @dataclass
 class Outcome:
     command: str
@@ -559,7 +578,7 @@ class Outcome:
             if self.stderr.count("\n") != 1 or len(self.stderr.rstrip("\n")) >= MAX_MESSAGE:
                 out.append(f"message not one short line ({len(self.stderr)} characters): "
                            f"{self.stderr[:400]!r}")
-        elif self.code == 0 and self.command in ("analyze", "fit", "diagnose"):
+        elif self.code == 0 and self.command in ("analyze", "fit", "diagnose", "replay"):
             try:
                 json.loads(self.stdout, parse_constant=_reject_constant)
             except ValueError as exc:

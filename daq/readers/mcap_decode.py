@@ -5,6 +5,7 @@ Temperature message, gathered with one vectorised indexing operation per field (
 from __future__ import annotations
 
 import os
+import zlib
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
@@ -58,6 +59,17 @@ def _setup_topic(tp: _Topic, blob: np.ndarray, first: int) -> None:
         tp.has_accel = bool(acov[0] != -1.0)
 
 
+VERIFY_CRC = True
+"""Check every chunk's records against the CRC its writer stored (the official writer and
+imunoise's store one): a damaged chunk whose data still decompress is then left out instead of
+read as wrong samples. It costs about half as much CPU again as zstd decompression."""
+
+
+def _check_crc(chunk: ml.ChunkInfo, records: np.ndarray) -> None:
+    if chunk.uncompressed_crc and zlib.crc32(records) != chunk.uncompressed_crc:
+        raise ml.DamagedChunk("CRC mismatch")
+
+
 def _load_batch(fd: int, batch: list[ml.ChunkInfo], scratch: np.ndarray | None = None
                 ) -> tuple[bytes, np.ndarray, list[int]]:
     """Read consecutive chunks with their message indexes and decompress them into one buffer:
@@ -80,6 +92,9 @@ def _load_batch(fd: int, batch: list[ml.ChunkInfo], scratch: np.ndarray | None =
         if parts is not None:
             np.concatenate([np.frombuffer(p, np.uint8) for p in parts], out=out[:need])
             bases = np.concatenate(([0], np.cumsum(sizes[:-1]))).tolist()
+            if VERIFY_CRC:
+                for c, base in zip(batch, bases, strict=True):
+                    _check_crc(c, out[base:base + c.uncompressed_size])
             return region, out[:need], bases
     bases, base = [], 0
     for c in batch:
@@ -92,6 +107,8 @@ def _load_batch(fd: int, batch: list[ml.ChunkInfo], scratch: np.ndarray | None =
             grown[:base] = out[:base]
             out = grown
         out[base:base + n] = np.frombuffer(data, np.uint8)
+        if VERIFY_CRC:
+            _check_crc(c, out[base:base + n])
         bases.append(base)
         base += n
     return region, out[:base], bases
