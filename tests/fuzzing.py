@@ -450,6 +450,7 @@ class Case:
     fmt: str
     mutation: str
     path: Path
+    folder: Path | None = None  # everything of this case lies below it
 
     @property
     def is_mcap(self) -> bool:
@@ -534,7 +535,10 @@ def iter_cases(folder: Path, per_format: int, seed: int = 0,
     rng = np.random.default_rng(seed)
     for i in range(per_format):
         for fmt in formats:
-            yield make_case(fmt, i, rng, folder / "cases" / f"{fmt}-{i}", seeds)
+            where = folder / "cases" / f"{fmt}-{i}"
+            case = make_case(fmt, i, rng, where, seeds)
+            case.folder = where
+            yield case
 
 
 # ---- running the commands and checking the outcome ------------------------------------------
