@@ -170,6 +170,16 @@ def raw_counts(values: np.ndarray, metadata: dict[str, str], channel: str) -> np
     return counts.astype(np.int64)
 
 
+def _lost_as_nan(values: np.ndarray) -> np.ndarray:
+    """A block's channel with the samples that are not finite or beyond
+    :data:`imunoise.core.series.SAMPLE_LIMIT` as NaN (lost samples to every consumer)."""
+    out = np.ascontiguousarray(values, dtype=np.float64)
+    usable = usable_samples(out)
+    if not usable.all():
+        out = np.where(usable, out, np.nan)
+    return out
+
+
 def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[SampleBlock]:
     """Stream a file as SampleBlocks (one per topic, batch and gap-free run), bounded memory.
 
@@ -214,7 +224,7 @@ def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[Sam
                         gap = int(round(steps)) - 1
                     elif steps < 0.5:
                         gap = -1
-                chans = {k: np.ascontiguousarray(v[a:b]) for k, v in cols.items()}
+                chans = {k: _lost_as_nan(v[a:b]) for k, v in cols.items()}
                 raw = {}
                 for k, v in chans.items():
                     counts = raw_counts(v, src.metadata, k)
