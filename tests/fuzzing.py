@@ -544,18 +544,22 @@ def iter_cases(folder: Path, per_format: int, seed: int = 0,
 # ---- running the commands and checking the outcome ------------------------------------------
 
 def commands_for(case: Case, index: int, out_dir: Path, full: bool = False) -> list[list[str]]:
-    """The command lines run on mutant number ``index``: a cheap fit on every one, and in
-    turn analyze, replay, diagnose and export-kalibr (``full``: analyze on every one); repair
-    on every MCAP file (its output is the last argument)."""
+    """The command lines run on mutant number ``index``: a cheap fit on every one, and in turn
+    analyze (in memory and streamed), replay, diagnose and export-kalibr, more often with
+    ``full``; repair on every MCAP file (its output is the last argument)."""
+    every = {"analyze": 1, "replay": 4, "diagnose": 6, "kalibr": 20, "stream": 3} if full else \
+        {"analyze": 5, "replay": 8, "diagnose": 25, "kalibr": 60, "stream": 7}
     p = str(case.path)
     cmds = [["fit", p, "--channel", "gyro_x", "--model", "white", "--json"]]
-    if full or index % 4 == 0:
+    if index % every["analyze"] == 0:
         cmds.append(["analyze", p, "--json", "--channel", "gyro_x"])
-    if index % 6 == 1:
+    if case.is_mcap and index % every["stream"] == 1:
+        cmds.append(["analyze", p, "--json", "--channel", "gyro_y", "--stream", "always"])
+    if index % every["replay"] == 1:
         cmds.append(["replay", p, "--speed", "max", "--json", "--no-progress"])
-    if index % 9 == 2:
+    if index % every["diagnose"] == 2:
         cmds.append(["diagnose", p, "--channel", "gyro_x", "--model", "white", "--json"])
-    if index % 40 == 3:
+    if index % every["kalibr"] == 3:
         cmds.append(["export-kalibr", p, "-o", str(out_dir / "imu.yaml")])
     if case.is_mcap:
         cmds.append(["repair", p, "-o", str(case.path.parent / "repaired.mcap")])

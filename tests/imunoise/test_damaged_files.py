@@ -298,7 +298,7 @@ def test_mutants_of_every_format_exit_cleanly(tmp_path):
             problems += [f"{case.fmt} [{case.mutation}] {argv[0]}: {p}" for p in found]
     assert set(counts) == set(fz.FORMATS) and min(counts.values()) == PER_FORMAT
     assert problems == [], "\n".join(problems[:10])
-    assert time.perf_counter() - start < 120
+    assert time.perf_counter() - start < 90  # about 45 s here at a load of 9 on 2 cores
 
 
 # ---- the real exit path --------------------------------------------------------------------
