@@ -62,7 +62,7 @@ def _setup_topic(tp: _Topic, blob: np.ndarray, first: int) -> None:
 VERIFY_CRC = True
 """Check every chunk's records against the CRC its writer stored (the official writer and
 imunoise's store one): a damaged chunk whose data still decompress is then left out instead of
-read as wrong samples. It costs about half as much CPU again as zstd decompression."""
+read as wrong samples. It costs about 15 % of a read's CPU time (docs/damaged-files.md)."""
 
 
 def _check_crc(chunk: ml.ChunkInfo, records: np.ndarray) -> None:
