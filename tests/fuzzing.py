@@ -360,8 +360,18 @@ def _huge_length(data: bytearray, rng: np.random.Generator) -> str:
 
 
 def _length_fields(data: bytes) -> list[int]:
-    """Offsets of MCAP record lengths (top level and inside uncompressed chunks); empty for
-    other formats (a random offset is used then)."""
+    """Offsets of record length fields: MCAP records (and a chunk's size fields), ROS 1 record
+    header and data lengths; empty for other formats (a random offset is used then)."""
+    if data.startswith(b"#ROSBAG V2.0\n"):
+        out, pos = [], 13
+        while pos + 4 <= len(data) and len(out) < 10_000:
+            (hlen,) = struct.unpack_from("<I", data, pos)
+            if pos + 8 + hlen > len(data):
+                break
+            (dlen,) = struct.unpack_from("<I", data, pos + 4 + hlen)
+            out.extend([pos, pos + 4 + hlen])
+            pos += 8 + hlen + dlen
+        return out
     if not data.startswith(b"\x89MCAP0\r\n"):
         return []
     out, pos = [], 8
