@@ -5,11 +5,12 @@ Run from the repository root:
     python bench/fuzz.py                    # 200 mutants per format, 12 formats: 2400
     python bench/fuzz.py --per-format 20    # a quick look
 
-Two cases run at once (``--jobs``). Seeds and mutations come from ``tests/fuzzing.py`` (the test suite runs a few hundred of the
+Seeds and mutations come from ``tests/fuzzing.py`` (the test suite runs a few hundred of the
 same). Each mutant is run in a process forked from this one (the imports and compiled kernels
-are warmed up once, here): ``analyze --channel gyro_x --json`` and ``fit`` on every mutant,
-``replay``, ``diagnose`` and ``export-kalibr`` in turn, ``repair`` on every MCAP mutant with
-its output read by the official ``mcap`` reader (CRC validation) and by rosbags. A case that
+are warmed up once, here), two at once (``--jobs``): ``analyze --channel gyro_x --json`` and
+``fit`` on every mutant; streamed ``analyze``, ``replay``, ``diagnose`` and ``export-kalibr``
+in turn; ``repair`` on every MCAP mutant, its output read by the official ``mcap`` reader
+(CRC validation) and by rosbags. A case that
 does not finish within ``--timeout`` seconds is killed and counted as a hang; a process's
 address space is limited to ``--memory-mb``.
 
@@ -38,12 +39,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from tests import fuzzing as fz
 
 
-def _child(case: fz.Case, index: int, out: Path, memory_mb: int) -> None:
+def _child(case: fz.Case, out: Path, memory_mb: int) -> None:
     """Run the case's commands; write what happened as JSON lines to ``out``."""
     limit = memory_mb << 20
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     results = []
-    for argv in fz.commands_for(case, index, case.path.parent, full=True):
+    for argv in fz.commands_for(case, case.path.parent, full=True):
         o = fz.run_cli(argv)
         unreadable = None
         if argv[0] == "repair" and o.code == 0:
@@ -57,7 +58,7 @@ def _child(case: fz.Case, index: int, out: Path, memory_mb: int) -> None:
 class _Running:
     """One case's forked process."""
 
-    def __init__(self, case: fz.Case, index: int, memory_mb: int) -> None:
+    def __init__(self, case: fz.Case, memory_mb: int) -> None:
         self.case = case
         self.out = case.path.parent / (case.path.name + ".outcome.json")
         self.start = time.perf_counter()
@@ -68,7 +69,7 @@ class _Running:
                 devnull = os.open(os.devnull, os.O_WRONLY)
                 os.dup2(devnull, 1)
                 os.dup2(devnull, 2)
-                _child(case, index, self.out, memory_mb)
+                _child(case, self.out, memory_mb)
             except BaseException:  # noqa: BLE001 - reported by the missing outcome
                 code = 3
             os._exit(code)
@@ -95,11 +96,10 @@ class _Running:
 def _warm_up(folder: Path) -> None:
     """Import and compile everything once, before forking."""
     seeds = fz.write_seeds(folder)
-    case = fz.Case("mcap-zstd", "none", seeds["mcap-zstd"])
-    for argv in fz.commands_for(case, 3, folder, full=True):
-        fz.run_cli(argv)
-    for argv in fz.commands_for(case, 1, folder, full=True) + fz.commands_for(case, 2, folder):
-        fz.run_cli(argv)
+    for k in range(4):
+        case = fz.Case("mcap-zstd", "none", seeds["mcap-zstd"], index=k)
+        for argv in fz.commands_for(case, folder, full=True):
+            fz.run_cli(argv)
     fz.check_repaired(folder / "mcap-zstd" / "repaired.mcap")
 
 
@@ -160,7 +160,7 @@ def main() -> int:
                 if item is None:
                     break
                 per_format[item[1].fmt] += 1
-                running.append(_Running(item[1], item[0], args.memory_mb))
+                running.append(_Running(item[1], args.memory_mb))
             if not running:
                 break
             for r in list(running):

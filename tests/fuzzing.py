@@ -461,6 +461,7 @@ class Case:
     mutation: str
     path: Path
     folder: Path | None = None  # everything of this case lies below it
+    index: int = 0  # mutant number within its format
 
     @property
     def is_mcap(self) -> bool:
@@ -547,16 +548,17 @@ def iter_cases(folder: Path, per_format: int, seed: int = 0,
         for fmt in formats:
             where = folder / "cases" / f"{fmt}-{i}"
             case = make_case(fmt, i, rng, where, seeds)
-            case.folder = where
+            case.folder, case.index = where, i
             yield case
 
 
 # ---- running the commands and checking the outcome ------------------------------------------
 
-def commands_for(case: Case, index: int, out_dir: Path, full: bool = False) -> list[list[str]]:
-    """The command lines run on mutant number ``index``: a cheap fit on every one, and in turn
-    analyze (in memory and streamed), replay, diagnose and export-kalibr, more often with
-    ``full``; repair on every MCAP file (its output is the last argument)."""
+def commands_for(case: Case, out_dir: Path, full: bool = False) -> list[list[str]]:
+    """The command lines run on a mutant: a cheap fit on every one, and in turn (by its number
+    within its format) analyze in memory and streamed, replay, diagnose and export-kalibr,
+    more often with ``full``; repair on every MCAP file (its output is the last argument)."""
+    index = case.index
     every = {"analyze": 1, "replay": 4, "diagnose": 6, "kalibr": 20, "stream": 3} if full else \
         {"analyze": 5, "replay": 8, "diagnose": 25, "kalibr": 60, "stream": 7}
     p = str(case.path)
