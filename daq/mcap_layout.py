@@ -35,6 +35,7 @@ OP_CHUNK = int(Opcode.CHUNK)
 OP_MESSAGE_INDEX = int(Opcode.MESSAGE_INDEX)
 OP_METADATA = int(Opcode.METADATA)
 OP_DATA_END = int(Opcode.DATA_END)
+OP_CHUNK_INDEX = int(Opcode.CHUNK_INDEX)
 OP_MAX = max(int(op) for op in Opcode)
 
 RECORD_PREFIX = 9  # opcode u8 + length u64
@@ -232,6 +233,9 @@ class McapLayout:
     warnings: list[str] = field(default_factory=list)
     damaged: list[tuple[int, str]] = field(default_factory=list)
     """(file offset, reason) of every chunk left out of ``chunks`` because it is damaged."""
+    indexed_chunks: list[tuple[int, int]] = field(default_factory=list)
+    """(offset, length) of the chunks the summary's chunk index lists (a cleanly finished
+    file): where the scan resumes after a damaged record."""
 
     def drop_chunk(self, start: int, reason: str) -> None:
         """Note a damaged chunk (its messages are lost) with a warning."""
@@ -411,6 +415,7 @@ def _read_summary_definitions(buf, size: int, layout: McapLayout) -> None:
     if summary_start >= foot or summary_start < len(MAGIC):
         return
     found: list = []
+    starts: list[tuple[int, int]] = []
     pos = summary_start
     try:
         while pos < foot:
@@ -421,9 +426,12 @@ def _read_summary_definitions(buf, size: int, layout: McapLayout) -> None:
                 found.append(parse_schema(buf, pos + RECORD_PREFIX))
             elif op == OP_CHANNEL:
                 found.append(parse_channel(buf, pos + RECORD_PREFIX))
+            elif op == OP_CHUNK_INDEX and n >= 32:
+                starts.append(struct.unpack_from("<QQ", buf, pos + RECORD_PREFIX + 16))
             pos += RECORD_PREFIX + n
     except (struct.error, ValueError):
         return
+    layout.indexed_chunks = sorted(starts)
     for item in found:
         (layout.schemas if isinstance(item, SchemaInfo) else layout.channels)[item.id] = item
     layout.footer_ok = True
@@ -498,10 +506,17 @@ def scan(buf, size: int | None = None) -> McapLayout:
             unknown_pending = False
         layout.data_end = pos
         if op == 0 or op > OP_MAX or end > size:
+            resume = _resume_at(buf, pos, layout)
+            if resume is None:
+                layout.warnings.append(
+                    f"file is truncated or damaged at byte {pos} of {size}: read up to the "
+                    "last complete record")
+                break
             layout.warnings.append(
-                f"file is truncated or damaged at byte {pos} of {size}: read up to the last "
-                "complete record")
-            break
+                f"a damaged record at byte {pos}: its chunk's messages are lost (a gap); read "
+                f"on from byte {resume}, the next chunk the file's summary lists")
+            pos, last = resume, None
+            continue
         if op == OP_CHUNK:
             last = _add_chunk(buf, pos, body, end, layout)
         elif op == OP_DATA_END:
@@ -518,6 +533,18 @@ def scan(buf, size: int | None = None) -> McapLayout:
         _discover_channels(buf, layout)
     _finish_chunks(buf, layout)
     return layout
+
+
+def _resume_at(buf, pos: int, layout: McapLayout) -> int | None:
+    """The offset of the first chunk after ``pos`` that the summary lists and that is where
+    it says (a Chunk record of the listed length), or None."""
+    for start, length in layout.indexed_chunks:
+        if start <= pos or start + length > layout.size:
+            continue
+        op, n = _PREFIX.unpack_from(buf, start)
+        if op == OP_CHUNK and RECORD_PREFIX + n == length:
+            return start
+    return None
 
 
 def _header(buf, size: int, layout: McapLayout) -> int:

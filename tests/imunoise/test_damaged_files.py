@@ -83,11 +83,15 @@ def test_a_damaged_middle_chunk_is_a_gap_in_every_command(fmt, seeds, tmp_path):
     assert 0 < n < fz.N_SAMPLES
     for argv in (["fit", str(path), "--channel", "gyro_x", "--model", "white", "--json"],
                  ["diagnose", str(path), "--channel", "gyro_x", "--model", "white", "--json"],
+                 ["analyze", str(path), "--json", "--channel", "gyro_x", "--stream", "always"],
                  ["replay", str(path), "--speed", "max", "--json", "--no-progress"],
                  ["export-kalibr", str(path), "-o", str(tmp_path / "imu.yaml")]):
         result = fz.run_cli(argv)
         _clean(result)
         assert result.code == 0, (argv[0], result.stderr)
+        if argv[0] != "export-kalibr":
+            warned = [w for w in _strict_json(result.stdout)["warnings"] if "is damaged" in w]
+            assert len(warned) == 1, (argv[0], warned)
     repaired = tmp_path / "fixed.mcap"
     result = fz.run_cli(["repair", str(path), "-o", str(repaired)])
     _clean(result)
@@ -95,6 +99,23 @@ def test_a_damaged_middle_chunk_is_a_gap_in_every_command(fmt, seeds, tmp_path):
     assert fz.check_repaired(repaired) is None
     fixed = fz.run_cli(["analyze", str(repaired), "--json", "--channel", "gyro_x"])
     assert _strict_json(fixed.stdout)["channels"]["gyro_x"]["n_samples"] == n
+
+
+def test_a_damaged_record_length_skips_to_the_next_chunk_the_summary_lists(seeds, tmp_path):
+    path = _copy(seeds["mcap-zstd"], tmp_path)
+    chunks = _chunks(path)
+    victim = chunks[len(chunks) // 2]
+    data = bytearray(path.read_bytes())
+    data[victim.start + 1:victim.start + 9] = (2**63).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+    out = fz.run_cli(["analyze", str(path), "--json", "--channel", "gyro_x"])
+    _clean(out)
+    doc = _strict_json(out.stdout)
+    assert any(f"a damaged record at byte {victim.start}" in w for w in doc["warnings"])
+    lost = sum(n for _p, n in victim.mi.values())
+    assert doc["channels"]["gyro_x"]["n_samples"] == fz.N_SAMPLES - lost
+    assert fz.run_cli(["repair", str(path), "-o", str(tmp_path / "out.mcap")]).code == 0
+    assert fz.check_repaired(tmp_path / "out.mcap") is None
 
 
 def test_fleet_reports_a_damaged_file_as_a_row(seeds, tmp_path):
@@ -221,6 +242,16 @@ def test_a_huge_line_is_not_echoed(tmp_path):
     out = fz.run_cli(["analyze", str(path), "--json"])
     _clean(out)
     assert out.code == 2
+
+
+def test_an_error_line_is_cut_to_300_characters(tmp_path):
+    folder = tmp_path / ("d" * 200) / ("e" * 200)
+    folder.mkdir(parents=True)
+    path = folder / "x.csv"
+    path.write_text("t,gyro_x\n0,abc\n")
+    out = fz.run_cli(["analyze", str(path), "--json"])
+    _clean(out)
+    assert out.code == 2 and out.stderr.endswith("...\n")
 
 
 # ---- rosbag2 metadata checked against the folder -------------------------------------------
