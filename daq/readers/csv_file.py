@@ -41,8 +41,7 @@ from imunoise.core.series import (
     usable_times,
 )
 from imunoise.core.timing import Timing, analyse_stamps
-from imunoise.daq.errors import quoted
-from imunoise.daq.readers import ReadError
+from imunoise.daq.errors import ReadError, quoted
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
