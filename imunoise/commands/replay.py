@@ -120,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
     speed = _speed(args.speed)
     if args.serve:
         return _serve(args, speed)
+    warnings: list[str] = []
     try:
-        blocks, total = open_blocks(args.file)
+        blocks, total = open_blocks(args.file, warnings)
     except ReadError as exc:
         raise UsageError(f"replay: {exc}") from exc
     summary = ReplaySummary()
@@ -143,7 +144,9 @@ def run(args: argparse.Namespace) -> int:
 
         for r in rows:
             r["white_noise_density"] = number(r["white_noise_density"])
-        print(dumps({"file": args.file, "channels": rows}))
+        print(dumps({"file": args.file, "channels": rows, "warnings": warnings}))
         return 0
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
     _print_rows(rows)
     return 0
