@@ -1,14 +1,16 @@
-"""Turn a crashed or truncated MCAP file into a clean, indexed one.
+"""Turn a crashed, truncated or damaged MCAP file into a clean, indexed one.
 
-Two ways, both keeping every complete record:
-
-- :func:`finish_in_place`: cut the file at the end of its last complete record and append what
-  a clean ``finish()`` would have written (DataEnd, schemas, channels, statistics, chunk and
-  metadata indexes, summary offsets, footer). Chunks are not rewritten, so it is fast and needs
-  only a little free space (about 100 bytes per chunk). Used by the recorder when the disk
-  fills up, and by :func:`repair` when every chunk carries its message indexes.
-- :func:`rewrite`: copy every readable message into a new file with the ``mcap`` writer, for
-  files whose chunks lack message indexes or that hold messages outside chunks.
+- :func:`repair` (``imunoise repair``): :func:`rebuild` writes a fresh file from the records
+  that pass every check (header, definitions that parse exactly, chunks whose size, CRC and
+  record framing check and whose channels are defined, copied byte for byte with new message
+  indexes, and a new summary); damaged chunks are dropped and named. Files with messages
+  outside chunks go through :func:`rewrite`, which copies every readable message with the
+  ``mcap`` writer (CRC validation on).
+- :func:`finish_in_place`: cut a crashed file at the end of its last complete record and
+  append what a clean ``finish()`` would have written (DataEnd, schemas, channels, statistics,
+  chunk and metadata indexes, summary offsets, footer). Chunks are not rewritten, so it is
+  fast and needs only a little free space (about 100 bytes per chunk): the recorder uses it
+  when the disk fills up, on a file it wrote itself.
 """
 
 from __future__ import annotations
@@ -36,10 +38,11 @@ from imunoise.daq.mcap_writer import summary_bytes
 
 @dataclass
 class RepairResult:
-    """What a repair did: messages kept per topic, bytes dropped from a damaged tail."""
+    """What a repair did: messages kept, chunks kept, bytes dropped from a damaged tail,
+    damaged chunks dropped, and one warning per thing left out."""
 
     path: str
-    method: str  # "already complete", "finished in place", "rewritten"
+    method: str  # "already complete", "finished in place", "rebuilt", "rewritten"
     messages: int
     chunks: int
     dropped_bytes: int
