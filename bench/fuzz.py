@@ -135,7 +135,8 @@ def main() -> int:
     ap.add_argument("--memory-mb", type=int, default=3072, help="address space per case")
     ap.add_argument("--jobs", type=int, default=2, help="cases run at once")
     ap.add_argument("--formats", default=",".join(fz.FORMATS))
-    ap.add_argument("--log", default="fuzz-failures.txt", help="where failures are written")
+    ap.add_argument("--log", help="where failures are written (default: in the temp folder)",
+                    default=str(Path(tempfile.gettempdir()) / "imunoise-fuzz-failures.txt"))
     args = ap.parse_args()
     formats = tuple(f for f in args.formats.split(",") if f)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
