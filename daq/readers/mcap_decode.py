@@ -356,7 +356,11 @@ def _decode_chunk(src: McapSource, chunk: ml.ChunkInfo, fd: int, sink: Sink | No
         reason = str(exc)
     except _DAMAGE as exc:
         _restore_topics(src, state)
-        if isinstance(exc, UnsupportedLayout) and _intact(fd, chunk):
+        # A layout the bulk reader does not take is genuine when the chunk's CRC says its
+        # records are intact, or, without a CRC, when no earlier chunk fixed the layout.
+        established = any(values[0] >= 0 for values in state.values())
+        if isinstance(exc, UnsupportedLayout) and _intact(fd, chunk) and (
+                chunk.uncompressed_crc or not established):
             raise
         reason = ml.first_line(exc)
     _restore_topics(src, state)

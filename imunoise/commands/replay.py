@@ -115,6 +115,7 @@ def _run_replay(blocks, total: int | None, feed, speed: float | None, show: bool
 
 def run(args: argparse.Namespace) -> int:
     from imunoise.daq.readers import ReadError
+    from imunoise.daq.readers.mcap_scan import UnsupportedLayout
     from imunoise.daq.replay import ReplaySummary, open_blocks
 
     speed = _speed(args.speed)
@@ -136,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         _run_replay(blocks, total, feed, speed, not args.no_progress and sys.stderr.isatty())
     except ReadError as exc:
         raise UsageError(f"replay: {exc}") from exc
-    except ValueError as exc:
+    except (ValueError, UnsupportedLayout) as exc:
         raise UsageError(f"replay: {args.file}: {exc}") from exc
     rows = summary.rows()
     if args.json:

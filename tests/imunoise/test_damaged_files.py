@@ -230,6 +230,16 @@ def test_stamps_that_never_increase_are_one_line(fmt, tmp_path):
     assert out.code == 2 and "cannot infer a sampling rate" in out.stderr
 
 
+def test_diagnose_of_a_record_too_short_for_a_term_exits_cleanly(tmp_path):
+    """A truncated CSV (83 rows) left a candidate term without a starting shape: an
+    AssertionError in the fit."""
+    sig = fz.clean_signals(n=83)
+    path = fz.write_csv(tmp_path / "short.csv", sig)
+    out = fz.run_cli(["diagnose", str(path), "--channel", "gyro_x", "--model", "white",
+                      "--json"])
+    _clean(out)
+
+
 # ---- messages stay short -------------------------------------------------------------------
 
 def test_a_huge_line_is_not_echoed(tmp_path):
