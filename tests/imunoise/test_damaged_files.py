@@ -233,8 +233,8 @@ def test_stamps_that_never_increase_are_one_line(fmt, tmp_path):
 def test_diagnose_of_a_record_too_short_for_a_term_exits_cleanly(tmp_path):
     """A truncated CSV (83 rows) left a candidate term without a starting shape: an
     AssertionError in the fit."""
-    sig = fz.clean_signals(n=83)
-    path = fz.write_csv(tmp_path / "short.csv", sig)
+    path = fz.write_csv(tmp_path / "short.csv", fz.clean_signals())
+    path.write_bytes(path.read_bytes()[:11583])
     out = fz.run_cli(["diagnose", str(path), "--channel", "gyro_x", "--model", "white",
                       "--json"])
     _clean(out)
