@@ -232,7 +232,8 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
             _, r = solve(extra_cols + [col]) if len(candidates) > 1 else (None, 0.0)
             if best is None or r < best[0]:
                 best = (r, cand, col)
-        assert best is not None
+        if best is None:  # no start shape fits a record this short: a bad input, not a bug
+            raise ValueError(f"{n}: no starting shape for a record of {duration_s:.3g} s")
         extra_cols.append(best[2])
         extra_owner.append(i)
         shapes[i] = {k: float(v) for k, v in best[1].items()}

@@ -10,6 +10,7 @@ strict JSON. Shapes follow docs/json.md and docs/schemas/: a channel document ca
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -229,6 +230,20 @@ def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any
 def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
     """``fit``'s JSON document plus ``suggestions`` (best first) and ``evidence``."""
     doc = fit_json(record, key, diag.fit, diag.curve)
-    doc["suggestions"] = [s.to_dict() for s in diag.suggestions]
-    doc["evidence"] = [f.to_dict() for f in diag.findings]
+    doc["suggestions"] = finite_or_null([s.to_dict() for s in diag.suggestions])
+    doc["evidence"] = finite_or_null([f.to_dict() for f in diag.findings])
     return doc
+
+
+def finite_or_null(obj: Any) -> Any:
+    """``obj`` with every float that is not finite (an unbounded interval of a short record,
+    say) as None, through dicts, lists and tuples; JSON has no Infinity."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_null(v) for v in obj]
+    return obj
