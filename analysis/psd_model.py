@@ -164,10 +164,13 @@ def _level_bins(est: PsdEstimate, fs: float, L: int, ppd: float | None
 
 
 def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int = 256,
-                     points_per_decade: float | None = 40.0) -> np.ndarray:
+                     points_per_decade: float | None = 40.0,
+                     levels: Sequence[int] | None = None) -> np.ndarray:
     """Expected value (units^2/Hz, one-sided) of each point of ``est`` (a
     :func:`imunoise.analysis.psd.log_psd` estimate made with ``nperseg`` and
-    ``points_per_decade``) when the record follows ``model`` ``[(term, params)]``."""
+    ``points_per_decade``) when the record follows ``model`` ``[(term, params)]``.
+    ``levels`` restricts the work to those cascade levels (0: the full-rate Welch band); the
+    other points are NaN."""
     fs = float(fs_hz)
     L = int(nperseg)
     N = L * PAD
@@ -179,6 +182,9 @@ def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int 
     kern /= kern.sum()
     kern_f = np.fft.fft(kern)
     for j, (k, point) in _level_bins(est, fs, L, points_per_decade).items():
+        if levels is not None and j not in levels:
+            np.add.at(out, point, np.nan)
+            continue
         fs_j = fs / 2**j
         step = fs_j / N
         g_noise, narrow = _split_narrow(gaussian, step)
