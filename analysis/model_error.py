@@ -197,3 +197,44 @@ def error_parts(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     parts["time_domain"] = time_domain_part(values, fs_hz, params, segment_starts, units,
                                             transient_findings)
     return block, parts
+
+
+def plain(value: Any) -> Any:
+    """``value`` with numpy arrays and numbers as plain lists and floats, and non-finite
+    numbers as None (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [plain(v) for v in value.tolist()]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return v if math.isfinite(v) else None
+    return value
+
+
+def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
+    """The parts of the error side by side, for the text output."""
+    def num(x: Any) -> str:
+        return "n/a" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
+
+    psd = parts.get("psd") or {}
+    ho = parts.get("holdout") or {}
+    td = parts.get("time_domain") or {}
+    out = f"error: allan chi2/dof {num(chi2_per_dof)} | psd deviance/bin " \
+          f"{num(psd.get('deviance_per_bin'))}"
+    if psd.get("outside_95") is not None:
+        out += f" ({100.0 * psd['outside_95']:.0f} % of {psd.get('bins')} bins outside 95 %)"
+    out += f" | hold-out chi2/dof {num(ho.get('chi2_per_dof'))}"
+    out += f" | time domain max|z| {num(td.get('statistic'))} (p {num(td.get('p'))})"
+    lines = [out]
+    for c in ho.get("changed") or []:
+        a, b = c["values"]
+        lines.append(f"  finding: {c['param']} changed between the halves: {a:.4g} -> {b:.4g} "
+                     f"(z = {c['z']:.1f})")
+    return "\n".join(lines)
