@@ -151,7 +151,9 @@ chi-square test: neighbouring log-frequency points share Hann bins and are not i
 (conservative; their dof already allow for the merge)."""
 NOISE_SD = 3.0
 """A part "rises beyond its noise" when it grows by more than this many of its standard
-deviations, ``sqrt(2/dof)`` relative (at least absolute 1 x that for parts near 1)."""
+deviations: a part ``c`` per degree of freedom is a non-central chi-square over ``dof`` with
+non-centrality ``dof (c - 1)``, standard deviation ``sqrt((4 c - 2)/dof)`` (``sqrt(2/dof)``
+for a right model)."""
 HOLDOUT_CHECKS = 3
 """Significant suggestions whose hold-out part is computed (best first) before giving up:
 each costs two fits on the halves."""
@@ -295,7 +297,8 @@ def _rises(before: float | None, after: float | None, dof: float) -> bool:
     """Whether a part grew beyond its noise (see :data:`NOISE_SD`)."""
     if before is None or after is None or not (np.isfinite(before) and np.isfinite(after)):
         return False
-    return after > before + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0))) * max(1.0, before)
+    sd = float(np.sqrt((4.0 * max(before, 1.0) - 2.0) / max(dof, 1.0)))
+    return after > before + NOISE_SD * sd
 
 
 def _deviance(part: dict[str, Any] | None) -> float | None:
@@ -637,11 +640,15 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
 
 def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | None
                    ) -> dict[str, Any]:
-    """The given model's hold-out part; and a significant term suggestion that does not lower
-    it is not significant (checked best first, at most :data:`HOLDOUT_CHECKS` of them). The
-    first significant suggestion left is the one to apply."""
+    """The given model's hold-out part; and a significant term suggestion is demoted when it
+    raises the hold-out part beyond its noise, or, where the given model's hold-out part is
+    itself beyond its noise (the model does not predict the other half), when it does not
+    lower it. Checked best first, at most :data:`HOLDOUT_CHECKS` of them; the first
+    significant suggestion left is the one to apply."""
     before = holdout_part(ctx.x, ctx.fs_hz, ctx.spec, ctx.base, ctx.starts)
     b = before.get("chi2_per_dof")
+    dof = float(ctx.base.misfit.dof)
+    lacking = b is not None and b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))
     checked = 0
     for s in suggestions:
         if not s.significant or s.fit is None or s.apply.get("args"):
@@ -654,11 +661,11 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | N
         after = holdout_part(ctx.x, ctx.fs_hz, s.apply["model"], s.fit, ctx.starts)
         s.error_after["holdout"] = after
         a = after.get("chi2_per_dof")
-        if a is not None and a < b:
-            break
+        if a is None or not _rises(b, a, dof) and (a < b or not lacking):
+            break  # kept (a part that cannot be computed judges nothing)
         s.significant = False
-        s.why += (f" Not significant: it does not lower the hold-out part (the model fitted "
-                  f"on one half predicting the other: chi2/dof {b:.3g} -> "
-                  f"{'n/a' if a is None else f'{a:.3g}'}).")
+        s.why += (f" Not significant: it does not {'lower' if lacking else 'keep'} the "
+                  f"hold-out part (the model fitted on one half predicting the other: "
+                  f"chi2/dof {b:.3g} -> {'n/a' if a is None else f'{a:.3g}'}).")
     suggestions.sort(key=lambda s: not s.significant)  # stable: the order among each kept
     return before
