@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from imunoise.analysis.allan import AllanCurve
+from imunoise.analysis.default_model import DEFAULT_MODEL
 from imunoise.analysis.diagnosis import diagnose
 from imunoise.analysis.fit import FitResult, find_line, fit_allan
 from imunoise.analysis.psd import StreamingPsd
@@ -40,7 +41,6 @@ from imunoise.analysis.terms import get_term, parse_model, term_names
 from imunoise.core.series import channel_units
 from imunoise.core.units import CI95
 
-DEFAULT_MODEL: tuple[str, ...] = ("white", "bias_instability", "random_walk")
 # ``temperature`` needs the whole temperature record regressed out of the rate series first,
 # which a bounded-memory stream does not keep.
 VALID_TERMS: tuple[str, ...] = term_names(live=True)

@@ -43,6 +43,7 @@ from scipy.signal import lfilter
 
 from imunoise.analysis.terms import TermError, get_term
 from imunoise.analysis.terms.gauss_markov import TERM as GAUSS_MARKOV
+from imunoise.analysis.terms.gauss_markov import MarkovState, markov_state
 from imunoise.analysis.terms.random_walk import sampled_walk_avar as random_walk_avar
 
 # Relative share of the model's Allan variance below which bias instability gets no states.
@@ -59,25 +60,6 @@ def markov_avar(tau_s: np.ndarray, fs_hz: float, sigma: float, T_s: float) -> np
 def flat_flicker_avar(tau_s: np.ndarray, B: float) -> np.ndarray:
     """The bias-instability plateau (2 ln2/pi) B^2 on ``tau_s`` (units^2)."""
     return get_term("bias_instability").avar(tau_s, 1.0, B=B)
-
-
-@dataclass(frozen=True)
-class MarkovState:
-    """One first-order Markov state ``x_{k+1} = a_d x_k + w_k`` at the sample period.
-
-    Attributes:
-        term: the continuous term it comes from (``gauss_markov`` or ``bias_instability``).
-        T_s: correlation time in s.
-        sigma: stationary standard deviation (channel units).
-        a_d: ``exp(-dt/T)``.
-        driving_sigma: standard deviation of ``w_k``, ``sigma sqrt(1 - a_d^2)`` (channel units).
-    """
-
-    term: str
-    T_s: float
-    sigma: float
-    a_d: float
-    driving_sigma: float
 
 
 @dataclass(frozen=True)
@@ -193,13 +175,6 @@ def _normalise(model) -> list[tuple[str, dict[str, float]]]:
             term, params = item
             out.append((str(term), {k: float(v) for k, v in dict(params).items()}))
     return out
-
-
-def markov_state(term: str, sigma: float, T_s: float, fs_hz: float) -> MarkovState:
-    x = 1.0 / (fs_hz * T_s)
-    a = float(np.exp(-x))
-    return MarkovState(term=term, T_s=float(T_s), sigma=float(sigma), a_d=a,
-                       driving_sigma=float(sigma * np.sqrt(-np.expm1(-2.0 * x))))
 
 
 def discretize(

@@ -460,6 +460,7 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         return _result(prob, _Point(theta, np.ones(len(prob.tau), dtype=bool),
                                     _chi2(prob, theta)), intervals, temperature)
     memo = {} if memo is None else memo
+    _hold(memo, curve)
     folded = _folded(parsed, prob)
     key = _memo_key(curve, folded, line)
     hit = memo.get(key) if start is None else None
@@ -618,6 +619,13 @@ def _folded(parsed: ModelSpec, prob: _Problem) -> ModelSpec:
              for i in range(len(parsed.entries))}
     return ModelSpec(tuple(Entry(e.name, fixed[i], e.start)
                            for i, e in enumerate(parsed.entries)))
+
+
+def _hold(memo: dict, obj: Any) -> None:
+    """Keep ``obj`` alive as long as ``memo``: the memo's keys name curves and series by
+    ``id()``, and an object's id is reused once it is freed, so a key of a temporary curve
+    would hand its solutions to a later one."""
+    memo.setdefault(("held", id(obj)), obj)
 
 
 def _memo_key(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None
@@ -1014,6 +1022,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
     from imunoise.analysis.allan import oadev
 
     memo = {} if memo is None else memo
+    _hold(memo, values)
     spec = parse_model(model)
     names = spec.names
     x = np.asarray(values, dtype=np.float64)

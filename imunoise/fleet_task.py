@@ -158,7 +158,7 @@ def failed_row(location: str, digest: str | None, error: str, version: str) -> d
 
 
 def _significant(record: Any, key: str) -> list[str]:
-    from imunoise.outputs import suggestions
+    from imunoise.pipeline.channel_extras import suggestions
 
     return [s["term"] for s in suggestions(record, key) if s.get("significant")]
 
@@ -167,9 +167,11 @@ def channel_rows(location: str, path: str, digest: str, version: str,
                  unit_pattern: str | None, static: str, diagnose: bool) -> list[dict[str, Any]]:
     """The catalogue rows of every IMU channel of one local recording (numbers as
     ``imunoise analyze --json`` gives them)."""
+    from imunoise.analysis.default_model import DEFAULT_MODEL_TEXT
     from imunoise.analysis.evidence.outliers import outlier_indices
-    from imunoise.commands.analyze import DEFAULT_MODEL, analysis_json, analyze_record
-    from imunoise.commands.common import read_record, select
+    from imunoise.pipeline.channel_analysis import analyze_record
+    from imunoise.pipeline.documents import analysis_json
+    from imunoise.pipeline.reading import read_record, select
 
     record = read_record(path, None, static)
     keys = [k for k in select(record, []) if k != "temp"]
@@ -194,7 +196,7 @@ def channel_rows(location: str, path: str, digest: str, version: str,
                    n_samples=int(s.n_samples), gaps=int(len(s.segment_starts) - 1),
                    outliers=int(outlier_indices(s.segments()).size),
                    chi2_per_dof=(ch.get("error") or {}).get("chi2_per_dof"),
-                   model=DEFAULT_MODEL, diagnosed=False, significant_suggestions=[])
+                   model=DEFAULT_MODEL_TEXT, diagnosed=False, significant_suggestions=[])
         row.update(_coefficient_columns(ch.get("model") or [], kind))
         if r.fit is None:
             row["error"] = "; ".join(r.warnings) or "no model fit"

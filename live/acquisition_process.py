@@ -22,7 +22,6 @@ its parent disappears.
 
 from __future__ import annotations
 
-import gc
 import multiprocessing as mp
 import os
 import pickle
@@ -33,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from imunoise.live.block_ring import DEFAULT_CAPACITY, BlockRing
+from imunoise.live.process_priority import GIL_SWITCH_S, raise_priority, settle_heap
 from imunoise.live.restart_pause import RestartPause, describe_exit
 from imunoise.live.termination import TermFlag, end_process
 
@@ -40,24 +40,6 @@ STATUS_EVERY_S = 0.25
 """How often the child publishes its counters."""
 START_TIMEOUT_S = 60.0
 """How long the parent waits for the child to open the device."""
-GIL_SWITCH_S = 0.0001
-"""The interpreter's thread switch interval in the acquisition and simulator processes. With
-the recorder's writer thread in the acquisition process, the default 5 ms let it hold up a
-poll by a whole ADIS16350 period at 204.8 Hz; at 0.5 ms a 1 kHz ITG-3200 still lost 0.2 % of
-its samples, at 0.1 ms 0.06 %. The recorder now has a process of its own; the simulator's
-emulated bridge still runs threads."""
-
-
-def settle_heap() -> None:
-    """Keep the garbage collector's full passes short from here on.
-
-    After the imports (numpy, scipy, the drivers) a full collection walks about 70,000
-    objects, 36 ms of held interpreter: seven ADIS16350 samples at 204.8 Hz, and the collector
-    starts one by itself every few minutes. Frozen, the objects alive at start-up are never
-    walked again; what the loop allocates later is collected as usual.
-    """
-    gc.collect()
-    gc.freeze()
 
 
 @dataclass
@@ -93,28 +75,6 @@ class AcquisitionConfig:
 
 
 # ----------------------------------------------------------------------------- the child
-
-def raise_priority(mode: str) -> dict[str, Any]:
-    """Raise this process's scheduling priority as far as ``mode`` asks and the system
-    allows; what was granted and what was refused (for /health)."""
-    out: dict[str, Any] = {"asked": mode}
-    if mode == "realtime" and hasattr(os, "sched_setscheduler"):
-        try:
-            prio = min(20, os.sched_get_priority_max(os.SCHED_FIFO))
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-            out["policy"] = f"SCHED_FIFO {prio}"
-        except OSError as exc:
-            out["refused"] = f"SCHED_FIFO: {exc.strerror or exc}"
-    if "policy" not in out and mode in ("realtime", "nice"):
-        try:
-            os.nice(-10)
-        except OSError as exc:
-            out["refused"] = "; ".join(filter(None, [out.get("refused"),
-                                                    f"nice -10: {exc.strerror or exc}"]))
-        out["policy"] = "SCHED_OTHER"
-    out.setdefault("policy", "SCHED_OTHER")
-    out["nice"] = os.nice(0)
-    return out
 
 
 def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None = None,

@@ -54,7 +54,7 @@ def _recorder_main(feed_name: str, back_name: str, recorder_args: dict[str, Any]
     """Entry point of the recorder process."""
     from imunoise.daq import ros2_msgs
     from imunoise.daq.recorder import McapRecorder
-    from imunoise.live.acquisition_process import raise_priority, settle_heap
+    from imunoise.live.process_priority import raise_priority, settle_heap
 
     # The acquisition process closes the file (a "close" record) after its last block and
     # event; a signal to the whole process group must not end the recorder before those.

@@ -29,7 +29,7 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
                     priority: str, never_read: Any) -> None:
     import sys
 
-    from imunoise.live.acquisition_process import GIL_SWITCH_S, raise_priority, settle_heap
+    from imunoise.live.process_priority import GIL_SWITCH_S, raise_priority, settle_heap
 
     term = TermFlag().install()
     sys.setswitchinterval(GIL_SWITCH_S)

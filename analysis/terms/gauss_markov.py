@@ -8,11 +8,41 @@ are exact at every tau = m/fs.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.signal import lfilter
 
 from imunoise.analysis.terms.base import Param, Term, TermSimulator
+
+
+@dataclass(frozen=True)
+class MarkovState:
+    """One first-order Markov state ``x_{k+1} = a_d x_k + w_k`` at the sample period.
+
+    Attributes:
+        term: the continuous term it comes from (``gauss_markov`` or ``bias_instability``).
+        T_s: correlation time in s.
+        sigma: stationary standard deviation (channel units).
+        a_d: ``exp(-dt/T)``.
+        driving_sigma: standard deviation of ``w_k``, ``sigma sqrt(1 - a_d^2)`` (channel units).
+    """
+
+    term: str
+    T_s: float
+    sigma: float
+    a_d: float
+    driving_sigma: float
+
+
+def markov_state(term: str, sigma: float, T_s: float, fs_hz: float) -> MarkovState:
+    """The Markov state of stationary deviation ``sigma`` and correlation time ``T_s`` (s) at
+    the sample period ``1/fs_hz`` (the discrete model's form, :mod:`imunoise.analysis.discrete`)."""
+    x = 1.0 / (fs_hz * T_s)
+    a = float(np.exp(-x))
+    return MarkovState(term=term, T_s=float(T_s), sigma=float(sigma), a_d=a,
+                       driving_sigma=float(sigma * np.sqrt(-np.expm1(-2.0 * x))))
+
 
 _BIG = 1.0e3
 
@@ -113,7 +143,6 @@ class GaussMarkov(Term):
                        np.array([float(params["sigma"])]))
 
     def add_discrete(self, dm, params):
-        from imunoise.analysis.discrete import markov_state
         dm.markov.append(markov_state(self.name, params["sigma"], params["T"], dm.fs_hz))
 
 

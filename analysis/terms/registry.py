@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -30,8 +31,8 @@ def register(term: Term) -> Term:
 
 
 def _discover() -> None:
-    import imunoise.analysis.terms as package
-    for info in pkgutil.iter_modules(package.__path__):
+    # the modules beside this one (not the package object, whose import runs this module)
+    for info in pkgutil.iter_modules([str(Path(__file__).parent)]):
         if info.name in _SKIP or info.name.startswith("_"):
             continue
         module = importlib.import_module(f"imunoise.analysis.terms.{info.name}")

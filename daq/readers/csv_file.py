@@ -34,7 +34,7 @@ import numpy as np
 from imunoise.core.record import TEMPERATURE_KEY, Record
 from imunoise.core.series import ChannelSeries, channel_units
 from imunoise.core.timing import Timing, analyse_stamps
-from imunoise.daq.readers import ReadError
+from imunoise.daq.errors import ReadError
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")

@@ -15,19 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from imunoise.commands.common import (
-    add_rate_option,
-    add_window_options,
-    apply_window,
-    fit_errors,
-    open_imu_channel,
-    parse_model,
-)
-from imunoise.commands.fit import fit_json, fit_text
-from imunoise.core.record import Record
-
-ADIS_INTERNAL_RATE_HZ = 819.2
-"""Internal sample rate of the ADIS16350, at which its Bartlett filter runs (Hz)."""
+from imunoise.commands.common import add_rate_option, add_window_options
+from imunoise.commands.fit import fit_text
+from imunoise.pipeline.documents import diagnosis_json
+from imunoise.pipeline.fitting import diagnose_channel, full_window_args, parse_model
+from imunoise.pipeline.reading import apply_window, open_imu_channel
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,80 +35,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_rate_option(p)
     add_window_options(p)
     p.set_defaults(func=run)
-
-
-def diagnose_channel(record: Record, key: str, model_text: str,
-                     time_origin_s: float = 0.0) -> Any:
-    """Run :func:`imunoise.analysis.diagnosis.diagnose` on one channel of a record (its first sample
-    ``time_origin_s`` seconds after the start of the file: the ``--skip`` applied).
-
-    Raises UsageError for an unknown term or a record too short to fit."""
-    from imunoise.analysis.diagnosis import diagnose
-
-    names, fixed = parse_model(model_text)
-    series = record.series(key)
-    temp = record.temperature
-    temperature = None
-    if temp is not None and temp.n_samples >= 2:
-        temperature = (temp.t0_s + np.arange(temp.n_samples) / temp.fs_hz, temp.values)
-    with fit_errors(key):
-        return diagnose(series.values, series.fs_hz, names,
-                        segment_starts=series.segment_starts, t0_s=series.t0_s,
-                        temperature=temperature, units=series.units, fixed=fixed,
-                        sensor_filter=device_filter(record.metadata, key),
-                        time_origin_s=time_origin_s)
-
-
-def full_window_args(own: list[str], skip_s: float, split_s: list[float]) -> list[str]:
-    """A suggestion's ``apply.args`` for the whole command: the ``--skip``/``--split`` this
-    diagnosis ran with, joined with the suggestion's own cut (whose times count from the
-    first sample the diagnosis saw, i.e. after ``skip_s``), so that applying it keeps the
-    cuts already made."""
-    skip, splits = float(skip_s), [float(t) for t in split_s]
-    if len(own) == 2 and own[0] == "--skip":
-        skip += float(own[1])
-    elif len(own) == 2 and own[0] == "--split":
-        splits.append(float(skip_s) + float(own[1]))
-    out: list[str] = []
-    if skip:
-        out += ["--skip", f"{skip:.10g}"]
-    if splits:
-        out += ["--split", ",".join(f"{t:.10g}" for t in sorted(set(splits)))]
-    return out
-
-
-def device_filter(metadata: dict[str, str], key: str) -> tuple[str, dict[str, float]] | None:
-    """The output filter an imunoise recording's device configuration states for channel
-    ``key``, or None for other files and devices:
-
-    * ADIS16350: the Bartlett window of ``filter_taps`` taps per stage runs at the internal
-      819.2 Hz; at the output rate it spans ``taps * rate / 819.2`` output samples, stated
-      when that is at least one sample (shorter, it averages within one output sample);
-    * ITG-3200: the digital low-pass (``dlpf_bandwidth_hz``), modelled as one pole at that
-      bandwidth, when it lies below the output Nyquist frequency.
-    """
-    device = metadata.get("config.device", "")
-    rate = float(metadata.get("config.rate_hz", "nan"))
-    channel = key.split(":")[-1]
-    if not np.isfinite(rate):
-        return None
-    if device == "adis16350" and "config.filter_taps" in metadata:
-        taps = float(metadata["config.filter_taps"]) * rate / ADIS_INTERNAL_RATE_HZ
-        return ("bartlett", {"taps": taps}) if taps >= 1.0 else None
-    if device == "itg3200" and channel.startswith("gyro") \
-            and "config.dlpf_bandwidth_hz" in metadata:
-        fc = float(metadata["config.dlpf_bandwidth_hz"])
-        if fc < 0.5 * rate:
-            return "lowpass", {"fc": fc}
-    return None
-
-
-def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
-    """``fit``'s JSON document plus ``suggestions`` (best first) and ``evidence``."""
-    doc = fit_json(record, key, diag.fit, diag.curve)
-    doc["suggestions"] = [s.to_dict() for s in diag.suggestions]
-    doc["evidence"] = [f.to_dict() for f in diag.findings]
-    return doc
 
 
 def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float] | None,
@@ -185,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     if args.json:
-        from imunoise.web.views import documents
+        from imunoise.pipeline import documents
 
         sys.stdout.write(documents.dumps(diagnosis_json(record, key, diag)) + "\n")
     else:

@@ -14,10 +14,11 @@ import os
 import sys
 from pathlib import Path
 
-from imunoise.commands.common import add_rate_option, read_record
+from imunoise.commands.common import add_rate_option
 from imunoise.errors import UsageError
-from imunoise.files import write_text_atomically
-from imunoise.kalibr import COMBINE, KalibrError, kalibr_values, render_yaml
+from imunoise.export.files import write_text_atomically
+from imunoise.export.kalibr import COMBINE, KalibrError, kalibr_values, render_yaml
+from imunoise.pipeline.reading import read_record
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -86,7 +87,8 @@ def fitted_channels(path: str, rate_hz: float | None = None, static: str = "auto
 
     Raises UsageError when the sensor never rested (numbers from moving data are not noise)
     unless ``static="all"``."""
-    from imunoise.commands.analyze import analysis_json, analyze_record
+    from imunoise.pipeline.channel_analysis import analyze_record
+    from imunoise.pipeline.documents import analysis_json
 
     record = read_record(path, rate_hz, static)
     never_still = [f"{topic}: {m['summary']}" for topic, m in

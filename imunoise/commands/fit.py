@@ -16,16 +16,12 @@ import numpy as np
 from imunoise.commands.common import (
     add_rate_option,
     add_window_options,
-    apply_window,
     failure_lines,
-    fit_errors,
     model_lines,
-    open_imu_channel,
-    parse_model,
 )
-from imunoise.core.record import Record
-from imunoise.core.units import CI95
-from imunoise.web.views.documents import z_on_curve
+from imunoise.pipeline.documents import fit_json, z_on_curve
+from imunoise.pipeline.fitting import fit_channel, parse_model
+from imunoise.pipeline.reading import apply_window, open_imu_channel
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,45 +36,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_rate_option(p)
     add_window_options(p)
     p.set_defaults(func=run)
-
-
-def temperature_at(record: Record, key: str) -> np.ndarray | None:
-    """The record's temperature (degC) at each sample of channel ``key``, by linear
-    interpolation in time (sample times from each series' start and rate), or None."""
-    temp = record.temperature
-    if temp is None or temp.n_samples == 0:
-        return None
-    series = record.series(key)
-    t_chan = series.t0_s + np.arange(series.n_samples) / series.fs_hz
-    t_temp = temp.t0_s + np.arange(temp.n_samples) / temp.fs_hz
-    return np.interp(t_chan, t_temp, temp.values)
-
-
-def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
-    """Fit ``model_text`` to channel ``key`` of ``record``: ``(FitResult, AllanCurve)``.
-
-    Raises UsageError for an unknown term, a bad parameter or a record too short to fit."""
-    from imunoise.analysis.fit import fit_series
-
-    names, fixed = parse_model(model_text)
-    series = record.series(key)
-    temperature = temperature_at(record, key) if "temperature" in names else None
-    with fit_errors(key):
-        return fit_series(series.values, series.fs_hz, names,
-                          segment_starts=series.segment_starts, temperature=temperature,
-                          fixed=fixed, ci=CI95)
-
-
-def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
-    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
-    from imunoise.web.views import documents
-
-    doc = documents.channel_json(record.series(key), curve, channel=key,
-                                 warnings=record.warnings, **documents.fit_fields(result, curve))
-    for fact in ("timing", "motion"):
-        if fact in record.facts:
-            doc[fact] = record.facts[fact]
-    return doc
 
 
 def fit_summary(result: Any, units: str) -> str:
@@ -110,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     apply_window(record, key, args.skip, args.split)
     result, curve = fit_channel(record, key, args.model)
     if args.json:
-        from imunoise.web.views import documents
+        from imunoise.pipeline import documents
 
         sys.stdout.write(documents.dumps(fit_json(record, key, result, curve)) + "\n")
     else:

@@ -230,6 +230,9 @@ def _run_on(client: Any, todo: list[str], args: argparse.Namespace, known: froze
 
 
 def run(args: argparse.Namespace) -> int:
+    from imunoise.extras import require
+
+    require("fleet", "imunoise fleet")
     from imunoise.fleet.catalog import CatalogError, seen
 
     if args.workers is not None and args.workers < 1:

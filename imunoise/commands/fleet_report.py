@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from imunoise.extras import require
+
+    require("fleet", "imunoise fleet-report", ("pyarrow",))
     from imunoise.fleet.catalog import CatalogError, part_paths
     from imunoise.fleet.view import LimitsError, fleet_summary, load_limits
 
@@ -49,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     except (LimitsError, CatalogError) as exc:
         raise UsageError(f"fleet-report: {exc}") from None
     if args.output:
-        from imunoise.files import check_output_folder, write_text_atomically
+        from imunoise.export.files import check_output_folder, write_text_atomically
         from imunoise.fleet.html import render_fleet
 
         check_output_folder(args.output)
@@ -57,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.output}: {doc['files']} recording(s), {len(doc['outliers'])} "
               f"outlier(s), {len(doc['grew'])} grown", file=sys.stderr)
     if args.json:
-        from imunoise.web.views import documents
+        from imunoise.pipeline import documents
 
         sys.stdout.write(documents.dumps(doc) + "\n")
     return 0

@@ -17,10 +17,11 @@ import math
 import sys
 from typing import Any
 
-from imunoise.commands.common import add_rate_option, fit_errors, open_imu_channel
+from imunoise.analysis.default_model import DEFAULT_MODEL_TEXT
+from imunoise.commands.common import add_rate_option
 from imunoise.errors import UsageError
-
-DEFAULT_MODEL = "white,bias_instability,random_walk"
+from imunoise.pipeline.fitting import fit_errors
+from imunoise.pipeline.reading import open_imu_channel
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", metavar="TERMS",
                    help="terms, with every value when there is no FILE (e.g. "
                         "white:N=3e-4,random_walk:K=2e-5, SI units); with FILE the terms to "
-                        f"fit (default {DEFAULT_MODEL})")
+                        f"fit (default {DEFAULT_MODEL_TEXT})")
     p.add_argument("--target", required=True, metavar="P=X%",
                    help="wanted 95 %% half-widths, e.g. K=20%%,B=10%%")
     p.add_argument("--method", choices=("allan", "likelihood"), default="allan",
@@ -61,7 +62,7 @@ def _from_file(args: argparse.Namespace) -> tuple[str, float, dict[str, Any]]:
     record, key = open_imu_channel(args.file, args.rate, args.channel, "plan", args.static)
     series = record.series(key)
     with fit_errors(key):
-        result, _ = fit_series(series.values, series.fs_hz, args.model or DEFAULT_MODEL,
+        result, _ = fit_series(series.values, series.fs_hz, args.model or DEFAULT_MODEL_TEXT,
                                segment_starts=series.segment_starts)
     spec = ",".join(t.term + "".join(f":{k}={max(v, 1e-300):.9g}" for k, v in t.params.items())
                     for t in result.terms)
@@ -128,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"plan: {exc}") from None
     rows = [_row(p, facts) for p in plans]
     if args.json:
-        from imunoise.web.views import documents
+        from imunoise.pipeline import documents
 
         doc = {"model": spec, "fs_hz": fs, "targets": rows,
                "assumption": plans[0].assumption if plans else ""}

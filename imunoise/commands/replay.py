@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"replay: {args.file}: {exc}") from exc
     rows = summary.rows()
     if args.json:
-        from imunoise.web.views.documents import dumps, number
+        from imunoise.pipeline.documents import dumps, number
 
         for r in rows:
             r["white_noise_density"] = number(r["white_noise_density"])

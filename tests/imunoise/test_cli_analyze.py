@@ -161,9 +161,9 @@ def test_too_short_record_still_reports(tmp_path, capsys):
 
 
 def test_progress_bar_goes_to_stderr_only(capsys):
-    from imunoise.commands.analyze import analyze_record
     from imunoise.core.record import Record
     from imunoise.core.series import ChannelSeries
+    from imunoise.pipeline.channel_analysis import analyze_record
 
     rec = Record(source="mem", channels={"gyro_x": ChannelSeries(
         "gyro_x", "rad/s", FS, np.random.default_rng(0).normal(size=20_000))})
@@ -174,9 +174,10 @@ def test_progress_bar_goes_to_stderr_only(capsys):
 
 def test_progress_displays_do_not_touch_json(imu_csv, capsys, monkeypatch):
     from imunoise.commands import analyze
+    from imunoise.pipeline import channel_analysis
 
     monkeypatch.setattr(analyze, "_PROGRESS_FILE_BYTES", 0)
-    monkeypatch.setattr(analyze, "_PROGRESS_SAMPLES", 0)
+    monkeypatch.setattr(channel_analysis, "_PROGRESS_SAMPLES", 0)
     assert main(["analyze", str(imu_csv), "--json", "--channel", "gyro_x"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert list(doc["channels"]) == ["gyro_x"]

@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from imunoise.commands.diagnose import device_filter
+from imunoise.pipeline.fitting import device_filter
 
 
 def test_adis_bartlett_at_the_output_rate() -> None:
@@ -28,7 +28,7 @@ def test_itg3200_low_pass_below_nyquist_only() -> None:
 
 
 def test_apply_args_keep_the_cuts_already_made() -> None:
-    from imunoise.commands.diagnose import full_window_args
+    from imunoise.pipeline.fitting import full_window_args
 
     assert full_window_args([], 0.0, []) == []
     assert full_window_args([], 300.0, [5000.0]) == ["--skip", "300", "--split", "5000"]

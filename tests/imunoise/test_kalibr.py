@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from imunoise.cli import main
-from imunoise.kalibr import KalibrError, kalibr_values, render_yaml
+from imunoise.export.kalibr import KalibrError, kalibr_values, render_yaml
 
 KALIBR_KEYS = {"accelerometer_noise_density", "accelerometer_random_walk",
                "gyroscope_noise_density", "gyroscope_random_walk", "rostopic", "update_rate"}

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from imunoise.analysis.discrete import discretize
-from imunoise.report_html import render_report
-from imunoise.svg_plot import Plot
+from imunoise.export.report_html import render_report
+from imunoise.export.svg_plot import Plot
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from imunoise import streamed_analysis
 from imunoise.core.blocks import SampleBlock
+from imunoise.pipeline import streamed_analysis
 from tests.mcap_helpers import ACCEL_LSB, GYRO_LSB, record_blocks
 
 FS = 100.0

@@ -57,3 +57,14 @@ def test_fleet_without_catalogue_is_404(service, tmp_path):
         assert r.status_code == 404 and "--catalog" in r.json()["detail"]
     with running_server(create_app(service, catalog=str(tmp_path / "none"))) as base:
         assert httpx.get(f"{base}/fleet", timeout=30).status_code == 404
+
+
+def test_fleet_without_the_fleet_extra_says_what_to_install(service, tmp_path, monkeypatch):
+    """Without pyarrow (the ``fleet`` extra) the view is a 501 naming the pip line, not a
+    traceback."""
+    write_part(tmp_path, _rows())
+    monkeypatch.setitem(__import__("sys").modules, "pyarrow", None)  # import pyarrow fails
+    with running_server(create_app(service, catalog=str(tmp_path))) as base:
+        r = httpx.get(f"{base}/fleet", params={"format": "json"}, timeout=30)
+    assert r.status_code == 501
+    assert "pip install 'imunoise[fleet]'" in r.json()["detail"]

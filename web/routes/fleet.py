@@ -42,6 +42,12 @@ def fleet(request: Request, format: str | None = None) -> HTMLResponse | JSONRes
         raise HTTPException(404, "no fleet catalogue: start serve with --catalog DIR")
     if not Path(folder).is_dir():
         raise HTTPException(404, f"fleet catalogue {folder} does not exist (yet)")
+    from imunoise.extras import MissingExtra, require
+
+    try:
+        require("fleet", "the fleet view", ("pyarrow",))
+    except MissingExtra as exc:
+        raise HTTPException(501, str(exc)) from None
     from imunoise.fleet.catalog import CatalogError
 
     try:

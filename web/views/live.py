@@ -1,7 +1,7 @@
 """The API's views of a live channel (``/coefficients``, ``/allan``, ``/psd``, ``/diagnosis``,
 ``/model``), built from one :class:`imunoise.analysis.channel_state.ChannelSnapshot` with the parts
 of
-the command line's documents (:mod:`imunoise.web.views.documents`)."""
+the command line's documents (:mod:`imunoise.pipeline.documents`)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from imunoise.analysis.terms import labels
 from imunoise.analysis.terms import model_psd as terms_model_psd
 from imunoise.core.units import param_units
 from imunoise.live.channel import LiveChannel
-from imunoise.web.views.documents import error_json, floats, model_json, number, z_on_curve
+from imunoise.pipeline.documents import error_json, floats, model_json, number, z_on_curve
 
 
 def model_psd(f_hz: np.ndarray, params: Sequence[tuple[str, dict[str, float]]],

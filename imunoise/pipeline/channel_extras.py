@@ -23,10 +23,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from imunoise.analysis.default_model import DEFAULT_MODEL
 from imunoise.analysis.discrete import DiscreteModel, discretize, simulate
 
 MAX_CHECK_SAMPLES = 1 << 23  # 8.4 M samples: 67 MB per array, about two seconds to simulate
-DEFAULT_MODEL = ("white", "bias_instability", "random_walk")  # as imunoise analyze fits
 
 
 def _model_tuples(doc: Mapping) -> list[tuple[str, dict[str, float]]]:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from imunoise.analysis.terms import get_term
+from imunoise.core.record import Record
 from imunoise.core.series import ChannelSeries
 
 if TYPE_CHECKING:
@@ -172,3 +173,53 @@ def analyze_json(file: str, channels: Mapping[str, dict[str, Any]],
 def dumps(doc: Mapping[str, Any]) -> str:
     """Strict JSON text (no NaN or Infinity tokens)."""
     return json.dumps(doc, allow_nan=False, separators=(",", ":"))
+
+
+def analysis_json(path: str, record: Record, results: Sequence[Any]) -> dict[str, Any]:
+    """The ``analyze`` JSON document of analysed channels
+    (:class:`imunoise.pipeline.channel_analysis.ChannelAnalysis`)."""
+    channels = {
+        r.key: channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
+                            warnings=r.warnings, channel=r.key,
+                            **(fit_fields(r.fit, r.allan) if r.fit else {}))
+        for r in results
+    }
+    doc = analyze_json(path, channels, record.warnings)
+    stated = dataset_statement(record)
+    if stated:
+        doc["dataset"] = stated
+    for key in ("timing", "motion"):
+        if key in record.facts:
+            doc[key] = record.facts[key]
+    return doc
+
+
+def dataset_statement(record: Record) -> dict[str, Any]:
+    """What a dataset's own ``sensor.yaml`` states (EuRoC/ASL layout), to show beside the
+    measured values: ``{"sensor_yaml": path, "rate_hz": ..., "gyroscope_noise_density": ...}``."""
+    md = record.metadata
+    out: dict[str, Any] = {}
+    for key, value in md.items():
+        if key == "dataset_sensor_yaml":
+            out["sensor_yaml"] = value
+        elif key.startswith("dataset_"):
+            out[key.removeprefix("dataset_")] = float(value)
+    return out
+
+
+def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
+    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
+    doc = channel_json(record.series(key), curve, channel=key,
+                                 warnings=record.warnings, **fit_fields(result, curve))
+    for fact in ("timing", "motion"):
+        if fact in record.facts:
+            doc[fact] = record.facts[fact]
+    return doc
+
+
+def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
+    """``fit``'s JSON document plus ``suggestions`` (best first) and ``evidence``."""
+    doc = fit_json(record, key, diag.fit, diag.curve)
+    doc["suggestions"] = [s.to_dict() for s in diag.suggestions]
+    doc["evidence"] = [f.to_dict() for f in diag.findings]
+    return doc

@@ -167,7 +167,7 @@ def _psd_white(channel_doc: Mapping) -> tuple[float, tuple[float, float]] | None
 def overbound_axis(name: str, channel_doc: Mapping) -> AxisValues:
     """N and K of one channel from its over-bounding white + random-walk model (no intervals:
     they are bounds by construction)."""
-    from imunoise.outputs import overbound_for_channel
+    from imunoise.pipeline.channel_extras import overbound_for_channel
 
     ob = overbound_for_channel(channel_doc, markov=False)
     if ob is None or "error" in ob:

@@ -286,7 +286,7 @@ def _plan(record: Record, scans: dict[str, _TopicScan], keys: list[str],
     the stream ranges to analyse and the estimators of the selected channels."""
     from imunoise.analysis.psd import StreamingPsd, default_nperseg
     from imunoise.analysis.streaming_allan import StreamingAllan
-    from imunoise.commands.common import motion_verdict
+    from imunoise.pipeline.reading import motion_verdict
 
     timings, motions, feeds = {}, {}, {}
     ranges: dict[str, list[tuple[int, int]]] = {}
@@ -345,8 +345,8 @@ def _second_pass(path: str, src, scans: dict[str, _TopicScan], feeds: dict[str, 
 
 def _result(f: _Feed):
     """The ``analyze`` result of one fed channel."""
-    from imunoise.commands.analyze import ChannelAnalysis, _fit
     from imunoise.core.units import CI95
+    from imunoise.pipeline.channel_analysis import ChannelAnalysis, _fit
 
     f.summary.segment_starts = np.asarray(f.starts or [0], dtype=np.int64)
     out = ChannelAnalysis(key=f.key, series=f.summary)  # type: ignore[arg-type]
@@ -370,7 +370,7 @@ def _result(f: _Feed):
 def _held(record: Record, key: str):
     """The ``analyze`` result of a series held in memory (the temperature, one sample a
     second)."""
-    from imunoise.commands.analyze import analyze_record
+    from imunoise.pipeline.channel_analysis import analyze_record
 
     return analyze_record(record, [key], show_progress=False)[0]
 
@@ -384,11 +384,11 @@ def analyze_streamed(path: str, selectors: list[str], rate_hz: float | None = No
         (record, results): a :class:`imunoise.core.record.Record` whose channels are
         :class:`SeriesSummary` objects (temperature, metadata, warnings and ``timing`` /
         ``motion`` facts as the in-memory reader gives them) and the ``analyze`` results
-        (:class:`imunoise.commands.analyze.ChannelAnalysis`) of the selected channels.
+        (:class:`imunoise.pipeline.channel_analysis.ChannelAnalysis`) of the selected channels.
     """
-    from imunoise.commands.common import select
     from imunoise.daq.readers.mcap import open_mcap
     from imunoise.daq.readers.mcap_decode import _columns
+    from imunoise.pipeline.reading import select
     from imunoise.progress import progress_bar
 
     src = open_mcap(path) if src is None else src

@@ -1,0 +1,170 @@
+"""The Python API on a small recording: the same numbers and documents as the command line,
+the conversions and plots, the docstrings' examples, and a lazy ``import imunoise``."""
+
+from __future__ import annotations
+
+import contextlib
+import doctest
+import io
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import imunoise
+from imunoise.cli import main
+from imunoise.errors import UsageError
+from tests.blocked_imports import run_without
+
+FS = 100.0
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> str:
+    """A CSV of a gyro with white noise and a rate random walk, and a second channel, 20 min
+    at 100 Hz."""
+    rng = np.random.default_rng(42)
+    n = 120_000
+    gyro = rng.normal(0.0, 0.01, n) + np.cumsum(rng.normal(0.0, 2e-5, n))
+    accel = rng.normal(0.0, 0.02, n)
+    path = tmp_path_factory.mktemp("api") / "imu.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) / FS, gyro, accel]), delimiter=",",
+               header="t,gyro_x,accel_x", comments="", fmt="%.10g")
+    return str(path)
+
+
+def _cli_json(args: list[str]) -> dict:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(args) == 0
+    return json.loads(out.getvalue())
+
+
+def test_analyze_document_equals_the_command_line(recording):
+    assert imunoise.analyze(recording) == _cli_json(["analyze", recording, "--json"])
+
+
+def test_the_four_lines_give_analyze_numbers(recording):
+    cli = _cli_json(["analyze", recording, "--json"])["channels"]["gyro_x"]
+    rec = imunoise.read(recording)
+    curve = imunoise.oadev(rec["gyro_x"])
+    model = imunoise.fit(curve, "white,bias_instability,random_walk")
+    dx = imunoise.diagnose(rec["gyro_x"], "white,bias_instability,random_walk")
+    allan = curve.document()
+    for key in ("tau_s", "adev", "ci_low", "ci_high", "edf", "alpha", "ci"):
+        assert allan[key] == cli["allan"][key], key
+    doc = model.document()
+    for key in ("model", "error", "failures", "allan", "channel", "units", "fs_hz",
+                "n_samples"):
+        assert doc[key] == cli[key], key
+    assert imunoise.psd(rec["gyro_x"]).document() == cli["psd"]
+    # the diagnosis fits the same model to the same curve
+    assert dx.document()["model"] == cli["model"]
+
+
+def test_fit_and_diagnose_documents_equal_the_commands(recording):
+    rec = imunoise.read(recording)
+    model = "white,random_walk"
+    assert imunoise.fit(rec["gyro_x"], model).document() == _cli_json(
+        ["fit", recording, "--channel", "gyro_x", "--model", model, "--json"])
+    assert imunoise.diagnose(rec["gyro_x"], model).document() == _cli_json(
+        ["diagnose", recording, "--channel", "gyro_x", "--model", model, "--json"])
+
+
+def test_fit_of_a_channel_and_of_its_curve_agree(recording):
+    rec = imunoise.read(recording)
+    of_channel = imunoise.fit(rec["gyro_x"], "white,random_walk")
+    of_curve = imunoise.fit(imunoise.oadev(rec["gyro_x"]), "white,random_walk")
+    assert of_channel.document() == of_curve.document()
+
+
+def test_recovers_the_simulated_noise(recording):
+    """White N = 0.01 rad/s / sqrt(100 Hz) = 1e-3 rad/s/sqrt(Hz), K = 2e-5 rad/s * sqrt(100 Hz)
+    = 2e-4 rad/s/sqrt(s): each inside the fit's own 95 % interval."""
+    report = imunoise.fit(imunoise.read(recording)["gyro_x"], "white,random_walk")
+    table = report.to_pandas().set_index(["term", "param"])
+    for (term, param), truth in {("white", "N"): 1e-3, ("random_walk", "K"): 2e-4}.items():
+        row = table.loc[(term, param)]
+        assert row.ci95_low <= truth <= row.ci95_high, (term, param, row.to_dict())
+        assert row.resolved
+
+
+def test_arrays_are_analysed_like_channels(recording):
+    ch = imunoise.read(recording)["accel_x"]
+    assert imunoise.oadev(ch.values, fs_hz=ch.fs_hz).document() == imunoise.oadev(ch).document()
+    assert imunoise.psd(ch.values, fs_hz=ch.fs_hz).document() == imunoise.psd(ch).document()
+    with pytest.raises(TypeError, match="fs_hz"):
+        imunoise.oadev(ch.values)
+
+
+def test_tables_and_labelled_arrays(recording):
+    rec = imunoise.read(recording)
+    curve = imunoise.oadev(rec["gyro_x"])
+    frame = curve.to_pandas()
+    assert frame.index.name == "tau_s" and np.array_equal(frame["adev"], curve.adev)
+    ds = curve.to_xarray()
+    assert ds["adev"].attrs["units"] == "rad/s" and ds["tau_s"].attrs["units"] == "s"
+    assert np.array_equal(ds["adev"].values, curve.adev)
+    spectrum = imunoise.psd(rec["gyro_x"])
+    assert spectrum.to_pandas().index.name == "f_hz"
+    assert spectrum.to_xarray()["psd"].attrs["units"] == "(rad/s)^2/Hz"
+    dx = imunoise.diagnose(rec["gyro_x"], "white")
+    table = dx.to_pandas()
+    assert list(table["term"]) == [s["term"] for s in dx.suggestions]
+
+
+def test_plots_draw_the_curves(recording):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    rec = imunoise.read(recording)
+    curve = imunoise.oadev(rec["gyro_x"])
+    ax = curve.plot()
+    assert np.array_equal(ax.lines[0].get_ydata(), curve.adev)
+    ax = imunoise.fit(curve, "white,random_walk").plot()
+    labels = [line.get_label() for line in ax.lines]
+    assert labels[:4] == ["gyro_x", "model", "white", "random_walk"]
+    assert imunoise.psd(rec["gyro_x"]).plot().get_xscale() == "log"
+    assert "gyro_x" in imunoise.diagnose(rec["gyro_x"], "white").plot().get_title()
+
+
+def test_bad_input_raises_the_command_lines_message(tmp_path, recording):
+    with pytest.raises(UsageError, match="does not exist|no such|not found"):
+        imunoise.read(str(tmp_path / "missing.mcap"))
+    rec = imunoise.read(recording)
+    with pytest.raises(UsageError, match="gyro_x"):
+        rec["gyro_q"]
+    with pytest.raises(UsageError, match="unknown term"):
+        imunoise.fit(rec["gyro_x"], "white,pink")
+    with pytest.raises(TypeError, match="channel"):
+        imunoise.diagnose(imunoise.oadev(rec["gyro_x"]))
+
+
+def test_docstring_examples():
+    """The examples in the public functions' docstrings (run as written)."""
+    import imunoise.api
+
+    result = doctest.testmod(imunoise.api, optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted >= 25 and result.failed == 0
+
+
+def test_import_imunoise_loads_no_numerics():
+    """``import imunoise`` (and so the command line's start) imports neither numpy nor the
+    API; the first use of an API name does."""
+    code = ("import sys, imunoise; before = 'numpy' in sys.modules; imunoise.read; "
+            "print(before, 'numpy' in sys.modules, 'imunoise.api' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split() == ["False", "True", "True"]
+
+
+def test_plot_without_matplotlib_names_the_extra(tmp_path):
+    code = ("import numpy as np, imunoise; "
+            "imunoise.oadev(np.random.default_rng(0).normal(size=4000), fs_hz=100.0).plot()")
+    out = run_without(["matplotlib"], ["-c", code], tmp_path)
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines()[-1] == (
+        "imunoise.extras.MissingExtra: plot() needs the optional 'plot' extra (matplotlib is "
+        "not installed): pip install 'imunoise[plot]'")
