@@ -207,19 +207,33 @@ def dataset_statement(record: Record) -> dict[str, Any]:
     return out
 
 
-def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
-    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
+def fit_json(record: Record, key: str, result: Any, curve: Any,
+             parts: tuple[dict[str, Any] | None, dict[str, Any]] | None = None
+             ) -> dict[str, Any]:
+    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any).
+
+    ``parts`` is ``(psd block, error parts)`` from
+    :func:`imunoise.analysis.model_error.error_parts`: the ``psd`` block (measured PSD with
+    ``model_psd`` and ``z``) and the ``error``'s ``psd``, ``holdout`` and ``time_domain``."""
+    from imunoise.analysis.model_error import plain
+
     doc = channel_json(record.series(key), curve, channel=key,
                                  warnings=record.warnings, **fit_fields(result, curve))
     for fact in ("timing", "motion"):
         if fact in record.facts:
             doc[fact] = record.facts[fact]
+    if parts is not None:
+        block, error = parts
+        doc["error"].update(plain(error))
+        if block is not None:
+            doc["psd"] = plain(block)
     return doc
 
 
 def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
     """``fit``'s JSON document plus ``suggestions`` (best first) and ``evidence``."""
-    doc = fit_json(record, key, diag.fit, diag.curve)
+    doc = fit_json(record, key, diag.fit, diag.curve,
+                   (getattr(diag, "psd", None), getattr(diag, "error_parts", {}) or {}))
     doc["suggestions"] = [s.to_dict() for s in diag.suggestions]
     doc["evidence"] = [f.to_dict() for f in diag.findings]
     return doc
