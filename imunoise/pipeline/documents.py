@@ -179,9 +179,9 @@ def analysis_json(path: str, record: Record, results: Sequence[Any]) -> dict[str
     """The ``analyze`` JSON document of analysed channels
     (:class:`imunoise.pipeline.channel_analysis.ChannelAnalysis`)."""
     channels = {
-        r.key: channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
-                            warnings=r.warnings, channel=r.key,
-                            **(fit_fields(r.fit, r.allan) if r.fit else {}))
+        r.key: _with_psd_part(channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
+                                           warnings=r.warnings, channel=r.key,
+                                           **(fit_fields(r.fit, r.allan) if r.fit else {})), r)
         for r in results
     }
     doc = analyze_json(path, channels, record.warnings)
@@ -191,6 +191,27 @@ def analysis_json(path: str, record: Record, results: Sequence[Any]) -> dict[str
     for key in ("timing", "motion"):
         if key in record.facts:
             doc[key] = record.facts[key]
+    return doc
+
+
+def _with_psd_part(doc: dict[str, Any], r: Any) -> dict[str, Any]:
+    """An ``analyze`` channel document with the default model's PSD part: ``psd.model_psd``,
+    ``psd.z`` and ``error.psd``; the hold-out and time-domain parts are left to ``fit`` (they
+    cost two fits and a transient search per channel)."""
+    from imunoise.analysis.model_error import plain, psd_parts
+    from imunoise.analysis.psd import default_nperseg
+
+    if r.fit is None or r.psd is None:
+        return doc
+    bounds = np.append(r.series.segment_starts, r.series.n_samples)
+    nperseg = default_nperseg(int(np.max(np.diff(bounds))))
+    block, part = psd_parts(r.fit.params, r.psd, r.series.fs_hz, nperseg)
+    doc["psd"]["model_psd"] = plain(block["model_psd"])
+    doc["psd"]["z"] = plain(block["z"])
+    doc["error"]["psd"] = plain(part)
+    why = "not computed by analyze: imunoise fit reports it"
+    doc["error"]["holdout"] = {"chi2_per_dof": None, "parts": 2, "reason": why}
+    doc["error"]["time_domain"] = {"statistic": None, "p": None, "reason": why}
     return doc
 
 
