@@ -293,12 +293,25 @@ def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[
     return after, spec, pinned
 
 
+def _part_sd(before: float, dof: float) -> float:
+    """Standard deviation of a part (see :data:`NOISE_SD`)."""
+    return float(np.sqrt((4.0 * max(before, 1.0) - 2.0) / max(dof, 1.0)))
+
+
 def _rises(before: float | None, after: float | None, dof: float) -> bool:
     """Whether a part grew beyond its noise (see :data:`NOISE_SD`)."""
     if before is None or after is None or not (np.isfinite(before) and np.isfinite(after)):
         return False
-    sd = float(np.sqrt((4.0 * max(before, 1.0) - 2.0) / max(dof, 1.0)))
-    return after > before + NOISE_SD * sd
+    return after > before + NOISE_SD * _part_sd(before, dof)
+
+
+def _lowers(before: float | None, after: float | None, dof: float) -> bool:
+    """Whether a part fell by more than one of its standard deviations: a fall within its
+    noise lowers nothing (a part far above 1 moves by more than a right model's chi-square
+    spread between two fits of the same misfit)."""
+    if before is None or after is None or not (np.isfinite(before) and np.isfinite(after)):
+        return False
+    return after < before - _part_sd(before, dof)
 
 
 def _deviance(part: dict[str, Any] | None) -> float | None:
@@ -315,7 +328,7 @@ def _psd_logp(ctx: _Context, part: dict[str, Any] | None, k: int) -> float:
     """Log p-value of the fall of the PSD deviance with ``k`` added parameters (0 when it
     does not fall)."""
     b, a = _deviance(ctx.psd_before), _deviance(part)
-    if b is None or a is None or a >= b:
+    if not _lowers(b, a, part["bins"] / PSD_BIN_CORRELATION if part else 1.0):
         return 0.0
     return _chi2_logsf((b - a) * part["bins"] / PSD_BIN_CORRELATION, k)
 
@@ -643,8 +656,9 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | N
     """The given model's hold-out part; and a significant term suggestion is demoted when it
     raises the hold-out part beyond its noise, or, where the given model's hold-out part is
     itself beyond its noise (the model does not predict the other half), when it does not
-    lower it. Checked best first, at most :data:`HOLDOUT_CHECKS` of them; the first
-    significant suggestion left is the one to apply."""
+    lower it by more than one of its standard deviations. Checked best first, at most
+    :data:`HOLDOUT_CHECKS` of them; the first significant suggestion left is the one to
+    apply."""
     before = holdout_part(ctx.x, ctx.fs_hz, ctx.spec, ctx.base, ctx.starts)
     b = before.get("chi2_per_dof")
     dof = float(ctx.base.misfit.dof)
@@ -661,7 +675,7 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | N
         after = holdout_part(ctx.x, ctx.fs_hz, s.apply["model"], s.fit, ctx.starts)
         s.error_after["holdout"] = after
         a = after.get("chi2_per_dof")
-        if a is None or not _rises(b, a, dof) and (a < b or not lacking):
+        if a is None or not _rises(b, a, dof) and (_lowers(b, a, dof) or not lacking):
             break  # kept (a part that cannot be computed judges nothing)
         s.significant = False
         s.why += (f" Not significant: it does not {'lower' if lacking else 'keep'} the "
