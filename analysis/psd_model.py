@@ -163,14 +163,22 @@ def _level_bins(est: PsdEstimate, fs: float, L: int, ppd: float | None
     return out
 
 
-def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int = 256,
-                     points_per_decade: float | None = 40.0,
+def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float,
+                     nperseg: int | None = 256, points_per_decade: float | None = 40.0,
                      levels: Sequence[int] | None = None) -> np.ndarray:
     """Expected value (units^2/Hz, one-sided) of each point of ``est`` (a
     :func:`imunoise.analysis.psd.log_psd` estimate made with ``nperseg`` and
     ``points_per_decade``) when the record follows ``model`` ``[(term, params)]``.
     ``levels`` restricts the work to those cascade levels (0: the full-rate Welch band); the
-    other points are NaN."""
+    other points are NaN. ``nperseg=None`` finds the segment length (a power of two from 64
+    to 4096) whose bin layout the estimate has."""
+    if nperseg is None:
+        for n in (256, 128, 64, 512, 1024, 2048, 4096):
+            try:
+                return expected_log_psd(model, est, fs_hz, n, points_per_decade, levels)
+            except ValueError:
+                continue
+        raise ValueError("the PSD estimate's points match no segment length's bin layout")
     fs = float(fs_hz)
     L = int(nperseg)
     N = L * PAD
