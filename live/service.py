@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
+from imunoise.live.coherence import LiveCoherence
 from imunoise.live.scheduler import BlockLike, RollingAnalyzer
 
 
@@ -94,6 +95,7 @@ class LiveService:
         self.sink_errors = 0
         self.gaps_seen = 0
         self.error: str | None = None
+        self.coherence = LiveCoherence()  # between each stream's channels (/coherence)
         self.started_at = time.time()
         self._last_block_t: float | None = None
         self._events = 0
@@ -238,6 +240,7 @@ class LiveService:
     def _update(self, block: BlockLike) -> None:
         try:
             self.analyzers.update(block)
+            self.coherence.update(block)
         except Exception as exc:  # noqa: BLE001 - bad block: report, keep going
             self.error = f"analysis: {type(exc).__name__}: {exc}"
         n = len(block.t) if hasattr(block, "t") else 0
