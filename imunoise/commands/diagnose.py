@@ -54,11 +54,16 @@ def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float]
 def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                    model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
+    from imunoise.analysis.model_error import parts_line
     from imunoise.analysis.terms import TERMS, param_unit
 
     u = series.units
-    lines = [fit_text(key, series, diag.fit, diag.curve), "", "  suggestions (best first; "
-             f"* = significant at family level {diag.alpha:g})"]
+    lines = [fit_text(key, series, diag.fit, diag.curve)]
+    parts = getattr(diag, "error_parts", None)
+    if parts:
+        lines.append("  " + parts_line(diag.fit.chi2_per_dof, parts).replace("\n", "\n  "))
+    lines += ["", "  suggestions (best first; "
+              f"* = significant at family level {diag.alpha:g})"]
     for i, s in enumerate(diag.suggestions, 1):
         mark = "*" if s.significant else " "
         after = (f"{s.chi2_per_dof_after:.3g}" if np.isfinite(s.chi2_per_dof_after)
@@ -66,8 +71,11 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
         term = TERMS.get(s.term)
         # a warm-up or bias step is no term: its remedy cuts the record (apply.args)
         verb = "add" if term is not None else "cut"
+        psd_after = ((getattr(s, "error_after", None) or {}).get("psd") or {}).get(
+            "deviance_per_bin")
+        psd_txt = "" if psd_after is None else f" psd/bin -> {psd_after:.3g}"
         lines.append(f"  {mark}{i:2d}. {verb} {s.term:17s} chi2/dof {s.chi2_per_dof_before:.3g} "
-                     f"-> {after:8s} p = {s.p_value:.2g}")
+                     f"-> {after:8s}{psd_txt} p = {s.p_value:.2g}")
         if term is not None:
             pars = [_suggested_param(s.term, p.name, s.params[p.name], s.ci95.get(p.name),
                                      param_unit(p, u))
