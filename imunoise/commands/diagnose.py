@@ -18,7 +18,7 @@ import numpy as np
 from imunoise.commands.common import add_rate_option, add_window_options
 from imunoise.commands.fit import fit_text
 from imunoise.pipeline import cross_channel
-from imunoise.pipeline.documents import diagnosis_json
+from imunoise.pipeline.assembly import diagnosis_document
 from imunoise.pipeline.fitting import diagnose_channel, full_window_args, parse_model
 from imunoise.pipeline.reading import apply_window, open_imu_channel
 
@@ -113,15 +113,10 @@ def run(args: argparse.Namespace) -> int:
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     # the lines and resonances judged against the other channels: common or own
-    coherence = cross_channel.channel_coherence(record, key, diag, group,
-                                                args.skip, args.split or ())
+    doc, coherence = diagnosis_document(record, key, diag, group, args.skip, args.split or ())
     if args.json:
         from imunoise.pipeline import documents
 
-        doc = diagnosis_json(record, key, diag)
-        if coherence is not None:
-            doc["coherence"] = coherence
-            cross_channel.mark_origins(doc["suggestions"], coherence, key)
         sys.stdout.write(documents.dumps(doc) + "\n")
     else:
         for w in record.warnings:
