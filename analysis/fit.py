@@ -360,8 +360,10 @@ def _default_nu(curve: CurveLike) -> np.ndarray:
 
 def _solve(layout: _Layout, theta0: np.ndarray, y: np.ndarray, tau: np.ndarray,
            m: np.ndarray, n_terms: np.ndarray, fs: float, max_nfev: int) -> np.ndarray:
-    """GLS on ln(avar): whitening from the model at the current point, solved, refreshed once."""
-    theta = theta0
+    """GLS on ln(avar): whitening from the model at the current point, solved, refreshed once.
+    A start outside the bounds (a Markov T shorter than the two sample periods it may take) is
+    moved onto them."""
+    theta = np.clip(theta0, layout.lo, layout.hi)
     for _ in range(2):
         params = _unpack(layout, theta)
         whiten, bias, _ = _log_weights(_model_terms(layout, params), fs, m, n_terms,
