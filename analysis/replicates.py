@@ -12,7 +12,8 @@ fit's 95 % intervals are roughly symmetric, each run's estimate is weighed by it
 A shape whose Q passes the family-wise test (Bonferroni over every parameter tested) is held at
 its pooled value and every run refitted with it held (the tied refit): the amplitudes (white
 level, bias instability, random walk, sigma, line amplitude ...) stay per run, with their
-intervals, and are tested the same way across runs. A parameter that fails the test is *named*
+intervals, and are tested the same way across runs (on each run's own fit, whose intervals
+carry the shapes' uncertainty). A parameter that fails the test is *named*
 with its per-run values and Q: a finding about the unit (the sensor changed between runs, or
 the intervals are too narrow), not an error; a shape that differs stays free in each run's
 refit.
@@ -117,7 +118,7 @@ class ReplicateResult:
         free_fits: each run's own fit of ``term_set``.
         tied_fits: each run's refit with the shapes that agree held at their pooled values.
         shared: the homogeneity test of every shape parameter.
-        amplitudes: the homogeneity test of every amplitude parameter (from the tied refits).
+        amplitudes: the homogeneity test of every amplitude parameter (on the runs' own fits).
         per_run: per run, ``{"term#i.param": Estimate}`` of the tied refit.
         alpha: family-wise level of the tests.
     """
@@ -139,10 +140,12 @@ class ReplicateResult:
         return [h for h in self.shared + self.amplitudes if h.differs]
 
     def per_run_values(self, h: Homogeneity) -> list[Estimate | None]:
-        """Each run's estimate of the tested parameter (free fit for a shape, tied refit for an
-        amplitude)."""
-        fits = self.free_fits if h.kind == "shape" else self.tied_fits
-        return [_estimate(f, h.index, h.param) for f in fits]
+        """Each run's own estimate of the tested parameter (what the test compared)."""
+        return [_estimate(f, h.index, h.param) for f in self.free_fits]
+
+    def tied_values(self, h: Homogeneity) -> list[Estimate | None]:
+        """Each run's estimate in the refit with the agreeing shapes held."""
+        return [_estimate(f, h.index, h.param) for f in self.tied_fits]
 
     def to_dict(self) -> dict[str, Any]:
         """The ``replicates`` JSON block."""
@@ -333,7 +336,10 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
         if not h.differs and np.isfinite(h.pooled):
             tie.setdefault(h.index, {})[h.param] = h.pooled
     tied_fits = [fit(i, tie or None) for i in range(len(runs))] if tie else free_fits
-    amplitudes = [test(i, p, k, tied_fits) for i, p, k in params if k == "amplitude"]
+    # amplitudes are compared on the runs' own fits: their intervals there carry the
+    # uncertainty of the shapes, which holding a pooled shape would leave out (and a run
+    # whose shape estimate lies off the pooled one moves its amplitude to compensate)
+    amplitudes = [test(i, p, k, free_fits) for i, p, k in params if k == "amplitude"]
     per_run = []
     for f in tied_fits:
         row: dict[str, Estimate] = {}
