@@ -20,14 +20,16 @@ run: $(STAMP)
 # counts) alone, so that nothing else competes with them. Together they are the whole suite.
 test: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/python -m tests.typecheck
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not realtime"
 	$(BIN)/python -m pytest -q -m realtime
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/python -m tests.typecheck
 
 bench: $(STAMP)
 	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache

@@ -276,8 +276,11 @@ def _adev_sum(u: np.ndarray, m: int) -> tuple[float, int]:
 
 def _running_sum_split(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Prefix sums U (U[0] = 0, N + 1 points) of ``u`` as a float64 pair ``hi + lo``, summed in
-    long double: differences of U over m points then keep full float64 precision even when
-    U itself is large."""
+    double-double by the compiled kernel (else in long double): differences of U over m points
+    then keep full float64 precision even when U itself is large."""
+    if allan_kernels.enabled("mdev"):
+        # the same sums carried in double-double: as exact, without the slow long double
+        return allan_kernels.running_sum_split(u, float(u.mean()))
     uu = np.empty(u.size + 1, dtype=np.longdouble)
     uu[0] = 0.0
     np.cumsum(u - u.mean(), dtype=np.longdouble, out=uu[1:])
@@ -450,10 +453,11 @@ def _segments(n: int, segment_starts) -> list[tuple[int, int]]:
 
 def _intervals(kind: str, dev: np.ndarray, ms: np.ndarray, counts: np.ndarray,
                seg_points: list[int], phases: list[np.ndarray], alpha_arr: np.ndarray | None,
-               ci: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               ci: float | None, var: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Noise type per tau, equivalent degrees of freedom and the deviation's ``ci``
     interval: ``(alpha, edf, ci_low, ci_high)``; without ``ci`` no noise identification and
-    NaN intervals."""
+    NaN intervals. ``var``: the variance at each m (pooled over the segments)."""
     if ci is None:
         nan = np.full(ms.size, np.nan)
         alpha = alpha_arr if alpha_arr is not None else np.zeros(ms.size, dtype=np.int64)
@@ -461,7 +465,10 @@ def _intervals(kind: str, dev: np.ndarray, ms: np.ndarray, counts: np.ndarray,
     if alpha_arr is None:
         if phases:
             u_long = phases[int(np.argmax(seg_points))]
-            alpha_arr = identify_noise(u_long, ms, kind, n_terms=counts)
+            # one segment: its sums are the curve's, which the R(n) test can reuse
+            known = (ms, var) if var is not None and kind == "oadev" and len(phases) == 1 \
+                else None
+            alpha_arr = identify_noise(u_long, ms, kind, n_terms=counts, oadev_var=known)
         else:
             alpha_arr = np.zeros(0, dtype=np.int64)
     lo, hi = alpha_range(kind)
@@ -557,7 +564,7 @@ def allan(
     dev = np.sqrt(var)
 
     alpha_arr, edf, ci_low, ci_high = _intervals(kind, dev, ms, counts, seg_points, phases,
-                                                 alpha_arr, ci)
+                                                 alpha_arr, ci, var)
     return AllanCurve(
         kind=kind,
         fs_hz=float(fs_hz),
@@ -575,7 +582,8 @@ def allan(
 
 
 def identify_noise(
-    u: np.ndarray, ms: np.ndarray, kind: str, n_terms: np.ndarray | None = None
+    u: np.ndarray, ms: np.ndarray, kind: str, n_terms: np.ndarray | None = None,
+    oadev_var: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Noise exponent alpha per m from one segment's phase ``u`` (rate x samples units).
 
@@ -587,11 +595,17 @@ def identify_noise(
     B1 ratio and R(n) (``imunoise.analysis.edf.noise_id_b1_rn``), evaluated at ``n_terms``, the
     number
     of terms of the statistic at each m (default: those of ``kind`` on this one segment).
+    ``oadev_var``: ``(m, variance)`` of the overlapping Allan variance of this segment where
+    already known (R(n) then does not sum it again).
     """
     ms = np.asarray(ms, dtype=np.int64)
     if n_terms is None:
         n_terms = term_counts(u.size, ms, kind)
     lo, hi = alpha_range(kind)
+    mdev_of = _MdevAt(u)
+    known: dict[int, float] = {}
+    if oadev_var is not None:
+        known = {int(k): float(v) for k, v in zip(*oadev_var, strict=True)}
     with single_thread_blas():
         alpha = noise_id_lag1_phase(u, ms, "freq", dmax=KINDS[kind].d, alpha_range=(lo, hi))
         for j in np.flatnonzero((u.size - 1) // np.maximum(ms, 1) < LAG1_MIN_POINTS):
@@ -599,7 +613,9 @@ def identify_noise(
             z = np.diff(u[::m]) / m
 
             def rn(m: int = m) -> float:
-                mvar = normalise(*segment_sums(u, np.array([m]), "mdev"), np.array([m]), "mdev")
+                mvar = normalise(*mdev_of(m), np.array([m]), "mdev")
+                if m in known:
+                    return float(mvar[0] / known[m])
                 avar = normalise(*segment_sums(u, np.array([m]), "oadev"), np.array([m]), "oadev")
                 return float(mvar[0] / avar[0])
 
@@ -607,6 +623,33 @@ def identify_noise(
             if found is not None:
                 alpha[j] = min(max(found, lo), hi)
     return alpha
+
+
+class _MdevAt:
+    """``segment_sums(u, [m], "mdev")`` for one phase ``u`` at any m, the running sums it needs
+    (a full pass over ``u``) formed once, on the first call."""
+
+    def __init__(self, u: np.ndarray) -> None:
+        self.u = u
+        self.split: tuple[np.ndarray, np.ndarray, int] | None = None
+
+    def __call__(self, m: int) -> tuple[np.ndarray, np.ndarray]:
+        u = self.u
+        n = u.size
+        count = max(n - 3 * m + 1, 0)
+        if count == 0:
+            return np.zeros(1), np.zeros(1, dtype=np.int64)
+        if self.split is None:
+            # the power-of-two scaling of segment_sums, so that the sums are the same numbers
+            peak = max(float(u.max()), -float(u.min()))
+            e = -int(np.floor(np.log2(peak))) if peak > 0.0 and not 2.0**-8 < peak < 2.0**8 \
+                else 0
+            hi, lo = _running_sum_split(np.ldexp(u, e) if e else u)
+            self.split = (hi, lo, e)
+        hi, lo, e = self.split
+        kernel = allan_kernels.mdev_sum if allan_kernels.enabled("mdev") else _mdev_sum
+        total = np.array([kernel(hi, lo, int(m))])
+        return (np.ldexp(total, -2 * e) if e else total), np.array([count], dtype=np.int64)
 
 
 def term_counts(n_phase: int, ms: np.ndarray, kind: str) -> np.ndarray:

@@ -6,9 +6,11 @@ pairwise there, and each block total is added to a Neumaier-compensated running 
 error is then that of a pairwise sum of 1,024 terms (at most about ten roundings), whatever
 the record length, and the result agrees with the numpy path to about 1e-15 relative.
 Nearby averaging factors share one sweep over the phase (``groups``), so long records are
-read from memory fewer times. ``fastmath`` stays off: no reassociation or contraction
-beyond what is written here; every loop is elementwise, so the compiler still emits SIMD
-code.
+read from memory fewer times. The modified Allan sums rest on prefix sums carried in
+double-double arithmetic (``running_sum_split``), and the lag-1 noise identification reads
+each decimated series once (``diff_products``). ``fastmath`` stays off: no reassociation or
+contraction beyond what is written here; every loop is elementwise, so the compiler still
+emits SIMD code.
 
 ``enabled(kind)`` says whether the compiled kernels of a kind are in use: numba must import,
 the kernels must compile (on first use, per kind; ``cache=True`` keeps the machine code on
@@ -33,7 +35,7 @@ _CHUNK = 16 * _BLOCK
 GROUP_MAX = 16
 
 #: Kinds with compiled kernels (``adev`` needs none: it reads only every m-th point).
-KERNEL_KINDS = ("oadev", "ohdev", "mdev")
+KERNEL_KINDS = ("oadev", "ohdev", "mdev", "noise_id")
 
 # switch; per kind: compiled (absent: not tried yet), why not, and first-use time in s
 _state: dict = {
@@ -214,6 +216,64 @@ def mdev_sum(hi: np.ndarray, lo: np.ndarray, m: int) -> float:
     return total + comp
 
 
+@_jit
+def running_sum_split(u: np.ndarray, offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """Prefix sums ``U[0] = 0``, ``U[k] = sum(v[:k])`` of ``v = u - offset`` (each difference
+    rounded to float64, as numpy's) as a float64 pair ``hi + lo``, the sum
+    carried in double-double arithmetic (error-free addition, then renormalised): ``hi`` is
+    the sum rounded to float64 and ``lo`` the rest, accurate to about 2^-100 of the sum, so
+    differences of ``U`` over m points keep full float64 precision however large U grows."""
+    n = u.size
+    hi = np.empty(n + 1)
+    lo = np.empty(n + 1)
+    hi[0] = 0.0
+    lo[0] = 0.0
+    s = 0.0
+    c = 0.0
+    for k in range(n):
+        x = u[k] - offset
+        t = s + x
+        bp = t - s
+        e = (s - (t - bp)) + (x - bp)
+        c += e
+        s = t + c
+        c = c - (s - t)
+        hi[k + 1] = s
+        lo[k + 1] = c
+    return hi, lo
+
+
+@_jit
+def diff_products(v: np.ndarray) -> tuple[float, float, float]:
+    """For ``z = diff(v)`` (``v`` may be a strided view): ``(z.z, z[:-1].z[1:], sum(v[1:]))``.
+    Blocks of ``_BLOCK`` terms are summed in order, the block totals Neumaier-compensated."""
+    n = v.size - 1
+    zz = 0.0
+    zc = 0.0
+    pp = 0.0
+    pc = 0.0
+    ss = 0.0
+    sc = 0.0
+    prev = 0.0
+    for a in range(0, n, _BLOCK):
+        e = min(n, a + _BLOCK)
+        bz = 0.0
+        bp = 0.0
+        bs = 0.0
+        for q in range(a, e):
+            x1 = v[q + 1]
+            z = x1 - v[q]
+            bz += z * z
+            if q > 0:
+                bp += prev * z
+            bs += x1
+            prev = z
+        zz, zc = _add_compensated(zz, zc, bz)
+        pp, pc = _add_compensated(pp, pc, bp)
+        ss, sc = _add_compensated(ss, sc, bs)
+    return zz + zc, pp + pc, ss + sc
+
+
 def groups(ms: np.ndarray, stops: np.ndarray) -> list[np.ndarray]:
     """Indices of ``ms`` (with terms) in sweeps of at most ``GROUP_MAX`` nearby m each (the
     largest m of a sweep exceeds its smallest by at most ``_CHUNK``)."""
@@ -241,8 +301,12 @@ def _warm_up(kind: str) -> None:
     elif kind == "ohdev":
         ohdev_sum(u, 3, 0, u.size - 9)
         ohdev_sums(u, ms, u.size - 3 * ms)
+    elif kind == "mdev":
+        hi, lo = running_sum_split(u, 0.5)
+        mdev_sum(hi, lo, 3)
     else:
-        mdev_sum(u, u, 3)
+        diff_products(u)
+        diff_products(u[::3])
 
 
 def _compile(kind: str) -> None:
@@ -259,8 +323,10 @@ def _compile(kind: str) -> None:
 
 
 def enabled(kind: str = "oadev") -> bool:
-    """True when the compiled kernels of ``kind`` (``"oadev"``, ``"ohdev"`` or ``"mdev"``) are
-    switched on and work; the first call compiles them (or loads them from the cache)."""
+    """True when the compiled kernels of ``kind`` (``"oadev"``, ``"ohdev"``, ``"mdev"``, whose
+    kernels include the double-double running sums, or ``"noise_id"``, the one-pass products
+    of the lag-1 noise identification) are switched on and work; the first call compiles them
+    (or loads them from the cache)."""
     if not _state["switch"] or kind not in KERNEL_KINDS:
         return False
     if _NUMBA_ERROR:

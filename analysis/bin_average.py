@@ -8,6 +8,9 @@ does, it is replaced by its exact average, from ``sin^4 x = 3/8 - cos(2x)/2 + co
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
+
 import numpy as np
 
 SIN4 = (3.0 / 8.0, -0.5, 1.0 / 8.0)
@@ -37,3 +40,29 @@ def sin4_table(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray) ->
         out[fast] = (SIN4[0] + SIN4[1] * (np.sin(x2 * b) - np.sin(x2 * a)) / (x2 * w)
                      + SIN4[2] * (np.sin(x4 * b) - np.sin(x4 * a)) / (x4 * w))
     return out
+
+
+_TABLES: OrderedDict[tuple[bytes, bytes, bytes], np.ndarray] = OrderedDict()
+_TABLES_SIZE = 16
+_TABLES_LOCK = threading.Lock()
+
+
+def sin4_table_shared(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray
+                      ) -> np.ndarray:
+    """:func:`sin4_table`, remembered by the values of ``m``, ``ua`` and ``ub`` (``um`` is
+    their mid-point): a fit that moves a filter's parameters rebuilds the same frequency grid
+    again and again. The table returned is read-only."""
+    key = (np.ascontiguousarray(m, dtype=np.float64).tobytes(),
+           np.ascontiguousarray(ua).tobytes(), np.ascontiguousarray(ub).tobytes())
+    with _TABLES_LOCK:
+        hit = _TABLES.get(key)
+        if hit is not None:
+            _TABLES.move_to_end(key)
+            return hit
+    table = sin4_table(m, um, ua, ub)
+    table.setflags(write=False)
+    with _TABLES_LOCK:
+        _TABLES[key] = table
+        while len(_TABLES) > _TABLES_SIZE:
+            _TABLES.popitem(last=False)
+    return table

@@ -84,7 +84,7 @@ class Suggestion:
     apply: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        """CONTRACT.md ``suggestions`` entry (plus ``p_value``, ``ci95``, ``evidence``)."""
+        """A ``suggestions`` entry of the JSON (docs/json.md)."""
         def num(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
 

@@ -1,6 +1,6 @@
 """Filter-ready discrete-time noise models at the sample period, and their simulator.
 
-A fitted continuous model (CONTRACT.md terms, SI parameters) becomes, at the sample period
+A fitted continuous model (docs/terms.md terms, SI parameters) becomes, at the sample period
 ``dt = 1/fs``, the set of difference equations a Kalman filter designer needs:
 
 =================  ==============================================  ============================

@@ -37,6 +37,8 @@ from collections.abc import Callable
 import numpy as np
 from scipy import special, stats
 
+from imunoise.analysis import allan_kernels
+
 #: Largest number of summands evaluated directly in the Greenhall basic sum.
 GREENHALL_JMAX = 100
 
@@ -405,11 +407,15 @@ def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
     noise identification on long records.
     """
     n = v.size - 1
-    zz, p = _diff_products(v)
+    if allan_kernels.enabled("noise_id"):
+        zz, p, s1 = allan_kernels.diff_products(v)  # one pass, also over a strided view
+    else:
+        zz, p = _diff_products(v)
+        s1 = float(np.sum(v[1:]))
     z0, zl = float(v[1] - v[0]), float(v[-1] - v[-2])
     a = float(v[-1] - v[0]) / n  # mean of z
     # sum(k z_k) by parts, then about the centred index t_k = k - (n - 1) / 2
-    skz = n * float(v[-1]) - float(np.sum(v[1:]))
+    skz = n * float(v[-1]) - s1
     t_last = (n - 1) / 2.0
     st = n * (n * n - 1) / 12.0  # sum of t_k^2
     tw = skz - t_last * (a * n)  # sum(t_k z_k) = sum(t_k w_k), w = z - a

@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy import ndimage, optimize, signal, special
 
+from imunoise.analysis.blas import one_blas_thread
 from imunoise.analysis.misfit import Misfit, avar_covariance, failure_threshold, failures, misfit
 from imunoise.analysis.profile import profile_bounds
 from imunoise.analysis.terms import (
@@ -59,13 +60,18 @@ _WHOLE_WINS = 0.5
 
 class CurveLike(Protocol):
     """What the fit needs from an Allan curve (``imunoise.analysis.allan.AllanCurve`` provides
-    it)."""
+    it; read-only, as its frozen dataclass)."""
 
-    fs_hz: float
-    tau_s: np.ndarray
-    m: np.ndarray
-    dev: np.ndarray
-    n_terms: np.ndarray
+    @property
+    def fs_hz(self) -> float: ...
+    @property
+    def tau_s(self) -> np.ndarray: ...
+    @property
+    def m(self) -> np.ndarray: ...
+    @property
+    def dev(self) -> np.ndarray: ...
+    @property
+    def n_terms(self) -> np.ndarray: ...
 
 
 ModelLike = Sequence[str] | Sequence[tuple[str, dict[str, float]]] | str | ModelSpec
@@ -96,7 +102,7 @@ class FitResult:
         avar_fit: model Allan variance at ``tau_s``.
         term_avar: per-term model Allan variance at ``tau_s`` (for plotting).
         misfit: z per tau, chi2 and the rest (:class:`imunoise.analysis.misfit.Misfit`).
-        failures: CONTRACT.md ``failures`` entries.
+        failures: ``failures`` entries of the JSON documents (docs/json.md).
         param_cov: covariance of the log-parameters (order of :attr:`free_params`).
         free_params: ``(term index, parameter name)`` of each fitted parameter.
     """
@@ -153,7 +159,7 @@ class FitResult:
 
     def allan_dict(self, ci_low: np.ndarray | None = None, ci_high: np.ndarray | None = None
                    ) -> dict[str, list[float]]:
-        """CONTRACT.md ``allan`` block (deviations, not variances)."""
+        """The JSON ``allan`` block (docs/json.md; deviations, not variances)."""
         adev = np.sqrt(self.avar_measured)
         return {"tau_s": self.tau_s.tolist(), "adev": adev.tolist(),
                 "ci_low": (ci_low if ci_low is not None else adev).tolist(),
@@ -409,6 +415,7 @@ def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndar
     return out
 
 
+@one_blas_thread
 def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
               line: tuple[float, float] | None = None, temperature: TermFit | None = None,
               fixed: dict[str | int, dict[str, float]] | None = None,

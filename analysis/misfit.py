@@ -27,6 +27,8 @@ correlation matrix, divided by the degrees of freedom left after the fit.
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -66,6 +68,65 @@ def _pair_sin4_both_fast(mi: float, mj: float, ua: np.ndarray, ub: np.ndarray) -
     return _PQ_COEF @ vals
 
 
+@dataclass(frozen=True)
+class _CovGrid:
+    """The part of :func:`avar_covariance` that depends only on the averaging factors: the
+    frequency bins, the bin-averaged ``sin^4`` factors and, for each pair of taus whose
+    filters both oscillate within some bins, the correction of the product of their averages
+    to the average of their product (``exact - f_i f_j`` on those bins)."""
+
+    ua: np.ndarray
+    ub: np.ndarray
+    um: np.ndarray
+    width: np.ndarray
+    factors: np.ndarray
+    pairs: tuple[tuple[int, int, np.ndarray, np.ndarray], ...]
+
+
+_GRID_CACHE: OrderedDict[bytes, _CovGrid] = OrderedDict()
+_GRID_CACHE_SIZE = 32
+_GRID_LOCK = threading.Lock()
+
+
+def _cov_grid(m: np.ndarray) -> _CovGrid:
+    """:class:`_CovGrid` for the averaging factors ``m`` (float64), remembered by their values
+    (every model fitted to one curve shares it)."""
+    key = m.tobytes()
+    with _GRID_LOCK:
+        hit = _GRID_CACHE.get(key)
+        if hit is not None:
+            _GRID_CACHE.move_to_end(key)
+            return hit
+    n = len(m)
+    u_lo = 1e-4 / max(m.max(), 1.0)
+    edges = np.geomspace(u_lo, 0.5, int(math.log10(0.5 / u_lo) * _POINTS_PER_DECADE) + 2)
+    ua, ub = edges[:-1], edges[1:]
+    um = 0.5 * (ua + ub)
+    width = ub - ua
+    fast = width[None, :] * m[:, None] > 0.05
+    factors = sin4_table(m[:, None], um, ua, ub)
+    # where both filters oscillate within a bin, the two factors of equal or double m are
+    # not independent: their product's exact average replaces the product of averages (for
+    # larger ratios the cross terms of the Fourier series oscillate fast and average out)
+    index = {float(v): k for k, v in enumerate(m)}
+    pairs = []
+    for i in range(n):
+        for j in {i, index.get(2.0 * float(m[i]), i)}:
+            both = fast[i] & fast[j]
+            if not np.any(both):
+                continue
+            exact = _pair_sin4_both_fast(m[i], m[j], ua[both], ub[both])
+            pairs.append((i, j, np.flatnonzero(both), exact - factors[i, both] * factors[j, both]))
+    for a in (ua, ub, um, width, factors):
+        a.setflags(write=False)
+    grid = _CovGrid(ua, ub, um, width, factors, tuple(pairs))
+    with _GRID_LOCK:
+        _GRID_CACHE[key] = grid
+        while len(_GRID_CACHE) > _GRID_CACHE_SIZE:
+            _GRID_CACHE.popitem(last=False)
+    return grid
+
+
 def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarray
                     ) -> np.ndarray:
     """Covariance matrix (units^4) of overlapping AVAR estimates at averaging factors ``m``
@@ -76,33 +137,18 @@ def avar_covariance(model: Model, fs_hz: float, m: np.ndarray, n_terms: np.ndarr
     """
     m = np.asarray(m, dtype=np.float64)
     n_terms = np.asarray(n_terms, dtype=np.float64)
-    n = len(m)
-    u_lo = 1e-4 / max(m.max(), 1.0)
-    edges = np.geomspace(u_lo, 0.5, int(math.log10(0.5 / u_lo) * _POINTS_PER_DECADE) + 2)
-    ua, ub = edges[:-1], edges[1:]
-    um = 0.5 * (ua + ub)
-    width = ub - ua
+    grid = _cov_grid(m)
+    ua, ub, um, width, factors = grid.ua, grid.ub, grid.um, grid.width, grid.factors
     s2 = _two_sided_psd(model, um, fs_hz)
     # smooth part of S^2 |H_i|^2 |H_j|^2 du (without the sin^4 factors and 1/(m_i m_j)^2),
     # times 2 fs^2 for both signs of f and the change of variable f = u fs
     smooth = 2.0 * fs_hz**2 * s2 * s2 * 16.0 / np.sin(np.pi * um) ** 4 * width
-    fast = width[None, :] * m[:, None] > 0.05
-    factors = sin4_table(m[:, None], um, ua, ub)
     sum_gamma2 = (factors * smooth) @ factors.T
-    # where both filters oscillate within a bin, the two factors of equal or double m are
-    # not independent: average their product exactly (for larger ratios the cross terms of
-    # the Fourier series oscillate fast and average out, so the product of averages holds)
-    index = {float(v): k for k, v in enumerate(m)}
-    for i in range(n):
-        for j in {i, index.get(2.0 * float(m[i]), i)}:
-            both = fast[i] & fast[j]
-            if not np.any(both):
-                continue
-            exact = _pair_sin4_both_fast(m[i], m[j], ua[both], ub[both])
-            delta = float(np.sum(smooth[both] * (exact - factors[i, both] * factors[j, both])))
-            sum_gamma2[i, j] += delta
-            if j != i:
-                sum_gamma2[j, i] += delta
+    for i, j, both, diff in grid.pairs:
+        delta = float(np.sum(smooth[both] * diff))
+        sum_gamma2[i, j] += delta
+        if j != i:
+            sum_gamma2[j, i] += delta
     sum_gamma2 /= np.outer(m * m, m * m)
     line, ramp = _deterministic_terms(model, fs_hz, m, n_terms, (ua, ub, um, s2))
     sum_gamma2 += line
@@ -250,7 +296,7 @@ def _solve_psd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def failures(tau_s: np.ndarray, z: np.ndarray, threshold: float) -> list[dict]:
-    """Groups of consecutive taus with ``|z| > threshold`` and the same sign, as CONTRACT.md's
+    """Groups of consecutive taus with ``|z| > threshold`` and the same sign, as docs/json.md's
     ``failures`` entries."""
     out: list[dict] = []
     flagged = np.abs(z) > threshold

@@ -150,7 +150,7 @@ def _moving_windows(gyro: tuple[np.ndarray, np.ndarray] | None,
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window: moving flag, rate departure (rad/s) and force change (m/s^2), from each
     sensor's per-window (spread, centre) as :func:`_spread_and_centre` gives them."""
-    n_win = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]
+    n_win = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]  # one is given
     moving = np.zeros(n_win, bool)
     rate = np.full(n_win, np.nan)
     force = np.full(n_win, np.nan)
@@ -246,7 +246,7 @@ def detect_motion(fs_hz: float, gyro: Axes | None = None, accel: Axes | None = N
         raise ValueError("motion detection needs gyro or accelerometer samples")
     gyro = _columns(gyro) if gyro is not None else None
     accel = _columns(accel) if accel is not None else None
-    n = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]
+    n = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]  # checked above
     w = window_samples(fs_hz)
     return _stretches(fs_hz, n, w,
                       _spread_and_centre(gyro, w) if gyro is not None and n >= 3 * w else None,

@@ -2,7 +2,7 @@
 inertial-sensor data sheets.
 
 Inside the project every quantity is SI: rad/s and m/s^2 for rates and accelerations, and the
-noise-term parameters in the channel's SI units (see the term table of the contract). Data sheets
+noise-term parameters in the channel's SI units (see the term table of docs/terms.md). Data sheets
 and reports use degrees, hours and g. Each conversion here is a named pair of functions (or a
 factor) so that no caller writes ``* 180 / pi * 60`` inline.
 

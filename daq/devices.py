@@ -50,7 +50,9 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
         options: driver options (``range_dps``, ``taps``, ``range_g``, ``address``...) and
             simulator options (``gyro``, ``accel``, ``temperature`` sources; ``noise``, the
             :data:`imunoise.daq.sim.signals.NoiseFactory` that draws the default sources, e.g.
-            :func:`imunoise.analysis.noise_stream.stream_factory`; without it they are white noise).
+            :func:`imunoise.analysis.noise_stream.stream_factory`; without it they are white noise;
+            ``bench``, a :class:`imunoise.daq.sim.bench.BenchPlacement`: the simulated chips
+            also see that bench's motion).
 
     Raises:
         ValueError: unknown spec, or a missing ``port``/``bus``, naming the valid choices.
@@ -60,7 +62,8 @@ def open_device(spec: str, *, port: str | None = None, bus: int | None = None,
     simulated = spec.startswith("sim:")
     base = spec.removeprefix("sim:")
     if not simulated:
-        options.pop("noise", None)  # a simulator's option: real hardware makes its own
+        options.pop("noise", None)  # simulators' options: real hardware makes its own
+        options.pop("bench", None)
     rate = float(rate_hz) if rate_hz is not None else DEFAULT_RATES_HZ[base]
     if rate <= 0:
         raise ValueError(f"rate must be positive, got {rate_hz}")
@@ -98,6 +101,9 @@ def _adis(*, simulated: bool, port: str | None, bus: int | None, rate: float, se
         chip_clock = ChipClock(clock)
         sim = Adis16350Sim(chip_clock, options.pop("gyro", gyro), options.pop("accel", accel),
                            options.pop("temperature", None), source_rate_hz=fs)
+        bench = options.pop("bench", None)
+        if bench is not None:
+            sim.environment = bench.view()
         emulator = BusPirateEmulator(sim, seed=seed, chip_clock=chip_clock).start()
         cleanup.append(emulator.close)
         port = emulator.port
@@ -143,16 +149,21 @@ def _i2c(*, simulated: bool, port: str | None, bus: int | None, rate: float, see
         chips: dict = {}
         itg_sim = adxl_sim = None
         noise = options.pop("noise", None)
+        bench = options.pop("bench", None)
         if which in ("itg3200", "razor"):
             fs = rate_settings(rate)[2]
             gyro = options.pop("gyro", None) or default_sources("itg3200", fs, seed, noise)[0]
             itg_sim = Itg3200Sim(clock, gyro, options.pop("temperature", None),
                                  address=itg_addr)
+            if bench is not None:
+                itg_sim.environment = bench.view()
             chips[itg_addr] = itg_sim
         if which in ("adxl345", "razor"):
             fs = odr_hz(rate_code(accel_rate))
             accel = options.pop("accel", None) or default_sources("adxl345", fs, seed, noise)[1]
             adxl_sim = Adxl345Sim(clock, accel)
+            if bench is not None:
+                adxl_sim.environment = bench.view()
             chips[adxl_addr] = adxl_sim
         adapter = SimulatedI2CAdapter(chips, clock=clock,
                                       bus_hz=float(options.pop("bus_hz", 400e3)))
@@ -184,3 +195,41 @@ _BUILDERS: dict[str, Callable[..., Acquisition]] = {
     "adxl345": lambda **kw: _i2c(which="adxl345", **kw),
     "razor": lambda **kw: _i2c(which="razor", **kw),
 }
+
+
+def open_devices(specs: list[str], *, ports: list[str] | tuple = (), buses: list[int] | tuple = (),
+                 rate_hz: float | None = None, seed: int | None = None,
+                 bench: object | None = None, realtime: bool = True,
+                 port_option: str = "--port", **options: object):
+    """A :class:`imunoise.daq.device_group.DeviceGroup` of ``specs`` on one clock, not yet
+    opened: ports and buses paired, topics named and seeds drawn as
+    :mod:`imunoise.daq.device_group` says; ``bench`` (a :class:`imunoise.daq.sim.bench.Bench`)
+    is shared by the simulated ones, each at its place in the group.
+
+    Raises:
+        ValueError: an unknown spec, or ports and buses that do not pair.
+    """
+    from imunoise.daq.device_group import DeviceGroup, member_seed, pair_devices
+    from imunoise.daq.sim.bench import BenchPlacement
+
+    for spec in specs:
+        if spec not in DEVICES:
+            raise ValueError(f"unknown device {spec!r}: choose one of {valid_devices()}")
+    members = pair_devices(specs, ports, buses, port_option)
+    clock = RealClock() if realtime else VirtualClock()
+    epoch = clock.now()
+    opened: list[tuple[str, Acquisition]] = []
+    try:
+        for m in members:
+            kw = dict(options)
+            if bench is not None and m.simulated:
+                kw["bench"] = BenchPlacement(bench, m.position, seed=0 if seed is None
+                                             else int(seed), epoch=epoch)
+            opened.append((m.name, open_device(m.spec, port=m.port, bus=m.bus, rate_hz=rate_hz,
+                                               seed=member_seed(seed, m.position), clock=clock,
+                                               **kw)))
+    except Exception:
+        for _, acq in opened:
+            acq.close()
+        raise
+    return DeviceGroup(opened, specs)

@@ -170,7 +170,7 @@ class ChunkTable:
         if isinstance(i, slice):
             return [self[j] for j in range(*i.indices(len(self)))]
         i = self._index(i)
-        return self._live if i == self._n else self._thaw(i)  # type: ignore[return-value]
+        return self._live if i == self._n else self._thaw(i)
 
     def __setitem__(self, i: int, chunk: ChunkInfo) -> None:
         i = self._index(i)

@@ -316,5 +316,5 @@ class McapBlockWriter:
 
 def _record_bytes(record: object) -> bytes:
     builder = RecordBuilder()
-    record.write(builder)  # type: ignore[attr-defined]
+    record.write(builder)  # type: ignore[attr-defined]  # every mcap record class has write()
     return builder.end()

@@ -156,6 +156,13 @@ class McapRecorder:
         chunk_size: uncompressed chunk size threshold in bytes.
         software: the writing program and its version (MCAP header and metadata), passed in
             by the command line (``daq`` does not import it).
+        devices: several devices in one file: topic name (the first path component of its
+            streams, :mod:`imunoise.daq.device_group`) -> ``{"spec", "config", "rate_hz",
+            "scales"}``. Each device's topics then carry ``frame_id`` ``<name>_link``, its
+            scale factors are keyed ``scale.<topic>:<channel>`` (``scale./razor/itg3200/imu:
+            gyro_x``) and its description ``device.<name>.spec``, ``device.<name>.rate_hz``,
+            ``device.<name>.config.<key>``; ``devices`` lists the names. ``device`` then
+            names the file (``adis16350+razor`` -> ``adis16350_razor_<UTC>.mcap``).
     """
 
     def __init__(self, out_dir: str | Path, device: str, *, config: dict[str, str] | None = None,
@@ -165,13 +172,18 @@ class McapRecorder:
                  threaded: bool = True, clock: Callable[[], float] = time.time,
                  reserve_bytes: int = 2 << 20, chunk_size: int = 1 << 20,
                  file_opener: Callable[[Path], SyncedFile] = SyncedFile,
-                 queue_blocks: int = 4096, software: str = SOFTWARE) -> None:
+                 queue_blocks: int = 4096, software: str = SOFTWARE,
+                 devices: dict[str, dict] | None = None) -> None:
         self.out_dir = Path(out_dir)
+        self.devices = {name: dict(d) for name, d in (devices or {}).items()}
         self.software = software
         self.device = device
         self.name = _safe_name(device)
         self.config = dict(config or {})
         self.scales: dict[str, tuple[float, float]] = dict(scales or {})
+        for d in self.devices.values():
+            for key, value in (d.get("scales") or {}).items():  # "<topic>:<channel>"
+                self.scales[key] = tuple(value)  # type: ignore[assignment]
         self.rate_hz = rate_hz
         self.rotate_s = rotate_s
         self.flush_s = flush_s
@@ -369,7 +381,8 @@ class McapRecorder:
               "frame_id": self.frame_id, "units.gyro": "rad/s", "units.accel": "m/s^2",
               "units.temp": "degC", "time_base": "header.stamp = sensor sample time (s), "
               "log_time = host receive time"}
-        rate = self.rate_hz or (block.fs_hz if block is not None else None)
+        rate = self.rate_hz or (block.fs_hz if block is not None and not self.devices
+                                else None)
         if rate:
             md["rate_hz"] = repr(float(rate))
         for key, value in self.config.items():
@@ -377,6 +390,16 @@ class McapRecorder:
         for ch, (scale, offset) in sorted(self.scales.items()):
             md[f"scale.{ch}"] = repr(scale)
             md[f"offset.{ch}"] = repr(offset)
+        if self.devices:
+            md.pop("frame_id")
+            md["devices"] = ",".join(self.devices)
+            for name, d in self.devices.items():
+                md[f"device.{name}.spec"] = str(d.get("spec", name))
+                md[f"device.{name}.frame_id"] = f"{name}_link"
+                if d.get("rate_hz"):
+                    md[f"device.{name}.rate_hz"] = repr(float(d["rate_hz"]))
+                for key, value in (d.get("config") or {}).items():
+                    md[f"device.{name}.config.{key}"] = str(value)
         return md
 
     def _channel(self, topic: str, msgtype: str) -> int:
@@ -467,21 +490,27 @@ class McapRecorder:
         self._last_log[stream] = int(log[-1])
         return log
 
+    def _scale_key(self, block: SampleBlock, ch: str) -> str:
+        """The channel's key in :attr:`scales`: the channel, or with several devices
+        ``<topic>:<channel>``."""
+        return f"{block.stream}:{ch}" if self.devices else ch
+
     def _check_raw(self, block: SampleBlock) -> None:
         for ch, raw in block.raw.items():
             values = block.channels.get(ch)
             if values is None or len(raw) == 0:
                 continue
-            if ch not in self.scales:
+            key = self._scale_key(block, ch)
+            if key not in self.scales:
                 fit = affine_from_raw(raw, values)
                 if fit is None:
                     continue
-                self.scales[ch] = fit
+                self.scales[key] = fit
                 if self._writer is not None:
                     self._writer.add_metadata(f"{METADATA_NAME}.scale",
-                                              {f"scale.{ch}": repr(fit[0]),
-                                               f"offset.{ch}": repr(fit[1])})
-            scale, offset = self.scales[ch]
+                                              {f"scale.{key}": repr(fit[0]),
+                                               f"offset.{key}": repr(fit[1])})
+            scale, offset = self.scales[key]
             if not raw_recoverable(raw, values, scale, offset):
                 self.stats.raw_mismatch += 1
 
@@ -490,12 +519,12 @@ class McapRecorder:
         if n == 0:
             return
         t = np.asarray(block.t, dtype=np.float64)
-        pending_scales = [ch for ch in block.raw if ch not in self.scales]
+        pending_scales = [ch for ch in block.raw if self._scale_key(block, ch) not in self.scales]
         if pending_scales and self._writer is None:
             for ch in pending_scales:
                 fit = affine_from_raw(block.raw[ch], block.channels.get(ch, np.empty(0)))
                 if fit is not None:
-                    self.scales[ch] = fit
+                    self.scales[self._scale_key(block, ch)] = fit
         self._maybe_rotate_or_open(wall, block)
         assert self._writer is not None
         self._check_raw(block)
@@ -511,17 +540,19 @@ class McapRecorder:
         base = block.stream if block.stream.startswith("/") else f"/{self.name}/imu"
         prefix = base.rsplit("/", 1)[0] if base.count("/") > 1 else f"/{self.name}"
         log_ns = self._log_times(block.stream, t, wall)
+        frame_id = (f"{prefix.lstrip('/').split('/', 1)[0]}_link" if self.devices
+                    else self.frame_id)
         ch = block.channels
         has_gyro = all(c in ch for c in GYRO)
         has_accel = all(c in ch for c in ACCEL)
         if has_gyro or has_accel:
             gyro = np.column_stack([ch[c] for c in GYRO]) if has_gyro else None
             accel = np.column_stack([ch[c] for c in ACCEL]) if has_accel else None
-            rec = msgs.encode_imu(t, gyro, accel, self.frame_id)
+            rec = msgs.encode_imu(t, gyro, accel, frame_id)
             self._add_messages(self._channel(f"{prefix}/imu", msgs.IMU), rec, log_ns)
         if TEMP in ch:
             rec = msgs.encode_temperature(t, np.asarray(ch[TEMP], dtype=np.float64),
-                                          frame_id=self.frame_id)
+                                          frame_id=frame_id)
             self._add_messages(self._channel(f"{prefix}/temperature", msgs.TEMPERATURE), rec,
                                log_ns)
         if has_gyro or has_accel:

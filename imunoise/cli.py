@@ -7,6 +7,7 @@ import importlib
 import os
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from imunoise import __version__
 from imunoise.errors import RuntimeFailure, UsageError
@@ -40,7 +41,7 @@ class _Parser(argparse.ArgumentParser):
             kwargs["description"] = kwargs["description"].replace("``", "")
         super().__init__(*args, **kwargs)
 
-    def error(self, message: str) -> None:  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         raise UsageError(f"{self.prog}: {message}")
 
 

@@ -62,6 +62,20 @@ class AcquisitionConfig:
             kernel's unbound workers, which carry a serial adapter's bytes, at SCHED_FIFO 1
             (:class:`imunoise.live.kernel_workers.KernelWorkerKeeper`; changes the whole machine's
             scheduling until the parent ends, however it ends).
+        members: several devices at once (:mod:`imunoise.daq.device_group`): ``(spec, topic
+            name, open_device keyword arguments)`` of each, read by one
+            :class:`imunoise.daq.device_group.DeviceGroup` and recorded into one file; ``spec``
+            and ``device_kwargs`` are then not used.
+        member_processes: read each device of ``members`` in a process of its own
+            (:class:`DeviceProcess`: an acquisition process without a recorder, as for a
+            single device), this process merging their blocks into the recording and the
+            analysis; False (the default): each on a thread of this process. On this 2-core
+            host under a load average of 13 to 18 (other users), simulated ADIS16350 +
+            razor under ``serve``, two 2-minute runs each, interleaved: threads lost 35 and
+            25 ADIS16350 samples of 12,300 and 36 and 20 ITG-3200 samples of 24,100;
+            processes 72 and 61, and 31 and 30 (four more processes at real-time priority
+            on two cores wait for each other). With more cores than devices the processes
+            may win; measure with bench/multi.py.
     """
 
     spec: str
@@ -72,14 +86,16 @@ class AcquisitionConfig:
     priority: str = "realtime"
     simulator_process: bool = True
     realtime_kernel_workers: bool = False
+    members: list[tuple[str, str, dict[str, Any]]] | None = None
+    member_processes: bool = False
 
 
 # ----------------------------------------------------------------------------- the child
 
 
 def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None = None,
-            error: str | None = None, simulator: dict[str, Any] | None = None
-            ) -> dict[str, Any]:
+            error: str | None = None, simulator: dict[str, Any] | None = None,
+            handover_lost_by_device: dict[str, int] | None = None) -> dict[str, Any]:
     stats = getattr(acq, "stats", None)
     acq_stats = stats.as_dict() if stats is not None and hasattr(stats, "as_dict") else {}
     if state is not None:
@@ -94,11 +110,22 @@ def _status(acq: Any, recorder: Any, priority: dict[str, Any], state: str | None
             "file": rec.file, "files": list(rec.files), "samples": rec.samples,
             "blocks_dropped": rec.blocks_dropped, "lost_samples": rec.lost_samples,
             "pid": rec.pid, "restarts": rec.restarts, "backlog_bytes": rec.backlog_bytes,
+            "lost_by_device": _by_device(getattr(rec, "lost_by_stream", None) or {}),
             "error": str(getattr(recorder, "error", "") or "") or None},
         "error": error,
         "simulator": simulator,
+        "handover_lost_by_device": dict(handover_lost_by_device or {}),
         "time": time.time(),
     }
+
+
+def _by_device(by_stream: dict[str, int]) -> dict[str, int]:
+    from imunoise.daq.device_group import device_of_stream
+
+    out: dict[str, int] = {}
+    for stream, n in by_stream.items():
+        out[device_of_stream(stream)] = out.get(device_of_stream(stream), 0) + int(n)
+    return out
 
 
 class _SimulatorTruth:
@@ -122,6 +149,100 @@ class _SimulatorTruth:
         return {"pid": self.simulator.pid, "samples_never_read": lost}
 
 
+class _GroupTruth:
+    """:class:`_SimulatorTruth` of each device of a group that has a simulator process."""
+
+    def __init__(self, simulators: dict[str, Any], group: Any = None) -> None:
+        self.truths = {name: _SimulatorTruth(sim) for name, sim in simulators.items()}
+        self.group = group
+
+    def first_block(self) -> None:
+        for truth in self.truths.values():
+            truth.first_block()
+
+    def status(self) -> dict[str, Any] | None:
+        out = {name: truth.status() for name, truth in self.truths.items()}
+        for name, member in getattr(self.group, "members", []):
+            sim = getattr(member, "simulator_status", None)
+            if callable(sim) and sim() is not None:  # counted by the device's own process
+                out[name] = sim()
+        return out or None
+
+
+def _open_one(spec: str, kwargs: dict[str, Any], config: AcquisitionConfig,
+              clock: Any = None) -> tuple[Any, Any]:
+    """One device (not yet opened) and its simulator process, if it has one."""
+    from imunoise.analysis.noise_stream import stream_factory
+    from imunoise.daq.devices import open_device
+
+    kw = dict(kwargs)
+    if clock is not None:
+        kw["clock"] = clock
+    if spec == "sim:adis16350" and config.simulator_process:
+        from imunoise.live.simulator_process import SimulatorProcess
+
+        simulator = SimulatorProcess(kw.get("rate_hz") or 102.4, kw.pop("seed", 0) or 0,
+                                     config.priority, bench=kw.pop("bench", None))
+        try:
+            return open_device("adis16350", port=simulator.start(), **kw), simulator
+        except Exception:
+            simulator.stop()
+            raise
+    return open_device(spec, noise=stream_factory, **kw), None
+
+
+def _open_group(config: AcquisitionConfig, note: str | None):
+    """:func:`_open` for several devices: a DeviceGroup, one recorder, one sink."""
+    from imunoise.daq.clock import RealClock
+    from imunoise.daq.device_group import DeviceGroup
+    from imunoise.live.recorder_process import RecorderProcess
+    from imunoise.live.recorder_sink import GroupRecorderSink
+
+    assert config.members
+    clock = RealClock()  # one time base for every device
+    opened: list[tuple[str, Any]] = []
+    simulators: dict[str, Any] = {}
+    group = recorder = sink = None
+    try:
+        for spec, name, kwargs in config.members:
+            if config.member_processes:
+                # every device's process starts at once: none polls while another one is
+                # still importing and opening its device
+                member = DeviceProcess(AcquisitionConfig(
+                    spec, dict(kwargs), out=None, software=config.software,
+                    priority=config.priority, simulator_process=config.simulator_process))
+                opened.append((name, member))
+                member.start()
+                continue
+            acq, simulator = _open_one(spec, kwargs, config, clock)
+            opened.append((name, acq))
+            if simulator is not None:
+                simulators[name] = simulator
+        group = DeviceGroup(opened, [spec for spec, _, _ in config.members])
+        group.open()
+        if config.out:
+            recorder = RecorderProcess(
+                {"out_dir": config.out, "device": "+".join(group.names),
+                 "config": None, "rate_hz": None, "software": config.software,
+                 "devices": {name: {"spec": spec, "config": dict(acq.config),
+                                    "rate_hz": acq.rate_hz}
+                             for (name, acq), (spec, _, _) in zip(opened, config.members,
+                                                                  strict=True)}},
+                config.priority).start()
+            sink = GroupRecorderSink(recorder, group)
+            if note:
+                sink.note("warn", note, {"event": "acquisition_restart"})
+    except Exception:
+        if recorder is not None:
+            recorder.close()
+        for _, acq in opened:
+            acq.close()
+        for simulator in simulators.values():
+            simulator.stop()
+        raise
+    return group, recorder, sink, simulators
+
+
 def _open(config: AcquisitionConfig, note: str | None):
     """The device (and its simulator process), the recorder and its sink of one child."""
     from imunoise.analysis.noise_stream import stream_factory
@@ -136,7 +257,7 @@ def _open(config: AcquisitionConfig, note: str | None):
 
             kw = dict(config.device_kwargs)
             simulator = SimulatorProcess(kw.get("rate_hz") or 102.4, kw.pop("seed", 0) or 0,
-                                         config.priority)
+                                         config.priority, bench=kw.pop("bench", None))
             acq = open_device("adis16350", port=simulator.start(), **kw)
         else:
             acq = open_device(config.spec, noise=stream_factory, **config.device_kwargs)
@@ -160,6 +281,50 @@ def _open(config: AcquisitionConfig, note: str | None):
     return acq, recorder, sink, simulator
 
 
+def _open_any(config: AcquisitionConfig, note: str | None):
+    """(source, recorder, sink, simulators by topic name: ``""`` for a single device)."""
+    if config.members:
+        return _open_group(config, note)
+    acq, recorder, sink, simulator = _open(config, note)
+    return acq, recorder, sink, ({"": simulator} if simulator is not None else {})
+
+
+def _hand_over(batch: list[Any], sink: Any, ring: BlockRing,
+               lost_by_device: dict[str, int]) -> None:
+    """A batch to the recorder and the analysis side's ring; blocks the ring cannot take
+    are counted in ``lost_by_device`` (by topic name)."""
+    # Each block is pickled once, for the analysis side's ring and the recorder's.
+    payloads = [pickle.dumps(block, protocol=pickle.HIGHEST_PROTOCOL) for block in batch]
+    if sink is not None:
+        for block, payload in zip(batch, payloads, strict=True):
+            sink.write(block, payload)
+    for block, payload in zip(batch, payloads, strict=True):
+        if not ring.put_bytes(payload, len(block), str(block.stream)):
+            name = str(block.stream).lstrip("/").split("/", 1)[0]
+            lost_by_device[name] = lost_by_device.get(name, 0) + len(block)
+
+
+def _note_losses(sink: Any, acq: Any, recorder: Any, ring: BlockRing,
+                 handover_by_device: dict[str, int] | None) -> None:
+    """The run's losses as an event in the file (``handover_by_device``: a group's, which
+    then get an event per device)."""
+    counts = acq.stats.as_dict()
+    if handover_by_device is None:
+        sink.note("ok", "acquisition ended", {
+            "event": "losses", "device_dropped": str(counts.get("dropped", 0)),
+            "device_gaps": str(counts.get("gaps", 0)),
+            "handover_lost": str(ring.lost_samples),
+            "recording_lost": str(recorder.stats.lost_samples)})
+        return
+    rec_lost = _by_device(recorder.stats.lost_by_stream)
+    for name, st in (counts.get("devices") or {}).items():
+        sink.sinks[name].note("ok", "acquisition ended", {
+            "event": "losses", "device_dropped": str(st.get("dropped", 0)),
+            "device_gaps": str(st.get("gaps", 0)),
+            "handover_lost": str(handover_by_device.get(name, 0)),
+            "recording_lost": str(rec_lost.get(name, 0))})
+
+
 def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid: int,
                note: str | None = None) -> None:
     """Entry point of the acquisition process."""
@@ -167,11 +332,13 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
     sys.setswitchinterval(GIL_SWITCH_S)
     priority = raise_priority(config.priority)
     ring = BlockRing(ring_name)
+    what = (" + ".join(spec for spec, _, _ in config.members) if config.members
+            else config.spec)
     try:
-        acq, recorder, sink, simulator = _open(config, note)
+        acq, recorder, sink, simulators = _open_any(config, note)
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which says why
         ring.publish_status(_status(None, None, priority, state="failed",
-                                    error=f"cannot open {config.spec}: {exc}"))
+                                    error=f"cannot open {what}: {exc}"))
         ring.close()
         return
 
@@ -183,27 +350,26 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
 
     threading.Thread(target=watch, name="imunoise-acq-watch", daemon=True).start()
     settle_heap()
-    truth = _SimulatorTruth(simulator)
-    ring.publish_status(_status(acq, recorder, priority, simulator=truth.status()))
+    truth: Any = (_GroupTruth(simulators, acq) if config.members
+                  else _SimulatorTruth(simulators.get("")))
+    handover_lost: dict[str, int] = {}  # by device (topic name), for a group
+
+    def status(**kw: Any) -> dict[str, Any]:
+        return _status(acq, recorder, priority, simulator=truth.status(),
+                       handover_lost_by_device=handover_lost, **kw)
+
+    ring.publish_status(status())
     next_status = time.monotonic() + STATUS_EVERY_S
     error = None
     try:
         for batch in acq.batches():
             truth.first_block()
-            # Each block is pickled once, for the analysis side's ring and the recorder's.
-            payloads = [pickle.dumps(block, protocol=pickle.HIGHEST_PROTOCOL)
-                        for block in batch]
-            if sink is not None:
-                for block, payload in zip(batch, payloads, strict=True):
-                    sink.write(block, payload)
-            for block, payload in zip(batch, payloads, strict=True):
-                ring.put_bytes(payload, len(block), str(block.stream))
+            _hand_over(batch, sink, ring, handover_lost)
             now = time.monotonic()
             if now >= next_status:
                 if recorder is not None:
                     recorder.check()
-                ring.publish_status(_status(acq, recorder, priority,
-                                            simulator=truth.status()))
+                ring.publish_status(status())
                 next_status = now + STATUS_EVERY_S
             if term or stop.is_set():
                 break
@@ -212,17 +378,11 @@ def child_main(config: AcquisitionConfig, ring_name: str, stop: Any, parent_pid:
     finally:
         acq.close()
         if sink is not None:
-            counts = acq.stats.as_dict()
-            sink.note("ok", "acquisition ended", {
-                "event": "losses", "device_dropped": str(counts.get("dropped", 0)),
-                "device_gaps": str(counts.get("gaps", 0)),
-                "handover_lost": str(ring.lost_samples),
-                "recording_lost": str(recorder.stats.lost_samples)})
+            _note_losses(sink, acq, recorder, ring, handover_lost if config.members else None)
             sink.close()
-        if simulator is not None:
+        for simulator in simulators.values():
             simulator.stop()
-        ring.publish_status(_status(acq, recorder, priority, error=error,
-                                    simulator=truth.status()))
+        ring.publish_status(status(error=error))
         ring.close()
 
 
@@ -250,6 +410,7 @@ class AcquisitionProcess:
         self._proc: Any = None
         self._stopping = False
         self._gap_next = False
+        self._gap_seen: set[str] = set()
         self._files: list[str] = []
         self._lock = threading.Lock()
         self._status: dict[str, Any] = {}
@@ -272,13 +433,21 @@ class AcquisitionProcess:
     def open(self, timeout_s: float = START_TIMEOUT_S) -> None:
         """Start the child and wait until it has opened the device (or failed to: raises
         ``imunoise.daq.errors.DeviceError`` with its reason)."""
-        from imunoise.daq.errors import DeviceError
+        self.start()
+        self.wait_opened(timeout_s)
 
+    def start(self) -> None:
+        """Start the child (:meth:`wait_opened` then waits for its device)."""
         if self.config.realtime_kernel_workers and self._kernel_workers is None:
             from imunoise.live.kernel_workers import KernelWorkerKeeper
 
             self._kernel_workers = KernelWorkerKeeper().start()
         self._spawn()
+
+    def wait_opened(self, timeout_s: float = START_TIMEOUT_S) -> None:
+        """Wait until the started child has opened the device (:meth:`open`)."""
+        from imunoise.daq.errors import DeviceError
+
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             st = self.ring.status()
@@ -371,6 +540,7 @@ class AcquisitionProcess:
             return False
         self.restarts += 1
         self._gap_next = True
+        self._gap_seen = set()
         self._respawn_at = self._pause.ended()
         return self._check_child()
 
@@ -390,7 +560,14 @@ class AcquisitionProcess:
                     idle += 0.005
                     continue
             block, lost = got
-            if self._gap_next:
+            if self._gap_next and self.config.members:
+                # a new process: every stream of every device starts after a loss of unknown
+                # length (the first block of each stream, once the child has been replaced)
+                if block.stream not in self._gap_seen:
+                    self._gap_seen.add(block.stream)
+                    block.gap_before = -1
+                    lost = 0
+            elif self._gap_next:
                 block.gap_before = -1  # a new process: how much was lost is not known
                 self._gap_next = False
             elif lost and block.gap_before >= 0:
@@ -411,6 +588,8 @@ class AcquisitionProcess:
                           "simulator": st.get("simulator"),
                           "kernel_workers": self.kernel_workers}
         out["handover_lost_samples"], out["handover_lost_blocks"] = self._lost()
+        if self.config.members:
+            out["handover_lost_by_device"] = dict(st.get("handover_lost_by_device") or {})
         out["recording"] = st.get("recording")
         if st.get("error"):
             out["last_error"] = st["error"]
@@ -427,3 +606,83 @@ class AcquisitionProcess:
                 files.append(f)
         rec["files"] = files
         return rec
+
+
+class _MemberStats:
+    """A device process's counters (the dict its child publishes) read as attributes."""
+
+    def __init__(self, stats: dict[str, Any]) -> None:
+        self._stats = stats
+
+    def __getattr__(self, key: str) -> Any:
+        try:
+            return self.__dict__["_stats"][key]
+        except KeyError:
+            raise AttributeError(key) from None
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self._stats)
+
+
+class DeviceProcess:
+    """One device of a group read by an acquisition process of its own (no recorder), as an
+    :class:`imunoise.daq.acquisition.Acquisition` for
+    :class:`imunoise.daq.device_group.DeviceGroup`: each device keeps a process, an
+    interpreter and a scheduling slot to itself, as it has alone, and what the merging
+    process does with the blocks never delays a poll.
+
+    Blocks come one per batch; samples its hand-over ring could not take reach the recording
+    as a gap (counted in ``stats.handover_lost_samples``); a child that dies is restarted as
+    for a single device.
+    """
+
+    def __init__(self, config: AcquisitionConfig) -> None:
+        self.process = AcquisitionProcess(config)
+        self._opened = False
+        self._started = False
+
+    def start(self) -> None:
+        """Start the device's process without waiting for it (:meth:`open` waits)."""
+        self.process.start()
+        self._started = True
+
+    def open(self) -> None:
+        if not self._opened:
+            if self._started:
+                self.process.wait_opened()
+            else:
+                self.process.open()
+            self._opened = True
+
+    @property
+    def config(self) -> dict[str, str]:
+        return dict(self.process.config_reported)
+
+    @property
+    def rate_hz(self) -> float:
+        return float(self.config.get("rate_hz", "nan"))
+
+    @property
+    def stats(self) -> _MemberStats:
+        st = dict(self.process.stats)
+        st.setdefault("state", "starting")
+        for key in ("samples", "dropped", "gaps", "reconnects"):
+            st.setdefault(key, 0)
+        st.setdefault("last_error", "")
+        return _MemberStats(st)
+
+    def simulator_status(self) -> dict[str, Any] | None:
+        return (self.process.stats.get("process") or {}).get("simulator")
+
+    def batches(self, duration_s: float | None = None):
+        """The device's blocks, one per batch, until it stops (``duration_s`` is not used:
+        the group stops it)."""
+        for block in self.process.blocks():
+            yield [block]
+
+    def stop(self) -> None:
+        self.process.stop()
+
+    def close(self) -> None:
+        self.process.stop()
+        self.process.close()

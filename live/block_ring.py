@@ -205,7 +205,7 @@ class BlockRing:
 
     # ------------------------------------------------------------------ life cycle
     def close(self) -> None:
-        self._buf = None  # type: ignore[assignment]
+        self._buf = None
         try:
             self._shm.close()
         except BufferError:  # a view still exported: the mapping goes with the process

@@ -147,6 +147,7 @@ class RecorderProcess:
         self._samples_before = 0  # samples written by recorder processes that died
         self._pause = RestartPause()
         self._respawn_at: float | None = None  # when a dead recorder is to be replaced
+        self.lost_by_stream: dict[str, int] = {}  # samples the feed could not take
 
     # -- life cycle
     def _spawn(self, note: str | None = None) -> None:
@@ -231,9 +232,10 @@ class RecorderProcess:
     # -- the recorder's interface
     def _put(self, kind: str, item: Any, n_samples: int, stream: str) -> None:
         if self._final is None:
-            self.feed.put_bytes(pickle.dumps((kind, time.time(), item),
-                                             protocol=pickle.HIGHEST_PROTOCOL),
-                                n_samples, stream)
+            if not self.feed.put_bytes(pickle.dumps((kind, time.time(), item),
+                                                    protocol=pickle.HIGHEST_PROTOCOL),
+                                       n_samples, stream) and stream:
+                self.lost_by_stream[stream] = self.lost_by_stream.get(stream, 0) + n_samples
 
     def write(self, block: Any, payload: bytes | None = None) -> None:
         """Hand a block to the recorder (never waits). ``payload``: the block already pickled,
@@ -274,7 +276,8 @@ class RecorderProcess:
             file=st.get("file") or "", files=list(self._files),
             samples=self._samples_before + int(st.get("samples") or 0),
             blocks_dropped=int(st.get("blocks_dropped") or 0) + lost_blocks,
-            lost_samples=lost_samples, restarts=self.restarts, pid=st.get("pid"),
+            lost_samples=lost_samples, lost_by_stream=dict(self.lost_by_stream),
+            restarts=self.restarts, pid=st.get("pid"),
             backlog_bytes=0 if self._final is not None else self.feed.used_bytes)
 
     @property

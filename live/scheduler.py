@@ -138,7 +138,9 @@ class RollingAnalyzer:
     scheduler of their fits.
 
     Channels named ``gyro_*`` and ``accel_*`` are analysed; a channel name already taken by
-    another stream is keyed ``STREAM:NAME``.
+    another stream is keyed ``STREAM:NAME``, and with ``qualified`` every channel is (as the
+    MCAP readers name the channels of a file with several IMU topics: ``/razor/itg3200/
+    imu:gyro_x``).
 
     Args:
         model: initial model of every channel.
@@ -147,11 +149,13 @@ class RollingAnalyzer:
             it began.
         workers: ``"inline"`` (jobs run in the calling thread) or ``"process"`` (in one
             worker process, off the interpreter lock of the acquisition; call :meth:`close`).
+        qualified: key every channel ``STREAM:NAME`` (several devices at once).
         **analyzer_kwargs: passed to each :class:`LiveChannel`.
     """
 
     def __init__(self, model: Sequence[str] = DEFAULT_MODEL, cpu_budget: float = 0.3,
-                 workers: str = "inline", **analyzer_kwargs: Any) -> None:
+                 workers: str = "inline", qualified: bool = False,
+                 **analyzer_kwargs: Any) -> None:
         check_terms(model)
         if not 0 < cpu_budget <= 1:
             raise ValueError(f"cpu_budget must be in (0, 1], got {cpu_budget}")
@@ -160,6 +164,7 @@ class RollingAnalyzer:
         self._worker = WorkerProcess() if workers == "process" else None
         analyzer_kwargs.setdefault("runner", self._worker or run_inline)
         self._model = list(model)
+        self.qualified = qualified
         self._kwargs = analyzer_kwargs
         self.cpu_budget = cpu_budget
         self._lock = threading.Lock()
@@ -184,7 +189,8 @@ class RollingAnalyzer:
         if key is not None:
             return self._analyzers[key]
         with self._lock:
-            key = name if name not in self._analyzers else f"{stream}:{name}"
+            key = (name if name not in self._analyzers and not self.qualified
+                   else f"{stream}:{name}")
             self._analyzers[key] = LiveChannel(key, fs_hz, units=channel_units(name),
                                                model=self._model, **self._kwargs)
             self._keys[(stream, name)] = key

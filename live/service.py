@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
+from imunoise.live.coherence import LiveCoherence
 from imunoise.live.scheduler import BlockLike, RollingAnalyzer
 
 
@@ -36,6 +37,8 @@ def _as_dict(obj: Any) -> dict[str, Any]:
         return {}
     if isinstance(obj, dict):
         return dict(obj)
+    if callable(getattr(obj, "as_dict", None)):  # counters that say how they read
+        return dict(obj.as_dict())
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return dataclasses.asdict(obj)
     return {k: v for k, v in vars(obj).items() if not k.startswith("_")}
@@ -91,9 +94,11 @@ class LiveService:
         self.blocks_received = 0
         self.samples_analysed = 0
         self.samples_not_analysed = 0
+        self._not_analysed_by_stream: dict[str, int] = {}
         self.sink_errors = 0
         self.gaps_seen = 0
         self.error: str | None = None
+        self.coherence = LiveCoherence()  # between each stream's channels (/coherence)
         self.started_at = time.time()
         self._last_block_t: float | None = None
         self._events = 0
@@ -188,6 +193,9 @@ class LiveService:
                     except queue.Full:
                         with self._lock:
                             self.samples_not_analysed += n
+                            stream = str(getattr(block, "stream", ""))
+                            self._not_analysed_by_stream[stream] = \
+                                self._not_analysed_by_stream.get(stream, 0) + n
                 else:
                     while not self._stop.is_set():
                         try:
@@ -238,6 +246,7 @@ class LiveService:
     def _update(self, block: BlockLike) -> None:
         try:
             self.analyzers.update(block)
+            self.coherence.update(block)
         except Exception as exc:  # noqa: BLE001 - bad block: report, keep going
             self.error = f"analysis: {type(exc).__name__}: {exc}"
         n = len(block.t) if hasattr(block, "t") else 0
@@ -300,7 +309,7 @@ class LiveService:
         status = "ok" if self.error is None else "degraded"
         if process is not None and not process.get("alive") and self.running:
             status = "degraded"
-        return {
+        out = {
             "status": status,
             "uptime_s": now - self.started_at,
             "acquiring": self.running,
@@ -315,6 +324,38 @@ class LiveService:
             "analysis": _jsonable(self.analyzers.stats()),
             "error": self.error,
         }
+        if isinstance(stats.get("devices"), dict):
+            out["devices"] = self._devices(stats, rec_stats or {}, out["channels"])
+        return out
+
+    def _devices(self, stats: dict[str, Any], rec_stats: dict[str, Any],
+                 channels: list[str]) -> list[dict[str, Any]]:
+        """Each device of a group: its state, samples, losses by stage and channels."""
+        described = {d.get("name"): d for d in self.device.get("devices") or []}
+        handover = stats.get("handover_lost_by_device") or {}
+        recording = rec_stats.get("lost_by_device") or {}
+        with self._lock:
+            not_analysed: dict[str, int] = {}
+            for stream, n in self._not_analysed_by_stream.items():
+                name = stream.lstrip("/").split("/", 1)[0]
+                not_analysed[name] = not_analysed.get(name, 0) + n
+        out = []
+        for name, st in stats["devices"].items():
+            out.append({
+                **{k: v for k, v in described.get(name, {}).items() if k != "name"},
+                "name": name, "state": st.get("state"), "samples": st.get("samples", 0),
+                "gaps": st.get("gaps", 0), "reconnects": st.get("reconnects", 0),
+                "last_error": st.get("last_error") or None,
+                "losses": {"device": int(st.get("dropped", 0) or 0),
+                           "handover": int(handover.get(name, 0) or 0),
+                           "analysis": int(not_analysed.get(name, 0)),
+                           # a device read in a process of its own hands its blocks to the
+                           # recording through a ring: what that could not take is a gap
+                           "recording": int(recording.get(name, 0) or 0)
+                           + int(st.get("handover_lost_samples", 0) or 0)},
+                "channels": [c for c in channels if c.startswith(f"/{name}/")],
+            })
+        return out
 
     @property
     def revision(self) -> int:

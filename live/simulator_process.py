@@ -26,7 +26,7 @@ START_TIMEOUT_S = 60.0
 
 
 def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid: int,
-                    priority: str, never_read: Any) -> None:
+                    priority: str, never_read: Any, bench: Any = None) -> None:
     import sys
 
     from imunoise.live.process_priority import GIL_SWITCH_S, raise_priority, settle_heap
@@ -46,6 +46,8 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
     chip_clock = ChipClock(RealClock())
     sim = Adis16350Sim(chip_clock, gyro, accel, None, source_rate_hz=fs)
     sim.on_never_read = lambda n: setattr(never_read, "value", n)
+    if bench is not None:  # an imunoise.daq.sim.bench.BenchPlacement
+        sim.environment = bench.view()
     emulator = BusPirateEmulator(sim, seed=seed, chip_clock=chip_clock).start()
     sim.emulator = emulator
     settle_heap()
@@ -59,11 +61,14 @@ def _simulator_main(rate_hz: float, seed: int, conn: Any, stop: Any, parent_pid:
 
 
 class SimulatorProcess:
-    """Start and stop the simulated ADIS16350's process; :meth:`start` returns its port."""
+    """Start and stop the simulated ADIS16350's process; :meth:`start` returns its port.
+    ``bench``: a :class:`imunoise.daq.sim.bench.BenchPlacement` the part sits on, or None."""
 
-    def __init__(self, rate_hz: float, seed: int = 0, priority: str = "normal") -> None:
+    def __init__(self, rate_hz: float, seed: int = 0, priority: str = "normal",
+                 bench: Any = None) -> None:
         self.rate_hz = float(rate_hz)
         self.seed = int(seed)
+        self.bench = bench
         self.priority = priority
         self._ctx = mp.get_context("spawn")
         self._stop = self._ctx.Event()
@@ -76,7 +81,7 @@ class SimulatorProcess:
         proc = self._ctx.Process(
             target=_simulator_main, name="imunoise-simulator",
             args=(self.rate_hz, self.seed, send, self._stop, os.getpid(), self.priority,
-                  self._never_read))
+                  self._never_read, self.bench))
         try:
             proc.start()
         finally:

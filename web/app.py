@@ -18,7 +18,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from imunoise.live.service import LiveService
 from imunoise.web.deps import TOKEN_HEADER
-from imunoise.web.routes import curves, fleet, model, pages, status
+from imunoise.web.routes import coherence, curves, fleet, model, pages, status
 from imunoise.web.routes.pages import STATIC_DIR
 
 __all__ = ["LOOPBACK_HOSTS", "STATIC_DIR", "TOKEN_HEADER", "create_app"]
@@ -69,7 +69,7 @@ def create_app(service: LiveService, token: str | None = None,
     # Set by the server when a stop is requested: the event streams end at once instead of
     # holding the graceful shutdown open (the lifespan's ``closing`` comes only after it).
     app.state.stop_streams = threading.Event()
-    for module in (pages, status, curves, model, fleet):
+    for module in (pages, status, curves, coherence, model, fleet):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     if allowed_hosts is not None:

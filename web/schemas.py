@@ -232,6 +232,11 @@ class HealthOut(BaseModel):
                           "acquiring in-process")
     recording: dict[str, Any]
     channels: list[str]
+    devices: list[dict[str, Any]] | None = Field(
+        None, description="several devices at once (serve --device A --device B): each one's "
+                          "name (its topic name, /NAME/imu), spec, state, samples, gaps, "
+                          "reconnects, last_error, losses by stage as in 'losses', and its "
+                          "channels (TOPIC:gyro_x); null for a single device")
     analysis: dict[str, Any] | None = Field(
         None, description="fit scheduler: CPU budget and use, median CPU s per job kind, "
                           "refit period per channel")

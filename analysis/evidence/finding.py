@@ -15,7 +15,7 @@ class Finding:
     Attributes:
         kind: which test: ``"spectral_line"``, ``"temperature"``, ``"nonstationarity"``,
             ``"drift"``, ``"outliers"`` or ``"gaps"``.
-        term: the model term (CONTRACT.md vocabulary) this evidence supports, or ``None`` when
+        term: the model term (docs/terms.md vocabulary) this evidence supports, or ``None`` when
             the effect is not a noise term (outliers, gaps, warm-up of the noise level).
         statistic: the test statistic (its meaning is given by ``statistic_name``).
         statistic_name: short name of the statistic, e.g. ``"t"``, ``"chi2"``, ``"max |z|"``.

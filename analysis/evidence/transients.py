@@ -38,6 +38,7 @@ import numpy as np
 from scipy import stats
 from scipy.linalg import solve_triangular
 
+from imunoise.analysis.blas import one_blas_thread
 from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.terms import get_term, model_psd
 
@@ -210,6 +211,7 @@ def _family(n: int, t_blocks: np.ndarray) -> tuple[np.ndarray, list[tuple[str, f
     return np.array(rows), labels
 
 
+@one_blas_thread
 def transients(segments: Sequence[np.ndarray], fs_hz: float,
                model: Sequence[tuple[str, dict[str, float]]], alpha: float = 0.05,
                units: str = "rad/s", t0_s: float = 0.0) -> tuple[Finding, Finding]:

@@ -24,6 +24,28 @@ def boxcar(taps: float) -> np.ndarray:
     return g / taps
 
 
+_CLOSED_FORM_TAPS = 64.0
+"""Above this many taps a non-integer filter's response is taken in closed form: the sum over
+the taps costs (bins x taps) sines and cosines, a second per evaluation near ``MAX_TAPS``."""
+
+
+def _fractional_response(u: np.ndarray, taps: float) -> np.ndarray:
+    """``|G|^2`` at ``u = f/fs`` of :func:`boxcar` weights for a non-integer ``taps``: W whole
+    taps and a last one of weight ``frac``. With the Dirichlet kernel
+    ``D = sin(pi u W) / sin(pi u)`` the sum of the W unit phasors is ``D`` turned by
+    ``pi u (W - 1)``, and the last tap adds ``frac`` turned by ``2 pi u W``, so
+    ``|G|^2 = (D^2 + frac^2 + 2 frac D cos(pi u (W + 1))) / taps^2`` (the sum over the taps in
+    closed form; at ``u = 0`` the response is 1)."""
+    whole = int(math.floor(taps))
+    frac = taps - whole
+    s1 = np.sin(np.pi * u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.sin(np.pi * u * whole) / s1
+    d = np.where(np.abs(s1) < 1e-12, float(whole), d)
+    out = (d * d + frac * frac + 2.0 * frac * d * np.cos(np.pi * u * (whole + 1))) / (taps * taps)
+    return np.maximum(out, 0.0)
+
+
 class MovingAverage(OutputFilter):
     name = "moving_average"
     order = 200
@@ -47,6 +69,9 @@ class MovingAverage(OutputFilter):
     def response(self, f, fs_hz, params):
         taps = float(params["taps"])
         if abs(taps - round(taps)) > 1e-12:
+            if taps > _CLOSED_FORM_TAPS:
+                return _fractional_response(np.atleast_1d(np.asarray(f, dtype=np.float64))
+                                            / fs_hz, taps)
             return super().response(f, fs_hz, params)
         u = np.atleast_1d(np.asarray(f, dtype=np.float64)) / fs_hz
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -27,6 +27,7 @@ Filtered Allan variance, exact where it matters:
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from collections import OrderedDict
@@ -35,7 +36,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter, lfilter_zi
 
-from imunoise.analysis.bin_average import sin4_table
+from imunoise.analysis.bin_average import sin4_table_shared
 from imunoise.analysis.terms.base import Term, TermError, TermSimulator
 
 _CORRECTION_REACH = 300.0
@@ -60,17 +61,32 @@ def avar_from_autocovariance(r: np.ndarray, m: np.ndarray) -> np.ndarray:
     total = r[0] + 2.0 * p0[-1]
     out = (m * total - 3.0 * p1[-1]) / (m * m)
     near = m <= k_last
-    if np.any(near):
+    if near.any():
         mi = np.maximum(np.rint(m[near]).astype(np.int64), 1)
-
-        def at(p: np.ndarray, n: np.ndarray) -> np.ndarray:
-            return p[np.clip(n, 0, k_last)]
-
-        a = mi * r[0] + 2.0 * (mi * at(p0, mi - 1) - at(p1, mi - 1))
-        b = at(p1, mi) + 2.0 * mi * (at(p0, 2 * mi - 1) - at(p0, mi)) \
-            - (at(p1, 2 * mi - 1) - at(p1, mi))
+        # the sums up to lags m - 1, m and 2m - 1, read at once (indices past the last lag
+        # hold the full sums)
+        idx = np.minimum(np.stack((mi - 1, mi, 2 * mi - 1)), k_last)
+        q0, q1 = p0[idx], p1[idx]
+        a = mi * r[0] + 2.0 * (mi * q0[0] - q1[0])
+        b = q1[1] + 2.0 * mi * (q0[2] - q0[1]) - (q1[2] - q1[1])
         out[near] = (a - b) / (mi * mi).astype(np.float64)
     return out
+
+
+@functools.lru_cache(maxsize=64)
+def _bins(u_lo: float, n_lin: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bins ``(ua, ub, um)`` in ``u = f/fs`` from ``u_lo`` to 1/2: 60 log-spaced per decade
+    joined with ``n_lin`` linear ones (read-only; a fit moving a filter's parameters asks for
+    the same bins again and again)."""
+    decades = math.log10(0.5 / u_lo)
+    log_edges = np.geomspace(u_lo, 0.5, int(decades * 60) + 2)
+    lin = np.linspace(0.0, 0.5, n_lin + 1)
+    edges = np.unique(np.concatenate((log_edges, lin[lin > u_lo])))
+    ua, ub = edges[:-1], edges[1:]
+    um = 0.5 * (ua + ub)
+    for a in (ua, ub, um):
+        a.setflags(write=False)
+    return ua, ub, um
 
 
 def _symmetric(r: np.ndarray) -> np.ndarray:
@@ -215,7 +231,7 @@ class OutputFilter(Term):
             s = term.psd(um * fs_hz, fs_hz, **{**shape, term.amplitude: 1.0})
             smooth = 0.5 * fs_hz * s * (gain - 1.0) * 4.0 / np.sin(np.pi * um) ** 2 * width
             mm = m[near][:, None]
-            return np.sum(sin4_table(mm, um, ua, ub) * smooth, axis=1) / (m[near] ** 2)
+            return np.sum(sin4_table_shared(mm, um, ua, ub) * smooth, axis=1) / (m[near] ** 2)
 
         out[near] = self._remember(key, make) * float(p[term.amplitude]) ** 2
         return out
@@ -227,15 +243,10 @@ class OutputFilter(Term):
         def make() -> tuple[np.ndarray, ...]:
             length = max(self.length(fs_hz, params), 1.0)
             u_lo = 1e-3 / max(m_max, 1.0)
-            decades = math.log10(0.5 / u_lo)
-            log_edges = np.geomspace(u_lo, 0.5, int(decades * 60) + 2)
             # a response with ripple (a moving average's sidelobes, period fs/L) needs a
             # few dozen points per lobe; a smooth one only the log grid and a coarse cover
             n_lin = int(min(max(32.0 * length, 512.0), 8192.0)) if self.ripple else 256
-            edges = np.unique(np.concatenate((log_edges, np.linspace(0.0, 0.5, n_lin + 1)
-                                              [np.linspace(0.0, 0.5, n_lin + 1) > u_lo])))
-            ua, ub = edges[:-1], edges[1:]
-            um = 0.5 * (ua + ub)
+            ua, ub, um = _bins(u_lo, n_lin)
             return ua, ub, um, self.response(um * fs_hz, fs_hz, params)
         return self._remember(("grid", fs_hz, tuple(sorted(params.items())),
                                round(math.log2(max(m_max, 1.0)), 1)), make)

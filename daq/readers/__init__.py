@@ -1,6 +1,6 @@
 """Input files to :class:`imunoise.core.record.Record`: one entry point, dispatching on the path.
 
-- ``.csv``: :mod:`imunoise.daq.readers.csv_file` (CONTRACT.md's column layout).
+- ``.csv``: :mod:`imunoise.daq.readers.csv_file` (the column layout of docs/robot-logs.md).
 - ``.mcap``: the bulk numpy reader (:mod:`imunoise.daq.readers.mcap`), falling back to per-message
   decoding through rosbags (:mod:`imunoise.daq.readers.rosbag`) for layouts the bulk reader does
   not take.

@@ -301,6 +301,7 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         fs, starts = timing.fs_hz, timing.segment_starts
         facts = {"timing": {"csv": timing.facts()}}
     else:
+        # rate_hz is given on this branch (no time column); mypy cannot see it
         fs, starts, t0 = float(rate_hz), np.zeros(1, dtype=np.int64), 0.0  # type: ignore[arg-type]
     seg_flags = np.zeros(len(next(iter(cols.values()))), dtype=bool)
     seg_flags[starts] = True

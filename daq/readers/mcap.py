@@ -141,8 +141,8 @@ def raw_counts(values: np.ndarray, metadata: dict[str, str], channel: str) -> np
     """Raw register counts of a channel recorded by imunoise (``value = offset + scale *
     count``, scale and offset in the metadata record), or None when the file has no scale
     or a value is not finite."""
-    base = channel.split(":")[-1]
-    try:
+    base = channel if f"scale.{channel}" in metadata else channel.split(":")[-1]
+    try:  # a file of several devices keys its scales by topic: scale.TOPIC:gyro_x
         scale = float(metadata[f"scale.{base}"])
         offset = float(metadata.get(f"offset.{base}", "0"))
     except (KeyError, ValueError):

@@ -16,6 +16,7 @@ import numpy as np
 
 from imunoise.daq.clock import Clock
 from imunoise.daq.drivers import adis16350 as reg
+from imunoise.daq.sim.bench import SensorOnBench
 from imunoise.daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
 
 CHUNK = 256  # samples generated per call of a signal source (see imunoise.daq.sim.i2c_chip.CHUNK)
@@ -60,6 +61,7 @@ class Adis16350Sim:
         self.frames = 0
         self.samples_never_read = 0
         self.on_never_read: Callable[[int], None] | None = None
+        self.environment: SensorOnBench | None = None  # the bench it sits on, if any
         self._last_read_index: int | None = None
         self.words = {r.addr: 0 for r in reg.REGISTERS.values()}
         self.words[reg.ADDR["SMPL_PRD"]] = reg.SMPL_PRD_DEFAULT
@@ -96,7 +98,10 @@ class Adis16350Sim:
         index = int(math.floor((now - self._t0) * self.rate_hz))
         if index <= self._index:
             return
-        self._latch(self._advance(index - self._index))
+        x = self._advance(index - self._index)
+        if self.environment is not None:  # the bench's motion at this sample's time
+            x = x + self.environment.at(self._t0 + index / self.rate_hz)[0]
+        self._latch(x)
         self._index = index
         self._nd = 0xFFFF
 

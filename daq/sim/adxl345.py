@@ -17,6 +17,7 @@ import numpy as np
 
 from imunoise.daq.clock import Clock
 from imunoise.daq.drivers import adxl345 as ax
+from imunoise.daq.sim.bench import SensorOnBench
 from imunoise.daq.sim.i2c_chip import RegisterChip, SourceBuffer
 from imunoise.daq.sim.signals import SignalSource
 
@@ -39,6 +40,7 @@ class Adxl345Sim(RegisterChip):
         self.devid = ax.DEVID
         self.samples_made = 0
         self.samples_lost = 0  # ground truth: overwritten before being read
+        self.environment: SensorOnBench | None = None  # the bench it sits on, if any
         self.fifo: deque[tuple[int, int, int]] = deque()
         self.regs[ax.REG["BW_RATE"]] = ax.BW_RATE_RESET
         self._overrun = False
@@ -79,7 +81,11 @@ class Adxl345Sim(RegisterChip):
             self.accel.skip_take_last(n - MAX_CATCH_UP)
             self._push_lost(n - MAX_CATCH_UP)
             n = MAX_CATCH_UP
-        counts = self._quantize(self.accel.take(n))
+        x = self.accel.take(n)
+        if self.environment is not None:  # the bench's motion at these samples' times
+            k = np.arange(index - n + 1, index + 1) + 1  # sample k is ready at t0 + (k+1)/rate
+            x = x + self.environment.at(self._t0 + k / self.rate_hz)[:, 3:]
+        counts = self._quantize(x)
         cap = self._capacity()
         if self.fifo_mode == ax.FIFO_FIFO:
             room = cap - len(self.fifo)

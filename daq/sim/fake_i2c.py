@@ -89,6 +89,8 @@ class SimulatedI2CAdapter:
         return SimulatedSMBus(self)
 
     def ioctl(self, request: int, arg: object) -> int:
+        # ``arg`` is what the kernel's ioctl takes for ``request``: an address (int), a
+        # ctypes word or an smbus2 message structure; each branch knows which, mypy cannot
         if request in (smb.I2C_SLAVE, smb.I2C_SLAVE_FORCE):
             self.address = int(arg)  # type: ignore[call-overload]
             return 0

@@ -15,6 +15,7 @@ import numpy as np
 
 from imunoise.daq.clock import Clock
 from imunoise.daq.drivers import itg3200 as itg
+from imunoise.daq.sim.bench import SensorOnBench
 from imunoise.daq.sim.i2c_chip import RegisterChip, SourceBuffer
 from imunoise.daq.sim.signals import SignalSource, TemperatureSource, drifting_temperature
 
@@ -40,6 +41,7 @@ class Itg3200Sim(RegisterChip):
         self.stuck_ready = False
         self.pll_error_ppm = 0.0  # frequency error of the gyro-referenced clock
         self.samples_made = 0
+        self.environment: SensorOnBench | None = None  # the bench it sits on, if any
         self._rate: tuple[tuple, float] | None = None
         self._reset()
 
@@ -84,6 +86,8 @@ class Itg3200Sim(RegisterChip):
         if index <= self._index:
             return
         x = self.gyro.skip_take_last(index - self._index)
+        if self.environment is not None:  # the bench's rotation rate at this sample's time
+            x = x + self.environment.at(self._t0 + index / self.rate_hz)[0, :3]
         self.samples_made += index - self._index
         self._index = index
         fs_sel = int(_REGS["FS_SEL"].counts(self.regs[itg.REG["FS_SEL"]]))

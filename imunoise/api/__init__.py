@@ -172,15 +172,20 @@ def diagnose(channel: Channel, model: str = DEFAULT_MODEL) -> Diagnosis:
     >>> dx = imunoise.diagnose(rec["gyro_x"], "white")
     >>> dx.best is None   # white noise: nothing is missing
     True
+
+    A suggestion that cuts the record (a warm-up, a bias step) is applied with
+    ``channel.window(skip_s, split_s)``, as its ``apply.args`` say.
     """
     from imunoise.pipeline.fitting import diagnose_channel, full_window_args
 
     if not isinstance(channel, Channel):
         raise TypeError("diagnose needs a channel of imunoise.read (its samples), not a "
                         f"{type(channel).__name__}")
-    diag = diagnose_channel(channel.recording.record, channel.key, model)
+    diag = diagnose_channel(channel.recording.record, channel.key, model,
+                            time_origin_s=channel.skip_s)
     for sug in diag.suggestions:
-        sug.apply["args"] = full_window_args(sug.apply.get("args", []), 0.0, [])
+        sug.apply["args"] = full_window_args(sug.apply.get("args", []), channel.skip_s,
+                                             list(channel.split_s))
     return Diagnosis(diag, channel)
 
 

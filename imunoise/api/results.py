@@ -95,10 +95,31 @@ class Recording:
 
 @dataclass(frozen=True)
 class Channel:
-    """One channel of a :class:`Recording` (its samples are ``series.values``, SI units)."""
+    """One channel of a :class:`Recording` (its samples are ``series.values``, SI units).
+
+    ``skip_s`` and ``split_s`` are the cuts of :meth:`window` (``--skip``, ``--split``)."""
 
     recording: Recording
     key: str
+    skip_s: float = 0.0
+    split_s: tuple[float, ...] = ()
+
+    def window(self, skip_s: float = 0.0, split_s: tuple[float, ...] | list[float] = ()
+               ) -> Channel:
+        """The channel without its first ``skip_s`` seconds (a warm-up) and cut into separate
+        segments at ``split_s`` (seconds from its first sample; bias steps), as ``--skip`` and
+        ``--split`` of ``fit`` and ``diagnose`` do: what a suggestion's ``apply.args`` ask.
+        The recording itself is left as it is."""
+        import dataclasses
+
+        from imunoise.pipeline.reading import apply_window
+
+        record = dataclasses.replace(self.recording.record,
+                                     channels=dict(self.recording.record.channels),
+                                     warnings=list(self.recording.record.warnings))
+        apply_window(record, self.key, float(skip_s), [float(t) for t in split_s])
+        return Channel(Recording(self.recording.path, record), self.key, float(skip_s),
+                       tuple(float(t) for t in split_s))
 
     @property
     def series(self) -> ChannelSeries:
@@ -124,8 +145,9 @@ class Channel:
 
     def __repr__(self) -> str:
         s = self.series
+        cut = f", skip {self.skip_s:g} s" if self.skip_s else ""
         return (f"<Channel {self.key} [{s.units}] {s.n_samples:,} samples at {s.fs_hz:g} Hz, "
-                f"{len(s.segment_starts)} segment(s)>")
+                f"{len(s.segment_starts)} segment(s){cut}>")
 
 
 @dataclass(frozen=True, repr=False)

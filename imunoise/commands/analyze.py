@@ -8,6 +8,8 @@ import sys
 
 from imunoise.commands.common import add_rate_option
 from imunoise.core.record import Record
+from imunoise.errors import UsageError
+from imunoise.pipeline import cross_channel
 from imunoise.pipeline.channel_analysis import analyze_record
 from imunoise.pipeline.documents import analysis_json, dataset_statement
 from imunoise.pipeline.reading import read_record, select
@@ -37,6 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--report", metavar="OUT.html",
                    help="also write a self-contained HTML report (plots, coefficients, "
                         "discrete-time model, diagnosis) to OUT.html")
+    p.add_argument("--subtract-common", action="store_true",
+                   help="also analyse each channel's own noise: what the other channels "
+                        "explain (their coherent part) removed, reported beside the raw "
+                        "analysis with the subtraction's error (docs/environment.md)")
     p.set_defaults(func=run)
 
 
@@ -84,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
         check_output_folder(args.report)
     src = streamed_analysis.stream_source(args.file, getattr(args, "stream", "auto"))
     streamed = src is not None
+    subtract = bool(getattr(args, "subtract_common", False))
+    if subtract and streamed:
+        raise UsageError("--subtract-common needs the samples in memory: add --stream never")
     if streamed:
         record, results = streamed_analysis.analyze_streamed(args.file, args.channel, args.rate,
                                                              args.static, src=src)
@@ -91,13 +100,11 @@ def run(args: argparse.Namespace) -> int:
         record = _read(args.file, args.rate, args.static)
         keys = select(record, args.channel)
         results = analyze_record(record, keys)
+    coherence = residuals = None
     if args.json or args.report:
         from imunoise.pipeline import channel_extras, documents
 
-        doc = channel_extras.complete_document(analysis_json(args.file, record, results),
-                                               record, full=bool(args.report),
-                                               band_hz=args.overbound_band,
-                                               diagnose=not streamed)
+        doc, coherence, residuals = _document(args, record, results, streamed, subtract)
         if args.report:
             from imunoise.export.files import write_text_atomically
             from imunoise.export.report_html import render_report
@@ -105,19 +112,88 @@ def run(args: argparse.Namespace) -> int:
             write_text_atomically(args.report, render_report(doc))
             print(f"wrote {args.report}", file=sys.stderr)
     if args.json:
-        sys.stdout.write(documents.dumps(channel_extras.without_report_extras(doc)) + "\n")
+        out = channel_extras.without_report_extras(doc)
+        for ch in out["channels"].values():  # the own noise's diagnosis is the report's too
+            if "own" in ch:
+                ch["own"] = {k: v for k, v in ch["own"].items() if k != "suggestions"}
+        sys.stdout.write(documents.dumps(out) + "\n")
     else:
-        from imunoise.commands.fit import fit_summary
-        from imunoise.export.report_text import channel_text
-
-        for w in record.warnings:
-            print(f"warning: {w}", file=sys.stderr)
-        print(f"{args.file}: {len(results)} channel(s)")
-        for r in results:
-            print()
-            print(channel_text(r.key, r.series, r.allan, r.psd, r.warnings))
-            if r.fit is not None:
-                print(fit_summary(r.fit, r.series.units))
-            for line in dataset_lines(record, r.key):
-                print(line)
+        if coherence is None and not streamed:
+            coherence, residuals = cross_channel.coherence_document(
+                record, [r.key for r in results], subtract=subtract)
+        _print_text(args.file, record, results, coherence, residuals)
     return 0
+
+
+def _print_text(file: str, record: Record, results: list, coherence: dict | None,
+                residuals: dict | None) -> None:
+    """The text output: each channel's table and fit (and own noise), then the coherence."""
+    from imunoise.commands.fit import fit_summary
+    from imunoise.export.report_text import channel_text
+
+    for w in record.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    print(f"{file}: {len(results)} channel(s)")
+    for r in results:
+        print()
+        print(channel_text(r.key, r.series, r.allan, r.psd, r.warnings))
+        if r.fit is not None:
+            print(fit_summary(r.fit, r.series.units))
+        for line in dataset_lines(record, r.key):
+            print(line)
+        if residuals and r.key in residuals:
+            print(_own_text(r, residuals[r.key]))
+    lines = cross_channel.coherence_lines(coherence)
+    if lines:
+        print()
+        print("\n".join(lines))
+
+
+def _document(args: argparse.Namespace, record: Record, results: list, streamed: bool,
+              subtract: bool) -> tuple[dict, dict | None, dict | None]:
+    """The JSON/report document with its ``coherence`` (and each channel's ``own`` with
+    ``subtract``): ``(document, coherence, residuals)``."""
+    from imunoise.pipeline import channel_extras
+
+    doc = channel_extras.complete_document(analysis_json(args.file, record, results), record,
+                                           full=bool(args.report), band_hz=args.overbound_band,
+                                           diagnose=not streamed)
+    if streamed:
+        return doc, None, None
+    suggestions = {k: ch["suggestions"] for k, ch in doc["channels"].items()
+                   if ch.get("suggestions")}
+    coherence, residuals = cross_channel.coherence_document(
+        record, [r.key for r in results], suggestions=suggestions or None, subtract=subtract)
+    if coherence is not None:
+        doc["coherence"] = coherence
+    if residuals:
+        cross_channel.add_own(doc, record, residuals, diagnose=bool(args.report))
+    return doc, coherence, residuals
+
+
+def _own_text(r, sub) -> str:
+    """The channel's own noise (common part removed) for the text output."""
+    from imunoise.analysis.default_model import DEFAULT_MODEL_TEXT
+    from imunoise.analysis.fit import fit_allan
+    from imunoise.commands.fit import fit_summary
+    from imunoise.core.series import ChannelSeries
+    from imunoise.export.report_text import channel_text
+    from imunoise.pipeline.channel_analysis import allan_curve, psd_estimate
+
+    s = r.series
+    own = ChannelSeries(s.name, s.units, s.fs_hz, sub.residual, s.segment_starts, s.t0_s)
+    e = sub.error
+    lines = ["", f"{r.key} own noise (coherent part of the other channels removed: "
+             f"{e['removed_share']:.1%} of the variance; at most {e['leak_share']:.1%} of the "
+             f"residual is the references' noise passed in)"]
+    try:
+        curve = allan_curve(own)
+        lines.append(channel_text(f"{r.key} (own)", own, curve, psd_estimate(own), []))
+        lines.append(fit_summary(fit_allan(curve, DEFAULT_MODEL_TEXT), s.units))
+        level, (lo, hi) = sub.white_level(s.fs_hz, cross_channel.OWN_TAU_S,
+                                          segment_starts=s.segment_starts)
+        lines.append(f"  own white level at tau = {cross_channel.OWN_TAU_S:g} s: "
+                     f"{level:.4g} {s.units}/sqrt(Hz) [{lo:.4g}, {hi:.4g}]")
+    except ValueError as exc:
+        lines.append(f"  no own-noise analysis: {exc}")
+    return "\n".join(lines)

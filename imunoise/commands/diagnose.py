@@ -25,6 +25,7 @@ import numpy as np
 from imunoise.commands.common import add_rate_option, add_window_options
 from imunoise.commands.fit import fit_text
 from imunoise.errors import UsageError
+from imunoise.pipeline import cross_channel
 from imunoise.pipeline.documents import diagnosis_json
 from imunoise.pipeline.fitting import diagnose_channel, full_window_args, parse_model
 from imunoise.pipeline.reading import apply_window, open_imu_channel
@@ -210,16 +211,30 @@ def run(args: argparse.Namespace) -> int:
     args.file = args.file[0]
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
                                    args.static)
+    group = cross_channel.same_time_base(record.channels, key)
     apply_window(record, key, args.skip, args.split)
     diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
+    # the lines and resonances judged against the other channels: common or own
+    coherence = cross_channel.channel_coherence(record, key, diag, group,
+                                                args.skip, args.split or ())
     if args.json:
         from imunoise.pipeline import documents
 
-        sys.stdout.write(documents.dumps(diagnosis_json(record, key, diag)) + "\n")
+        doc = diagnosis_json(record, key, diag)
+        if coherence is not None:
+            doc["coherence"] = coherence
+            cross_channel.mark_origins(doc["suggestions"], coherence, key)
+        sys.stdout.write(documents.dumps(doc) + "\n")
     else:
         for w in record.warnings:
             print(f"warning: {w}", file=sys.stderr)
         print(diagnosis_text(key, record.series(key), diag, args.file, args.model))
+        lines = [c for c in (coherence or {}).get("classification", [])]
+        if lines:
+            print()
+            print("  environment or sensor (coherence with the other channels)")
+            for c in lines:
+                print(f"    {c['term']} at {c['f_hz']:.4g} Hz: {c['origin']}. {c['why']}")
     return 0

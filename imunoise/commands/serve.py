@@ -31,13 +31,20 @@ _LOOPBACK_NAMES = {"localhost"}
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="live analyzer + API + dashboard", description=__doc__)
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--device", metavar="DEV",
-                     help=f"device to acquire ({', '.join(DEVICES)}); default sim:adis16350")
+    src.add_argument("--device", metavar="DEV", action="append",
+                     help=f"device to acquire ({', '.join(DEVICES)}); default sim:adis16350; "
+                          "repeat it to acquire several at once (one file, a topic per device, "
+                          "channels named TOPIC:gyro_x)")
     src.add_argument("--replay", metavar="FILE", help="feed a recording instead of a device")
-    p.add_argument("--serial", dest="serial_port", metavar="P",
-                   help="serial port of the SPI bridge (ADIS16350), e.g. /dev/ttyUSB0")
-    p.add_argument("--bus", type=int, metavar="N",
-                   help="I2C bus number (ITG-3200, ADXL345), e.g. 1 for /dev/i2c-1")
+    p.add_argument("--serial", dest="serial_port", metavar="P", action="append",
+                   help="serial port of the SPI bridge (ADIS16350), e.g. /dev/ttyUSB0; with "
+                        "several devices one per real adis16350, in order")
+    p.add_argument("--bus", type=int, metavar="N", action="append",
+                   help="I2C bus number (ITG-3200, ADXL345), e.g. 1 for /dev/i2c-1; with "
+                        "several devices one per real I2C device, in order")
+    p.add_argument("--bench", metavar="NAME",
+                   help="put the simulated devices on one simulated bench whose motion they "
+                        "all see: lab or sway (docs/devices.md); default: none")
     p.add_argument("--rate", type=float, metavar="HZ",
                    help="sampling rate in Hz (default: the device's, 102.4 Hz for the "
                         "ADIS16350, 100 Hz for the others)")
@@ -102,36 +109,19 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
     if args.replay and getattr(args, "realtime_kernel_workers", None):
         raise UsageError("serve: --realtime-kernel-workers applies to a device, not to --replay")
     if args.replay:
-        path = Path(args.replay)
-        if not path.exists():
-            raise UsageError(f"serve: no such file: {path}")
-        from imunoise.daq.readers import ReadError
-        from imunoise.daq.replay import open_blocks
-
-        try:
-            blocks, total = open_blocks(path)
-        except ReadError as exc:
-            raise UsageError(f"serve: {exc}") from None
-        speed = getattr(args, "speed", None)  # set by ``imunoise replay --serve``
-        if speed is not None:
-            from imunoise.daq.replay import paced
-
-            blocks = paced(blocks, speed)
-        return blocks, {"spec": f"replay:{path.name}", "samples_in_file": total}, False
-    spec = args.device or "sim:adis16350"
-    if spec not in DEVICES:
-        raise UsageError(f"serve: unknown device {spec!r}; valid: {', '.join(DEVICES)}")
+        return _open_replay(args)
+    specs = _device_list(args)
+    for spec in specs:
+        if spec not in DEVICES:
+            raise UsageError(f"serve: unknown device {spec!r}; valid: {', '.join(DEVICES)}")
+    bench = _bench_of(args)
+    if len(specs) > 1:
+        return _open_group(args, specs, bench)
+    spec = specs[0]
     from imunoise.daq.devices import open_device
     from imunoise.daq.errors import DeviceError
 
-    kwargs: dict[str, Any] = {}
-    base = spec.removeprefix("sim:")
-    wanted = (("port", args.serial_port if base in SERIAL_DEVICES else None),
-              ("bus", args.bus if base in I2C_DEVICES else None),
-              ("rate_hz", args.rate), ("seed", args.seed))
-    for key, value in wanted:
-        if value is not None:
-            kwargs[key] = value
+    kwargs = _single_kwargs(args, spec, bench)
     if getattr(args, "acquisition", "thread") == "process":
         return _open_process(args, spec, kwargs)
     if getattr(args, "realtime_kernel_workers", None):
@@ -148,19 +138,23 @@ def open_source(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
         acq.close()
         raise RuntimeFailure(f"serve: cannot open {spec}: {exc}") from None
     info: dict[str, Any] = {"spec": spec, **{k: v for k, v in kwargs.items()
-                                             if k not in ("seed", "noise")}}
+                                             if k not in ("seed", "noise", "bench")}}
+    if "bench" in kwargs:
+        info["bench"] = kwargs["bench"].bench.name
     info["config"] = {str(k): str(v) for k, v in (getattr(acq, "config", {}) or {}).items()}
     return acq, info, True
 
 
-def raise_kernel_workers(args: argparse.Namespace, spec: str) -> bool:
+def raise_kernel_workers(args: argparse.Namespace, spec: str | list[str] | None) -> bool:
     """Whether serve holds the kernel's unbound workers at real-time priority: as asked, else
     for a serial device read at real-time priority, whose bytes those workers carry (serve
-    then already changes the machine's scheduling for its acquisition process)."""
+    then already changes the machine's scheduling for its acquisition process). ``spec``: the
+    device, or the devices read at once (any serial one counts)."""
     asked = getattr(args, "realtime_kernel_workers", None)
     if asked is not None:
         return bool(asked)
-    return (spec.removeprefix("sim:") in SERIAL_DEVICES
+    specs = [spec] if isinstance(spec, str) else list(spec or ["sim:adis16350"])
+    return (any(s.removeprefix("sim:") in SERIAL_DEVICES for s in specs)
             and getattr(args, "priority", "realtime") == "realtime")
 
 
@@ -190,7 +184,139 @@ def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
               f"while serving (they carry the serial port's bytes; "
               f"--no-realtime-kernel-workers leaves them as they are)", file=sys.stderr)
     info: dict[str, Any] = {"spec": spec, "acquisition": "process",
-                            **{k: v for k, v in kwargs.items() if k != "seed"}}
+                            **{k: v for k, v in kwargs.items() if k not in ("seed", "bench")}}
+    if "bench" in kwargs:
+        info["bench"] = kwargs["bench"].bench.name
+    info["config"] = source.config_reported
+    return source, info, True
+
+
+def _open_replay(args: argparse.Namespace) -> tuple[Any, dict[str, Any], bool]:
+    """A recording fed as if live."""
+    path = Path(args.replay)
+    if not path.exists():
+        raise UsageError(f"serve: no such file: {path}")
+    from imunoise.daq.readers import ReadError
+    from imunoise.daq.replay import open_blocks
+
+    try:
+        blocks, total = open_blocks(path)
+    except ReadError as exc:
+        raise UsageError(f"serve: {exc}") from None
+    speed = getattr(args, "speed", None)  # set by ``imunoise replay --serve``
+    if speed is not None:
+        from imunoise.daq.replay import paced
+
+        blocks = paced(blocks, speed)
+    return blocks, {"spec": f"replay:{path.name}", "samples_in_file": total}, False
+
+
+def _single_kwargs(args: argparse.Namespace, spec: str, bench: Any) -> dict[str, Any]:
+    """``open_device`` keyword arguments of a single device (the last --serial or --bus
+    given, as before several devices were possible)."""
+    kwargs: dict[str, Any] = {}
+    base = spec.removeprefix("sim:")
+    serial = args.serial_port[-1] if args.serial_port else None
+    bus = args.bus[-1] if args.bus else None
+    wanted = (("port", serial if base in SERIAL_DEVICES else None),
+              ("bus", bus if base in I2C_DEVICES else None),
+              ("rate_hz", args.rate), ("seed", args.seed))
+    for key, value in wanted:
+        if value is not None:
+            kwargs[key] = value
+    if bench is not None and spec.startswith("sim:"):
+        import time
+
+        from imunoise.daq.sim.bench import BenchPlacement
+
+        kwargs["bench"] = BenchPlacement(bench, 0, seed=args.seed or 0, epoch=time.monotonic())
+    return kwargs
+
+
+def _device_list(args: argparse.Namespace) -> list[str]:
+    devices = args.device
+    if isinstance(devices, str):  # a namespace made by another command (replay --serve)
+        devices = [devices]
+    return list(devices or ["sim:adis16350"])
+
+
+def _bench_of(args: argparse.Namespace) -> Any:
+    name = getattr(args, "bench", None)
+    if not name:
+        return None
+    from imunoise.daq.sim.bench import bench_named
+
+    try:
+        return bench_named(name)
+    except ValueError as exc:
+        raise UsageError(f"serve: --bench: {exc}") from None
+
+
+def _open_group(args: argparse.Namespace, specs: list[str], bench: Any
+                ) -> tuple[Any, dict[str, Any], bool]:
+    """Several devices at once: in the acquisition process (a DeviceGroup there, one file), or
+    with ``--acquisition thread`` a DeviceGroup in this process."""
+    import time
+
+    from imunoise.daq.device_group import member_seed, pair_devices
+    from imunoise.daq.errors import DeviceError
+    from imunoise.daq.sim.bench import BenchPlacement
+
+    try:
+        members = pair_devices(specs, args.serial_port or (), args.bus or (),
+                               port_option="--serial")
+    except ValueError as exc:
+        raise UsageError(f"serve: {exc}") from None
+    described = [{"name": m.name, "spec": m.spec,
+                  **({"port": m.port} if m.port else {}),
+                  **({"bus": m.bus} if m.bus is not None else {})} for m in members]
+    info: dict[str, Any] = {"spec": "+".join(specs), "devices": described}
+    if bench is not None:
+        info["bench"] = bench.name
+    if getattr(args, "acquisition", "thread") != "process":
+        if getattr(args, "realtime_kernel_workers", None):
+            raise UsageError("serve: --realtime-kernel-workers needs --acquisition process")
+        from imunoise.analysis.noise_stream import stream_factory
+        from imunoise.daq.devices import open_devices
+
+        group = open_devices(specs, ports=args.serial_port or (), buses=args.bus or (),
+                             rate_hz=args.rate, seed=args.seed, bench=bench,
+                             noise=stream_factory, port_option="--serial")
+        try:
+            group.open()
+        except (DeviceError, OSError) as exc:
+            group.close()
+            raise RuntimeFailure(f"serve: cannot open {info['spec']}: {exc}") from None
+        info["config"] = group.config
+        return group, info, True
+    from imunoise.live.acquisition_process import AcquisitionConfig, AcquisitionProcess
+
+    epoch = time.monotonic()
+    config_members = []
+    for m in members:
+        kw: dict[str, Any] = {"seed": member_seed(args.seed, m.position)}
+        for key, value in (("port", m.port), ("bus", m.bus), ("rate_hz", args.rate)):
+            if value is not None:
+                kw[key] = value
+        if bench is not None and m.simulated:
+            kw["bench"] = BenchPlacement(bench, m.position, seed=args.seed or 0, epoch=epoch)
+        config_members.append((m.spec, m.name, kw))
+    config = AcquisitionConfig(
+        info["spec"], {}, out=args.out, record_rate_hz=None, software=SOFTWARE,
+        priority=getattr(args, "priority", "realtime"),
+        realtime_kernel_workers=raise_kernel_workers(args, specs),
+        members=config_members)
+    if args.out:
+        try:
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RuntimeFailure(f"serve: cannot record to {args.out}: {exc}") from None
+    source = AcquisitionProcess(config)
+    try:
+        source.open()
+    except DeviceError as exc:
+        raise RuntimeFailure(f"serve: {exc}") from None
+    info["acquisition"] = "process"
     info["config"] = source.config_reported
     return source, info, True
 
@@ -201,6 +327,19 @@ def open_recorder(out: str, device: str, config: dict[str, str] | None,
 
     try:
         return McapRecorder(out, device, config=config, rate_hz=rate_hz, software=SOFTWARE)
+    except OSError as exc:
+        raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
+
+
+def open_group_recorder(out: str, group: Any) -> Any:
+    """One recorder for every device of a group (``--acquisition thread``)."""
+    from imunoise.daq.recorder import McapRecorder
+
+    devices = {name: {"spec": spec, "config": group.member_config(name),
+                      "rate_hz": acq.rate_hz}
+               for (name, acq), spec in zip(group.members, group.specs, strict=True)}
+    try:
+        return McapRecorder(out, "+".join(group.names), software=SOFTWARE, devices=devices)
     except OSError as exc:
         raise RuntimeFailure(f"serve: cannot record to {out}: {exc}") from None
 
@@ -251,15 +390,23 @@ def run(args: argparse.Namespace) -> int:
     in_process = hasattr(source, "recording")  # an acquisition process records by itself
     if args.out and realtime and not in_process:
         try:
-            recorder = open_recorder(args.out, info["spec"], info.get("config"), args.rate)
+            recorder = (open_group_recorder(args.out, source) if info.get("devices")
+                        else open_recorder(args.out, info["spec"], info.get("config"),
+                                           args.rate))
         except RuntimeFailure:
             source.close()
             raise
-        sinks.append(RecorderSink(recorder, source))
+        if info.get("devices"):
+            from imunoise.live.recorder_sink import GroupRecorderSink
+
+            sinks.append(GroupRecorderSink(recorder, source))
+        else:
+            sinks.append(RecorderSink(recorder, source))
     service = LiveService(
         source, RollingAnalyzer(model=model, refit_interval_s=args.refit_interval,
                                 cpu_budget=args.analysis_cpu, workers="process",
-                                targets=args.target), sinks=sinks,
+                                targets=args.target, qualified=bool(info.get("devices"))),
+        sinks=sinks,
         device=info, realtime=realtime,
         current_file=((lambda: recorder.stats.file or None) if recorder else
                       (lambda: source.recording().get("file") or None) if in_process and args.out

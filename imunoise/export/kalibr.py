@@ -99,6 +99,7 @@ class KalibrImu:
         if not axes or any(c is None for c in cis):
             what = "a bound, not an estimate" if src.startswith("over") else "interval unknown"
             return f"{what}; from the {src}"
+        # no interval is None here (returned above); mypy does not narrow through any()
         lo = _combine([c[0] for c in cis], self.combine) * self.inflate  # type: ignore[index]
         hi = _combine([c[1] for c in cis], self.combine) * self.inflate  # type: ignore[index]
         return f"95 % [{_f(lo)}, {_f(hi)}]; from the {src}"
@@ -178,7 +179,7 @@ def overbound_axis(name: str, channel_doc: Mapping) -> AxisValues:
 
 
 def axis_values(name: str, channel_doc: Mapping) -> AxisValues:
-    """N and K of one fitted channel (contract JSON ``fit`` keys, plus ``psd`` when present).
+    """N and K of one fitted channel (``fit`` keys of docs/json.md, plus ``psd`` when present).
 
     When the random walk is not resolved (K zero, its interval reaching zero, or collapsed onto
     the estimate, as when the fit sits on its lower bound), K becomes the largest value the

@@ -1,6 +1,6 @@
 """The morning-after HTML report: one self-contained file with inline SVG plots.
 
-Input is the ``analyze --json`` document (CONTRACT.md keys per channel) extended with:
+Input is the ``analyze --json`` document (docs/json.md keys per channel) extended with:
 
 - ``discrete_model`` per channel: :meth:`imunoise.analysis.discrete.DiscreteModel.to_dict`;
 - ``discrete_check`` per channel: ``{"tau_s", "adev", "inside", "total"}``, the Allan deviation
@@ -9,7 +9,11 @@ Input is the ``analyze --json`` document (CONTRACT.md keys per channel) extended
 - ``terms_adev`` per channel: ``{term: [adev on allan.tau_s]}``, each fitted term's own curve;
 - ``model_psd`` per channel: ``{"f_hz", "psd"}``, optional;
 - ``record`` at the top level: the record's facts (device, rate, duration, gaps, drops,
-  temperature range, warnings).
+  temperature range, warnings);
+- ``coherence`` at the top level (``analyze``'s, optional): the coherence between channels and
+  the lines classified as common or own (docs/environment.md);
+- ``own`` per channel (``--subtract-common``, optional): the channel's analysis after the
+  common part is removed.
 
 Nothing is fetched from the network: styles are inline, plots are SVG, no scripts.
 """
@@ -116,15 +120,81 @@ def render_report(doc: Mapping, title: str | None = None,
              f'<p class="muted">Generated {when} by imunoise {escape(__version__)}. '
              "Values in SI units with conventional units beside them; intervals are 95 %.</p>"]
     if channels:
-        parts.append("<nav>" + "".join(f'<a href="#ch-{escape(n)}">{escape(n)}</a>'
-                                       for n in channels) + "</nav>")
+        links = [f'<a href="#ch-{escape(n)}">{escape(n)}</a>' for n in channels]
+        if (doc.get("coherence") or {}).get("pairs"):
+            links.append('<a href="#coherence">coherence</a>')
+        parts.append("<nav>" + "".join(links) + "</nav>")
     parts.append(_record_section(doc.get("record") or {}, src))
     parts.append(_summary_section(channels))
     for name, ch in channels.items():
         parts.append(_channel_section(name, ch))
+    parts.append(_coherence_section(doc.get("coherence") or {}))
     parts.append(_method_section())
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _coherence_section(co: Mapping) -> str:
+    """The cross-channel view: the coherence matrix (highest coherence of each pair), the
+    pairs that pass the zero-coherence test drawn on log-frequency axes, and every line
+    classified common or own."""
+    if not co or not co.get("pairs"):
+        return ""
+    chans = list(co.get("channels", []))
+    pairs = [tuple(p) for p in co["pairs"]]
+    f = np.asarray(co["f_hz"], dtype=np.float64)
+    msc = np.asarray(co["msc"], dtype=np.float64)
+    fam = np.asarray(co.get("threshold_family", co["threshold"]), dtype=np.float64)
+    peak = np.nanmax(msc, axis=1) if msc.size else np.zeros(len(pairs))
+    at = {p: (float(peak[k]), float(f[int(np.nanargmax(msc[k]))]) if msc.size else 0.0)
+          for k, p in enumerate(pairs)}
+    head = "<tr><th></th>" + "".join(f"<th>{escape(c)}</th>" for c in chans) + "</tr>"
+    rows = []
+    for a in chans:
+        cells = []
+        for b in chans:
+            v = at.get((a, b)) or at.get((b, a))
+            if a == b or v is None:
+                cells.append("<td></td>")
+                continue
+            shade = int(round(255 * (1 - v[0])))
+            cells.append(f'<td style="background:rgb(255,{shade},{shade})" title="highest '
+                         f'coherence {v[0]:.3f} at {v[1]:.3g} Hz">{v[0]:.2f}<br>'
+                         f'<span class="muted">{v[1]:.3g} Hz</span></td>')
+        rows.append(f"<tr><th>{escape(a)}</th>{''.join(cells)}</tr>")
+    out = ['<h2 id="coherence">Coherence between channels</h2>',
+           '<p class="muted">Magnitude-squared coherence (Welch, Hann, 50 % overlap, '
+           f'{co.get("nperseg")} samples per segment): the share of one channel\'s power at a '
+           "frequency that the other explains. Matrix: each pair's highest coherence and where. "
+           "Plots: pairs that pass the zero-coherence test (family-wise 5 %) somewhere, with "
+           "the exact 95 % interval and the threshold.</p>",
+           f"<table class=\"matrix\">{head}{''.join(rows)}</table>"]
+    lo = np.asarray(co.get("ci", {}).get("low", msc), dtype=np.float64)
+    hi = np.asarray(co.get("ci", {}).get("high", msc), dtype=np.float64)
+    shown = [k for k in np.argsort(-peak) if np.any(msc[k] > fam)][:_MAX_PAIR_PLOTS]
+    for k in shown:
+        a, b = pairs[k]
+        p = Plot(f"coherence {a} - {b}", "frequency (Hz)", "magnitude-squared coherence",
+                 x_log=True, y_log=False, height=300)
+        p.band(f, lo[k], hi[k], label="95 % interval")
+        p.line(f, msc[k], label="coherence")
+        p.line(f, fam, label="zero-coherence threshold (5 %, family)", color="#555555")
+        out.append(f'<div class="plot">{p.svg()}</div>')
+    cls = co.get("classification") or []
+    if cls:
+        body = "".join(
+            f"<tr><td>{escape(str(c['channel']))}</td><td>{escape(str(c['term']))}</td>"
+            f"<td>{_num(c['f_hz'], 4)} Hz</td><td><strong>{escape(str(c['origin']))}</strong>"
+            f"</td><td>{escape(', '.join(c.get('common_with') or []))}</td>"
+            f"<td>{escape(str(c.get('why', '')))}</td></tr>" for c in cls)
+        out.append("<h3>Lines and resonances: environment or sensor</h3><table><tr>"
+                   "<th>channel</th><th>term</th><th>frequency</th><th>origin</th>"
+                   f"<th>common with</th><th>why</th></tr>{body}</table>")
+    return "\n".join(out)
+
+
+_MAX_PAIR_PLOTS = 6
+"""Coherent pairs drawn (the highest first); the matrix shows every pair."""
 
 
 def _record_section(rec: Mapping, src: str) -> str:
@@ -211,6 +281,49 @@ def _channel_section(name: str, ch: Mapping) -> str:
     out.append("</div>")
     out.append(_discrete_block(ch, units, kind))
     out.append(_diagnosis_block(ch))
+    out.append(_own_block(name, ch, units, kind))
+    return "\n".join(out)
+
+
+def _own_block(name: str, ch: Mapping, units: str, kind: str) -> str:
+    """The channel's own noise (``--subtract-common``) beside the raw: the Allan deviations
+    together, the own model and white level, the subtraction's error."""
+    own = ch.get("own")
+    if not own:
+        return ""
+    sub = own.get("subtraction") or {}
+    err = sub.get("error") or {}
+    refs = ", ".join(sub.get("references") or [])
+    bands = "; ".join(f"{_num(a, 3)}–{_num(b, 3)} Hz" for a, b in
+                      sub.get("bands_subtracted_hz") or [])
+    out = ["<h3>Own noise: the other channels' coherent part removed</h3>",
+           f"<p>References: {escape(refs)}. Removed where the multiple coherence passes the "
+           f"zero-coherence test ({escape(bands) or 'nowhere'}): "
+           f"{_num(100 * err.get('removed_share', 0.0), 3)} % of the variance. Error of the "
+           f"subtraction: at most {_num(100 * err.get('leak_share', 0.0), 3)} % of the "
+           "residual is the references' own noise passed in; the residual PSD is low by the "
+           f"factor {_num(err.get('bias_factor'), 4)} where subtracted.</p>"]
+    wl = own.get("white_level") or {}
+    if wl.get("N") is not None:
+        lo, hi = wl.get("ci") or (None, None)
+        out.append(f"<p>Own white level read at τ = {_num(wl.get('tau_s'), 3)} s: "
+                   f"<b>{_num(wl['N'], 4)}</b> [{_num(lo, 4)}, {_num(hi, 4)}] "
+                   f"{escape(units)}/√Hz (the interval's lower end allows for the "
+                   "references' noise).</p>")
+    out.append(_coefficient_table(own, kind))
+    out.append(_error_block(own))
+    raw_a, own_a = ch.get("allan") or {}, own.get("allan") or {}
+    if raw_a.get("tau_s") and own_a.get("tau_s"):
+        p = Plot(f"{name}: raw and own Allan deviation", "averaging time \u03c4 (s)",
+                 f"Allan deviation ({units})")
+        p.band(raw_a["tau_s"], raw_a["ci_low"], raw_a["ci_high"], label="raw 95 %")
+        p.line(raw_a["tau_s"], raw_a["adev"], label="raw")
+        p.band(own_a["tau_s"], own_a["ci_low"], own_a["ci_high"], label="own 95 %")
+        p.line(own_a["tau_s"], own_a["adev"], label="own (common part removed)")
+        out.append(f'<div class="plots">{p.svg()}</div>')
+    if own.get("suggestions") is not None:
+        out.append(_diagnosis_block(own).replace("<h3>Diagnosis</h3>",
+                                                 "<h3>Diagnosis of the own noise</h3>", 1))
     return "\n".join(out)
 
 

@@ -1,6 +1,6 @@
 """Per-channel extras of ``analyze``: the discrete model, its simulated check, term curves.
 
-``extend_channel`` adds to a channel's ``fit`` document (CONTRACT.md keys):
+``extend_channel`` adds to a channel's ``fit`` document (docs/json.md keys):
 
 - ``discrete_model`` (always): the filter-ready model at the sample period
   (:mod:`imunoise.analysis.discrete`), its bias-instability approximation fitted over the measured
@@ -193,7 +193,7 @@ def record_facts(record) -> dict:
     if dropped:
         facts["dropped"] = ", ".join(f"{v} ({k})" for k, v in dropped.items())
     temp = getattr(record, "temperature", None)
-    if temp is not None and getattr(temp, "n_samples", 0):
+    if temp is not None and int(getattr(temp, "n_samples", 0)) > 0:
         v = np.asarray(temp.values, dtype=np.float64)
         v = v[np.isfinite(v)]
         facts["temperature_range_degC"] = [float(v.min()), float(v.max())] if v.size else None

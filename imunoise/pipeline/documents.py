@@ -2,8 +2,9 @@
 the live views (:mod:`imunoise.web.views.live`) share with them.
 
 Every number is a plain float; a value that is not finite becomes ``null`` so the output is
-strict JSON. Shapes follow the contract: a channel document carries ``channel, units, fs_hz,
-n_samples, duration_s, model, error, failures, allan`` and, for ``analyze``, ``psd``.
+strict JSON. Shapes follow docs/json.md and docs/schemas/: a channel document carries
+``channel, units, fs_hz, n_samples, duration_s, model, error, failures, allan`` and, for
+``analyze``, ``psd``.
 """
 
 from __future__ import annotations
@@ -24,15 +25,23 @@ if TYPE_CHECKING:
 
 
 class AllanLike(Protocol):
-    """The parts of an Allan curve (``imunoise.analysis.allan.AllanCurve``) that the JSON shows."""
+    """The parts of an Allan curve (``imunoise.analysis.allan.AllanCurve``) that the JSON shows
+    (read-only: the curve is a frozen dataclass)."""
 
-    tau_s: np.ndarray
-    dev: np.ndarray
-    ci_low: np.ndarray
-    ci_high: np.ndarray
-    edf: np.ndarray
-    alpha: np.ndarray
-    ci: float
+    @property
+    def tau_s(self) -> np.ndarray: ...
+    @property
+    def dev(self) -> np.ndarray: ...
+    @property
+    def ci_low(self) -> np.ndarray: ...
+    @property
+    def ci_high(self) -> np.ndarray: ...
+    @property
+    def edf(self) -> np.ndarray: ...
+    @property
+    def alpha(self) -> np.ndarray: ...
+    @property
+    def ci(self) -> float: ...
 
 
 def floats(values: Iterable[float] | np.ndarray) -> list[float | None]:
@@ -61,7 +70,7 @@ def error_json(fit: FitResult | None) -> dict[str, float | None]:
 
 
 def model_json(fit: FitResult) -> list[dict[str, Any]]:
-    """CONTRACT.md ``model`` entries of a fit (parameters in the channel's SI units), each
+    """The JSON ``model`` entries of a fit (parameters in the channel's SI units), each
     with ``unresolved``: the amplitudes whose 95 % interval reaches zero (no estimate, only an
     upper bound)."""
     return [{"term": t.term, "params": {k: number(v) for k, v in t.params.items()},

@@ -19,9 +19,10 @@ from imunoise.core.units import CI95
 from imunoise.errors import RuntimeFailure, UsageError
 
 
-def parse_model(text: str) -> tuple[list[str], dict[str, float]]:
-    """Term names and held parameters of ``--model TERMS``; an unknown term, a bad or
-    out-of-range parameter or an empty model is a usage error naming the valid terms."""
+def parse_model(text: str) -> tuple[list[str], dict[str | int, dict[str, float]]]:
+    """Term names and held parameters (by model index) of ``--model TERMS``; an unknown term,
+    a bad or out-of-range parameter or an empty model is a usage error naming the valid
+    terms."""
     from imunoise.analysis.terms import TermError, parse_model
 
     if not text.strip(" ,"):
@@ -30,7 +31,8 @@ def parse_model(text: str) -> tuple[list[str], dict[str, float]]:
         spec = parse_model(text)
     except TermError as exc:
         raise UsageError(str(exc)) from None
-    return spec.names, spec.fixed
+    fixed: dict[str | int, dict[str, float]] = {i: p for i, p in spec.fixed.items()}
+    return spec.names, fixed
 
 
 @contextmanager

@@ -308,7 +308,8 @@ def _plan(record: Record, scans: dict[str, _TopicScan], keys: list[str],
             key = scan.prefix + c
             record.channels[key].fs_hz = fs
             if key in keys:
-                feeds[key] = _Feed(key, c, record.channels[key],
+                # the record of a streamed file holds SeriesSummary, never samples
+                feeds[key] = _Feed(key, c, record.channels[key],  # type: ignore[arg-type]
                                    StreamingAllan(fs, ("oadev",), m_grid=_OCTAVES),
                                    StreamingPsd(fs, nperseg=nperseg))
     record.facts["timing"] = timings
@@ -349,6 +350,7 @@ def _result(f: _Feed):
     from imunoise.pipeline.channel_analysis import ChannelAnalysis, _fit
 
     f.summary.segment_starts = np.asarray(f.starts or [0], dtype=np.int64)
+    # a summary stands for the series: the reports read its shape, never its samples
     out = ChannelAnalysis(key=f.key, series=f.summary)  # type: ignore[arg-type]
     try:
         if f.summary.n_samples < 4:
@@ -405,9 +407,11 @@ def analyze_streamed(path: str, selectors: list[str], rate_hz: float | None = No
         for c in cols:
             channels[prefix + c] = SeriesSummary(
                 prefix + c, "rad/s" if c.startswith("gyro") else "m/s^2", 0.0)
+    # a Record of summaries (the samples are streamed, never held): duck-typed series
     record = Record(source=str(path), channels=channels, metadata=dict(src.metadata),
                     warnings=list(src.warnings),
-                    temperature=SeriesSummary("temp", "degC", 1.0) if temps else None)
+                    temperature=SeriesSummary("temp", "degC", 1.0) if temps  # type: ignore[arg-type]
+                    else None)
     keys = select(record, selectors)
     total = sum(tp.count for tp in imu)
     if show_progress is None:

@@ -24,7 +24,7 @@ def restore_switch():
     allan_kernels.set_enabled(previous)
 
 
-@pytest.mark.parametrize("kind", ["oadev", "ohdev", "mdev"])
+@pytest.mark.parametrize("kind", ["oadev", "ohdev", "mdev", "noise_id"])
 def test_compiled_kernels_are_in_use_here(kind):
     # numba is a runtime dependency: on this environment the compiled path must be the one run
     state = allan_kernels.status(kind)
@@ -121,3 +121,72 @@ def test_environment_variable_selects_numpy():
         [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True
     )
     assert out.stdout.strip() == "False"
+
+
+def test_running_sum_split_carries_the_exact_prefix_sum():
+    # hi + lo against exact rational sums: within about 2^-100 of the sum, far beyond float64
+    from fractions import Fraction
+
+    rng = np.random.default_rng(3)
+    u = np.cumsum(rng.standard_normal(5000)) * 1e3 + 1e6
+    offset = float(u.mean())
+    hi, lo = allan_kernels.running_sum_split(u, offset)
+    exact = Fraction(0)
+    assert hi[0] == 0.0 and lo[0] == 0.0
+    for k in range(u.size):
+        exact += Fraction(float(u[k] - offset))  # each difference rounded, as numpy's
+        if k % 499 == 0 or k == u.size - 1:
+            got = Fraction(float(hi[k + 1])) + Fraction(float(lo[k + 1]))
+            assert abs(got - exact) <= abs(exact) * Fraction(1, 2**95) + Fraction(1, 2**60)
+            assert float(hi[k + 1]) == float(exact)  # hi is the sum rounded once
+
+
+def test_mdev_of_a_random_walk_is_exact_where_long_double_was_not():
+    # at m = 1 the third difference of the prefix sum is the second difference of the phase:
+    # the double-double sums give it to 1e-15; the long double ones were 3e-11 off here
+    import math
+
+    from imunoise.analysis.allan import _running_sum_split, phase_from_rate
+
+    rng = np.random.default_rng(7)
+    w = rng.standard_normal(400_000)
+    u = phase_from_rate(np.cumsum(w) * 1e-6 + w * 1e-4)
+    u = np.ldexp(u, -int(np.floor(np.log2(np.abs(u).max()))))
+    v = u - u.mean()
+    d = (v[2:] - 2 * v[1:-1]) + v[:-2]
+    exact = math.fsum(d * d)
+    hi, lo = _running_sum_split(u)
+    assert allan_kernels.mdev_sum(hi, lo, 1) == pytest.approx(exact, rel=1e-13)
+    uu = np.concatenate(([0.0], np.cumsum(v, dtype=np.longdouble)))
+    h2 = uu.astype(np.float64)
+    long_double = allan_kernels.mdev_sum(h2, (uu - h2).astype(np.float64), 1)
+    assert long_double == pytest.approx(exact, rel=1e-9)  # the bound of the change
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 7, 64])
+def test_diff_products_of_strided_views_equal_numpy(m):
+    from imunoise.analysis.edf import _diff_products
+
+    rng = np.random.default_rng(m)
+    u = np.cumsum(rng.standard_normal(300_001))
+    v = u[::m]
+    zz, p, s1 = allan_kernels.diff_products(v)
+    zz_ref, p_ref = _diff_products(v)
+    assert zz == pytest.approx(zz_ref, rel=1e-13)
+    assert p == pytest.approx(p_ref, rel=1e-12, abs=1e-12 * zz_ref)
+    assert s1 == pytest.approx(float(np.sum(v[1:])), rel=1e-13)
+
+
+def test_noise_identification_is_the_same_with_and_without_the_kernels(restore_switch):
+    from imunoise.analysis.allan import oadev
+
+    rng = np.random.default_rng(11)
+    w = rng.standard_normal(600_001)
+    for y in (w, np.diff(w), np.cumsum(w) * 1e-3 + w):  # white rate, white phase, random walk
+        on = oadev(y, 100.0, m=60)
+        allan_kernels.set_enabled(False)
+        off = oadev(y, 100.0, m=60)
+        allan_kernels.set_enabled(True)
+        assert np.array_equal(on.alpha, off.alpha)
+        assert np.array_equal(on.edf, off.edf)
+        np.testing.assert_allclose(on.dev, off.dev, rtol=1e-13)

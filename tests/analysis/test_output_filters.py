@@ -129,3 +129,25 @@ def test_a_filter_the_device_states_is_offered_with_its_parameters_held() -> Non
     assert s.significant and s.params == {"taps": 4.0}
     assert s.apply["model"] == "white,random_walk,moving_average:taps=4"
     assert "device configuration states this filter" in s.why
+
+
+@pytest.mark.parametrize("taps", [64.3, 100.5, 333.25, 1023.999])
+def test_long_fractional_moving_average_response_equals_the_sum_over_its_taps(taps) -> None:
+    # above 64 taps the response is taken in closed form; against the sum over the taps in
+    # long double it holds to 1e-12 of its peak value (1) and 1e-9 where it is above 1e-6
+    from imunoise.analysis.terms.output_filter import OutputFilter
+
+    term = get_term("moving_average")
+    u = np.concatenate((np.geomspace(1e-8, 0.5, 700), np.linspace(0.0, 0.5, 301)))
+    got = term.response(u * FS, FS, {"taps": taps})
+    g = term.impulse_response(FS, {"taps": taps}).astype(np.longdouble)
+    k = np.arange(g.size, dtype=np.longdouble)
+    w = 2.0 * np.pi * u.astype(np.longdouble)
+    want = ((np.cos(np.outer(w, k)) @ g) ** 2 + (np.sin(np.outer(w, k)) @ g) ** 2
+            ).astype(np.float64)
+    np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12)
+    big = want > 1e-6
+    np.testing.assert_allclose(got[big], want[big], rtol=1e-9)
+    # and the float64 sum it replaces agrees with both to the same bound
+    generic = OutputFilter.response(term, u * FS, FS, {"taps": taps})
+    np.testing.assert_allclose(got[big], generic[big], rtol=1e-9)

@@ -168,3 +168,19 @@ def test_plot_without_matplotlib_names_the_extra(tmp_path):
     assert out.stderr.strip().splitlines()[-1] == (
         "imunoise.extras.MissingExtra: plot() needs the optional 'plot' extra (matplotlib is "
         "not installed): pip install 'imunoise[plot]'")
+
+
+def test_a_windowed_channel_is_fit_and_diagnosed_as_with_skip_and_split(recording):
+    rec = imunoise.read(recording)
+    cut = rec["gyro_x"].window(skip_s=120.0, split_s=[600.0])
+    assert cut.series.n_samples == rec["gyro_x"].series.n_samples - 12_000
+    assert len(cut.series.segment_starts) == 2
+    assert rec["gyro_x"].series.n_samples == 120_000  # the recording is left as it was
+    args = ["--channel", "gyro_x", "--model", "white,random_walk", "--skip", "120",
+            "--split", "600", "--json"]
+    assert imunoise.fit(cut, "white,random_walk").document() == _cli_json(
+        ["fit", recording, *args])
+    assert imunoise.diagnose(cut, "white,random_walk").document() == _cli_json(
+        ["diagnose", recording, *args])
+    with pytest.raises(UsageError, match="leaves no samples"):
+        rec["gyro_x"].window(skip_s=1e6)

@@ -298,7 +298,11 @@ def test_analyze_report_end_to_end(recordings, kind, tmp_path, capsys):
     p = _Collector()
     p.feed(html)
     assert p.errors == []
-    assert [t for t, _ in p.tags].count("svg") == 3 * 6
+    # three plots per channel, and the coherence section's pairs that pass the family-wise
+    # zero-coherence test (by chance here: the six axes are independent)
+    pair_plots = html.count('<div class="plot"><svg')
+    assert pair_plots <= 6 and 'id="coherence"' in html
+    assert [t for t, _ in p.tags].count("svg") == 3 * 6 + pair_plots
     text = " ".join(p.text)
     # the simulated discrete model against the measurement, per channel, stated in the report
     import re

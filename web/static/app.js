@@ -120,6 +120,58 @@ function drawPsd(p) {
     axes: [logAxis("frequency (Hz)"), logAxis(p.units)] }, data);
 }
 
+// Coherence between the stream's channels: every pair on log-frequency axes with the
+// zero-coherence threshold (family-wise 5 %), and the matrix of each pair's highest value.
+function drawCoherence(c) {
+  const info = $("coherence-info");
+  if (!c || !c.ready) {
+    info.textContent = `waiting: ${(c && c.reason) || "no data yet"}`;
+    return;
+  }
+  info.textContent = `${c.stream}: ${c.n_segments} segments of ${c.nperseg} samples; ` +
+    "exact 95 % intervals in the data; dashed: the zero-coherence threshold (5 %, whole axis)";
+  const series = [{ label: "f (Hz)" }];
+  const data = [c.f_hz];
+  c.pairs.forEach(([a, b], i) => {
+    series.push({ label: `${a}–${b}`, stroke: COLORS[i % COLORS.length], width: 1.5 });
+    data.push(c.msc[i]);
+  });
+  series.push({ label: "threshold", stroke: "#000", width: 1, dash: [6, 4] });
+  data.push(c.threshold_family);
+  plot("coherence-plot", { height: 320, scales: { x: LOG, y: { range: [0, 1] } }, series,
+    axes: [logAxis("frequency (Hz)"), { label: "magnitude-squared coherence" }] }, data);
+  const peak = {};
+  let coherent = 0;
+  c.pairs.forEach(([a, b], i) => {
+    let m = 0, f = null, above = false;
+    c.msc[i].forEach((v, j) => {
+      if (v > m) { m = v; f = c.f_hz[j]; }
+      if (v > c.threshold_family[j]) above = true;
+    });
+    if (above) coherent += 1;
+    peak[`${a}|${b}`] = peak[`${b}|${a}`] = { m, f, above };
+  });
+  const head = `<tr><th></th>${c.channels.map((n) => `<th>${n}</th>`).join("")}</tr>`;
+  const rows = c.channels.map((a) => `<tr><th>${a}</th>${c.channels.map((b) => {
+    const p = peak[`${a}|${b}`];
+    if (a === b || !p) return "<td></td>";
+    const shade = Math.round(255 * (1 - p.m));
+    return `<td class="${p.above ? "coherent" : ""}" style="background:rgb(255,${shade},${shade})"` +
+      ` title="highest ${fmt(p.m)} at ${fmt(p.f)} Hz">${fmt(p.m, 2)}</td>`;
+  }).join("")}</tr>`).join("");
+  const table = $("coherence-matrix");
+  table.innerHTML = head + rows;
+  table.dataset.coherent = String(coherent);
+}
+
+async function refreshCoherence() {
+  try {
+    drawCoherence(await getJSON("/coherence"));
+  } catch (e) {
+    $("coherence-info").textContent = String(e);
+  }
+}
+
 // The interval now (+-% of the value) and, with serve --target, the recording still needed.
 function planText(t, name) {
   const now = (t.relative_halfwidth || {})[name];
@@ -216,6 +268,7 @@ async function refresh() {
       getJSON("/coefficients"), getJSON(`/model${q}`), getJSON(`/diagnosis${q}`)]);
     drawAllan(a); drawPsd(p); drawCoefficients(c.channels[state.channel]); drawModel(m);
     drawDiagnosis(d);
+    await refreshCoherence();
     state.renders += 1;
     document.body.dataset.renders = String(state.renders);
   } catch (e) {

@@ -1,0 +1,205 @@
+"""The cross-channel part of ``analyze`` and ``diagnose`` (docs/environment.md): the coherence
+of a record's channels that share one time base, the lines and resonances of the diagnosis
+classified as common (environment) or own, and, with ``--subtract-common``, each channel's own
+noise analysed beside the raw one."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from imunoise.core.record import TEMPERATURE_KEY, Record
+from imunoise.core.series import ChannelSeries
+
+OWN_TAU_S = 1.0
+"""Averaging time at which the own white level is read (as the text output reads N)."""
+
+
+def _signature(s: ChannelSeries) -> tuple:
+    return (float(s.fs_hz), int(s.n_samples), tuple(int(v) for v in s.segment_starts),
+            round(float(s.t0_s), 6))
+
+
+def time_base_group(series: dict[str, ChannelSeries], keys: list[str]) -> list[str]:
+    """The largest set of ``keys`` whose series share one time base (same rate, samples,
+    gap-free segments and start); the temperature is never one of them."""
+    groups: dict[tuple, list[str]] = {}
+    for k in keys:
+        if k != TEMPERATURE_KEY and k in series:
+            groups.setdefault(_signature(series[k]), []).append(k)
+    return max(groups.values(), key=len, default=[])
+
+
+def same_time_base(series: dict[str, ChannelSeries], key: str) -> list[str]:
+    """The channels on the time base of ``key`` (``key`` first)."""
+    sig = _signature(series[key])
+    return [key] + [k for k, v in series.items() if k != key and _signature(v) == sig]
+
+
+def channel_coherence(record: Record, key: str, diagnosis: Any, group: list[str],
+                      skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = ()
+                      ) -> dict[str, Any] | None:
+    """One channel's diagnosis (its suggestions and its spectral-line evidence) judged against
+    the other channels of ``group`` (its time base before ``--skip``/``--split``, which cut
+    them all alike): its suggestions' ``why`` gets common or own; returns the coherence
+    document (None without another channel)."""
+    if len(group) < 2:
+        return None
+    series = {k: (record.channels[k] if k == key or not (skip_s or split_s)
+                  else record.channels[k].windowed(skip_s, list(split_s))) for k in group}
+    doc, _ = coherence_document(record, group, suggestions={key: diagnosis}, only=[key],
+                                series=series)
+    return doc
+
+
+def mark_origins(suggestions: list[dict[str, Any]], coherence: dict[str, Any] | None,
+                 channel: str) -> None:
+    """Give each line or resonance suggestion document of ``channel`` the ``origin`` its
+    classification found (``common``, ``own`` or ``mixed``)."""
+    found = [c for c in (coherence or {}).get("classification", []) if c["channel"] == channel]
+    for sug in suggestions:
+        key = {"sinusoid": "f", "resonance": "f0"}.get(sug.get("term"))
+        f = (sug.get("params") or {}).get(key) if key else None
+        for c in found:
+            if f is not None and c["term"] == sug["term"] \
+                    and abs(c["f_hz"] - f) <= 1e-3 * f + 1e-9:
+                sug["origin"] = c["origin"]
+
+
+def temperature_on(record: Record, series: ChannelSeries) -> np.ndarray | None:
+    """The temperature interpolated onto the samples of ``series`` (nominal times), or None
+    when the record has none or it does not cover the series."""
+    temp = record.temperature
+    if temp is None or temp.n_samples < 2 or series.n_samples < 2 or temp.fs_hz <= 0:
+        return None
+    tt = temp.t0_s + np.arange(temp.n_samples) / temp.fs_hz
+    ti = series.t0_s + np.arange(series.n_samples) / series.fs_hz
+    if tt[0] > ti[0] + 1.0 / temp.fs_hz or tt[-1] < ti[-1] - 1.0 / temp.fs_hz:
+        return None
+    return np.interp(ti, tt, temp.values)
+
+
+def coherence_document(record: Record, keys: list[str],
+                       suggestions: dict[str, list[Any]] | None = None,
+                       subtract: bool = False, only: list[str] | None = None,
+                       series: dict[str, ChannelSeries] | None = None
+                       ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """``(coherence document or None, residuals)`` of the channels ``keys`` select
+    (:func:`imunoise.analysis.cross_channel.cross_channel_view`), the record's temperature
+    joining them when it covers them. None with fewer than two channels on one time base; a
+    document with only ``warnings`` when the estimate fails (a record too short).
+
+    ``suggestions`` (channel -> suggestion dicts or objects) get the verdict in their
+    ``why``; ``only`` limits the channels classified; ``series`` replaces the record's own
+    (a windowed copy)."""
+    from imunoise.analysis.cross_channel import cross_channel_view
+
+    series = series if series is not None else record.channels
+    group = time_base_group(series, keys)
+    if len(group) < 2:
+        return None, {}
+    first = series[group[0]]
+    values = {k: series[k].values for k in group}
+    temp = temperature_on(record, first)
+    if temp is not None:
+        values[TEMPERATURE_KEY] = temp
+    try:
+        doc, residuals = cross_channel_view(
+            values, first.fs_hz, segment_starts=first.segment_starts, suggestions=suggestions,
+            subtract=subtract, only=[k for k in group if only is None or k in only])
+    except ValueError as exc:
+        return {"warnings": [f"no coherence: {exc}"]}, {}
+    apart = [k for k in keys if k not in group and k != TEMPERATURE_KEY]
+    if apart:
+        doc["not_compared"] = apart
+        doc.setdefault("warnings", []).append(
+            f"not compared (another time base): {', '.join(apart)}")
+    return doc, residuals
+
+
+def own_channel_json(record: Record, key: str, sub: Any) -> dict[str, Any]:
+    """The ``analyze`` channel document of ``key``'s residual after subtraction, with the
+    subtraction's summary and error and the own white level at :data:`OWN_TAU_S`."""
+    from imunoise.analysis.default_model import DEFAULT_MODEL_TEXT
+    from imunoise.analysis.fit import fit_allan
+    from imunoise.analysis.terms import TermError
+    from imunoise.pipeline.channel_analysis import allan_curve, psd_estimate
+    from imunoise.pipeline.documents import channel_json, fit_fields, number
+
+    raw = record.series(key)
+    own = ChannelSeries(raw.name, raw.units, raw.fs_hz, sub.residual, raw.segment_starts,
+                        raw.t0_s)
+    warnings: list[str] = []
+    curve = psd = fit = None
+    try:
+        curve = allan_curve(own)
+        fit = fit_allan(curve, DEFAULT_MODEL_TEXT)
+    except (TermError, ValueError, np.linalg.LinAlgError) as exc:
+        warnings.append(f"no own-noise fit: {exc}")
+    try:
+        psd = psd_estimate(own)
+    except ValueError as exc:
+        warnings.append(f"no own-noise PSD: {exc}")
+    doc = channel_json(own, curve, psd=psd, include_psd=True, warnings=warnings, channel=key,
+                       **(fit_fields(fit, curve) if fit is not None and curve is not None
+                          else {}))
+    doc["subtraction"] = sub.to_dict()
+    try:
+        level, (lo, hi) = sub.white_level(raw.fs_hz, OWN_TAU_S,
+                                          segment_starts=raw.segment_starts)
+        doc["white_level"] = {"tau_s": OWN_TAU_S, "N": number(level),
+                              "ci": [number(lo), number(hi)],
+                              "what": "ADEV(tau) sqrt(tau) of the residual; the interval's "
+                                      "lower end allows for the references' noise passed in"}
+    except ValueError:
+        pass
+    return doc
+
+
+def add_own(doc: dict[str, Any], record: Record, residuals: dict[str, Any],
+            diagnose: bool = False) -> None:
+    """Put each channel's own-noise document under ``channels[key]["own"]``; with
+    ``diagnose`` (the report) also the diagnosis of the residual under its ``suggestions``."""
+    for key, sub in residuals.items():
+        if key not in doc.get("channels", {}):
+            continue
+        own = own_channel_json(record, key, sub)
+        if diagnose and own.get("model"):
+            own["suggestions"] = _own_suggestions(record, key, sub.residual)
+        doc["channels"][key]["own"] = own
+
+
+def _own_suggestions(record: Record, key: str, residual: np.ndarray) -> list[dict[str, Any]]:
+    """The diagnosis of a channel's residual for the default model (as the raw channel's)."""
+    from imunoise.analysis.default_model import DEFAULT_MODEL
+    from imunoise.analysis.diagnosis import diagnose
+
+    raw = record.series(key)
+    try:
+        dx = diagnose(residual, raw.fs_hz, list(DEFAULT_MODEL),
+                      segment_starts=raw.segment_starts, t0_s=raw.t0_s, units=raw.units)
+    except ValueError:
+        return []
+    return [s.to_dict() for s in dx.suggestions]
+
+
+def coherence_lines(co: dict[str, Any] | None) -> list[str]:
+    """The cross-channel view for the text output."""
+    if not co:
+        return []
+    if not co.get("pairs"):
+        return [f"coherence: {w}" for w in co.get("warnings", [])]
+    msc = np.asarray(co["msc"], dtype=float)
+    f = np.asarray(co["f_hz"], dtype=float)
+    fam = np.asarray(co["threshold_family"], dtype=float)
+    lines = [f"coherence between channels (Welch, {co['nperseg']} samples per segment; "
+             f"highest value per pair, * = beyond the zero-coherence threshold)"]
+    for k, (a, b) in enumerate(co["pairs"]):
+        j = int(np.argmax(msc[k]))
+        mark = "*" if np.any(msc[k] > fam) else " "
+        lines.append(f"  {mark} {a:>14s} - {b:<14s} {msc[k, j]:.3f} at {f[j]:.4g} Hz")
+    for c in co.get("classification", []):
+        lines.append(f"  {c['channel']} {c['term']} at {c['f_hz']:.4g} Hz: {c['origin']}. "
+                     f"{c['why']}")
+    return lines
