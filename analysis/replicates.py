@@ -133,6 +133,9 @@ class ReplicateResult:
     amplitudes: list[Homogeneity]
     per_run: list[dict[str, Estimate]]
     alpha: float
+    order: list[list[int]] = field(default_factory=list)
+    """Per run, the term index in that run's fits of each model position (repeated terms are
+    matched across runs by their shape, not by the order the fit left them in)."""
 
     @property
     def differ(self) -> list[Homogeneity]:
@@ -141,11 +144,13 @@ class ReplicateResult:
 
     def per_run_values(self, h: Homogeneity) -> list[Estimate | None]:
         """Each run's own estimate of the tested parameter (what the test compared)."""
-        return [_estimate(f, h.index, h.param) for f in self.free_fits]
+        return [_estimate(f, o[h.index], h.param) for f, o in zip(self.free_fits, self.order,
+                                                                   strict=True)]
 
     def tied_values(self, h: Homogeneity) -> list[Estimate | None]:
         """Each run's estimate in the refit with the agreeing shapes held."""
-        return [_estimate(f, h.index, h.param) for f in self.tied_fits]
+        return [_estimate(f, o[h.index], h.param) for f, o in zip(self.tied_fits, self.order,
+                                                                   strict=True)]
 
     def to_dict(self) -> dict[str, Any]:
         """The ``replicates`` JSON block."""
@@ -231,6 +236,22 @@ def homogeneity(estimates: list[Estimate | None], labels: list[str]
     p = float(stats.chi2.sf(q, dof)) if dof > 0 else 1.0
     return (math.exp(mean), (math.exp(mean - Z95 * se), math.exp(mean + Z95 * se)), q, dof, p,
             [lab for lab, _ in usable])
+
+
+def _order(fit: FitResult, names: list[str]) -> list[int]:
+    """The run's term index of each model position: the instances of a repeated term (two
+    resonances, two Markov terms) sorted by their first shape parameter, so that position k
+    means the same physical term in every run whatever order the fit left them in."""
+    order = list(range(len(names)))
+    for name in set(names):
+        at = [i for i, n in enumerate(names) if n == name]
+        shape = next((p.name for p in get_term(name).params if p.is_scale), None)
+        if len(at) < 2 or shape is None:
+            continue
+        ranked = sorted(at, key=lambda i: fit.terms[i].params.get(shape, math.inf))
+        for pos, idx in zip(at, ranked, strict=True):
+            order[pos] = idx
+    return order
 
 
 def _kinds(names: list[str]) -> list[tuple[int, str, str]]:
@@ -319,11 +340,13 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
                           intervals=intervals)[0]
 
     free_fits = [fit(i, fixed) for i in range(len(runs))]
+    order = [_order(f, names) for f in free_fits]
     params = [(i, p, k) for i, p, k in _kinds(names) if not _held(fixed, names, i, p)]
     level = alpha / max(1, len(params))
 
     def test(i: int, p: str, kind: str, fits: list[FitResult]) -> Homogeneity:
-        pooled, ci, q, dof, pv, used = homogeneity([_estimate(f, i, p) for f in fits], labels)
+        pooled, ci, q, dof, pv, used = homogeneity(
+            [_estimate(f, o[i], p) for f, o in zip(fits, order, strict=True)], labels)
         return Homogeneity(names[i], i, p, kind, pooled, ci, q, dof, pv, used,
                            differs=dof > 0 and pv < level)
 
@@ -332,25 +355,32 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
     for key, pars in (fixed or {}).items():
         idx = key if isinstance(key, int) else names.index(key)
         tie.setdefault(idx, {}).update(pars)
-    for h in shared:
-        if not h.differs and np.isfinite(h.pooled):
-            tie.setdefault(h.index, {})[h.param] = h.pooled
-    tied_fits = [fit(i, tie or None) for i in range(len(runs))] if tie else free_fits
+    pooled = [h for h in shared if not h.differs and np.isfinite(h.pooled)]
+
+    def tie_of(r: int) -> dict[int, dict[str, float]] | None:
+        """Run ``r``'s held parameters: the user's, and the pooled shapes at its own indices."""
+        out = {k: dict(v) for k, v in tie.items()}
+        for h in pooled:
+            out.setdefault(order[r][h.index], {})[h.param] = h.pooled
+        return out or None
+
+    tied_fits = ([fit(r, tie_of(r)) for r in range(len(runs))] if pooled or tie
+                 else free_fits)
     # amplitudes are compared on the runs' own fits: their intervals there carry the
     # uncertainty of the shapes, which holding a pooled shape would leave out (and a run
     # whose shape estimate lies off the pooled one moves its amplitude to compensate)
     amplitudes = [test(i, p, k, free_fits) for i, p, k in params if k == "amplitude"]
     per_run = []
-    for f in tied_fits:
+    for f, o in zip(tied_fits, order, strict=True):
         row: dict[str, Estimate] = {}
-        for i, t in enumerate(f.terms):
-            for p in t.params:
-                e = _estimate(f, i, p)
+        for i, name in enumerate(names):
+            for p in f.terms[o[i]].params:
+                e = _estimate(f, o[i], p)
                 if e is not None:
-                    row[f"{t.term}#{i}.{p}"] = e
+                    row[f"{name}#{i}.{p}"] = e
         per_run.append(row)
     return ReplicateResult(labels, names, per_run_terms, common, free_fits, tied_fits, shared,
-                           amplitudes, per_run, alpha)
+                           amplitudes, per_run, alpha, order)
 
 
 __all__ = ["Run", "Estimate", "Homogeneity", "ReplicateResult", "fit_replicates",

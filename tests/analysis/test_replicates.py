@@ -101,3 +101,18 @@ def test_loop_per_run_and_the_common_term_set() -> None:
     assert res.common_terms == (["white", "random_walk", "resonance"], 2)
     assert "resonance" in res.term_set
     assert np.isfinite(res.to_dict()["shared"][0]["value"])
+
+
+def test_repeated_terms_are_matched_by_shape_not_by_order() -> None:
+    from types import SimpleNamespace
+
+    from imunoise.analysis.fit import TermFit
+    from imunoise.analysis.replicates import _order
+
+    names = ["white", "resonance", "resonance"]
+    run_a = SimpleNamespace(terms=[TermFit("white", {"N": 1.0}, {}),
+                                   TermFit("resonance", {"sigma": 1, "f0": 0.56, "Q": 5}, {}),
+                                   TermFit("resonance", {"sigma": 1, "f0": 13.7, "Q": 4}, {})])
+    run_b = SimpleNamespace(terms=[run_a.terms[0], run_a.terms[2], run_a.terms[1]])
+    assert _order(run_a, names) == [0, 1, 2]
+    assert _order(run_b, names) == [0, 2, 1]  # the 0.56 Hz resonance is the first in both
