@@ -333,11 +333,11 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
     names = parse_model(spec).names
     memos: list[dict] = [{} for _ in runs]
 
-    def fit(i: int, held: dict | None) -> FitResult:
+    def fit(i: int, held: dict | None, start: Any = None) -> FitResult:
         r = runs[i]
         return fit_series(r.values, r.fs_hz, spec, segment_starts=r.segment_starts,
                           temperature=r.temperature, fixed=held, memo=memos[i],
-                          intervals=intervals)[0]
+                          intervals=intervals, start=start)[0]
 
     free_fits = [fit(i, fixed) for i in range(len(runs))]
     order = [_order(f, names) for f in free_fits]
@@ -364,8 +364,16 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
             out.setdefault(order[r][h.index], {})[h.param] = h.pooled
         return out or None
 
-    tied_fits = ([fit(r, tie_of(r)) for r in range(len(runs))] if pooled or tie
-                 else free_fits)
+    def tied(r: int) -> FitResult:
+        """Run ``r`` refitted with the shapes held, from its own solution (a cold start can
+        stop in a worse minimum than the one next to it)."""
+        held = tie_of(r)
+        start = free_fits[r].params
+        for idx, pars in (held or {}).items():
+            start[idx][1].update(pars)
+        return fit(r, held, start)
+
+    tied_fits = [tied(r) for r in range(len(runs))] if pooled or tie else free_fits
     # amplitudes are compared on the runs' own fits: their intervals there carry the
     # uncertainty of the shapes, which holding a pooled shape would leave out (and a run
     # whose shape estimate lies off the pooled one moves its amplitude to compensate)
