@@ -40,6 +40,7 @@ from imunoise.analysis.edf import (
     noise_id_b1_rn,
     noise_id_lag1_phase,
 )
+from imunoise.core.series import SAMPLE_LIMIT
 from imunoise.core.units import ONE_SIGMA_CI
 
 #: Confidence level of a one-sigma interval, as printed by Stable32.
@@ -438,6 +439,10 @@ def _validate(values: np.ndarray, what: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         bad = int(np.flatnonzero(~np.isfinite(arr))[0])
         raise ValueError(f"{what} contains a non-finite value at index {bad}")
+    if arr.size and float(np.max(np.abs(arr))) > SAMPLE_LIMIT:  # the sums would overflow
+        bad = int(np.flatnonzero(np.abs(arr) > SAMPLE_LIMIT)[0])
+        raise ValueError(f"{what} has a value beyond {SAMPLE_LIMIT:g} at index {bad} "
+                         f"({arr[bad]:.3g})")
     return arr
 
 

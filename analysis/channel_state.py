@@ -153,9 +153,10 @@ def _job_diagnose(values: np.ndarray, fs_hz: float, model: list[str], starts: np
     """``imunoise.analysis.diagnosis.diagnose``: suggestions and the significant findings that are
     not
     a term (outliers, gaps, a changing noise level), as JSON-ready dicts."""
-    # the live service cannot cut its stream: no warm-up or step remedies
+    # the live service cannot cut its stream: no warm-up or step remedies; nor does it pay
+    # for the hold-out part's fits on the halves of every recent window
     result = diagnose(values, fs_hz, model, segment_starts=starts, units=units,
-                      transients=False)
+                      transients=False, holdout=False)
     findings = [f.to_dict() for f in result.findings if f.significant and f.term is None]
     return ([s.to_dict() for s in result.suggestions],
             [{k: f[k] for k in ("kind", "p_value", "why", "range")} for f in findings])

@@ -31,6 +31,7 @@ from scipy import special, stats
 from imunoise.analysis import evidence
 from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.fit import FitResult, fit_series
+from imunoise.analysis.model_error import holdout_part, measured_psd, psd_parts, time_domain_part
 from imunoise.analysis.terms import (
     TERMS,
     Entry,
@@ -82,6 +83,10 @@ class Suggestion:
     evidence: list[str] = field(default_factory=list)
     fit: FitResult | None = None
     apply: dict[str, Any] = field(default_factory=dict)
+    error_after: dict[str, Any] = field(default_factory=dict)
+    """The whole error object of the applied model (``chi2_per_dof``, ``max_abs_z``,
+    ``psd``, ``holdout``, ``time_domain``; a part not computed for a suggestion is null with a
+    ``reason``)."""
 
     def to_dict(self) -> dict[str, Any]:
         """A ``suggestions`` entry of the JSON (docs/json.md)."""
@@ -99,6 +104,7 @@ class Suggestion:
                 "significant": bool(self.significant), "p_value": num(self.p_value),
                 "log10_p": num(self.log_p / np.log(10.0)),
                 "why": self.why, "evidence": list(self.evidence),
+                "error_after": self.error_after,
                 "apply": {"model": self.apply.get("model", ""),
                           "args": list(self.apply.get("args", []))}}
 
@@ -112,6 +118,10 @@ class Diagnosis:
     suggestions: list[Suggestion]
     findings: list[Finding]
     alpha: float
+    psd: dict[str, Any] | None = None
+    """The ``psd`` block of the given model (measured PSD, ``model_psd``, ``z``)."""
+    error_parts: dict[str, Any] = field(default_factory=dict)
+    """The given model's ``psd``, ``holdout`` and ``time_domain`` parts of the error."""
 
 
 def _times(n: int, fs_hz: float, t0_s: float) -> np.ndarray:
@@ -132,7 +142,25 @@ def _z_range(before: FitResult, after: FitResult) -> tuple[float, float] | None:
 def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
     """Natural log of the p-value of the chi2 drop from ``before`` to ``after`` with ``k``
     added parameters (log form: strong effects give p-values below the float range)."""
-    drop = before.misfit.chi2 - after.misfit.chi2
+    return _chi2_logsf(before.misfit.chi2 - after.misfit.chi2, k)
+
+
+PSD_BIN_CORRELATION = 2.0
+"""The fall of the PSD deviance summed over the points is divided by this before its
+chi-square test: neighbouring log-frequency points share Hann bins and are not independent
+(conservative; their dof already allow for the merge)."""
+NOISE_SD = 3.0
+"""A part "rises beyond its noise" when it grows by more than this many of its standard
+deviations: a part ``c`` per degree of freedom is a non-central chi-square over ``dof`` with
+non-centrality ``dof (c - 1)``, standard deviation ``sqrt((4 c - 2)/dof)`` (``sqrt(2/dof)``
+for a right model)."""
+HOLDOUT_CHECKS = 3
+"""Significant suggestions whose hold-out part is computed (best first) before giving up:
+each costs two fits on the halves."""
+
+
+def _chi2_logsf(drop: float, k: int) -> float:
+    """``ln P(chi2_k > drop)``, with the tail's leading terms where scipy underflows."""
     if not np.isfinite(drop) or drop <= 0:
         return 0.0
     logp = float(stats.chi2.logsf(drop, k))
@@ -237,6 +265,9 @@ class _Context:
     n_candidates: int
     sensor_filter: tuple[str, dict[str, float]] | None = None
     time_origin_s: float = 0.0
+    psd_est: Any = None
+    nperseg: int = 256
+    psd_before: dict[str, Any] | None = None
 
 
 def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[str, float]]:
@@ -262,6 +293,73 @@ def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[
     return after, spec, pinned
 
 
+def _part_sd(before: float, dof: float) -> float:
+    """Standard deviation of a part (see :data:`NOISE_SD`)."""
+    return float(np.sqrt((4.0 * max(before, 1.0) - 2.0) / max(dof, 1.0)))
+
+
+def _rises(before: float | None, after: float | None, dof: float) -> bool:
+    """Whether a part grew beyond its noise (see :data:`NOISE_SD`)."""
+    if before is None or after is None or not (np.isfinite(before) and np.isfinite(after)):
+        return False
+    return after > before + NOISE_SD * _part_sd(before, dof)
+
+
+def _lowers(before: float | None, after: float | None, dof: float) -> bool:
+    """Whether a part fell by more than one of its standard deviations: a fall within its
+    noise lowers nothing (a part far above 1 moves by more than a right model's chi-square
+    spread between two fits of the same misfit)."""
+    if before is None or after is None or not (np.isfinite(before) and np.isfinite(after)):
+        return False
+    return after < before - _part_sd(before, dof)
+
+
+def _deviance(part: dict[str, Any] | None) -> float | None:
+    return None if not part else part.get("deviance_per_bin")
+
+
+def _psd_after(ctx: _Context, after: FitResult | None) -> dict[str, Any] | None:
+    if ctx.psd_est is None or after is None:
+        return None
+    return psd_parts(after.params, ctx.psd_est, ctx.fs_hz, ctx.nperseg)[1]
+
+
+def _psd_logp(ctx: _Context, part: dict[str, Any] | None, k: int) -> float:
+    """Log p-value of the fall of the PSD deviance with ``k`` added parameters (0 when it
+    does not fall)."""
+    b, a = _deviance(ctx.psd_before), _deviance(part)
+    if not _lowers(b, a, part["bins"] / PSD_BIN_CORRELATION if part else 1.0):
+        return 0.0
+    return _chi2_logsf((b - a) * part["bins"] / PSD_BIN_CORRELATION, k)
+
+
+def _not_computed(what: str) -> dict[str, Any]:
+    return {"reason": f"{what} is not computed for every suggestion"}
+
+
+def _imitation(ctx: _Context, after: FitResult | None) -> str | None:
+    """Why the refit's solution is not identifiable in the sampled band (one term doing
+    another's part), or None: a resonance whose peak does not lie below the Nyquist
+    frequency (its centre plus half its bandwidth at or above it) is a rising spectrum, not a
+    resonance; a refit that leaves the white level unresolved where the given model resolved
+    it has traded the white noise to zero for the new term."""
+    if after is None:
+        return None
+    added = after.terms[len(ctx.spec)]
+    nyquist = 0.5 * ctx.fs_hz
+    if added.term == "resonance":
+        f0, q = float(added.params["f0"]), float(added.params["Q"])
+        if f0 * (1.0 + 0.5 / q) >= nyquist:
+            return (f"its peak ({f0:.4g} Hz, half-bandwidth {0.5 * f0 / q:.3g} Hz) does not lie "
+                    f"below the Nyquist frequency {nyquist:g} Hz")
+    white = get_term("white")
+    for tb, ta in zip(ctx.base.terms, after.terms, strict=False):
+        if tb.term == "white" and white.resolved("N", tb.ci95.get("N")) \
+                and not white.resolved("N", ta.ci95.get("N")):
+            return "the refit trades the white-noise level to zero for it"
+    return None
+
+
 def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     """Refit with ``term`` and weigh the fall of the error with the evidence."""
     base, before = ctx.base, ctx.base.chi2_per_dof
@@ -275,6 +373,11 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         # A term that leaves the misfit per degree of freedom no better is no suggestion,
         # even if the raw chi2 fell (it does whenever the given model is wrong anyway).
         sources.append(_lr_logp(base, after, k))
+    psd_after = None if regressor else _psd_after(ctx, after)
+    psd_logp = _psd_logp(ctx, psd_after, k)
+    if psd_logp < 0.0:
+        # the spectrum knows more than the Allan curve about lines, resonances and filters
+        sources.append(psd_logp)
     ev = ctx.by_term.get(term)
     if ev is not None:
         sources.append(_logp(ev.p_value))
@@ -302,6 +405,20 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     rng = _z_range(base, after) if after is not None and not regressor else None
     supporting = [ev] if ev is not None else []
     why = _why(term, rng, before, chi_after, supporting)
+    imitation = _imitation(ctx, after)
+    if imitation is not None:
+        why += f" Not identifiable: {imitation}."
+    rises = after is not None and (
+        _rises(before, chi_after, after.misfit.dof)
+        or _rises(_deviance(ctx.psd_before), _deviance(psd_after),
+                  (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION))
+    if rises:
+        why += " It raises a part of the error beyond its noise."
+    error_after: dict[str, Any] = {}
+    if after is not None:
+        error_after = {"chi2_per_dof": chi_after, "max_abs_z": float(after.max_abs_z),
+                       "psd": psd_after, "holdout": _not_computed("the hold-out part"),
+                       "time_domain": _not_computed("the time-domain part")}
     if pinned and get_term(term).kind == "filter":
         held = ", ".join(f"{k} = {v:g}" for k, v in pinned.items())
         why += f" The recording's device configuration states this filter ({held}), so it " \
@@ -310,10 +427,11 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         term=term, params=params, ci95=ci, chi2_per_dof_before=before,
         chi2_per_dof_after=chi_after, p_value=float(np.exp(logp)), log_p=logp,
         # significant only when applying it really lowers the error the fit reports
-        significant=bool(logp < np.log(alpha) and falls),
+        significant=bool(logp < np.log(alpha) and (falls or psd_logp < 0.0)
+                         and not rises and imitation is None),
         why=why,
         evidence=[f.kind for f in supporting if f.significant], fit=after,
-        apply={"model": spec.text(), "args": []})
+        apply={"model": spec.text(), "args": []}, error_after=error_after)
 
 
 def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Suggestion:
@@ -400,7 +518,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              units: str = "rad/s", alpha: float = DEFAULT_ALPHA,
              fixed: dict | None = None,
              sensor_filter: tuple[str, dict[str, float]] | None = None,
-             transients: bool = True, time_origin_s: float = 0.0) -> Diagnosis:
+             transients: bool = True, time_origin_s: float = 0.0,
+             holdout: bool = True) -> Diagnosis:
     """Fit ``model`` to a rate series and rank the terms it is missing.
 
     Args:
@@ -426,6 +545,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         time_origin_s: the time of the first sample analysed on the scale step times are
             reported on, seconds (the command line passes its ``--skip``, so that a step's
             ``t_s`` counts from the start of the file, as ``--split`` does).
+        holdout: compute the hold-out part (the model fitted on each half predicting the
+            other) and require a significant term to lower it; it costs two fits per check.
 
     Returns:
         A :class:`Diagnosis` with suggestions best first.
@@ -491,8 +612,26 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
                                         units=units,
                                         t0_s=time_origin_s + float(bounds[longest]) / fs_hz))
         findings.extend(cuts)
+    psd_est, nperseg, psd_block, psd_before = None, 256, None, None
+    if "temperature" not in names:
+        try:
+            psd_est, nperseg = measured_psd(x, fs_hz, starts)
+            psd_block, psd_before = psd_parts(base.params, psd_est, fs_hz, nperseg)
+        except ValueError as exc:
+            psd_before = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                          "reason": f"no PSD: {exc}"}
+    else:
+        psd_before = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                      "reason": "not computed under a temperature regression"}
+    parts: dict[str, Any] = {"psd": psd_before}
+    if cuts:
+        parts["time_domain"] = time_domain_part(x, fs_hz, base.params, starts, units, cuts)
+    else:
+        parts["time_domain"] = time_domain_part(x, fs_hz, base.params, starts, units) \
+            if transients else {"statistic": None, "p": None, "reason": "not requested"}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
-                   len(candidates) + len(cuts), sensor_filter, time_origin_s)
+                   len(candidates) + len(cuts), sensor_filter, time_origin_s,
+                   psd_est, nperseg, psd_before)
     suggestions = [_suggest(ctx, term, alpha) for term in candidates]
     if not any(s.significant for s in suggestions):
         # the step and warm-up tests take the fitted model as the sensor's noise: only once
@@ -506,5 +645,41 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     # parameters, so a two-parameter Markov term does not win merely by being flexible.
     suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
     suggestions = _simplest_first(suggestions, alpha)
+    parts["holdout"] = _check_holdout(ctx, suggestions, fixed) if holdout else \
+        {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
     return Diagnosis(fit=base, curve=curve, suggestions=suggestions, findings=findings,
-                     alpha=alpha)
+                     alpha=alpha, psd=psd_block, error_parts=parts)
+
+
+def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | None
+                   ) -> dict[str, Any]:
+    """The given model's hold-out part; and a significant term suggestion is demoted when it
+    raises the hold-out part beyond its noise, or, where the given model's hold-out part is
+    itself beyond its noise (the model does not predict the other half), when it does not
+    lower it by more than one of its standard deviations. Checked best first, at most
+    :data:`HOLDOUT_CHECKS` of them; the first significant suggestion left is the one to
+    apply."""
+    before = holdout_part(ctx.x, ctx.fs_hz, ctx.spec, ctx.base, ctx.starts)
+    b = before.get("chi2_per_dof")
+    dof = float(ctx.base.misfit.dof)
+    lacking = b is not None and b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))
+    checked = 0
+    for s in suggestions:
+        if not s.significant or s.fit is None or s.apply.get("args"):
+            if s.significant:
+                break  # a cut comes first: it is judged by the time-domain part
+            continue
+        if checked >= HOLDOUT_CHECKS or b is None:
+            break
+        checked += 1
+        after = holdout_part(ctx.x, ctx.fs_hz, s.apply["model"], s.fit, ctx.starts)
+        s.error_after["holdout"] = after
+        a = after.get("chi2_per_dof")
+        if a is None or not _rises(b, a, dof) and (_lowers(b, a, dof) or not lacking):
+            break  # kept (a part that cannot be computed judges nothing)
+        s.significant = False
+        s.why += (f" Not significant: it does not {'lower' if lacking else 'keep'} the "
+                  f"hold-out part (the model fitted on one half predicting the other: "
+                  f"chi2/dof {b:.3g} -> {'n/a' if a is None else f'{a:.3g}'}).")
+    suggestions.sort(key=lambda s: not s.significant)  # stable: the order among each kept
+    return before

@@ -232,7 +232,8 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
             _, r = solve(extra_cols + [col]) if len(candidates) > 1 else (None, 0.0)
             if best is None or r < best[0]:
                 best = (r, cand, col)
-        assert best is not None
+        if best is None:  # no start shape fits a record this short: a bad input, not a bug
+            raise ValueError(f"{n}: no starting shape for a record of {duration_s:.3g} s")
         extra_cols.append(best[2])
         extra_owner.append(i)
         shapes[i] = {k: float(v) for k, v in best[1].items()}
@@ -461,6 +462,11 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
     """
     parsed = parse_model(model)
     prob = _problem(curve, parsed, fixed, family_rate, max_nfev)
+    if prob.n_free == 0:
+        # every parameter given: the model is evaluated as it stands, nothing fitted
+        theta = np.zeros(0)
+        return _result(prob, _Point(theta, np.ones(len(prob.tau), dtype=bool),
+                                    _chi2(prob, theta)), intervals, temperature)
     memo = {} if memo is None else memo
     _hold(memo, curve)
     folded = _folded(parsed, prob)
@@ -524,7 +530,7 @@ def _problem(curve: CurveLike, parsed: ModelSpec, fixed: dict | None, family_rat
     duration = float((n_terms[0] + 2 * m[0] - 1) / fs) if len(m) else 0.0
     layout = _layout(names, fs, duration, _fixed_keys(names, fixed, fs))
     n_free = len(layout.keys)
-    if n_free == 0:
+    if not any(get_term(n).role != "regressor" for n in names):
         raise TermError("the model has no noise term to fit to the Allan curve")
     if len(tau) == 0 and len(curve.tau_s):
         raise ValueError("the Allan deviation is zero at every tau: the channel is constant")
@@ -794,6 +800,9 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
                intervals: str) -> tuple[list[dict[str, tuple[float, float]]], np.ndarray]:
     """95 % intervals: linearised in log-parameter space, or by profile likelihood."""
     layout, fs, used, theta = prob.layout, prob.fs, point.used, point.theta
+    if prob.n_free == 0:
+        return ([{k: (float(v), float(v)) for (i, k), v in layout.fixed.items() if i == j}
+                 for j in range(len(prob.names))], np.zeros((0, 0)))
     whiten, bias, _ = _log_weights(model_final, fs, prob.m[used], prob.n_terms[used],
                                    avar_fit[used])
     y_used, tau_used = prob.y[used], prob.tau[used]

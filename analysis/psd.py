@@ -48,6 +48,8 @@ import numpy as np
 import scipy.signal
 from scipy.stats import chi2
 
+from imunoise.core.series import SAMPLE_LIMIT
+
 _FIR_TAPS = scipy.signal.firwin(47, 0.3, window=("kaiser", 10.0))
 _DECIMATION = 2
 _CHUNK = 1 << 18  # samples processed at once, bounds temporary memory
@@ -151,6 +153,8 @@ def _segments_of(x: np.ndarray, segment_starts: np.ndarray | None) -> list[np.nd
 def _check_finite(x: np.ndarray) -> None:
     if not np.all(np.isfinite(x)):
         raise ValueError("PSD input contains NaN or infinite values; split the record around them")
+    if x.size and float(np.max(np.abs(x))) > SAMPLE_LIMIT:  # its squares' sums would overflow
+        raise ValueError(f"PSD input has values beyond {SAMPLE_LIMIT:g}")
 
 
 def _log_group(

@@ -10,6 +10,32 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+SAMPLE_LIMIT = 1e15
+"""Largest magnitude of a sample value (SI units) that the readers keep and the estimators take.
+
+No inertial sensor reads within many decades of it (nor do raw register counts), and sums of
+squares of up to 10^12 such samples stay far from float64 overflow. A value beyond it, or not
+finite (NaN, infinity), is a failed reading or damaged bytes: every reader removes that sample
+from its channel as a lost sample (the segment splits around it) and says how many in a
+warning; the estimators raise ValueError on such a value (docs/damaged-files.md)."""
+
+TIME_LIMIT_S = 1e12
+"""Largest magnitude of a time stamp (s) that the readers take: about 31,700 years from the
+epoch. A row or message whose time is beyond it, or not finite, cannot be placed in time and is
+dropped with its values (a warning counts them)."""
+
+
+def usable_samples(values: np.ndarray) -> np.ndarray:
+    """Boolean mask of the values that are finite and within :data:`SAMPLE_LIMIT`."""
+    values = np.asarray(values)
+    return np.isfinite(values) & (np.abs(values) <= SAMPLE_LIMIT)
+
+
+def usable_times(t_s: np.ndarray) -> np.ndarray:
+    """Boolean mask of the time stamps (s) that are finite and within :data:`TIME_LIMIT_S`."""
+    t_s = np.asarray(t_s)
+    return np.isfinite(t_s) & (np.abs(t_s) <= TIME_LIMIT_S)
+
 
 @dataclass
 class ChannelSeries:

@@ -24,3 +24,12 @@ class AcquisitionFailed(DeviceError):
 class ReadError(InputError):
     """An input file cannot be read: missing, unsupported, empty or malformed. The base of
     every reader's error (MCAP layout, rosbag2, ROS 1); one-line message."""
+
+
+def quoted(text: str | bytes, limit: int = 40) -> str:
+    """User data for an error message: quoted, on one line, cut to ``limit`` characters."""
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", "replace")
+    cut = len(text) > limit
+    shown = repr(text[:limit])
+    return f"{shown}... ({len(text)} characters)" if cut else shown

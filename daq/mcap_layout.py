@@ -12,6 +12,7 @@ from __future__ import annotations
 import mmap
 import struct
 import threading
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,6 +35,7 @@ OP_CHUNK = int(Opcode.CHUNK)
 OP_MESSAGE_INDEX = int(Opcode.MESSAGE_INDEX)
 OP_METADATA = int(Opcode.METADATA)
 OP_DATA_END = int(Opcode.DATA_END)
+OP_CHUNK_INDEX = int(Opcode.CHUNK_INDEX)
 OP_MAX = max(int(op) for op in Opcode)
 
 RECORD_PREFIX = 9  # opcode u8 + length u64
@@ -229,6 +231,26 @@ class McapLayout:
     has_summary: bool = False
     footer_ok: bool = False
     warnings: list[str] = field(default_factory=list)
+    damaged: list[tuple[int, str]] = field(default_factory=list)
+    """(file offset, reason) of every chunk left out of ``chunks`` because it is damaged."""
+    indexed_chunks: list[tuple[int, int]] = field(default_factory=list)
+    """(offset, length) of the chunks the summary's chunk index lists (a cleanly finished
+    file): where the scan resumes after a damaged record."""
+
+    def drop_chunk(self, start: int, reason: str) -> None:
+        """Note a damaged chunk (its messages are lost) with a warning."""
+        self.damaged.append((start, reason))
+        self.warnings.append(damaged_chunk_note(start, reason))
+
+
+def damaged_chunk_note(start: int, reason: str, messages: int | None = None,
+                       times: tuple[int, int] | None = None) -> str:
+    """The one-line warning for a damaged chunk left out."""
+    what = f"its {messages} message(s)" if messages is not None else "its messages"
+    when = ""
+    if times is not None and 0 < times[0] <= times[1]:
+        when = f", log time {times[0] * 1e-9:.3f} to {times[1] * 1e-9:.3f} s"
+    return f"chunk at byte {start} is damaged ({reason}): {what}{when} are lost (a gap)"
 
 
 def _string(buf, pos: int) -> tuple[str, int]:
@@ -289,17 +311,74 @@ def _zstd_context() -> zstandard.ZstdDecompressor:
     return dctx
 
 
+class DamagedChunk(McapFormatError):
+    """A chunk's records cannot be trusted: they do not decompress, their size or CRC differs
+    from the chunk header, or they are not a sequence of complete records."""
+
+
 def decompress(compression: str, data, uncompressed_size: int) -> bytes | memoryview:
-    """Decompress one chunk's records (``""``, ``"zstd"`` or ``"lz4"``)."""
+    """Decompress one chunk's records (``""``, ``"zstd"`` or ``"lz4"``).
+
+    Raises:
+        DamagedChunk: the data do not decompress.
+        McapFormatError: an unsupported compression.
+    """
     if compression == "":
-        return data
-    if compression == "zstd":
-        return _zstd_context().decompress(data, max_output_size=uncompressed_size)
-    if compression == "lz4":
+        out = data
+    elif compression == "zstd":
+        try:
+            out = _zstd_context().decompress(data, max_output_size=uncompressed_size)
+        except zstandard.ZstdError as exc:
+            raise DamagedChunk(f"zstd: {first_line(exc)}") from None
+    elif compression == "lz4":
         import lz4.frame
 
-        return lz4.frame.decompress(bytes(data))
-    raise McapFormatError(f"unsupported chunk compression {compression!r}")
+        try:  # at most one byte more than declared: a damaged frame cannot claim gigabytes
+            out = lz4.frame.LZ4FrameDecompressor().decompress(
+                bytes(data), max_length=2 * uncompressed_size + (1 << 20))
+        except (RuntimeError, ValueError, MemoryError) as exc:
+            raise DamagedChunk(f"lz4: {first_line(exc)}") from None
+    else:
+        raise McapFormatError(f"unsupported chunk compression {compression[:40]!r}")
+    return out
+
+
+def first_line(exc: BaseException, limit: int = 80) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__)[:limit]
+
+
+# Records a chunk may hold (the specification's list).
+_IN_CHUNK = frozenset({OP_SCHEMA, OP_CHANNEL, OP_MESSAGE})
+
+
+def check_chunk(buf, chunk: ChunkInfo, exact_size: bool = False) -> bytes | memoryview:
+    """The decompressed records of ``chunk`` after checking them: the data decompress, their
+    CRC matches when the writer stored one (else their size must be the header's; with
+    ``exact_size`` it must be in any case), and they are a sequence of complete Schema,
+    Channel and Message records.
+
+    Raises:
+        DamagedChunk: what failed.
+    """
+    if chunk.data_offset + chunk.data_length > chunk.end:
+        raise DamagedChunk("records run past the chunk")
+    records = chunk_records(buf, chunk)
+    if chunk.uncompressed_crc and zlib.crc32(records) != chunk.uncompressed_crc:
+        raise DamagedChunk("CRC mismatch")
+    if (exact_size or not chunk.uncompressed_crc) and len(records) != chunk.uncompressed_size:
+        raise DamagedChunk(f"{len(records)} bytes of records where its header says "
+                           f"{chunk.uncompressed_size}")
+    pos, size = 0, len(records)
+    while pos < size:
+        if pos + RECORD_PREFIX > size:
+            raise DamagedChunk(f"a record cut short at byte {pos} of its records")
+        op, n = _PREFIX.unpack_from(records, pos)
+        if op not in _IN_CHUNK or pos + RECORD_PREFIX + n > size or (
+                op == OP_MESSAGE and n < MESSAGE_HEADER):
+            raise DamagedChunk(f"a malformed record at byte {pos} of its records")
+        pos += RECORD_PREFIX + n
+    return records
 
 
 def decompress_zstd_frames(frames: list, sizes: list[int]):
@@ -320,7 +399,9 @@ def chunk_records(buf, chunk: ChunkInfo) -> bytes | memoryview:
 
 
 def _read_summary_definitions(buf, size: int, layout: McapLayout) -> None:
-    """Schemas and channels from the summary section of a cleanly finished file."""
+    """Schemas and channels from the summary section of a cleanly finished file. A summary
+    whose records do not fit exactly between its start and the footer is ignored (the file
+    then counts as not cleanly finished)."""
     if size < len(MAGIC) * 2 + FOOTER_LENGTH or bytes(buf[size - 8:size]) != MAGIC:
         return
     foot = size - 8 - FOOTER_LENGTH
@@ -328,16 +409,32 @@ def _read_summary_definitions(buf, size: int, layout: McapLayout) -> None:
     if op != OP_FOOTER or n != 20:
         return
     (summary_start,) = _U64.unpack_from(buf, foot + RECORD_PREFIX)
-    layout.footer_ok = True
-    if summary_start == 0 or summary_start >= foot:
+    if summary_start == 0:
+        layout.footer_ok = True
         return
-    for op, a, _b in iter_records(buf, summary_start, foot):
-        if op == OP_SCHEMA:
-            s = parse_schema(buf, a)
-            layout.schemas[s.id] = s
-        elif op == OP_CHANNEL:
-            c = parse_channel(buf, a)
-            layout.channels[c.id] = c
+    if summary_start >= foot or summary_start < len(MAGIC):
+        return
+    found: list = []
+    starts: list[tuple[int, int]] = []
+    pos = summary_start
+    try:
+        while pos < foot:
+            op, n = _PREFIX.unpack_from(buf, pos)
+            if op == 0 or op > OP_MAX or pos + RECORD_PREFIX + n > foot:
+                return
+            if op == OP_SCHEMA:
+                found.append(parse_schema(buf, pos + RECORD_PREFIX))
+            elif op == OP_CHANNEL:
+                found.append(parse_channel(buf, pos + RECORD_PREFIX))
+            elif op == OP_CHUNK_INDEX and n >= 32:
+                starts.append(struct.unpack_from("<QQ", buf, pos + RECORD_PREFIX + 16))
+            pos += RECORD_PREFIX + n
+    except (struct.error, ValueError):
+        return
+    layout.indexed_chunks = sorted(starts)
+    for item in found:
+        (layout.schemas if isinstance(item, SchemaInfo) else layout.channels)[item.id] = item
+    layout.footer_ok = True
     layout.has_summary = True
 
 
@@ -345,8 +442,8 @@ def walk_chunk(buf, chunk: ChunkInfo, layout: McapLayout,
                collect: set[int] | None = None) -> dict[int, list[tuple[int, int]]]:
     """Walk the records of one chunk: register its Schema/Channel records in ``layout`` and
     return (log_time, record offset in the decompressed chunk) of the messages of channels in
-    ``collect``."""
-    records = chunk_records(buf, chunk)
+    ``collect``. Raises DamagedChunk when :func:`check_chunk` fails (nothing registered)."""
+    records = check_chunk(buf, chunk)
     offsets: dict[int, list[tuple[int, int]]] = {}
     for op, a, b in iter_records(records, 0, len(records)):
         if op == OP_MESSAGE:
@@ -374,7 +471,6 @@ def scan(buf, size: int | None = None) -> McapLayout:
     pos = _header(buf, size, layout)
     _read_summary_definitions(buf, size, layout)
     layout.data_end = pos
-    chunks = layout.chunks
     channels = layout.channels
     last: ChunkInfo | None = None
     unknown_pending = False
@@ -394,12 +490,15 @@ def scan(buf, size: int | None = None) -> McapLayout:
         body = pos + RECORD_PREFIX
         end = body + n
         if op == OP_MESSAGE_INDEX and end <= size:  # the most frequent record: keep it short
-            cid, nbytes = mi_head(buf, body)
+            cid, nbytes = mi_head(buf, body) if n >= 6 else (0, n)
             if last is not None and last.mi_end == pos:
-                last.mi[cid] = (body + 6, nbytes // 16)
-                last.mi_end = end
-                if cid not in channels:
-                    unknown_pending = True
+                if 6 + nbytes != n or nbytes % 16:  # damaged: walk the chunk instead
+                    last.mi, last.mi_end, last = {}, last.end, None
+                else:
+                    last.mi[cid] = (body + 6, nbytes // 16)
+                    last.mi_end = end
+                    if cid not in channels:
+                        unknown_pending = True
             pos = end
             continue
         if unknown_pending:
@@ -407,13 +506,19 @@ def scan(buf, size: int | None = None) -> McapLayout:
             unknown_pending = False
         layout.data_end = pos
         if op == 0 or op > OP_MAX or end > size:
+            resume = _resume_at(buf, pos, layout)
+            if resume is None:
+                layout.warnings.append(
+                    f"file is truncated or damaged at byte {pos} of {size}: read up to the "
+                    "last complete record")
+                break
             layout.warnings.append(
-                f"file is truncated or damaged at byte {pos} of {size}: read up to the last "
-                "complete record")
-            break
+                f"a damaged record at byte {pos}: its chunk's messages are lost (a gap); read "
+                f"on from byte {resume}, the next chunk the file's summary lists")
+            pos, last = resume, None
+            continue
         if op == OP_CHUNK:
-            last = _chunk_info(buf, pos, body, end)
-            chunks.append(last)
+            last = _add_chunk(buf, pos, body, end, layout)
         elif op == OP_DATA_END:
             layout.complete = layout.footer_ok
             if not layout.complete:
@@ -430,6 +535,18 @@ def scan(buf, size: int | None = None) -> McapLayout:
     return layout
 
 
+def _resume_at(buf, pos: int, layout: McapLayout) -> int | None:
+    """The offset of the first chunk after ``pos`` that the summary lists and that is where
+    it says (a Chunk record of the listed length), or None."""
+    for start, length in layout.indexed_chunks:
+        if start <= pos or start + length > layout.size:
+            continue
+        op, n = _PREFIX.unpack_from(buf, start)
+        if op == OP_CHUNK and RECORD_PREFIX + n == length:
+            return start
+    return None
+
+
 def _header(buf, size: int, layout: McapLayout) -> int:
     """Check the magic and the Header record; note profile and library; the offset after."""
     if size < len(MAGIC) + RECORD_PREFIX or bytes(buf[:8]) != MAGIC:
@@ -437,8 +554,12 @@ def _header(buf, size: int, layout: McapLayout) -> int:
     op, n = _PREFIX.unpack_from(buf, 8)
     if op != OP_HEADER or 8 + RECORD_PREFIX + n > size:
         raise McapFormatError("not an MCAP file (no header record)")
-    layout.profile, pos = _string(buf, 8 + RECORD_PREFIX)
-    layout.library, _ = _string(buf, pos)
+    try:
+        layout.profile, pos = _string(buf, 8 + RECORD_PREFIX)
+        layout.library, _ = _string(buf, pos)
+    except struct.error:
+        layout.warnings.append("the header record is damaged (profile and library unknown)")
+    layout.profile, layout.library = layout.profile[:200], layout.library[:200]
     return 8 + RECORD_PREFIX + n
 
 
@@ -464,24 +585,95 @@ def _finish_chunks(buf, layout: McapLayout) -> None:
         # The message indexes after the last chunk of a crashed file may be cut short.
         chunks[-1].mi = {}
         chunks[-1].mi_end = chunks[-1].end
+    bad: set[int] = set()
     for i, chunk in enumerate(chunks):
         if not chunk.mi and not chunk.walked:
-            walk_chunk(buf, chunk, layout)
+            try:
+                walk_chunk(buf, chunk, layout)
+            except DamagedChunk as exc:
+                layout.drop_chunk(chunk.start, str(exc))
+                bad.add(chunk.start)
+                continue
             chunks[i] = chunk
+    remove_chunks(layout, bad)
+
+
+def remove_chunks(layout: McapLayout, starts: set[int]) -> None:
+    """Take the chunks at file offsets ``starts`` out of ``layout.chunks``."""
+    if not starts:
+        return
+    kept = ChunkTable()
+    for chunk in layout.chunks:
+        if chunk.start not in starts:
+            kept.append(chunk)
+    layout.chunks = kept
+
+
+_MAX_CHUNK = 1 << 40  # uncompressed bytes: a larger chunk header is damaged
+_MAX_TIME = (1 << 63) - 1  # log times are u64; those beyond int64 (year 2262) are damaged
+
+
+def _add_chunk(buf, pos: int, body: int, end: int, layout: McapLayout) -> ChunkInfo | None:
+    """Append the Chunk record at ``pos`` to the layout's chunks; None when its header is
+    damaged (the chunk is left out, its message indexes are skipped)."""
+    try:
+        chunk = _chunk_info(buf, pos, body, end)
+    except DamagedChunk as exc:
+        layout.drop_chunk(pos, str(exc))
+        return None
+    layout.chunks.append(chunk)
+    return chunk
 
 
 def _chunk_info(buf, pos: int, body: int, end: int) -> ChunkInfo:
-    """The place and header of the Chunk record at ``pos`` (message indexes come later)."""
+    """The place and header of the Chunk record at ``pos`` (message indexes come later).
+    Raises DamagedChunk when the header's fields do not fit the record."""
+    if body + _CHUNK_HEAD5.size + 8 > end:
+        raise DamagedChunk("header cut short")
     t0, t1, usize, crc, clen = _CHUNK_HEAD5.unpack_from(buf, body)
     p = body + 32 + clen
+    if p + 8 > end:
+        raise DamagedChunk("compression field runs past the record")
     comp = _COMPRESSION.get(bytes(buf[body + 32:p])) or \
-        bytes(buf[body + 32:p]).decode("utf-8", "replace")
+        bytes(buf[body + 32:p]).decode("utf-8", "replace")[:40]
     (rlen,) = _U64.unpack_from(buf, p)
+    if p + 8 + rlen != end:
+        raise DamagedChunk("records length differs from the record's")
+    if usize > _MAX_CHUNK or t0 > _MAX_TIME or t1 > _MAX_TIME:
+        raise DamagedChunk("header fields out of range")
+    _check_declared_size(buf, comp, p + 8, rlen, usize)
     return ChunkInfo(pos, end, t0, t1, usize, crc, comp, p + 8, rlen, {}, end)
 
 
+def _check_declared_size(buf, compression: str, at: int, length: int, usize: int) -> None:
+    """A chunk's declared uncompressed size must be one its data can hold (readers allocate
+    it): equal to the data for no compression, at most what lz4 can expand to, at most the
+    zstd frame's own content size when the frame states it."""
+    if compression == "" and usize != length:
+        raise DamagedChunk("uncompressed size differs from its data's")
+    if compression == "lz4" and usize > 255 * length + (1 << 16):
+        raise DamagedChunk("uncompressed size larger than lz4 can expand to")
+    if compression == "zstd":
+        try:
+            stated = zstandard.frame_content_size(bytes(buf[at:at + min(length, 18)]))
+        except zstandard.ZstdError:
+            raise DamagedChunk("not a zstd frame") from None
+        if stated >= 0 and usize > max(stated, 0) + (1 << 16):
+            raise DamagedChunk(f"uncompressed size {usize} beyond its frame's {stated}")
+        if stated < 0 and usize > 32768 * length + (1 << 20):
+            raise DamagedChunk("uncompressed size larger than zstd can expand to")
+
+
 def _other_record(op: int, buf, pos: int, body: int, end: int, layout: McapLayout) -> None:
-    """Schema, Channel, Metadata and un-chunked Message records met while scanning."""
+    """Schema, Channel, Metadata and un-chunked Message records met while scanning; a damaged
+    one is skipped with a warning."""
+    try:
+        _parse_other(op, buf, pos, body, end, layout)
+    except (struct.error, ValueError):
+        layout.warnings.append(f"a damaged record (opcode {op}) at byte {pos} was skipped")
+
+
+def _parse_other(op: int, buf, pos: int, body: int, end: int, layout: McapLayout) -> None:
     if op == OP_SCHEMA:
         s = parse_schema(buf, body)
         layout.schemas.setdefault(s.id, s)
@@ -507,6 +699,9 @@ def _discover_channels(buf, layout: McapLayout) -> None:
         chunk = chunks[i]
         if chunk.walked:
             continue
-        walk_chunk(buf, chunk, layout)
+        try:
+            walk_chunk(buf, chunk, layout)
+        except DamagedChunk:
+            continue  # its messages are dropped when read; the reader says so
         chunks[i] = chunk
         wanted = {cid for cid in wanted if cid not in layout.channels}

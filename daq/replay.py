@@ -37,13 +37,16 @@ def _series_blocks(topic: str, chans: dict[str, ChannelSeries]) -> Iterator[Samp
                               first.fs_hz, gap_before=-1 if k and c == a else 0)
 
 
-def _record_blocks(path: Path) -> tuple[Iterator[SampleBlock], int]:
+def _record_blocks(path: Path, warnings: list[str] | None = None
+                   ) -> tuple[Iterator[SampleBlock], int]:
     """Blocks of a record read whole (CSV, rosbag2), in time order across topics.
 
     Channels of one topic go in one block only where they share their timing: a channel with
     samples removed (NaN, empty cells) has segments of its own and is sent in its own blocks,
     so no other channel loses or shifts samples."""
     record = open_record(path)
+    if warnings is not None:
+        warnings.extend(record.warnings)
     total = max((s.n_samples for s in record.channels.values()), default=0)
     groups: dict[tuple, dict[str, ChannelSeries]] = {}
     for key, s in record.channels.items():
@@ -58,10 +61,14 @@ def _record_blocks(path: Path) -> tuple[Iterator[SampleBlock], int]:
     return heapq.merge(*streams, key=lambda b: float(b.t[0])), total
 
 
-def open_blocks(path: str | Path) -> tuple[Iterator[SampleBlock], int]:
+def open_blocks(path: str | Path, warnings: list[str] | None = None
+                ) -> tuple[Iterator[SampleBlock], int]:
     """Blocks of a recording with bounded memory where possible, and the number of inertial
-    samples to expect (for progress). MCAP files stream; other inputs are loaded first."""
+    samples to expect (for progress). MCAP files stream; other inputs are loaded first. What
+    the reader repaired (a damaged chunk left out ...) is appended to ``warnings``, for a
+    streamed file as the blocks are read."""
     path = Path(path)
+    warnings = [] if warnings is None else warnings
     if path.is_file() and path.suffix.lower() == ".mcap":
         from imunoise.daq.mcap_layout import McapFormatError
         from imunoise.daq.readers.mcap import UnsupportedLayout, iter_blocks, open_mcap
@@ -69,14 +76,16 @@ def open_blocks(path: str | Path) -> tuple[Iterator[SampleBlock], int]:
         try:
             src = open_mcap(path)
         except UnsupportedLayout:
-            return _record_blocks(path)
+            return _record_blocks(path, warnings)
         except (McapFormatError, OSError) as exc:
             raise ReadError(f"{path.name}: {exc}") from exc
         if not src.topics:
             raise ReadError(f"{path.name}: no sensor_msgs/msg/Imu or Temperature channel")
         total = max((tp.count for tp in src.topics.values() if tp.kind == "imu"), default=0)
+        warnings.extend(src.warnings)
+        src.warnings = warnings  # the reader appends what it finds while streaming
         return iter_blocks(path, src=src), total
-    return _record_blocks(path)
+    return _record_blocks(path, warnings)
 
 
 def _pieces(block: SampleBlock, n: int) -> Iterator[SampleBlock]:

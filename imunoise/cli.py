@@ -10,7 +10,11 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from imunoise import __version__
+from imunoise.core.errors import ImunoiseError
 from imunoise.errors import RuntimeFailure, UsageError
+
+MAX_MESSAGE = 300
+"""Characters of the one line an error prints, ``imunoise: `` included."""
 
 # Sub-command modules under imunoise.commands, in the order --help lists them.
 COMMAND_MODULES: list[str] = [
@@ -58,6 +62,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def one_line(exc: BaseException) -> str:
+    """An error as the one line the command line prints: ``imunoise: `` first, line breaks
+    joined, cut to :data:`MAX_MESSAGE` characters (quoted user data is already cut where it
+    is quoted; this bounds what is not)."""
+    text = " ".join(part.strip() for part in str(exc).splitlines() if part.strip())
+    if not text.startswith("imunoise"):
+        text = f"imunoise: {text}"
+    return text if len(text) < MAX_MESSAGE else text[:MAX_MESSAGE - 4] + "..."
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -67,9 +81,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         code = args.func(args)
         return int(code or 0)
-    except (UsageError, RuntimeFailure) as exc:
-        print(f"imunoise: {exc}" if not str(exc).startswith("imunoise") else str(exc),
-              file=sys.stderr)
+    except ImunoiseError as exc:  # bad input (a ReadError too: exit 2) or a runtime failure
+        print(one_line(exc), file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("imunoise: interrupted", file=sys.stderr)

@@ -16,6 +16,14 @@ class ErrorOut(BaseModel):
     chi2_per_dof: float | None = Field(
         None, description="misfit normalised by the estimates' uncertainty (~1 when it fits)")
     max_abs_z: float | None = Field(None, description="largest |z| residual on the Allan curve")
+    psd: dict[str, Any] | None = Field(
+        None, description="PSD part: Whittle deviance per bin of the measured PSD against the "
+                          "estimator's expectation under the model (~1 when it fits), bins, "
+                          "share outside the 95 % interval")
+    holdout: dict[str, Any] | None = Field(
+        None, description="hold-out part (fit reports it; null with a reason here)")
+    time_domain: dict[str, Any] | None = Field(
+        None, description="time-domain part (fit reports it; null with a reason here)")
 
 
 class FailureOut(BaseModel):
@@ -109,7 +117,10 @@ class PsdOut(BaseModel):
     ci_low: list[float | None]
     ci_high: list[float | None]
     dof: list[float | None]
-    model_psd: list[float | None] | None
+    model_psd: list[float | None] | None = Field(
+        description="the estimator's expected value under the fitted model")
+    z: list[float | None] | None = Field(
+        None, description="normal score of each point under its chi-square law")
 
 
 class ApplyOut(BaseModel):

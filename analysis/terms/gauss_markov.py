@@ -46,6 +46,11 @@ def markov_state(term: str, sigma: float, T_s: float, fs_hz: float) -> MarkovSta
 
 _BIG = 1.0e3
 
+MIN_T_SAMPLES = 2.0
+"""Shortest correlation time the fit may give, in sample periods: below about two its
+spectrum is flat across the sampled band (white noise), and a fit could trade the white
+level for it."""
+
 
 def ar1_avar_shape(m: np.ndarray, b: float) -> np.ndarray:
     """Allan variance of a unit-variance point-sampled AR(1) process, per sigma^2.
@@ -121,6 +126,12 @@ class GaussMarkov(Term):
         # 1 - 2a cos w + a^2 = (1-a)^2 + 4a sin^2(w/2), written to avoid cancellation
         den = (-math.expm1(-b)) ** 2 + 4.0 * a * np.sin(w / 2.0) ** 2
         return 2.0 * sigma * sigma * one_minus_a2 / (fs * den)
+
+    def log_fit_bounds(self, param, fs_hz, duration_s):
+        if param.name == "T":
+            lo, hi = param.log_fit_bounds(fs_hz, duration_s)
+            return math.log(MIN_T_SAMPLES / fs_hz), max(hi, math.log(4.0 * MIN_T_SAMPLES / fs_hz))
+        return param.log_fit_bounds(fs_hz, duration_s)
 
     def start_shapes(self, fs_hz, duration_s, line):
         # correlation times from two samples to half the record

@@ -63,12 +63,27 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
 
 
 def _read_bag(path: Path, rate_hz: float | None = None) -> Record:
+    """A rosbag2 folder: its metadata checked against the folder
+    (:mod:`imunoise.daq.readers.rosbag2_folder`); a single MCAP storage file is read by the
+    MCAP reader (damaged chunks left out), anything else through rosbags."""
     from imunoise.daq.readers.rosbag import RosbagReadError, read_rosbag
+    from imunoise.daq.readers.rosbag2_folder import check_folder, readable_copy
 
-    try:
-        return read_rosbag(path, rate_hz)
-    except RosbagReadError as exc:
-        raise ReadError(str(exc)) from exc
+    bag = check_folder(path)
+    if bag.storage == "mcap" and len(bag.files) == 1:
+        record = _read_mcap_file(bag.files[0], rate_hz)
+    else:
+        try:
+            with readable_copy(bag) as folder:
+                record = read_rosbag(folder, rate_hz)
+        except RosbagReadError as exc:
+            raise ReadError(str(exc)) from exc
+        except OSError as exc:
+            raise ReadError(f"{path.name}: cannot read ({exc.strerror or exc})") from None
+    record.source = str(path)
+    record.metadata["format"] = "rosbag2"
+    record.warnings[:0] = bag.warnings
+    return record
 
 
 def _read_mcap_file(path: Path, rate_hz: float | None = None) -> Record:
@@ -81,6 +96,8 @@ def _read_mcap_file(path: Path, rate_hz: float | None = None) -> Record:
     except UnsupportedLayout as exc:
         reason = str(exc)
     except (McapFormatError, OSError) as exc:
+        raise ReadError(f"{path.name}: {exc}") from exc
+    except ReadError as exc:
         raise ReadError(f"{path.name}: {exc}") from exc
     try:
         record = read_rosbag(path, rate_hz)

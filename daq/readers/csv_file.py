@@ -32,9 +32,16 @@ from pathlib import Path
 import numpy as np
 
 from imunoise.core.record import TEMPERATURE_KEY, Record
-from imunoise.core.series import ChannelSeries, channel_units
+from imunoise.core.series import (
+    SAMPLE_LIMIT,
+    TIME_LIMIT_S,
+    ChannelSeries,
+    channel_units,
+    usable_samples,
+    usable_times,
+)
 from imunoise.core.timing import Timing, analyse_stamps
-from imunoise.daq.errors import ReadError
+from imunoise.daq.errors import ReadError, quoted
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
@@ -93,10 +100,14 @@ def _asl_seconds(data: bytes, delim: str, t_ns: np.ndarray) -> tuple[np.ndarray,
                         comments=None, skiprows=1)
     except ValueError:
         ns = None
-    if ns is None or ns.size != t_ns.size or ns.size == 0:
-        first = float(t_ns[np.isfinite(t_ns)][0]) if np.isfinite(t_ns).any() else 0.0
-        return (t_ns - first) * ASL_TIME_SCALE, first * ASL_TIME_SCALE
-    return (ns - ns[0]).astype(np.float64) * ASL_TIME_SCALE, int(ns[0]) * ASL_TIME_SCALE
+    limit = int(TIME_LIMIT_S / ASL_TIME_SCALE)
+    if (ns is not None and ns.size == t_ns.size and ns.size
+            and np.all((ns >= -limit) & (ns <= limit))):
+        return (ns - ns[0]).astype(np.float64) * ASL_TIME_SCALE, int(ns[0]) * ASL_TIME_SCALE
+    t = t_ns * ASL_TIME_SCALE
+    good = usable_times(t)  # the others are dropped with their rows
+    first = float(t[good][0]) if good.any() else 0.0
+    return np.where(good, t - first, np.nan), first
 
 
 def _sensor_yaml(path: Path, warnings: list[str]) -> dict[str, str]:
@@ -124,11 +135,12 @@ def _sensor_yaml(path: Path, warnings: list[str]) -> dict[str, str]:
 
 def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarray, np.ndarray,
                                                                         int]:
-    """Drop non-finite samples; a segment starts where ``seg_flags`` says or after a dropped one.
+    """Drop samples that are not finite or beyond :data:`imunoise.core.series.SAMPLE_LIMIT`
+    (lost samples); a segment starts where ``seg_flags`` says or after a dropped one.
 
     Returns the kept values, their segment starts and the number dropped.
     """
-    bad = ~np.isfinite(values)
+    bad = ~usable_samples(values)
     n_bad = int(bad.sum())
     if n_bad == 0:
         return values, np.flatnonzero(seg_flags).astype(np.int64), 0
@@ -156,7 +168,7 @@ def _load(text: bytes, usecols: list[int], delim: str, path: Path) -> np.ndarray
             return attempt(_EMPTY_FIELD.sub(b"nan", text))
     except (ValueError, UnicodeDecodeError) as exc:
         found = _locate_bad_line(text, usecols, delim)
-        msg = found if found else _ROW_ERROR.sub("", str(exc).split(";")[0]).strip()
+        msg = found if found else quoted(_ROW_ERROR.sub("", str(exc).split(";")[0]).strip(), 80)
         raise ReadError(f"{path}: bad CSV data: {msg}") from None
 
 
@@ -175,8 +187,7 @@ def _locate_bad_line(text: bytes, usecols: list[int], delim: str) -> str | None:
             try:
                 float(value or b"nan")
             except ValueError:
-                shown = value[:20].decode("utf-8", "replace")
-                return f"line {number}, column {c + 1}: {shown!r} is not a number"
+                return f"line {number}, column {c + 1}: {quoted(value, 20)} is not a number"
     return None
 
 
@@ -209,14 +220,20 @@ def _drop_incomplete_last_line(data: bytes, body_start: int, delim: str, n_names
     return data
 
 
+def _shown(name: str) -> str:
+    """A column name for a message: as is when short and printable, else quoted and cut."""
+    return name if len(name) <= 24 and name.isprintable() else quoted(name, 24)
+
+
 def _columns(names: list[str], path: Path) -> list[str]:
     """The IMU channel columns of a header; duplicates or none at all are a ReadError."""
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
-        raise ReadError(f"{path}: duplicate column(s) {', '.join(dup)}")
+        raise ReadError(f"{path}: duplicate column(s) "
+                        f"{', '.join(_shown(n) for n in dup[:4])}")
     channels = [c for c in CHANNEL_COLUMNS if c in names]
     if not channels:
-        shown = ", ".join(n for n in names[:8] if n) or "(none)"
+        shown = ", ".join(_shown(n) for n in names[:6] if n) or "(none)"
         raise ReadError(f"{path}: no IMU channel columns (expected some of "
                         f"{', '.join(CHANNEL_COLUMNS)}; found {shown})")
     return channels
@@ -228,9 +245,10 @@ def _timing(cols: dict[str, np.ndarray], t_offset: float, rate_hz: float | None,
     the
     record's start time (s). ``t_offset`` is added to ``t`` for absolute time."""
     t = cols[TIME_COLUMN]
-    good_t = np.isfinite(t)
+    good_t = usable_times(t)
     if not good_t.all():
-        warnings.append(f"{int((~good_t).sum())} row(s) without a valid time dropped")
+        warnings.append(f"{int((~good_t).sum())} row(s) without a valid time (not finite or "
+                        f"beyond {TIME_LIMIT_S:g} s) dropped")
         cols = {k: v[good_t] for k, v in cols.items()}
         t = cols[TIME_COLUMN]
     if len(t) < 2:
@@ -250,8 +268,10 @@ def _series(name: str, values: np.ndarray, seg_flags: np.ndarray, fs: float, t0:
     """One column as a series (non-finite values removed, segments split around them)."""
     kept, seg_starts, n_bad = _split_channel(values, seg_flags)
     if n_bad:
-        warnings.append(f"{name}: {n_bad} missing or non-finite value(s) removed; segments "
-                        "split around them")
+        huge = bool(np.any(np.isfinite(values) & (np.abs(values) > SAMPLE_LIMIT)))
+        what = f" or beyond {SAMPLE_LIMIT:g}" if huge else ""
+        warnings.append(f"{name}: {n_bad} missing or non-finite{what} value(s) removed; "
+                        "segments split around them")
     if kept.size == 0:
         warnings.append(f"{name}: no valid values; channel left out")
         return None

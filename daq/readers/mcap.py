@@ -23,9 +23,10 @@ import numpy as np
 
 from imunoise.core.blocks import SampleBlock
 from imunoise.core.record import Record
-from imunoise.core.series import ChannelSeries
+from imunoise.core.series import SAMPLE_LIMIT, ChannelSeries, usable_samples
 from imunoise.core.timing import Timing, analyse_stamps, relative_seconds, segment_starts_from_times
 from imunoise.daq import mcap_layout as ml
+from imunoise.daq.errors import ReadError
 from imunoise.daq.readers.mcap_decode import ACCEL, GYRO, _columns, iter_decoded, read_ahead
 from imunoise.daq.readers.mcap_scan import McapSource, UnsupportedLayout, _Topic, open_mcap
 
@@ -39,34 +40,45 @@ def _split(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 def topic_timing(ns: np.ndarray, name: str, metadata: dict[str, str] | None = None,
                  rate_hz: float | None = None) -> Timing:
     """Timing of one topic's int64 nanosecond stamps (:func:`imunoise.core.timing.analyse_stamps`);
-    with
-    fewer than two increasing stamps the rate comes from the ``rate_hz`` metadata, else
-    ValueError. A given ``rate_hz`` replaces the inferred rate."""
+    with fewer than two increasing stamps the rate comes from the ``rate_hz`` metadata, else
+    a ReadError naming the topic. A given ``rate_hz`` replaces the inferred rate."""
     try:
         return analyse_stamps(ns, rate_hz=rate_hz, name=name)
-    except ValueError:
-        fs = float((metadata or {}).get("rate_hz", "nan"))
+    except ValueError as exc:
+        try:
+            fs = float((metadata or {}).get("rate_hz", "nan"))
+        except ValueError:
+            fs = float("nan")
         if not np.isfinite(fs) or fs <= 0:
-            raise
+            raise ReadError(f"{name}: {exc}") from None
         return analyse_stamps(ns, rate_hz=fs, name=name)
 
 
 def make_series(name: str, t: np.ndarray, values: np.ndarray, timing: Timing,
                 warnings: list[str], units: str) -> ChannelSeries:
-    """A ChannelSeries from stamps (int64 ns), values and the topic's timing. Non-finite samples
-    are dropped with a warning; the hole they leave becomes a segment boundary."""
-    finite = np.isfinite(values)
+    """A ChannelSeries from stamps (int64 ns), values and the topic's timing. Samples that are
+    not finite or beyond :data:`imunoise.core.series.SAMPLE_LIMIT` are dropped with a warning;
+    the hole they leave becomes a segment boundary."""
+    finite = usable_samples(values)
     if finite.all():
         return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz,
                              values=np.ascontiguousarray(values, dtype=np.float64),
                              segment_starts=timing.segment_starts, t0_s=timing.t0_s)
-    bad = int((~finite).sum())
-    warnings.append(f"{name}: {bad} non-finite samples dropped (treated as gaps)")
+    warnings.append(dropped_samples_note(name, values, finite))
     t, values = t[finite], np.ascontiguousarray(values[finite], dtype=np.float64)
     rel, t0 = relative_seconds(t)
     starts = segment_starts_from_times(rel, timing.fs_hz) if t.size else np.zeros(1, np.int64)
     return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz, values=values,
                          segment_starts=starts, t0_s=t0)
+
+
+def dropped_samples_note(name: str, values: np.ndarray, usable: np.ndarray) -> str:
+    """The warning for the samples of ``values`` outside the ``usable`` mask."""
+    bad = int((~usable).sum())
+    if np.isfinite(values[~usable]).any():
+        return (f"{name}: {bad} non-finite or out-of-range (beyond {SAMPLE_LIMIT:g}) samples "
+                "dropped (treated as gaps)")
+    return f"{name}: {bad} non-finite samples dropped (treated as gaps)"
 
 
 def read_mcap(path: str | Path, rate_hz: float | None = None) -> Record:
@@ -148,9 +160,24 @@ def raw_counts(values: np.ndarray, metadata: dict[str, str], channel: str) -> np
     except (KeyError, ValueError):
         return None
     values = np.asarray(values, dtype=np.float64)
-    if not np.all(np.isfinite(values)):
+    if not (np.isfinite(scale) and scale != 0 and np.isfinite(offset)
+            and np.all(usable_samples(values))):
         return None
-    return np.rint((np.asarray(values, dtype=np.float64) - offset) / scale).astype(np.int64)
+    with np.errstate(all="ignore"):
+        counts = np.rint((values - offset) / scale)
+    if not np.all(np.abs(counts) < 2.0**53):  # not counts of a register: leave them out
+        return None
+    return counts.astype(np.int64)
+
+
+def _lost_as_nan(values: np.ndarray) -> np.ndarray:
+    """A block's channel with the samples that are not finite or beyond
+    :data:`imunoise.core.series.SAMPLE_LIMIT` as NaN (lost samples to every consumer)."""
+    out = np.ascontiguousarray(values, dtype=np.float64)
+    usable = usable_samples(out)
+    if not usable.all():
+        out = np.where(usable, out, np.nan)
+    return out
 
 
 def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[SampleBlock]:
@@ -197,7 +224,7 @@ def iter_blocks(path: str | Path, src: McapSource | None = None) -> Iterator[Sam
                         gap = int(round(steps)) - 1
                     elif steps < 0.5:
                         gap = -1
-                chans = {k: np.ascontiguousarray(v[a:b]) for k, v in cols.items()}
+                chans = {k: _lost_as_nan(v[a:b]) for k, v in cols.items()}
                 raw = {}
                 for k, v in chans.items():
                     counts = raw_counts(v, src.metadata, k)

@@ -22,6 +22,34 @@ class RosbagReadError(ReadError):
     """rosbags could not read the input."""
 
 
+def _first_line(exc: BaseException, limit: int = 100) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else "")[:limit]
+
+
+def _collect(reader, conns, kinds: dict[str, str], per_topic: dict[str, dict[str, list]],
+             undecoded: dict[str, int]) -> None:
+    """Stamps and fields of every message of ``conns``; a message that does not deserialize
+    is counted in ``undecoded`` (lost) and the rest are read."""
+    for conn, _log_ns, raw in reader.messages(connections=conns):
+        try:
+            m = reader.deserialize(raw, conn.msgtype)
+        except Exception:  # noqa: BLE001 - a damaged message is a lost one
+            undecoded[conn.topic] = undecoded.get(conn.topic, 0) + 1
+            continue
+        d = per_topic.setdefault(conn.topic, {"t": [], "a": [], "b": [], "cov": []})
+        d["t"].append(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)
+        if kinds[conn.topic] == "imu":
+            g, a = m.angular_velocity, m.linear_acceleration
+            d["a"].append((g.x, g.y, g.z))
+            d["b"].append((a.x, a.y, a.z))
+            if not d["cov"]:
+                d["cov"] = [m.angular_velocity_covariance[0],
+                            m.linear_acceleration_covariance[0]]
+        else:
+            d["a"].append(m.temperature)
+
+
 def read_rosbag(path: str | Path, rate_hz: float | None = None) -> Record:
     """Read the Imu and Temperature topics of a rosbag2 folder or a complete MCAP file."""
     from rosbags.highlevel import AnyReader
@@ -30,6 +58,7 @@ def read_rosbag(path: str | Path, rate_hz: float | None = None) -> Record:
     path = Path(path)
     per_topic: dict[str, dict[str, list]] = {}
     kinds: dict[str, str] = {}
+    undecoded: dict[str, int] = {}
     try:
         with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
             conns = [c for c in reader.connections
@@ -39,24 +68,14 @@ def read_rosbag(path: str | Path, rate_hz: float | None = None) -> Record:
                     f"{path.name}: no sensor_msgs/msg/Imu or Temperature topic")
             for conn in conns:
                 kinds[conn.topic] = "imu" if conn.msgtype == msgs.IMU else "temperature"
-            for conn, _log_ns, raw in reader.messages(connections=conns):
-                m = reader.deserialize(raw, conn.msgtype)
-                d = per_topic.setdefault(conn.topic, {"t": [], "a": [], "b": [], "cov": []})
-                d["t"].append(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)
-                if kinds[conn.topic] == "imu":
-                    g, a = m.angular_velocity, m.linear_acceleration
-                    d["a"].append((g.x, g.y, g.z))
-                    d["b"].append((a.x, a.y, a.z))
-                    if not d["cov"]:
-                        d["cov"] = [m.angular_velocity_covariance[0],
-                                    m.linear_acceleration_covariance[0]]
-                else:
-                    d["a"].append(m.temperature)
+            _collect(reader, conns, kinds, per_topic, undecoded)
     except RosbagReadError:
         raise
     except Exception as exc:  # rosbags raises several unrelated types on bad input
-        raise RosbagReadError(f"{path.name}: not a readable ROS 2 bag ({exc})") from exc
-    warnings: list[str] = []
+        raise RosbagReadError(f"{path.name}: not a readable ROS 2 bag "
+                              f"({type(exc).__name__}: {_first_line(exc)})") from exc
+    warnings: list[str] = [f"{topic}: {n} message(s) could not be decoded; lost (a gap)"
+                           for topic, n in undecoded.items()]
     channels = {}
     temperature = None
     imu_topics = [t for t in per_topic if kinds[t] == "imu"]

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from imunoise.core.record import Record
-from imunoise.core.series import ChannelSeries
+from imunoise.core.series import SAMPLE_LIMIT, ChannelSeries, usable_samples
 from imunoise.core.timing import analyse_stamps
 from imunoise.daq.errors import ReadError
 
@@ -107,8 +107,10 @@ def _decompress(kind: bytes, data: bytes | memoryview, size: int) -> bytes:
     if kind == b"lz4":
         import lz4.frame
 
-        return lz4.frame.decompress(bytes(data))
-    raise Rosbag1Error(f"unknown chunk compression {kind.decode('latin-1', 'replace')!r}")
+        # bounded: a damaged frame header cannot make it claim gigabytes
+        return lz4.frame.LZ4FrameDecompressor().decompress(
+            bytes(data), max_length=2 * size + (1 << 20))
+    raise Rosbag1Error(f"unknown chunk compression {kind.decode('latin-1', 'replace')[:20]!r}")
 
 
 def _message_layout(kind: str, frame_len: int) -> np.dtype:
@@ -147,13 +149,36 @@ def _decode(stream: _Stream, buf: bytes, starts: np.ndarray, size: int, chunk_no
 def _connection(header: bytes | memoryview, data: bytes | memoryview
                 ) -> tuple[int, str, str]:
     h, d = _fields(header), _fields(data)
-    return (_U32.unpack(h["conn"])[0], h.get("topic", d.get("topic", b"")).decode(),
-            d.get("type", b"").decode())
+    return (_U32.unpack(h["conn"])[0],
+            h.get("topic", d.get("topic", b"")).decode("utf-8", "replace")[:200],
+            d.get("type", b"").decode("utf-8", "replace")[:200])
+
+
+def _first_line(exc: BaseException, limit: int = 80) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__)[:limit]
 
 
 def _scan_chunk(buf: bytes, conns: dict[int, tuple[str, str]],
                 streams: dict[int, _Stream], chunk_no: int) -> None:
-    """Connections and messages of one decompressed chunk."""
+    """Connections and messages of one decompressed chunk; when it fails, nothing of the
+    chunk is kept (the streams are as before)."""
+    known = set(streams)
+    sizes = {cid: {k: len(v) for k, v in s.parts.items()} for cid, s in streams.items()}
+    try:
+        _scan_chunk_records(buf, conns, streams, chunk_no)
+    except _DAMAGE:
+        for cid in set(streams) - known:
+            del streams[cid]
+        for cid, lengths in sizes.items():
+            parts = streams[cid].parts
+            for k in list(parts):
+                del parts[k][lengths.get(k, 0):]
+        raise
+
+
+def _scan_chunk_records(buf: bytes, conns: dict[int, tuple[str, str]],
+                        streams: dict[int, _Stream], chunk_no: int) -> None:
     groups: dict[tuple[int, int], list[int]] = {}
     for header, data, stop in _records(buf):
         h = bytes(header)
@@ -174,6 +199,11 @@ def _scan_chunk(buf: bytes, conns: dict[int, tuple[str, str]],
         _decode(streams[cid], buf, np.asarray(starts, dtype=np.int64), size, chunk_no)
 
 
+# What damaged record bytes make the parsing raise.
+_DAMAGE = (Rosbag1Error, struct.error, ValueError, IndexError, KeyError, TypeError,
+           OverflowError, MemoryError, OSError, RuntimeError, EOFError)
+
+
 def _scan(path: Path) -> tuple[dict[int, _Stream], list[str]]:
     data = path.read_bytes()
     if not data.startswith(MAGIC):
@@ -186,24 +216,24 @@ def _scan(path: Path) -> tuple[dict[int, _Stream], list[str]]:
     indexed = False
     chunks = 0
     for header, body, stop in _records(view, len(MAGIC)):
-        end = stop
-        h = _fields(header)
-        op = h.get("op", b"\xff")[0]
-        if op == OP_BAG_HEADER:
-            index_pos = struct.unpack("<Q", h.get("index_pos", b"\0" * 8))[0]
-            indexed = 0 < index_pos <= len(data)
-        elif op == OP_CHUNK:
-            size = _U32.unpack(h.get("size", b"\0\0\0\0"))[0]
-            try:
+        at, end = end, stop
+        try:
+            h = _fields(header)
+            op = (h.get("op") or b"\xff")[0]
+            if op == OP_BAG_HEADER:
+                index_pos = struct.unpack("<Q", h.get("index_pos", b"\0" * 8))[0]
+                indexed = 0 < index_pos <= len(data)
+            elif op == OP_CHUNK:
+                size = _U32.unpack(h.get("size", b"\0\0\0\0"))[0]
                 chunk = _decompress(h.get("compression", b"none"), body, size)
-            except (OSError, ValueError, RuntimeError, EOFError) as exc:
-                warnings.append(f"a damaged chunk was skipped ({exc})")
-                continue
-            _scan_chunk(chunk, conns, streams, chunks)
-            chunks += 1
-        elif op == OP_CONNECTION:
-            cid, topic, msgtype = _connection(header, body)
-            conns[cid] = (topic, msgtype)
+                _scan_chunk(chunk, conns, streams, chunks)
+                chunks += 1
+            elif op == OP_CONNECTION:
+                cid, topic, msgtype = _connection(header, body)
+                conns[cid] = (topic, msgtype)
+        except _DAMAGE as exc:
+            warnings.append(f"{path.name}: a damaged record at byte {at} was skipped "
+                            f"({_first_line(exc)}); its messages are lost (a gap)")
     if end < len(data) or not indexed:
         tail = f", {len(data) - end} bytes of an unfinished record" if end < len(data) else ""
         warnings.append(f"{path.name}: the bag was cut short (no index{tail}); read up to its "
@@ -237,16 +267,19 @@ def read_rosbag1(path: str | Path, rate_hz: float | None = None) -> Record:
     for s in imu:
         t, seq = s.column("t"), s.column("seq")
         w, a = s.column("w"), s.column("a")
-        keep = np.isfinite(w).all(axis=1) & np.isfinite(a).all(axis=1)
+        keep = usable_samples(w).all(axis=1) & usable_samples(a).all(axis=1)
         if not keep.all():
             warnings.append(f"{s.topic}: {int((~keep).sum())} message(s) with non-finite "
-                            "values dropped (treated as gaps)")
+                            f"values or values beyond {SAMPLE_LIMIT:g} dropped (treated as gaps)")
             t, seq, w, a = t[keep], seq[keep], w[keep], a[keep]
         if t.size < 2:
             warnings.append(f"{s.topic}: fewer than two messages; left out")
             continue
-        timing = analyse_stamps(t, seq=_seq_or_none(seq) if keep.all() else None,
-                                rate_hz=rate_hz, name=s.topic)
+        try:
+            timing = analyse_stamps(t, seq=_seq_or_none(seq) if keep.all() else None,
+                                    rate_hz=rate_hz, name=s.topic)
+        except ValueError as exc:
+            raise Rosbag1Error(f"{path.name}: {s.topic}: {exc}") from None
         warnings.extend(timing.notes)
         timings[s.topic] = timing.facts()
         label = f"{s.topic}:" if len(imu) > 1 else ""
@@ -263,9 +296,13 @@ def read_rosbag1(path: str | Path, rate_hz: float | None = None) -> Record:
         if len(temps) > 1:
             warnings.append(f"several temperature topics: using {s.topic}")
         t, v = s.column("t"), s.column("temp")
-        keep = np.isfinite(v)
-        if keep.sum() >= 2:
-            timing = analyse_stamps(t[keep], name=s.topic)
+        keep = usable_samples(v)
+        try:
+            timing = analyse_stamps(t[keep], name=s.topic) if keep.sum() >= 2 else None
+        except ValueError:
+            warnings.append(f"{s.topic}: the temperature's time stamps never increase; left out")
+            timing = None
+        if timing is not None:
             temperature = _series("temp", v[keep], timing, "degC")
     if not channels and temperature is None:
         raise Rosbag1Error(f"{path.name}: no usable Imu or Temperature messages")

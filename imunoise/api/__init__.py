@@ -147,7 +147,7 @@ def fit(data: AllanResult | Channel, model: str = DEFAULT_MODEL) -> FitReport:
 
     if isinstance(data, Channel):
         result, curve = fit_channel(data.recording.record, data.key, model)
-        return FitReport(result, curve, data.units, data)
+        return FitReport(result, curve, data.units, data, model)
     if not isinstance(data, AllanResult):
         raise TypeError("fit needs an AllanResult (imunoise.oadev) or a channel, not a "
                         f"{type(data).__name__}")
@@ -156,7 +156,7 @@ def fit(data: AllanResult | Channel, model: str = DEFAULT_MODEL) -> FitReport:
     names, fixed = parse_model(model)
     with fit_errors(data.channel.key if data.channel else "curve"):
         result = fit_allan(data.curve, names, fixed=fixed or None)
-    return FitReport(result, data.curve, data.units, data.channel)
+    return FitReport(result, data.curve, data.units, data.channel, model)
 
 
 def diagnose(channel: Channel, model: str = DEFAULT_MODEL) -> Diagnosis:
@@ -186,7 +186,7 @@ def diagnose(channel: Channel, model: str = DEFAULT_MODEL) -> Diagnosis:
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), channel.skip_s,
                                              list(channel.split_s))
-    return Diagnosis(diag, channel)
+    return Diagnosis(diag, channel, model)
 
 
 def analyze(source: str | Recording, channels: list[str] | None = None) -> dict[str, Any]:
@@ -200,16 +200,14 @@ def analyze(source: str | Recording, channels: list[str] | None = None) -> dict[
     >>> list(doc["channels"]), [t["term"] for t in doc["channels"]["gyro_x"]["model"]]
     (['gyro_x'], ['white', 'bias_instability', 'random_walk'])
     """
+    from imunoise.pipeline.assembly import analysis_document, printed_analysis
     from imunoise.pipeline.channel_analysis import analyze_record
-    from imunoise.pipeline.channel_extras import complete_document, without_report_extras
-    from imunoise.pipeline.documents import analysis_json
     from imunoise.pipeline.reading import select
 
     rec = source if isinstance(source, Recording) else read(source)
     keys = select(rec.record, list(channels or []))
     results = analyze_record(rec.record, keys, show_progress=False)
-    doc = complete_document(analysis_json(rec.path, rec.record, results), rec.record)
-    return without_report_extras(doc)
+    return printed_analysis(analysis_document(rec.path, rec.record, results)[0])
 
 
 def _example_csv(rate: np.ndarray, fs_hz: float = 100.0) -> str:

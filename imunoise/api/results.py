@@ -103,6 +103,7 @@ class Channel:
     key: str
     skip_s: float = 0.0
     split_s: tuple[float, ...] = ()
+    uncut: Recording | None = None  # the recording before the cuts (the others' time base)
 
     def window(self, skip_s: float = 0.0, split_s: tuple[float, ...] | list[float] = ()
                ) -> Channel:
@@ -119,7 +120,13 @@ class Channel:
                                      warnings=list(self.recording.record.warnings))
         apply_window(record, self.key, float(skip_s), [float(t) for t in split_s])
         return Channel(Recording(self.recording.path, record), self.key, float(skip_s),
-                       tuple(float(t) for t in split_s))
+                       tuple(float(t) for t in split_s), self.uncut or self.recording)
+
+    def time_base_group(self) -> list[str]:
+        """The channels on this channel's time base before the cuts (this one first)."""
+        from imunoise.pipeline.cross_channel import same_time_base
+
+        return same_time_base((self.uncut or self.recording).record.channels, self.key)
 
     @property
     def series(self) -> ChannelSeries:
@@ -304,6 +311,7 @@ class FitReport:
     curve: AllanCurve
     units: str = ""
     channel: Channel | None = None
+    model_text: str = ""
 
     @property
     def model(self) -> list[dict[str, Any]]:
@@ -332,8 +340,10 @@ class FitReport:
         """``imunoise fit --json``'s document for a channel; for a curve of an array, its
         ``model``, ``error``, ``failures`` and ``allan``."""
         if self.channel is not None:
-            return documents.fit_json(self.channel.recording.record, self.channel.key,
-                                      self.result, self.curve)
+            from imunoise.pipeline.assembly import fit_document
+
+            return fit_document(self.channel.recording.record, self.channel.key,
+                                self.model_text, self.result, self.curve)[0]
         fields = documents.fit_fields(self.result, self.curve)
         return {"model": fields["model"], "error": fields["error"],
                 "failures": fields["failures"],
@@ -391,15 +401,17 @@ class Diagnosis:
     Attributes:
         diagnosis: :class:`imunoise.analysis.diagnosis.Diagnosis`.
         channel: the channel diagnosed.
+        model_text: the model given to the diagnosis.
     """
 
     diagnosis: AnalysisDiagnosis
     channel: Channel
+    model_text: str = ""
 
     @property
     def fit(self) -> FitReport:
         return FitReport(self.diagnosis.fit, self.diagnosis.curve, self.channel.units,
-                         self.channel)
+                         self.channel, self.model_text)
 
     @property
     def suggestions(self) -> list[dict[str, Any]]:
@@ -413,8 +425,11 @@ class Diagnosis:
 
     def document(self) -> dict[str, Any]:
         """``imunoise diagnose --json``'s document."""
-        return documents.diagnosis_json(self.channel.recording.record, self.channel.key,
-                                        self.diagnosis)
+        from imunoise.pipeline.assembly import diagnosis_document
+
+        ch = self.channel
+        return diagnosis_document(ch.recording.record, ch.key, self.diagnosis,
+                                  ch.time_base_group(), ch.skip_s, ch.split_s)[0]
 
     def to_json(self) -> str:
         return documents.dumps(self.document())

@@ -11,7 +11,7 @@ from imunoise.core.record import Record
 from imunoise.errors import UsageError
 from imunoise.pipeline import cross_channel
 from imunoise.pipeline.channel_analysis import analyze_record
-from imunoise.pipeline.documents import analysis_json, dataset_statement
+from imunoise.pipeline.documents import dataset_statement
 from imunoise.pipeline.reading import read_record, select
 from imunoise.progress import spinner
 
@@ -102,9 +102,12 @@ def run(args: argparse.Namespace) -> int:
         results = analyze_record(record, keys)
     coherence = residuals = None
     if args.json or args.report:
-        from imunoise.pipeline import channel_extras, documents
+        from imunoise.pipeline import documents
+        from imunoise.pipeline.assembly import analysis_document, printed_analysis
 
-        doc, coherence, residuals = _document(args, record, results, streamed, subtract)
+        doc, coherence, residuals = analysis_document(
+            args.file, record, results, streamed=streamed, subtract=subtract,
+            full=bool(args.report), band_hz=args.overbound_band)
         if args.report:
             from imunoise.export.files import write_text_atomically
             from imunoise.export.report_html import render_report
@@ -112,11 +115,7 @@ def run(args: argparse.Namespace) -> int:
             write_text_atomically(args.report, render_report(doc))
             print(f"wrote {args.report}", file=sys.stderr)
     if args.json:
-        out = channel_extras.without_report_extras(doc)
-        for ch in out["channels"].values():  # the own noise's diagnosis is the report's too
-            if "own" in ch:
-                ch["own"] = {k: v for k, v in ch["own"].items() if k != "suggestions"}
-        sys.stdout.write(documents.dumps(out) + "\n")
+        sys.stdout.write(documents.dumps(printed_analysis(doc)) + "\n")
     else:
         if coherence is None and not streamed:
             coherence, residuals = cross_channel.coherence_document(
@@ -147,28 +146,6 @@ def _print_text(file: str, record: Record, results: list, coherence: dict | None
     if lines:
         print()
         print("\n".join(lines))
-
-
-def _document(args: argparse.Namespace, record: Record, results: list, streamed: bool,
-              subtract: bool) -> tuple[dict, dict | None, dict | None]:
-    """The JSON/report document with its ``coherence`` (and each channel's ``own`` with
-    ``subtract``): ``(document, coherence, residuals)``."""
-    from imunoise.pipeline import channel_extras
-
-    doc = channel_extras.complete_document(analysis_json(args.file, record, results), record,
-                                           full=bool(args.report), band_hz=args.overbound_band,
-                                           diagnose=not streamed)
-    if streamed:
-        return doc, None, None
-    suggestions = {k: ch["suggestions"] for k, ch in doc["channels"].items()
-                   if ch.get("suggestions")}
-    coherence, residuals = cross_channel.coherence_document(
-        record, [r.key for r in results], suggestions=suggestions or None, subtract=subtract)
-    if coherence is not None:
-        doc["coherence"] = coherence
-    if residuals:
-        cross_channel.add_own(doc, record, residuals, diagnose=bool(args.report))
-    return doc, coherence, residuals
 
 
 def _own_text(r, sub) -> str:

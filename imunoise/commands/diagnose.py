@@ -26,7 +26,7 @@ from imunoise.commands.common import add_rate_option, add_window_options
 from imunoise.commands.fit import fit_text
 from imunoise.errors import UsageError
 from imunoise.pipeline import cross_channel
-from imunoise.pipeline.documents import diagnosis_json
+from imunoise.pipeline.assembly import diagnosis_document
 from imunoise.pipeline.fitting import diagnose_channel, full_window_args, parse_model
 from imunoise.pipeline.reading import apply_window, open_imu_channel
 
@@ -78,11 +78,16 @@ def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float]
 def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                    model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
+    from imunoise.analysis.model_error import parts_line
     from imunoise.analysis.terms import TERMS, param_unit
 
     u = series.units
-    lines = [fit_text(key, series, diag.fit, diag.curve), "", "  suggestions (best first; "
-             f"* = significant at family level {diag.alpha:g})"]
+    lines = [fit_text(key, series, diag.fit, diag.curve)]
+    parts = getattr(diag, "error_parts", None)
+    if parts:
+        lines.append("  " + parts_line(diag.fit.chi2_per_dof, parts).replace("\n", "\n  "))
+    lines += ["", "  suggestions (best first; "
+              f"* = significant at family level {diag.alpha:g})"]
     for i, s in enumerate(diag.suggestions, 1):
         mark = "*" if s.significant else " "
         after = (f"{s.chi2_per_dof_after:.3g}" if np.isfinite(s.chi2_per_dof_after)
@@ -90,8 +95,11 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
         term = TERMS.get(s.term)
         # a warm-up or bias step is no term: its remedy cuts the record (apply.args)
         verb = "add" if term is not None else "cut"
+        psd_after = ((getattr(s, "error_after", None) or {}).get("psd") or {}).get(
+            "deviance_per_bin")
+        psd_txt = "" if psd_after is None else f" psd/bin -> {psd_after:.3g}"
         lines.append(f"  {mark}{i:2d}. {verb} {s.term:17s} chi2/dof {s.chi2_per_dof_before:.3g} "
-                     f"-> {after:8s} p = {s.p_value:.2g}")
+                     f"-> {after:8s}{psd_txt} p = {s.p_value:.2g}")
         if term is not None:
             pars = [_suggested_param(s.term, p.name, s.params[p.name], s.ci95.get(p.name),
                                      param_unit(p, u))
@@ -217,15 +225,10 @@ def run(args: argparse.Namespace) -> int:
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     # the lines and resonances judged against the other channels: common or own
-    coherence = cross_channel.channel_coherence(record, key, diag, group,
-                                                args.skip, args.split or ())
+    doc, coherence = diagnosis_document(record, key, diag, group, args.skip, args.split or ())
     if args.json:
         from imunoise.pipeline import documents
 
-        doc = diagnosis_json(record, key, diag)
-        if coherence is not None:
-            doc["coherence"] = coherence
-            cross_channel.mark_origins(doc["suggestions"], coherence, key)
         sys.stdout.write(documents.dumps(doc) + "\n")
     else:
         for w in record.warnings:

@@ -19,7 +19,8 @@ from imunoise.commands.common import (
     failure_lines,
     model_lines,
 )
-from imunoise.pipeline.documents import fit_json, z_on_curve
+from imunoise.pipeline.assembly import fit_document
+from imunoise.pipeline.documents import z_on_curve
 from imunoise.pipeline.fitting import fit_channel, parse_model
 from imunoise.pipeline.reading import apply_window, open_imu_channel
 
@@ -66,12 +67,16 @@ def run(args: argparse.Namespace) -> int:
     record, key = open_imu_channel(args.file, args.rate, args.channel, "fit", args.static)
     apply_window(record, key, args.skip, args.split)
     result, curve = fit_channel(record, key, args.model)
+    doc, parts = fit_document(record, key, args.model, result, curve)
     if args.json:
         from imunoise.pipeline import documents
 
-        sys.stdout.write(documents.dumps(fit_json(record, key, result, curve)) + "\n")
+        sys.stdout.write(documents.dumps(doc) + "\n")
     else:
+        from imunoise.analysis.model_error import parts_line
+
         for w in record.warnings:
             print(f"warning: {w}", file=sys.stderr)
         print(fit_text(key, record.series(key), result, curve))
+        print("  " + parts_line(result.chi2_per_dof, parts).replace("\n", "\n  "))
     return 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import struct
 import sys
 from pathlib import Path
 
@@ -46,13 +47,22 @@ def run(args: argparse.Namespace) -> int:
     except McapFormatError as exc:
         dst.unlink(missing_ok=True)
         raise UsageError(f"repair: {src}: {exc}") from exc
+    except (ValueError, struct.error, IndexError, OverflowError) as exc:  # damaged beyond use
+        dst.unlink(missing_ok=True)
+        raise UsageError(f"repair: {src}: damaged MCAP records ({type(exc).__name__})") from exc
     except OSError as exc:
         dst.unlink(missing_ok=True)
         raise RuntimeFailure(f"repair: {exc}") from exc
     if args.in_place:
         os.replace(dst, src)
         dst = src
-    dropped = f", {result.dropped_bytes} bytes of damaged tail dropped" if \
+    for w in result.warnings[:20]:
+        print(f"warning: {w}", file=sys.stderr)
+    if len(result.warnings) > 20:
+        print(f"warning: ... and {len(result.warnings) - 20} more", file=sys.stderr)
+    dropped = f", {result.dropped_chunks} damaged chunk(s) dropped" if \
+        result.dropped_chunks else ""
+    dropped += f", {result.dropped_bytes} bytes of damaged tail dropped" if \
         result.dropped_bytes else ""
     print(f"repair: {src}: {result.method}: {result.messages} messages{dropped} -> {dst}",
           file=sys.stderr)

@@ -115,13 +115,15 @@ def _run_replay(blocks, total: int | None, feed, speed: float | None, show: bool
 
 def run(args: argparse.Namespace) -> int:
     from imunoise.daq.readers import ReadError
+    from imunoise.daq.readers.mcap_scan import UnsupportedLayout
     from imunoise.daq.replay import ReplaySummary, open_blocks
 
     speed = _speed(args.speed)
     if args.serve:
         return _serve(args, speed)
+    warnings: list[str] = []
     try:
-        blocks, total = open_blocks(args.file)
+        blocks, total = open_blocks(args.file, warnings)
     except ReadError as exc:
         raise UsageError(f"replay: {exc}") from exc
     summary = ReplaySummary()
@@ -135,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         _run_replay(blocks, total, feed, speed, not args.no_progress and sys.stderr.isatty())
     except ReadError as exc:
         raise UsageError(f"replay: {exc}") from exc
-    except ValueError as exc:
+    except (ValueError, UnsupportedLayout) as exc:
         raise UsageError(f"replay: {args.file}: {exc}") from exc
     rows = summary.rows()
     if args.json:
@@ -143,7 +145,9 @@ def run(args: argparse.Namespace) -> int:
 
         for r in rows:
             r["white_noise_density"] = number(r["white_noise_density"])
-        print(dumps({"file": args.file, "channels": rows}))
+        print(dumps({"file": args.file, "channels": rows, "warnings": warnings}))
         return 0
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
     _print_rows(rows)
     return 0

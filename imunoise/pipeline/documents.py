@@ -10,6 +10,7 @@ strict JSON. Shapes follow docs/json.md and docs/schemas/: a channel document ca
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -188,9 +189,9 @@ def analysis_json(path: str, record: Record, results: Sequence[Any]) -> dict[str
     """The ``analyze`` JSON document of analysed channels
     (:class:`imunoise.pipeline.channel_analysis.ChannelAnalysis`)."""
     channels = {
-        r.key: channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
-                            warnings=r.warnings, channel=r.key,
-                            **(fit_fields(r.fit, r.allan) if r.fit else {}))
+        r.key: _with_psd_part(channel_json(r.series, r.allan, psd=r.psd, include_psd=True,
+                                           warnings=r.warnings, channel=r.key,
+                                           **(fit_fields(r.fit, r.allan) if r.fit else {})), r)
         for r in results
     }
     doc = analyze_json(path, channels, record.warnings)
@@ -200,6 +201,27 @@ def analysis_json(path: str, record: Record, results: Sequence[Any]) -> dict[str
     for key in ("timing", "motion"):
         if key in record.facts:
             doc[key] = record.facts[key]
+    return doc
+
+
+def _with_psd_part(doc: dict[str, Any], r: Any) -> dict[str, Any]:
+    """An ``analyze`` channel document with the default model's PSD part: ``psd.model_psd``,
+    ``psd.z`` and ``error.psd``; the hold-out and time-domain parts are left to ``fit`` (they
+    cost two fits and a transient search per channel)."""
+    from imunoise.analysis.model_error import plain, psd_parts
+    from imunoise.analysis.psd import default_nperseg
+
+    if r.fit is None or r.psd is None:
+        return doc
+    bounds = np.append(r.series.segment_starts, r.series.n_samples)
+    nperseg = default_nperseg(int(np.max(np.diff(bounds))))
+    block, part = psd_parts(r.fit.params, r.psd, r.series.fs_hz, nperseg)
+    doc["psd"]["model_psd"] = plain(block["model_psd"])
+    doc["psd"]["z"] = plain(block["z"])
+    doc["error"]["psd"] = plain(part)
+    why = "not computed by analyze: imunoise fit reports it"
+    doc["error"]["holdout"] = {"chi2_per_dof": None, "parts": 2, "reason": why}
+    doc["error"]["time_domain"] = {"statistic": None, "p": None, "reason": why}
     return doc
 
 
@@ -216,19 +238,47 @@ def dataset_statement(record: Record) -> dict[str, Any]:
     return out
 
 
-def fit_json(record: Record, key: str, result: Any, curve: Any) -> dict[str, Any]:
-    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any)."""
+def fit_json(record: Record, key: str, result: Any, curve: Any,
+             parts: tuple[dict[str, Any] | None, dict[str, Any]] | None = None
+             ) -> dict[str, Any]:
+    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any).
+
+    ``parts`` is ``(psd block, error parts)`` from
+    :func:`imunoise.analysis.model_error.error_parts`: the ``psd`` block (measured PSD with
+    ``model_psd`` and ``z``) and the ``error``'s ``psd``, ``holdout`` and ``time_domain``."""
+    from imunoise.analysis.model_error import plain
+
     doc = channel_json(record.series(key), curve, channel=key,
                                  warnings=record.warnings, **fit_fields(result, curve))
     for fact in ("timing", "motion"):
         if fact in record.facts:
             doc[fact] = record.facts[fact]
+    if parts is not None:
+        block, error = parts
+        doc["error"].update(plain(error))
+        if block is not None:
+            doc["psd"] = plain(block)
     return doc
 
 
 def diagnosis_json(record: Record, key: str, diag: Any) -> dict[str, Any]:
     """``fit``'s JSON document plus ``suggestions`` (best first) and ``evidence``."""
-    doc = fit_json(record, key, diag.fit, diag.curve)
-    doc["suggestions"] = [s.to_dict() for s in diag.suggestions]
-    doc["evidence"] = [f.to_dict() for f in diag.findings]
+    doc = fit_json(record, key, diag.fit, diag.curve,
+                   (getattr(diag, "psd", None), getattr(diag, "error_parts", {}) or {}))
+    doc["suggestions"] = finite_or_null([s.to_dict() for s in diag.suggestions])
+    doc["evidence"] = finite_or_null([f.to_dict() for f in diag.findings])
     return doc
+
+
+def finite_or_null(obj: Any) -> Any:
+    """``obj`` with every float that is not finite (an unbounded interval of a short record,
+    say) as None, through dicts, lists and tuples; JSON has no Infinity."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_null(v) for v in obj]
+    return obj

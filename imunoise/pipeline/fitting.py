@@ -78,6 +78,19 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
                           fixed=fixed, ci=CI95)
 
 
+def fit_error_parts(record: Record, key: str, model_text: str, result: Any
+                    ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """``(psd block, error parts)`` of a fit of ``model_text`` to channel ``key``: the PSD,
+    hold-out and time-domain parts beside the Allan chi2/dof
+    (:func:`imunoise.analysis.model_error.error_parts`)."""
+    from imunoise.analysis.model_error import error_parts
+
+    series = record.series(key)
+    with fit_errors(key):
+        return error_parts(series.values, series.fs_hz, model_text, result,
+                           segment_starts=series.segment_starts, units=series.units)
+
+
 ADIS_INTERNAL_RATE_HZ = 819.2
 """Internal sample rate of the ADIS16350, at which its Bartlett filter runs (Hz)."""
 

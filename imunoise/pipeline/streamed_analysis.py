@@ -397,7 +397,9 @@ def analyze_streamed(path: str, selectors: list[str], rate_hz: float | None = No
     imu = [tp for tp in src.topics.values() if tp.kind == "imu" and tp.count]
     temps = [tp for tp in src.topics.values() if tp.kind == "temperature" and tp.count]
     if not imu:
-        raise ValueError("no Imu messages to stream")
+        from imunoise.daq.errors import ReadError
+
+        raise ReadError(f"{Path(path).name}: no Imu messages")
     scans: dict[str, _TopicScan] = {}
     channels: dict[str, Any] = {}
     for tp in imu:
@@ -427,6 +429,8 @@ def analyze_streamed(path: str, selectors: list[str], rate_hz: float | None = No
         feeds, ranges = _plan(record, scans, keys, rate_hz, static)
         bar.update(task, description="analysing (pass 2 of 2)")
         _second_pass(path, src, scans, feeds, ranges, advance)
+    seen = set(record.warnings)
+    record.warnings.extend(w for w in dict.fromkeys(src.warnings) if w not in seen)
     results = [_result(feeds[key]) if key in feeds else _held(record, key) for key in keys]
     meta = record.metadata
     meta["format"] = "mcap"

@@ -120,8 +120,39 @@ def coefficients_view(s: ChannelSnapshot) -> dict[str, Any]:
 
 
 def coefficients(channel: LiveChannel) -> dict[str, Any]:
-    """``/coefficients`` of one channel."""
-    return coefficients_view(channel.snapshot())
+    """``/coefficients`` of one channel, its error with the PSD part beside the Allan's."""
+    s = channel.snapshot()
+    out = coefficients_view(s)
+    if out["error"] is not None and s.fit is not None:
+        out["error"].update(_live_parts(channel.psd_estimate(), s)[1])
+    return out
+
+
+_LIVE_WHY = "not computed by the live service: imunoise fit on the recording reports it"
+
+
+def _live_parts(est: Any, s: ChannelSnapshot) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """The estimator's expected PSD under the fitted model (or None) and the error's PSD,
+    hold-out and time-domain parts for the live views."""
+    from imunoise.analysis.model_error import plain
+    from imunoise.analysis.psd_model import expected_log_psd, whittle_part
+
+    parts: dict[str, Any] = {
+        "psd": {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                "reason": "no PSD estimate yet"},
+        "holdout": {"chi2_per_dof": None, "parts": 2, "reason": _LIVE_WHY},
+        "time_domain": {"statistic": None, "p": None, "reason": _LIVE_WHY}}
+    if est is None or s.fit is None:
+        return None, parts
+    try:
+        expected = expected_log_psd(s.fit.params, est, s.fs_hz, nperseg=None)
+    except ValueError as exc:
+        parts["psd"]["reason"] = str(exc)
+        return None, parts
+    part = whittle_part(est.psd, est.dof, expected)
+    if part is not None:
+        parts["psd"] = plain(part)
+    return expected, parts
 
 
 # --- curves ---------------------------------------------------------------------------------
@@ -189,7 +220,14 @@ def psd(channel: LiveChannel, max_points: int = 400) -> dict[str, Any]:
     out.update(f_hz=floats(f), psd=floats(est.psd[idx]), ci_low=floats(est.ci_low[idx]),
                ci_high=floats(est.ci_high[idx]), dof=floats(est.dof[idx]))
     if s.fit is not None:
-        out["model_psd"] = floats(model_psd(f, s.fit.params, s.fs_hz))
+        from imunoise.analysis.psd_model import psd_z
+
+        expected, _ = _live_parts(est, s)
+        if expected is not None:
+            out["model_psd"] = floats(expected[idx])
+            out["z"] = floats(psd_z(est.psd, est.dof, expected)[idx])
+        else:
+            out["model_psd"] = floats(model_psd(f, s.fit.params, s.fs_hz))
     return out
 
 

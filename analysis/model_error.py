@@ -1,0 +1,240 @@
+"""The parts of a model's error beside the Allan chi2/dof, each about 1 (or unremarkable) when
+the model describes the sensor (CONTRACT.md ``error.psd``, ``error.holdout``,
+``error.time_domain`` and the ``psd`` block).
+
+- PSD: the measured log-frequency PSD (:func:`imunoise.analysis.psd.log_psd`, the segment
+  length ``analyze`` uses) against the estimator's expected value under the model
+  (:func:`imunoise.analysis.psd_model.expected_log_psd`): Whittle deviance per bin
+  ``mean(nu (r - 1 - ln r))``, ``r = psd/model``, and the share of bins outside their 95 %
+  chi-square interval (5 % expected).
+- Hold-out: the record cut into two halves at its middle sample; the model's terms (the
+  user's held parameters held) fitted on each half, from the whole record's solution (no
+  starting-value search, linearised intervals: the two fits cost about one), and each half's
+  model with every parameter held evaluated on the other half (a fully given model,
+  :func:`imunoise.analysis.fit.fit_allan`). The part is the mean of the two chi2/dof.
+  ``changed`` names the parameters whose two values differ beyond their intervals: in log
+  scale, ``z = |ln a - ln b| / sqrt(se_a^2 + se_b^2)`` with ``se`` from each 95 % interval,
+  above the two-sided Bonferroni level 5 % over the parameters compared. Amplitudes whose
+  interval reaches zero are not compared (no estimate).
+- Time domain: the step and warm-up test of :func:`imunoise.analysis.evidence.transients`
+  under the fitted model; its statistic (largest standardised contrast of block means) and
+  Monte Carlo p-value over every split and time constant.
+
+A part that cannot be computed is ``None`` in its value with a ``reason``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy.stats import norm
+
+from imunoise.analysis.psd import PsdEstimate, default_nperseg, log_psd
+from imunoise.analysis.psd_model import expected_log_psd, psd_z, whittle_part
+from imunoise.analysis.terms import get_term, labels, parse_model
+
+Model = Sequence[tuple[str, dict[str, float]]]
+
+HOLDOUT_ALPHA = 0.05
+"""Family level over the parameters compared between the halves."""
+
+TIME_DOMAIN_TEST = ("bias step or warm-up: largest standardised contrast of block means "
+                    "under the fitted model (max |z|), Monte Carlo p over every split and "
+                    "time constant")
+
+
+def _bounds(n: int, segment_starts: np.ndarray | None) -> np.ndarray:
+    starts = np.zeros(1, dtype=np.int64) if segment_starts is None else np.asarray(
+        segment_starts, dtype=np.int64)
+    return np.append(starts, n)
+
+
+def measured_psd(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | None = None
+                 ) -> tuple[PsdEstimate, int]:
+    """The log-frequency PSD of a channel as ``analyze`` computes it, and its segment length."""
+    x = np.asarray(values, dtype=np.float64)
+    longest = int(np.max(np.diff(_bounds(x.size, segment_starts)))) if x.size else 0
+    nperseg = default_nperseg(longest)
+    return log_psd(x, fs_hz, segment_starts=segment_starts, ci=0.95, nperseg=nperseg), nperseg
+
+
+def psd_parts(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int
+              ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(psd block, error.psd)`` of a model against a measured estimate."""
+    block: dict[str, Any] = {"f_hz": est.f_hz, "psd": est.psd, "dof": est.dof,
+                             "ci_low": est.ci_low, "ci_high": est.ci_high}
+    try:
+        expected = expected_log_psd([(n, p) for n, p in model
+                                     if get_term(n).role != "regressor"], est, fs_hz, nperseg)
+    except ValueError as exc:
+        nan = np.full(len(est.f_hz), np.nan)
+        return ({**block, "model_psd": nan, "z": nan},
+                {"deviance_per_bin": None, "bins": 0, "outside_95": None, "reason": str(exc)})
+    block["model_psd"] = expected
+    block["z"] = psd_z(est.psd, est.dof, expected)
+    part = whittle_part(est.psd, est.dof, expected)
+    if part is None:
+        part = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                "reason": "fewer than 5 usable PSD points"}
+    return block, part
+
+
+def _half(x: np.ndarray, bounds: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Samples ``a..b`` and their gap-free segment starts (relative to ``a``)."""
+    inner = bounds[(bounds > a) & (bounds < b)] - a
+    return x[a:b], np.concatenate(([0], inner)).astype(np.int64)
+
+
+def _log_se(ci: tuple[float, float] | None) -> float | None:
+    if ci is None:
+        return None
+    lo, hi = float(ci[0]), float(ci[1])
+    if not (lo > 0 and hi > lo and math.isfinite(hi)):
+        return None
+    return (math.log(hi) - math.log(lo)) / (2.0 * 1.959963984540054)
+
+
+def _changed(fit_a: Any, fit_b: Any) -> list[dict[str, Any]]:
+    """Parameters fitted on both halves whose values differ beyond their intervals."""
+    names = [t.term for t in fit_a.terms]
+    pairs = []
+    for label, ta, tb in zip(labels(names), fit_a.terms, fit_b.terms, strict=True):
+        term = get_term(ta.term)
+        if term.role == "regressor":
+            continue
+        for k in ta.params:
+            sa, sb = _log_se(ta.ci95.get(k)), _log_se(tb.ci95.get(k))
+            if sa is None or sb is None or sa == 0.0 and sb == 0.0:
+                continue  # held, or no estimate on a half
+            a, b = float(ta.params[k]), float(tb.params[k])
+            z = abs(math.log(a) - math.log(b)) / math.hypot(sa, sb)
+            pairs.append((f"{label}.{k}", a, b, z))
+    if not pairs:
+        return []
+    crit = float(norm.isf(HOLDOUT_ALPHA / (2.0 * len(pairs))))
+    return [{"param": p, "values": [a, b], "z": z} for p, a, b, z in pairs if z > crit]
+
+
+def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
+                 segment_starts: np.ndarray | None = None,
+                 fixed: dict | None = None) -> dict[str, Any]:
+    """``error.holdout``: the model fitted on each half predicting the other half.
+
+    ``model`` is the specification the user gave (held parameters stay held), ``fitted`` the
+    whole record's :class:`imunoise.analysis.fit.FitResult` (the halves' fits start there).
+    """
+    from imunoise.analysis.fit import fit_series
+
+    x = np.asarray(values, dtype=np.float64)
+    spec = parse_model(model)
+    if any(get_term(n).role == "regressor" for n in spec.names):
+        return {"chi2_per_dof": None, "parts": 2,
+                "reason": "a temperature regression is not carried into the halves"}
+    bounds = _bounds(x.size, segment_starts)
+    mid = x.size // 2
+    halves = [_half(x, bounds, 0, mid), _half(x, bounds, mid, x.size)]
+    fits = []
+    try:
+        for h, starts in halves:
+            fits.append(fit_series(h, fs_hz, spec, segment_starts=starts, fixed=fixed,
+                                   start=fitted, intervals="jacobian")[0])
+        chis = []
+        for (h, starts), other in zip(halves, fits[::-1], strict=True):
+            given = [(t.term, dict(t.params)) for t in other.terms]
+            chis.append(fit_series(h, fs_hz, given, segment_starts=starts,
+                                   fixed=dict(enumerate(p for _, p in given)),
+                                   intervals="jacobian")[0].chi2_per_dof)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        return {"chi2_per_dof": None, "parts": 2, "reason": f"a half cannot be fitted: {exc}"}
+    return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
+            "halves": [float(c) for c in chis], "changed": _changed(fits[0], fits[1])}
+
+
+def time_domain_part(values: np.ndarray, fs_hz: float, model: Model,
+                     segment_starts: np.ndarray | None = None, units: str = "rad/s",
+                     findings: Sequence[Any] | None = None) -> dict[str, Any]:
+    """``error.time_domain``: the transient test under the fitted model (``findings``: the
+    ``(step, warmup)`` findings when already computed)."""
+    from imunoise.analysis import evidence
+
+    if any(get_term(n).role == "regressor" for n, _ in model):
+        return {"statistic": None, "p": None, "test": TIME_DOMAIN_TEST,
+                "reason": "not computed under a temperature regression"}
+    if findings is None:
+        x = np.asarray(values, dtype=np.float64)
+        b = _bounds(x.size, segment_starts)
+        segments = [x[s:e] for s, e in zip(b[:-1], b[1:], strict=True) if e > s]
+        findings = evidence.transients(segments, fs_hz, list(model), units=units)
+    best = min(findings, key=lambda f: f.p_value)
+    if not math.isfinite(float(best.statistic)) or best.statistic == 0.0:
+        return {"statistic": None, "p": None, "test": TIME_DOMAIN_TEST,
+                "reason": best.why or "record too short for the test"}
+    return {"statistic": float(best.statistic), "p": float(best.p_value),
+            "test": TIME_DOMAIN_TEST, "kind": best.kind}
+
+
+def error_parts(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
+                segment_starts: np.ndarray | None = None, fixed: dict | None = None,
+                units: str = "rad/s", holdout: bool = True,
+                transient_findings: Sequence[Any] | None = None
+                ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """``(psd block, {"psd", "holdout", "time_domain"})`` of a fitted model on a channel."""
+    params = fitted.params
+    parts: dict[str, Any] = {}
+    block = None
+    try:
+        est, nperseg = measured_psd(values, fs_hz, segment_starts)
+        block, parts["psd"] = psd_parts(params, est, fs_hz, nperseg)
+    except ValueError as exc:
+        parts["psd"] = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                        "reason": f"no PSD: {exc}"}
+    parts["holdout"] = (holdout_part(values, fs_hz, model, fitted, segment_starts, fixed)
+                        if holdout else {"chi2_per_dof": None, "parts": 2,
+                                         "reason": "not requested"})
+    parts["time_domain"] = time_domain_part(values, fs_hz, params, segment_starts, units,
+                                            transient_findings)
+    return block, parts
+
+
+def plain(value: Any) -> Any:
+    """``value`` with numpy arrays and numbers as plain lists and floats, and non-finite
+    numbers as None (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [plain(v) for v in value.tolist()]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return v if math.isfinite(v) else None
+    return value
+
+
+def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
+    """The parts of the error side by side, for the text output."""
+    def num(x: Any) -> str:
+        return "n/a" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
+
+    psd = parts.get("psd") or {}
+    ho = parts.get("holdout") or {}
+    td = parts.get("time_domain") or {}
+    out = f"error: allan chi2/dof {num(chi2_per_dof)} | psd deviance/bin " \
+          f"{num(psd.get('deviance_per_bin'))}"
+    if psd.get("outside_95") is not None:
+        out += f" ({100.0 * psd['outside_95']:.0f} % of {psd.get('bins')} bins outside 95 %)"
+    out += f" | hold-out chi2/dof {num(ho.get('chi2_per_dof'))}"
+    out += f" | time domain max|z| {num(td.get('statistic'))} (p {num(td.get('p'))})"
+    lines = [out]
+    for c in ho.get("changed") or []:
+        a, b = c["values"]
+        lines.append(f"  finding: {c['param']} changed between the halves: {a:.4g} -> {b:.4g} "
+                     f"(z = {c['z']:.1f})")
+    return "\n".join(lines)

@@ -1,0 +1,276 @@
+"""The model's PSD as the log-frequency estimator sees it: the expected value of
+:func:`imunoise.analysis.psd.log_psd` under a noise model, point by point.
+
+A model's PSD evaluated at a point's frequency is not what the estimator returns on average.
+Three effects separate them, and each is computed here exactly or to a known bound:
+
+- Sampling. The terms' spectra are those of the sampled sequence (aliasing included): white,
+  quantization, random walk, Markov and resonance terms are defined in discrete time and their
+  ``psd`` is periodic in ``fs``; output filters multiply the noise terms' PSD by ``|G(f)|^2``.
+  Bias instability is taken as sampled: the exact spectrum of its Markov-sum realisation
+  (:func:`imunoise.analysis.terms.bias_instability.flicker_psd`), ``B^2/(pi f)`` over the band
+  and aliased near Nyquist.
+- The cascade. Level ``j`` of the estimator is the record through ``j`` anti-alias FIR filters,
+  each followed by a decimation by 2; by the noble identity this is one filter at the full rate
+  followed by decimation by ``2^j``. Its PSD is the input's times the cascade's power gain,
+  folded at ``fs_j = fs/2^j`` (the folds at ``+-fs_j`` are included: they carry the filters'
+  transition band; further folds lie 100 dB down twice). The estimator divides the gain at
+  the bin frequency back out; so does this expectation.
+- The window. A Welch bin's expected periodogram is the level's PSD convolved with the Hann
+  window's spectral kernel ``|W(u)|^2`` (normalised to unit area). The segment mean removal
+  changes nothing at the bins used (``k >= 2``, where the periodic Hann window's transform
+  vanishes). The convolution is done on a grid of ``PAD`` points per bin over the whole period
+  (so far leakage, e.g. of a steep random-walk spectrum into the lowest bins, is included),
+  by FFT. Spectral lines (sinusoids), resonances narrower than four grid steps and the rate
+  ramp are added in closed form: a line of amplitude ``A`` at ``f0`` contributes
+  ``A^2/4 (K(u_k - u0) + K(u_k + u0))`` (random phase), a ramp the periodogram of its windowed
+  segment (deterministic; the offset is removed by the window at bins >= 2).
+
+Merged log-frequency points average their bins, so their expectation is the mean of the bins'
+expectations. The bin layout is that of :class:`imunoise.analysis.psd.StreamingPsd` and is
+recovered from the estimate itself (its ``method`` and ``f_hz``), so the expectation always
+belongs to the estimate it is compared with.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.signal
+
+from imunoise.analysis.psd import PsdEstimate, _cascade_gain
+from imunoise.analysis.terms import get_term, model_psd
+from imunoise.analysis.terms.bias_instability import flicker_psd
+
+PAD = 32
+"""Grid points per bin of the window convolution."""
+
+Model = Sequence[tuple[str, dict[str, float]]]
+
+
+def _level_of(method: str) -> int:
+    if method == "welch":
+        return 0
+    return int(round(math.log2(int(method.removeprefix("decimate")))))
+
+
+def _hann_kernel(u: np.ndarray, L: int) -> np.ndarray:
+    """``|W(u)|^2 / sum(w^2)`` of the periodic L-point Hann window at ``u`` cycles/sample;
+    its integral over one period is 1."""
+    n = np.arange(L)
+    w = scipy.signal.get_window("hann", L)
+    u = np.atleast_1d(np.asarray(u, dtype=np.float64))
+    # direct DTFT (few points: lines and ramps only)
+    ph = np.exp(-2j * np.pi * np.outer(u, n))
+    return np.abs(ph @ w) ** 2 / float(np.sum(w**2))
+
+
+def _noise_and_rest(model: Model) -> tuple[list, list, list]:
+    """Split a model into its Gaussian part (with any filter), its lines ``(A, f0)`` and its
+    ramp slopes; a regressor (removed before any estimate) has no part."""
+    gaussian, lines, ramps = [], [], []
+    for name, p in model:
+        t = get_term(name)
+        if t.role == "line":
+            lines.append(t.line(p))
+        elif t.role == "ramp":
+            ramps.append(t.ramp_slope(p))
+        elif t.role == "regressor":
+            continue
+        else:
+            gaussian.append((name, dict(p)))
+    return gaussian, lines, ramps
+
+
+def _periodic(f: np.ndarray, fs: float) -> np.ndarray:
+    """Frequencies folded into ``[0, fs/2]`` (the sampled spectrum is even and periodic)."""
+    g = np.mod(np.abs(f), fs)
+    return np.minimum(g, fs - g)
+
+
+def _split_narrow(gaussian: list, df_grid: float) -> tuple[list, list]:
+    """Resonances narrower than four grid steps apart from the other Gaussian terms (the
+    filter, if any, stays with both)."""
+    filt = [(n, p) for n, p in gaussian if get_term(n).kind == "filter"]
+    narrow = [(n, p) for n, p in gaussian
+              if n == "resonance" and p["f0"] / p["Q"] < 4.0 * df_grid]
+    rest = [(n, p) for n, p in gaussian if not any(p is q for _, q in narrow)]
+    return rest, [[(n, p)] + filt for n, p in narrow]
+
+
+def _core(res: list, fs: float, core_hz: float) -> tuple[float, float]:
+    """``(f0, power)`` of a narrow resonance (with its filter) within ``core_hz`` of f0,
+    integrated on a grid that resolves its width (units^2)."""
+    p = res[0][1]
+    f0 = float(p["f0"])
+    f = np.linspace(max(f0 - core_hz, 0.0), f0 + core_hz, 4001)
+    return f0, float(np.trapezoid(model_psd(res, f, fs), f))
+
+
+def _gaussian_psd(gaussian: list, f: np.ndarray, fs: float) -> np.ndarray:
+    if not any(get_term(n).kind != "filter" for n, _ in gaussian):
+        return np.zeros_like(f)
+    fp = _periodic(f, fs)
+    # bias instability as sampled: the exact spectrum of its Markov-sum realisation (the
+    # simulator's), 1/f over the band and aliased near Nyquist
+    plain = [(n, p) for n, p in gaussian if n != "bias_instability"]
+    b2 = sum(float(p["B"]) ** 2 for n, p in gaussian if n == "bias_instability")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = model_psd(plain, fp, fs) if any(get_term(n).kind != "filter" for n, _ in plain) \
+            else np.zeros_like(f)
+        if b2 > 0:
+            flick = flicker_psd(fp, fs, math.sqrt(b2))
+            for n, p in plain:
+                if get_term(n).kind == "filter":
+                    flick = flick * get_term(n).response(fp, fs, p)
+            s = s + flick
+    return np.where(np.isfinite(s), s, 0.0)
+
+
+def _level_bins(est: PsdEstimate, fs: float, L: int, ppd: float | None
+                ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per level, the bin indices the estimator used and the index of each bin's point."""
+    method = np.asarray(est.method).astype(str)
+    levels = sorted({_level_of(m) for m in method})
+    deepest = max(levels)
+    k0 = L // 16
+    out = {}
+    for j in levels:
+        sel = np.flatnonzero(method == ("welch" if j == 0 else f"decimate{2 ** j}"))
+        fs_j = fs / 2**j
+        k_hi = L // 2 if j == 0 else 2 * k0
+        starts = range(2, k_hi) if j == deepest else [k0]
+        target = est.f_hz[sel]
+        found = None
+        for k_lo in starts:
+            k = np.arange(k_lo, k_hi)
+            f = k * fs_j / L
+            if ppd is None:
+                fg, groups = f, np.arange(len(k))
+            else:
+                idx = np.floor(np.log10(f) * ppd + 1e-9).astype(np.int64)
+                _, groups = np.unique(idx, return_inverse=True)
+                fg = np.bincount(groups, f) / np.bincount(groups)
+            if len(fg) == len(target) and np.allclose(fg, target, rtol=1e-9, atol=0.0):
+                found = (k, sel[groups])
+                break
+        if found is None:
+            raise ValueError("the PSD estimate's points do not match the log-frequency "
+                             "estimator's bin layout (nperseg or points per decade differ)")
+        out[j] = found
+    return out
+
+
+def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float,
+                     nperseg: int | None = 256, points_per_decade: float | None = 40.0,
+                     levels: Sequence[int] | None = None) -> np.ndarray:
+    """Expected value (units^2/Hz, one-sided) of each point of ``est`` (a
+    :func:`imunoise.analysis.psd.log_psd` estimate made with ``nperseg`` and
+    ``points_per_decade``) when the record follows ``model`` ``[(term, params)]``.
+    ``levels`` restricts the work to those cascade levels (0: the full-rate Welch band); the
+    other points are NaN. ``nperseg=None`` finds the segment length (a power of two from 64
+    to 4096) whose bin layout the estimate has."""
+    if nperseg is None:
+        for n in (256, 128, 64, 512, 1024, 2048, 4096):
+            try:
+                return expected_log_psd(model, est, fs_hz, n, points_per_decade, levels)
+            except ValueError:
+                continue
+        raise ValueError("the PSD estimate's points match no segment length's bin layout")
+    fs = float(fs_hz)
+    L = int(nperseg)
+    N = L * PAD
+    gaussian, lines, ramps = _noise_and_rest(model)
+    out = np.zeros(len(est.f_hz))
+    counts = np.zeros(len(est.f_hz))
+    w = scipy.signal.get_window("hann", L)
+    kern = np.abs(np.fft.fft(w, N)) ** 2
+    kern /= kern.sum()
+    kern_f = np.fft.fft(kern)
+    for j, (k, point) in _level_bins(est, fs, L, points_per_decade).items():
+        if levels is not None and j not in levels:
+            np.add.at(out, point, np.nan)
+            continue
+        fs_j = fs / 2**j
+        step = fs_j / N
+        g_noise, narrow = _split_narrow(gaussian, step)
+        core = 2.0 * step
+        lines_j = list(lines)
+        u = np.arange(N) / N
+        u = np.where(u > 0.5, u - 1.0, u)  # one period, two-sided, cycles/sample at level j
+        s = np.zeros(N)
+        for a in ((0,) if j == 0 else (-1, 0, 1)):
+            f = (u + a) * fs_j
+            gain = np.ones(N) if j == 0 else _cascade_gain(np.abs(f), fs, j)
+            s += 0.5 * _gaussian_psd(g_noise, f, fs) * gain
+            for res in narrow:
+                # the resonance's tails on the grid; its core (within two steps) as a line
+                fp = _periodic(f, fs)
+                outside = np.abs(fp - res[0][1]["f0"]) >= core
+                s += 0.5 * np.where(outside, model_psd(res, fp, fs), 0.0) * gain
+        # E[P(u_k)] = sum_m S(u_k - m/N) K(m/N): circular convolution on the grid
+        conv = np.real(np.fft.ifft(np.fft.fft(s) * kern_f))
+        e = 2.0 * conv[(k * PAD) % N]
+        uk = k / L
+        for res in narrow:
+            f0, power = _core(res, fs, core)
+            lines_j.append((math.sqrt(2.0 * power), f0))
+        for amp, f0 in lines_j:
+            g0 = 1.0 if j == 0 else float(_cascade_gain(np.array([f0]), fs, j)[0])
+            if g0 < 1e-14:
+                continue
+            u0 = f0 / fs_j
+            both = _hann_kernel(uk - u0, L) + _hann_kernel(uk + u0, L)
+            e += 0.5 * amp * amp * g0 * both / fs_j
+        for slope in ramps:
+            # the ramp within a segment at level j: slope/fs_j per sample (offsets vanish)
+            n = np.arange(L)
+            ph = np.exp(-2j * np.pi * np.outer(uk, n))
+            amp = ph @ (w * n * slope / fs_j)
+            e += 2.0 * np.abs(amp) ** 2 / (fs_j * float(np.sum(w**2)))
+        gain_k = np.ones(len(k)) if j == 0 else _cascade_gain(k * fs_j / L, fs, j)
+        e = e / gain_k
+        np.add.at(out, point, e)
+        np.add.at(counts, point, 1.0)
+    return out / np.maximum(counts, 1.0)
+
+
+def whittle_part(psd: np.ndarray, dof: np.ndarray, model: np.ndarray, ci: float = 0.95
+                 ) -> dict[str, float | int] | None:
+    """The PSD part of a model's error: Whittle deviance per bin ``mean(nu (r - 1 - ln r))``
+    with ``r = psd/model`` (about 1 when the model is right: each term is a scaled chi-square
+    with ``nu`` degrees of freedom), the number of bins and the share outside their ``ci``
+    chi-square interval. None with fewer than 5 usable bins."""
+    from scipy.stats import chi2
+
+    p, nu, s = (np.asarray(x, dtype=np.float64) for x in (psd, dof, model))
+    ok = np.isfinite(p) & np.isfinite(nu) & np.isfinite(s) & (p > 0) & (nu > 0) & (s > 0)
+    if ok.sum() < 5:
+        return None
+    r, nu = p[ok] / s[ok], nu[ok]
+    a = (1.0 - ci) / 2.0
+    outside = (r < chi2.ppf(a, nu) / nu) | (r > chi2.ppf(1.0 - a, nu) / nu)
+    return {"deviance_per_bin": float(np.mean(nu * (r - 1.0 - np.log(r)))),
+            "bins": int(ok.sum()), "outside_95": float(np.mean(outside))}
+
+
+def psd_z(psd: np.ndarray, dof: np.ndarray, model: np.ndarray) -> np.ndarray:
+    """Per point, the normal score of the measured PSD under the model (its chi-square law
+    with ``dof`` degrees of freedom): positive when the measurement lies above the model."""
+    from scipy.stats import chi2, norm
+
+    p, nu, s = (np.asarray(x, dtype=np.float64) for x in (psd, dof, model))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = nu * p / s
+        lo = chi2.logcdf(x, nu)
+        hi = chi2.logsf(x, nu)
+        z = np.where(lo < hi, norm.ppf(np.exp(lo)), -norm.ppf(np.exp(hi)))
+        # far tails, where the probabilities underflow: Wilson-Hilferty
+        c = 2.0 / (9.0 * nu)
+        tail = (np.cbrt(x / nu) - (1.0 - c)) / np.sqrt(c)
+        z = np.where(np.isfinite(z), z, tail)
+    return np.clip(np.where(np.isfinite(z), z, 0.0), -1e4, 1e4)
+
+

@@ -1,0 +1,68 @@
+"""The PSD, hold-out and time-domain parts of a model's error (analysis.model_error)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imunoise.analysis.fit import fit_series
+from imunoise.analysis.model_error import error_parts, holdout_part, time_domain_part
+from imunoise.analysis.noise_stream import simulate
+
+FS = 100.0
+N = 1 << 19
+MODEL = [("white", {"N": 1e-3}), ("gauss_markov", {"sigma": 1e-3, "T": 0.5}),
+         ("random_walk", {"K": 1e-5})]
+SPEC = "white,gauss_markov,random_walk"
+
+
+@pytest.fixture(scope="module")
+def stationary():
+    x = simulate(MODEL, N, FS, rng=11)
+    return x, fit_series(x, FS, SPEC)[0]
+
+
+def test_a_correct_model_has_every_part_near_one(stationary):
+    x, fit = stationary
+    block, parts = error_parts(x, FS, SPEC, fit)
+    assert set(block) == {"f_hz", "psd", "dof", "ci_low", "ci_high", "model_psd", "z"}
+    assert len(block["model_psd"]) == parts["psd"]["bins"] > 150
+    assert 0.7 < parts["psd"]["deviance_per_bin"] < 1.4
+    assert parts["psd"]["outside_95"] < 0.12
+    ho = parts["holdout"]
+    assert ho["parts"] == 2 and 0.3 < ho["chi2_per_dof"] < 2.0 and ho["changed"] == []
+    td = parts["time_domain"]
+    assert td["p"] > 0.01 and td["statistic"] > 0
+
+
+def test_a_model_missing_a_term_fails_the_psd_and_holdout_parts(stationary):
+    x, _ = stationary
+    fit = fit_series(x, FS, "white,random_walk")[0]
+    _, parts = error_parts(x, FS, "white,random_walk", fit)
+    assert parts["psd"]["deviance_per_bin"] > 5.0
+
+
+def test_a_resonance_that_moves_between_the_halves_is_named():
+    first = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 20.7, "Q": 30.0})]
+    second = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 19.9, "Q": 30.0})]
+    x = np.concatenate((simulate(first, N // 2, FS, rng=3), simulate(second, N // 2, FS, rng=4)))
+    spec = "white,resonance"
+    fit = fit_series(x, FS, spec)[0]
+    ho = holdout_part(x, FS, spec, fit)
+    names = [c["param"] for c in ho["changed"]]
+    assert "resonance.f0" in names, ho
+    moved = next(c for c in ho["changed"] if c["param"] == "resonance.f0")
+    assert moved["values"][0] > moved["values"][1] + 0.4
+
+
+def test_a_bias_step_shows_in_the_time_domain_part(stationary):
+    x, fit = stationary
+    y = x.copy()
+    y[N // 3:] += 3e-3
+    td = time_domain_part(y, FS, fit.params)
+    assert td["p"] < 0.01 and td["kind"] == "bias_step"
+
+
+def test_parts_that_cannot_be_computed_say_why():
+    td = time_domain_part(np.zeros(100), FS, MODEL)
+    assert td["statistic"] is None and td["reason"]
