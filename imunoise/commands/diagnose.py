@@ -5,6 +5,13 @@ evidence the Allan curve cannot give joins in (spectral lines, correlation with 
 temperature record, drift, a changing noise level, outliers, gaps). A suggestion is
 significant only when it passes the tool's own test, set so that on data the model fully
 explains nothing is significant in at least 95 % of cases.
+
+Several files are replicates: recordings of one unit. Each run is diagnosed alone (``--rounds``
+rounds of the loop: the top significant term added), the most common term set is fitted to
+every run, the shape parameters (correlation times, resonance and line frequencies, quality
+factors, filter cutoffs and taps) are tested for agreement across runs and shared, the
+amplitudes refitted per run, and the parameters that differ between runs beyond their
+intervals are named.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ import numpy as np
 
 from imunoise.commands.common import add_rate_option, add_window_options
 from imunoise.commands.fit import fit_text
+from imunoise.errors import UsageError
 from imunoise.pipeline import cross_channel
 from imunoise.pipeline.assembly import diagnosis_document
 from imunoise.pipeline.fitting import diagnose_channel, full_window_args, parse_model
@@ -26,16 +34,32 @@ from imunoise.pipeline.reading import apply_window, open_imu_channel
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("diagnose", help="fit, then rank the missing effects",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("file", help="input recording (.csv, .mcap or rosbag2 folder)")
+    p.add_argument("file", nargs="+", metavar="FILE",
+                   help="input recording (.csv, .mcap or rosbag2 folder); several files are "
+                        "replicates of one unit")
     p.add_argument("--channel", required=True, metavar="SEL",
                    help="channel to diagnose, e.g. gyro_x or /imu:gyro_x")
     p.add_argument("--model", required=True, metavar="TERMS",
                    help="comma-separated terms of the model to test, e.g. "
                         "white,bias_instability,random_walk")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
+    p.add_argument("--rounds", type=_rounds, default=4, metavar="R",
+                   help="with several files: rounds of the diagnosis loop run on each file "
+                        "alone to choose the unit's term set (0: fit --model as given; "
+                        "default 4)")
     add_rate_option(p)
     add_window_options(p)
     p.set_defaults(func=run)
+
+
+def _rounds(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"--rounds {text!r}: a whole number >= 0")
+    return value
 
 
 def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float] | None,
@@ -103,8 +127,96 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
     return "\n".join(lines)
 
 
+def _value(v: float, unit: str) -> str:
+    return f"{v:.4g} {unit}".removesuffix(" 1")
+
+
+def replicates_text(key: str, units: str, res: Any) -> str:
+    """Readable report of several runs of one unit: term sets, shared shapes, per-run
+    amplitudes and the parameters that differ between runs."""
+    from imunoise.analysis.terms import get_term, param_unit
+
+    def unit(term: str, name: str) -> str:
+        return param_unit(next(p for p in get_term(term).params if p.name == name), units)
+
+    lines = [f"{key}: {len(res.runs)} runs of one unit"]
+    if res.per_run_terms:
+        for lab, terms in zip(res.runs, res.per_run_terms, strict=True):
+            lines.append(f"  {lab}: the loop alone chooses {','.join(terms)}")
+        common, n = res.common_terms
+        lines.append(f"  most common term set ({n} of {len(res.runs)} runs): {','.join(common)}")
+    lines.append(f"  model fitted to every run: {','.join(res.term_set)}")
+    lines.append("  runs (chi2/dof alone -> with the shared shapes held)")
+    for lab, free, tied in zip(res.runs, res.free_fits, res.tied_fits, strict=True):
+        lines.append(f"    {lab}: {free.chi2_per_dof:.3g} -> {tied.chi2_per_dof:.3g}")
+    lines.append(f"  shared shape parameters (95 % intervals; chi2 of the runs against the "
+                 f"pooled value, * = differ at family level {res.alpha:g})")
+    if not res.shared:
+        lines.append("    (the model has none)")
+    for h in res.shared:
+        u = unit(h.term, h.param)
+        mark = "*" if h.differs else " "
+        lines.append(f"  {mark} {h.term:17s} {h.param:5s} = {_value(h.pooled, u)} "
+                     f"[{h.ci95[0]:.4g}, {h.ci95[1]:.4g}]  chi2 {h.q:.3g} on {h.dof} dof, "
+                     f"p = {h.p_value:.2g}")
+    lines.append("  per-run amplitudes (95 % intervals, shared shapes held)")
+    for h in res.amplitudes:
+        u = unit(h.term, h.param)
+        mark = "*" if h.differs else " "
+        vals = ", ".join("-" if e is None else
+                         (f"<{e.ci95[1]:.3g}" if not get_term(h.term).resolved(h.param, e.ci95)
+                          else f"{e.value:.3g} [{e.ci95[0]:.3g}, {e.ci95[1]:.3g}]")
+                         for e in res.tied_values(h))
+        lines.append(f"  {mark} {h.term:17s} {h.param:5s} ({u}): {vals}  chi2 {h.q:.3g} on "
+                     f"{h.dof} dof (own fits)")
+    differ = res.differ
+    if differ:
+        lines.append("  differ between runs beyond their intervals")
+        for h in differ:
+            u = unit(h.term, h.param)
+            vals = ", ".join("-" if e is None else f"{e.value:.4g}"
+                             for e in res.per_run_values(h))
+            lines.append(f"    {h.term} {h.param}: {vals} {u} by run; chi2 = {h.q:.3g} on "
+                         f"{h.dof} dof, p = {h.p_value:.2g}")
+    else:
+        lines.append("  no parameter differs between runs beyond its interval")
+    return "\n".join(lines)
+
+
+def run_replicates(args: argparse.Namespace) -> int:
+    """Several files: replicates of one unit (see the module docstring)."""
+    from imunoise.pipeline import documents
+    from imunoise.pipeline.fitting import diagnose_replicates
+
+    records = []
+    key = ""
+    for path in args.file:
+        record, key_i = open_imu_channel(path, args.rate, args.channel, "diagnose",
+                                         args.static)
+        if key and key_i != key:
+            raise UsageError(f"diagnose: --channel {args.channel} is {key} in "
+                             f"{args.file[0]} but {key_i} in {path}")
+        key = key_i
+        apply_window(record, key, args.skip, args.split)
+        records.append((path, record))
+    res = diagnose_replicates(records, key, args.model, args.rounds)
+    if args.json:
+        doc = {"channel": key, "units": records[0][1].series(key).units, "model": args.model,
+               "replicates": res.to_dict()}
+        sys.stdout.write(documents.dumps(doc) + "\n")
+    else:
+        for _, record in records:
+            for w in record.warnings:
+                print(f"warning: {w}", file=sys.stderr)
+        print(replicates_text(key, records[0][1].series(key).units, res))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     parse_model(args.model)  # a misspelt term fails before a long read
+    if len(args.file) > 1:
+        return run_replicates(args)
+    args.file = args.file[0]
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
                                    args.static)
     group = cross_channel.same_time_base(record.channels, key)

@@ -159,3 +159,28 @@ def full_window_args(own: list[str], skip_s: float, split_s: list[float]) -> lis
     if splits:
         out += ["--split", ",".join(f"{t:.10g}" for t in sorted(set(splits)))]
     return out
+
+
+def diagnose_replicates(records: list[tuple[str, Record]], key: str, model_text: str,
+                        rounds: int = 0) -> Any:
+    """:func:`imunoise.analysis.replicates.fit_replicates` on channel ``key`` of several
+    records of one unit (``(label, record)`` each): one model, shared shapes, per-run
+    amplitudes; with ``rounds`` each run is first diagnosed alone that many rounds.
+
+    Raises UsageError for an unknown term or a record too short to fit."""
+    from imunoise.analysis.replicates import Run, fit_replicates
+
+    names, _ = parse_model(model_text)
+    runs = []
+    for label, record in records:
+        series = record.series(key)
+        temp = record.temperature
+        temp_rec = None
+        if temp is not None and temp.n_samples >= 2:
+            temp_rec = (temp.t0_s + np.arange(temp.n_samples) / temp.fs_hz, temp.values)
+        runs.append(Run(label, series.values, series.fs_hz, series.segment_starts,
+                        temperature_at(record, key) if "temperature" in names else None,
+                        {"t0_s": series.t0_s, "temperature": temp_rec, "units": series.units,
+                         "sensor_filter": device_filter(record.metadata, key)}))
+    with fit_errors(key):
+        return fit_replicates(runs, model_text, rounds=rounds)
