@@ -183,7 +183,7 @@ class McapRecorder:
         self.scales: dict[str, tuple[float, float]] = dict(scales or {})
         for d in self.devices.values():
             for key, value in (d.get("scales") or {}).items():  # "<topic>:<channel>"
-                self.scales[key] = tuple(value)  # type: ignore[assignment]
+                self.scales[key] = tuple(value)
         self.rate_hz = rate_hz
         self.rotate_s = rotate_s
         self.flush_s = flush_s

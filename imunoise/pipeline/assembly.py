@@ -19,7 +19,8 @@ from imunoise.pipeline.fitting import fit_error_parts
 
 def analysis_document(path: str, record: Record, results: list, *, streamed: bool = False,
                       subtract: bool = False, full: bool = False,
-                      band_hz: float | None = None) -> tuple[dict, dict | None, dict | None]:
+                      band_hz: tuple[float, float] | None = None
+                      ) -> tuple[dict, dict | None, dict | None]:
     """``analyze``'s document with its ``coherence`` (and each channel's ``own`` with
     ``subtract``): ``(document, coherence, residuals)``. ``full`` keeps what only the HTML
     report shows (and diagnoses the own noise); a streamed analysis has no coherence."""
