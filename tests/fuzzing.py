@@ -284,7 +284,8 @@ def write_euroc(folder: Path, sig: Signals) -> Path:
               "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
     if sig.t_s is not None:
         def stamp(i: int) -> str:
-            return repr(float(sig.t_s[i] * 1e9))  # type: ignore[index]
+            # a mutated time of 1e300 s written in ns is inf: that is the mutation
+            return repr(float(sig.t_s[i]) * 1e9)  # type: ignore[index]
     else:
         def stamp(i: int) -> str:
             return str(int(sig.ns[i]))
