@@ -50,6 +50,9 @@ class ChannelSeries:
             starts with 0. A gap (missing samples, time going backwards) lies before each start
             but the first.
         t0_s: time of the first sample in seconds (epoch or record-relative).
+        segment_t0_s: time of each segment's first sample (s, as ``t0_s``), when the reader
+            knows it (what lies in the gaps); None: each segment follows the one before
+            without a gap in time (:meth:`segment_times`).
     """
 
     name: str
@@ -58,6 +61,20 @@ class ChannelSeries:
     values: np.ndarray
     segment_starts: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     t0_s: float = 0.0
+    segment_t0_s: np.ndarray | None = None
+
+    def segment_times(self) -> np.ndarray:
+        """Time (s) of each segment's first sample: :attr:`segment_t0_s`, or counted in
+        samples from ``t0_s`` when the gaps' lengths are not known."""
+        if self.segment_t0_s is not None and len(self.segment_t0_s) == len(self.segment_starts):
+            return np.asarray(self.segment_t0_s, dtype=np.float64)
+        return self.t0_s + np.asarray(self.segment_starts, dtype=np.float64) / self.fs_hz
+
+    def time_of(self, index: np.ndarray) -> np.ndarray:
+        """Time (s) of the samples at ``index`` (nominal: each segment on its rate's grid)."""
+        idx = np.asarray(index, dtype=np.int64)
+        k = np.searchsorted(self.segment_starts, idx, side="right") - 1
+        return self.segment_times()[k] + (idx - self.segment_starts[k]) / self.fs_hz
 
     def segments(self) -> list[np.ndarray]:
         """The contiguous segments as views into ``values``."""
@@ -69,22 +86,24 @@ class ChannelSeries:
         each range its own segment besides the gaps already inside it; ``t0_s`` moves to the
         first range's start (counted in samples, so gaps before it are not included)."""
         bounds = np.append(self.segment_starts, self.n_samples)
-        parts, starts, at = [], [], 0
+        parts, starts, old, at = [], [], [], 0
         for a, b in ranges:
             a, b = max(0, int(a)), min(self.n_samples, int(b))
             if b <= a:
                 continue
             parts.append(self.values[a:b])
-            inner = bounds[(bounds > a) & (bounds < b)] - a
-            starts.extend([at] + [at + int(i) for i in inner])
+            inner = bounds[(bounds > a) & (bounds < b)]
+            starts.extend([at] + [at + int(i) - a for i in inner])
+            old.extend([a] + [int(i) for i in inner])
             at += b - a
         if not parts:
             raise ValueError(f"{self.name}: no samples in the selected ranges")
         first = next(int(a) for a, b in ranges if min(self.n_samples, int(b)) > max(0, int(a)))
+        times = None if self.segment_t0_s is None else self.time_of(np.asarray(old))
         return ChannelSeries(name=self.name, units=self.units, fs_hz=self.fs_hz,
                              values=np.concatenate(parts),
                              segment_starts=np.asarray(starts, dtype=np.int64),
-                             t0_s=self.t0_s + first / self.fs_hz)
+                             t0_s=self.t0_s + first / self.fs_hz, segment_t0_s=times)
 
     def windowed(self, skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = ()
                  ) -> ChannelSeries:

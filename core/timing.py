@@ -46,6 +46,8 @@ class Timing:
         backward: places where time went backwards or repeated a grid position.
         notes: one-line descriptions for the user.
         gaps: samples missing before each segment start but the first (-1: time went back).
+        segment_t0_s: where each segment's sample grid lies (s, as ``t0_s``), once a reader
+            has worked it out from the stamps (None until then).
     """
 
     fs_hz: float
@@ -57,6 +59,7 @@ class Timing:
     backward: int = 0
     notes: list[str] = field(default_factory=list)
     gaps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    segment_t0_s: np.ndarray | None = None
 
     def facts(self) -> dict[str, float | int]:
         """JSON-ready summary: rate, samples missing, jitter and backward steps."""

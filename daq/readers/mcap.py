@@ -61,15 +61,37 @@ def make_series(name: str, t: np.ndarray, values: np.ndarray, timing: Timing,
     the hole they leave becomes a segment boundary."""
     finite = usable_samples(values)
     if finite.all():
+        starts = timing.segment_starts
+        if timing.segment_t0_s is None:  # once per topic, not per channel
+            timing.segment_t0_s = _stamp_seconds(t, starts, timing.t0_s, timing.fs_hz)
         return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz,
                              values=np.ascontiguousarray(values, dtype=np.float64),
-                             segment_starts=timing.segment_starts, t0_s=timing.t0_s)
+                             segment_starts=starts, t0_s=timing.t0_s,
+                             segment_t0_s=timing.segment_t0_s)
     warnings.append(dropped_samples_note(name, values, finite))
     t, values = t[finite], np.ascontiguousarray(values[finite], dtype=np.float64)
     rel, t0 = relative_seconds(t)
     starts = segment_starts_from_times(rel, timing.fs_hz) if t.size else np.zeros(1, np.int64)
     return ChannelSeries(name=name, units=units, fs_hz=timing.fs_hz, values=values,
-                         segment_starts=starts, t0_s=t0)
+                         segment_starts=starts, t0_s=t0,
+                         segment_t0_s=_stamp_seconds(t, starts, t0, timing.fs_hz))
+
+
+def _stamp_seconds(t: np.ndarray, starts: np.ndarray, t0_s: float, fs_hz: float
+                   ) -> np.ndarray | None:
+    """Where each segment's sample grid lies (s, as ``t0_s``): the mean over the segment of
+    each stamp less its place on the grid, so that the jitter of a first stamp does not
+    shift a whole segment; what lies in the gaps, for putting several topics on one time
+    base."""
+    if t.size == 0 or starts.size == 0 or int(starts[-1]) >= t.size or not fs_hz > 0:
+        return None
+    rel, _ = relative_seconds(t)
+    within = np.arange(t.size, dtype=np.float64)
+    within -= np.repeat(starts, np.diff(np.append(starts, t.size))).astype(np.float64)
+    within /= fs_hz
+    rel -= within
+    counts = np.diff(np.append(starts, t.size)).astype(np.float64)
+    return t0_s + np.add.reduceat(rel, starts) / counts
 
 
 def dropped_samples_note(name: str, values: np.ndarray, usable: np.ndarray) -> str:

@@ -123,10 +123,11 @@ class Channel:
                        tuple(float(t) for t in split_s), self.uncut or self.recording)
 
     def time_base_group(self) -> list[str]:
-        """The channels on this channel's time base before the cuts (this one first)."""
-        from imunoise.pipeline.cross_channel import same_time_base
+        """The channels this one is compared with before the cuts (this one first; other
+        devices are brought onto its time base)."""
+        from imunoise.pipeline.cross_channel import comparison_group
 
-        return same_time_base((self.uncut or self.recording).record.channels, self.key)
+        return comparison_group((self.uncut or self.recording).record.channels, self.key)
 
     @property
     def series(self) -> ChannelSeries:

@@ -219,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     args.file = args.file[0]
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
                                    args.static)
-    group = cross_channel.same_time_base(record.channels, key)
+    group = cross_channel.comparison_group(record.channels, key)
     apply_window(record, key, args.skip, args.split)
     diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)
     for sug in diag.suggestions:

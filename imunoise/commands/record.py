@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -133,10 +134,13 @@ def _open(args: argparse.Namespace, out: Path, rotate_s: float | None) -> tuple[
     return acq, rec
 
 
-def _record(acq: Any, rec: Any, duration: float | None) -> tuple[bool, str | None]:
-    """Copy blocks to the recorder until the duration, Ctrl-C or a device failure; device
-    state changes become events in the file. Returns (interrupted, failure)."""
-    from imunoise.daq import ros2_msgs
+def _copy_blocks(source: Any, rec: Any, write: Callable[[Any], None],
+                 duration: float | None, after_block: Callable[[Any], None] | None = None,
+                 at_end: Callable[[], None] | None = None) -> tuple[bool, str | None]:
+    """Copy ``source``'s blocks through ``write`` until the duration, Ctrl-C, a device failure
+    or a recorder error, with a status line on stderr; ``after_block`` sees each block once
+    written, ``at_end`` runs once the source is closed and before the recorder closes.
+    Returns (interrupted, failure)."""
     from imunoise.daq.errors import DeviceError
     from imunoise.live.acquisition_process import settle_heap
 
@@ -144,21 +148,16 @@ def _record(acq: Any, rec: Any, duration: float | None) -> tuple[bool, str | Non
     tty = sys.stderr.isatty()
     t_start = time.monotonic()
     last_print = 0.0
-    last_state = None
     try:
-        for block in acq.blocks(duration):
-            rec.write(block)
-            state = getattr(getattr(acq, "stats", None), "state", None)
-            if state != last_state and last_state is not None:
-                rec.event(ros2_msgs.WARN if state not in ("running", "ok") else ros2_msgs.OK,
-                          f"device state: {state}", {"event": "state", "state": str(state)},
-                          t=float(block.t[-1]) if len(block) else None)
-            last_state = state
+        for block in source.blocks(duration):
+            write(block)
+            if after_block is not None:
+                after_block(block)
             if rec.error:
                 break
             now = time.monotonic()
             if now - last_print >= (0.5 if tty else 60.0):
-                line = _status_line(rec, acq, t_start)
+                line = _status_line(rec, source, t_start)
                 print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr,
                       flush=True)
                 last_print = now
@@ -168,13 +167,32 @@ def _record(acq: Any, rec: Any, duration: float | None) -> tuple[bool, str | Non
         return False, str(exc)
     finally:
         try:
-            acq.stop()
+            source.stop()
         finally:
-            acq.close()
+            source.close()
+            if at_end is not None:
+                at_end()
             rec.close()
             if tty:
                 print(file=sys.stderr)
     return False, None
+
+
+def _record(acq: Any, rec: Any, duration: float | None) -> tuple[bool, str | None]:
+    """One device: device state changes become events in the file."""
+    from imunoise.daq import ros2_msgs
+
+    last_state: list[Any] = [None]
+
+    def note_state(block: Any) -> None:
+        state = getattr(getattr(acq, "stats", None), "state", None)
+        if state != last_state[0] and last_state[0] is not None:
+            rec.event(ros2_msgs.WARN if state not in ("running", "ok") else ros2_msgs.OK,
+                      f"device state: {state}", {"event": "state", "state": str(state)},
+                      t=float(block.t[-1]) if len(block) else None)
+        last_state[0] = state
+
+    return _copy_blocks(acq, rec, rec.write, duration, after_block=note_state)
 
 
 def _open_group(args: argparse.Namespace, out: Path, rotate_s: float | None
@@ -214,43 +232,16 @@ def _open_group(args: argparse.Namespace, out: Path, rotate_s: float | None
 
 def _record_group(group: Any, rec: Any, sink: Any, duration: float | None
                   ) -> tuple[bool, str | None]:
-    """:func:`_record` for several devices: every block through the group's sink, which
-    records each device's state changes as its own events."""
-    from imunoise.daq.errors import DeviceError
-    from imunoise.live.acquisition_process import settle_heap
+    """Several devices: every block through the group's sink, which records each device's
+    state changes as its own events; each device's losses noted at the end."""
 
-    settle_heap()
-    tty = sys.stderr.isatty()
-    t_start = time.monotonic()
-    last_print = 0.0
-    try:
-        for block in group.blocks(duration):
-            sink.write(block)
-            if rec.error:
-                break
-            now = time.monotonic()
-            if now - last_print >= (0.5 if tty else 60.0):
-                line = _status_line(rec, group, t_start)
-                print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr,
-                      flush=True)
-                last_print = now
-    except KeyboardInterrupt:
-        return True, None
-    except DeviceError as exc:
-        return False, str(exc)
-    finally:
-        try:
-            group.stop()
-        finally:
-            group.close()
-            for name, st in group.stats.as_dict()["devices"].items():
-                sink.sinks[name].note("ok", "acquisition ended", {
-                    "event": "losses", "device_dropped": str(st.get("dropped", 0)),
-                    "device_gaps": str(st.get("gaps", 0))})
-            rec.close()
-            if tty:
-                print(file=sys.stderr)
-    return False, None
+    def note_losses() -> None:
+        for name, st in group.stats.as_dict()["devices"].items():
+            sink.sinks[name].note("ok", "acquisition ended", {
+                "event": "losses", "device_dropped": str(st.get("dropped", 0)),
+                "device_gaps": str(st.get("gaps", 0))})
+
+    return _copy_blocks(group, rec, sink.write, duration, at_end=note_losses)
 
 
 def _run_group(args: argparse.Namespace, out: Path, rotate_s: float | None,

@@ -158,16 +158,12 @@ def raise_kernel_workers(args: argparse.Namespace, spec: str | list[str] | None)
             and getattr(args, "priority", "realtime") == "realtime")
 
 
-def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
-                  ) -> tuple[Any, dict[str, Any], bool]:
-    """The device read and recorded by an acquisition process
-    (``imunoise.live.acquisition_process``)."""
+def _start_acquisition(args: argparse.Namespace, config: Any) -> Any:
+    """The recording folder made and an acquisition process (``AcquisitionConfig``) opened,
+    or the one-line ``RuntimeFailure`` that says why not."""
     from imunoise.daq.errors import DeviceError
-    from imunoise.live.acquisition_process import AcquisitionConfig, AcquisitionProcess
+    from imunoise.live.acquisition_process import AcquisitionProcess
 
-    config = AcquisitionConfig(spec, dict(kwargs), out=args.out, record_rate_hz=args.rate,
-                               software=SOFTWARE, priority=getattr(args, "priority", "realtime"),
-                               realtime_kernel_workers=raise_kernel_workers(args, spec))
     if args.out:
         try:
             Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -178,6 +174,19 @@ def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
         source.open()
     except DeviceError as exc:
         raise RuntimeFailure(f"serve: {exc}") from None
+    return source
+
+
+def _open_process(args: argparse.Namespace, spec: str, kwargs: dict[str, Any]
+                  ) -> tuple[Any, dict[str, Any], bool]:
+    """The device read and recorded by an acquisition process
+    (``imunoise.live.acquisition_process``)."""
+    from imunoise.live.acquisition_process import AcquisitionConfig
+
+    config = AcquisitionConfig(spec, dict(kwargs), out=args.out, record_rate_hz=args.rate,
+                               software=SOFTWARE, priority=getattr(args, "priority", "realtime"),
+                               realtime_kernel_workers=raise_kernel_workers(args, spec))
+    source = _start_acquisition(args, config)
     workers = source.kernel_workers
     if workers and workers.get("threads"):
         print(f"imunoise: {workers['threads']} kernel worker threads at {workers['policy']} "
@@ -289,7 +298,7 @@ def _open_group(args: argparse.Namespace, specs: list[str], bench: Any
             raise RuntimeFailure(f"serve: cannot open {info['spec']}: {exc}") from None
         info["config"] = group.config
         return group, info, True
-    from imunoise.live.acquisition_process import AcquisitionConfig, AcquisitionProcess
+    from imunoise.live.acquisition_process import AcquisitionConfig
 
     epoch = time.monotonic()
     config_members = []
@@ -306,16 +315,7 @@ def _open_group(args: argparse.Namespace, specs: list[str], bench: Any
         priority=getattr(args, "priority", "realtime"),
         realtime_kernel_workers=raise_kernel_workers(args, specs),
         members=config_members)
-    if args.out:
-        try:
-            Path(args.out).mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise RuntimeFailure(f"serve: cannot record to {args.out}: {exc}") from None
-    source = AcquisitionProcess(config)
-    try:
-        source.open()
-    except DeviceError as exc:
-        raise RuntimeFailure(f"serve: {exc}") from None
+    source = _start_acquisition(args, config)
     info["acquisition"] = "process"
     info["config"] = source.config_reported
     return source, info, True

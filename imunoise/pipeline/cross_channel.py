@@ -31,10 +31,12 @@ def time_base_group(series: dict[str, ChannelSeries], keys: list[str]) -> list[s
     return max(groups.values(), key=len, default=[])
 
 
-def same_time_base(series: dict[str, ChannelSeries], key: str) -> list[str]:
-    """The channels on the time base of ``key`` (``key`` first)."""
+def comparison_group(series: dict[str, ChannelSeries], key: str) -> list[str]:
+    """The channels ``key`` is compared with (``key`` first): those on its time base, then
+    those of other devices, which :func:`coherence_document` brings onto its time base."""
     sig = _signature(series[key])
-    return [key] + [k for k, v in series.items() if k != key and _signature(v) == sig]
+    same = [k for k, v in series.items() if k != key and _signature(v) == sig]
+    return [key] + same + [k for k in series if k != key and k not in same]
 
 
 def channel_coherence(record: Record, key: str, diagnosis: Any, group: list[str],
@@ -97,6 +99,17 @@ def coherence_document(record: Record, keys: list[str],
 
     series = series if series is not None else record.channels
     group = time_base_group(series, keys)
+    notes: list[str] = []
+    others = [k for k in keys if k not in group and k != TEMPERATURE_KEY and k in series]
+    if others and group:
+        # other devices, sampled at their own instants: onto the largest group's times
+        from imunoise.analysis.alignment import align
+
+        aligned = align({k: series[k] for k in group + others}, group[0])
+        if aligned.interpolated:
+            series = {**series, **aligned.series}
+            group = [k for k in keys if k in aligned.series]
+            notes.append(aligned.note())
     if len(group) < 2:
         return None, {}
     first = series[group[0]]
@@ -110,6 +123,10 @@ def coherence_document(record: Record, keys: list[str],
             subtract=subtract, only=[k for k in group if only is None or k in only])
     except ValueError as exc:
         return {"warnings": [f"no coherence: {exc}"]}, {}
+    if notes:
+        doc.setdefault("notes", []).extend(notes)
+        doc["aligned"] = {"reference": group[0], "interpolated": aligned.interpolated,
+                          "kept_share": aligned.kept_share}
     apart = [k for k in keys if k not in group and k != TEMPERATURE_KEY]
     if apart:
         doc["not_compared"] = apart

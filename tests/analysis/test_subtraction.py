@@ -103,6 +103,39 @@ def test_three_cornered_hat_recovers_own_white_levels_in_40_seeds():
     assert share >= 0.9, share
 
 
+def test_hat_on_sensors_sampled_at_their_own_instants_after_alignment():
+    """Three sensors that sample 0, 0.31 and 0.74 of a period apart (as devices recorded
+    together do), the second and third interpolated onto the first's times: the own white
+    levels stay within their intervals in at least 90 % of 40 seeds."""
+    from imunoise.analysis.alignment import align
+    from imunoise.core.series import ChannelSeries
+
+    own_n = np.array([1e-3, 2e-3, 0.5e-3])
+    offsets = (0.0, 0.31, 0.74)
+    n = 1 << 16
+    k = np.arange(n // 2 + 1)
+    covered = []
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        common = simulate([("white", {"N": 3e-3}), ("resonance", {"sigma": 0.02, "f0": 2.0,
+                                                                   "Q": 5.0})], n, 100.0, rng)
+        spectrum = np.fft.rfft(common)
+        series = {}
+        for i, (v, frac) in enumerate(zip(own_n, offsets, strict=True)):
+            seen = np.fft.irfft(spectrum * np.exp(2j * np.pi * k * frac / n), n)
+            x = seen + simulate([("white", {"N": v})], n, 100.0, rng)
+            series[str(i)] = ChannelSeries("gyro_x", "rad/s", 100.0, x,
+                                           t0_s=5.0 + frac / 100.0)
+        got = align(series, "0")
+        x = np.column_stack([got.series[str(i)].values for i in range(3)])
+        hat = three_cornered_hat(x, 100.0, ("a", "b", "c"))
+        for i in range(3):
+            _, (lo, hi) = hat.white_level(i, 0.1)
+            covered.append(lo <= own_n[i] <= hi)
+    share = np.mean(covered)
+    assert share >= 0.9, share
+
+
 def test_hat_variance_formula_matches_monte_carlo():
     """Chi-square pair estimates sharing components: the stated variance of the own-variance
     estimate is the Monte Carlo one."""

@@ -181,6 +181,65 @@ def test_three_sensors_on_one_bench_common_line_and_the_hat(tmp_path):
     assert sum(covered) >= 2, levels
 
 
+def _advanced(x: np.ndarray, frac: float) -> np.ndarray:
+    """``x`` (band-limited, periodic) read ``frac`` of a sample later: exact in the FFT."""
+    k = np.arange(x.size // 2 + 1)
+    return np.fft.irfft(np.fft.rfft(x) * np.exp(2j * np.pi * k * frac / x.size), x.size)
+
+
+def test_three_sensors_sampled_at_their_own_instants_are_compared(tmp_path):
+    """As recorded by ``serve``: each device samples at its own instants (0, 0.31 and 0.74 of
+    a period apart) and the second lost 25 samples. The other devices are interpolated onto
+    the first's sample times: the common resonance is named common, the second sensor's
+    line its own, and the hat's own white levels cover the truth."""
+    from imunoise.analysis.noise_stream import simulate
+    from imunoise.core.blocks import SampleBlock
+    from tests.mcap_helpers import record_blocks
+
+    n, size, fs = 60000, 500, 100.0
+    rng = np.random.default_rng(5)
+    common = simulate([("white", {"N": 3e-3}), ("resonance", {"sigma": 0.02, "f0": 2.0,
+                                                               "Q": 5.0})], n, fs, rng)
+    own_n = [1e-3, 2e-3, 0.5e-3]
+    offsets = [0.0, 0.31, 0.74]
+    blocks = []
+    for i, (v, frac) in enumerate(zip(own_n, offsets, strict=True)):
+        ch = {c: simulate([("white", {"N": 1e-3})], n, fs, rng) for c in NAMES}
+        ch["gyro_x"] = _advanced(common, frac) + simulate([("white", {"N": v})], n, fs, rng)
+        ch["accel_z"] -= 9.80665
+        if i == 1:
+            ch["gyro_x"] += 5e-3 * np.sin(2 * np.pi * 7.3 * (np.arange(n) + frac) / fs)
+        t = 1.7e9 + (np.arange(n) + frac) / fs
+        keep = np.ones(n, bool)
+        if i == 1:
+            keep[30000:30025] = False
+        for a in range(0, n, size):
+            sl = np.flatnonzero(keep[a:a + size]) + a
+            blocks.append(SampleBlock(f"/imu{i + 1}/imu", t[sl],
+                                      {c: val[sl] for c, val in ch.items()}, fs))
+    out = tmp_path / "bench"
+    out.mkdir()
+    record_blocks(out, blocks)
+    (path,) = out.glob("*.mcap")
+    keys = [f"/imu{i}/imu:gyro_x" for i in (1, 2, 3)]
+    proc = _run("analyze", path, "--json", *[a for k in keys for a in ("--channel", k)])
+    assert proc.returncode == 0, proc.stderr
+    co = json.loads(proc.stdout)["coherence"]
+    assert co["channels"] == keys
+    assert co["aligned"]["reference"] == keys[0]
+    assert co["aligned"]["interpolated"] == keys[1:]
+    assert 0.99 < co["aligned"]["kept_share"] < 1.0
+    lines = [c for c in co["classification"] if abs(c["f_hz"] - 2.0) < 0.3]
+    assert lines and all(c["origin"] == "common" for c in lines)
+    own = [c for c in co["classification"] if abs(c["f_hz"] - 7.3) < 0.05]
+    assert [c["channel"] for c in own] == ["/imu2/imu:gyro_x"]
+    assert own[0]["origin"] == "own"
+    levels = co["sensors"]["gyro_x"]["white_level"]
+    covered = [levels[k]["ci"][0] <= v <= levels[k]["ci"][1]
+               for k, v in zip(keys, own_n, strict=True)]
+    assert sum(covered) >= 2, levels
+
+
 def test_report_has_the_own_noise_diagnosis(bench_csv):
     from imunoise.export.report_html import render_report
     from imunoise.pipeline import cross_channel
