@@ -88,6 +88,13 @@ def _check_dashboard(page, url: str) -> None:
         assert el.locator("canvas").count() == 1, f"{plot_id} has no canvas"
         assert int(el.get_attribute("data-points") or 0) >= least, f"{plot_id} is empty"
     _check_log_axis_labels(page)
+    # The error history's axis counts seconds since the first fit, not calendar dates: with
+    # one point it spans a second either side of 0, with several their elapsed seconds.
+    x = page.evaluate("[state.plots['history-plot'].scales.x.min, "
+                      "state.plots['history-plot'].scales.x.max, "
+                      "state.plots['history-plot'].axes[0]._values || []]")
+    assert -1.0 <= x[0] <= 0.0 < x[1] < 3600.0, x
+    assert not any(re.search(r"20\d\d|Jan|May", str(v)) for v in x[2]), x[2]
     # The default model misses gyro_x's sinusoid: the z strip marks failures.
     assert int(page.locator("#z-plot").get_attribute("data-failures")) > 0
     rows = page.locator("#coefficients tbody tr")

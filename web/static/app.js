@@ -224,11 +224,15 @@ function drawModel(m) {
   $("history").innerHTML = h.slice(-12).reverse().map((p) =>
     `<li>rev ${p.revision}: χ²/dof ${fmt(p.chi2_per_dof)} [${p.model.join(", ")}]</li>`).join("");
   if (h.length) {
-    plot("history-plot", { height: 150, scales: { y: LOG },
-      series: [{ label: "time" }, { label: "χ²/dof", stroke: "#d62728", width: 2,
-        points: { show: true } }],
-      axes: [{}, logAxis("χ²/dof")] },
-    [h.map((p) => p.time_s), h.map((p) => Math.max(p.chi2_per_dof, 1e-3))]);
+    // seconds since the first fit on a plain axis: uPlot's default time axis would read the
+    // service's clock as calendar dates, and with one point span years around it
+    const t0 = h[0].time_s;
+    const elapsed = (u, lo, hi) => (hi > lo ? [lo, hi] : [lo - 1, lo + 1]);
+    plot("history-plot", { height: 150, scales: { x: { time: false, range: elapsed }, y: LOG },
+      series: [{ label: "s since the first fit" }, { label: "χ²/dof", stroke: "#d62728",
+        width: 2, points: { show: true } }],
+      axes: [{ label: "time since the first fit (s)" }, logAxis("χ²/dof")] },
+    [h.map((p) => p.time_s - t0), h.map((p) => Math.max(p.chi2_per_dof, 1e-3))]);
   }
 }
 
