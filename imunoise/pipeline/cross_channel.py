@@ -125,7 +125,7 @@ def coherence_document(record: Record, keys: list[str],
         return {"warnings": [f"no coherence: {exc}"]}, {}
     if notes:
         doc.setdefault("notes", []).extend(notes)
-        doc["aligned"] = {"reference": group[0], "interpolated": aligned.interpolated,
+        doc["aligned"] = {"reference": aligned.reference, "interpolated": aligned.interpolated,
                           "kept_share": aligned.kept_share}
     apart = [k for k in keys if k not in group and k != TEMPERATURE_KEY]
     if apart:
