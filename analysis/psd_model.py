@@ -34,6 +34,7 @@ belongs to the estimate it is compared with.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -163,6 +164,18 @@ def _level_bins(est: PsdEstimate, fs: float, L: int, ppd: float | None
     return out
 
 
+@functools.lru_cache(maxsize=128)
+def _grid_gain(fs: float, n_grid: int, j: int, alias: int) -> np.ndarray:
+    """The cascade's power gain at level ``j`` on the convolution grid of ``n_grid`` points
+    shifted by ``alias`` periods (read-only). The same for every model compared with one
+    estimate, and most of the time of an expectation: computed once."""
+    u = np.arange(n_grid) / n_grid
+    u = np.where(u > 0.5, u - 1.0, u)
+    gain = _cascade_gain(np.abs((u + alias) * (fs / 2**j)), fs, j)
+    gain.setflags(write=False)
+    return gain
+
+
 def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float,
                      nperseg: int | None = 256, points_per_decade: float | None = 40.0,
                      levels: Sequence[int] | None = None) -> np.ndarray:
@@ -203,7 +216,7 @@ def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float,
         s = np.zeros(N)
         for a in ((0,) if j == 0 else (-1, 0, 1)):
             f = (u + a) * fs_j
-            gain = np.ones(N) if j == 0 else _cascade_gain(np.abs(f), fs, j)
+            gain = np.ones(N) if j == 0 else _grid_gain(fs, N, j, a)
             s += 0.5 * _gaussian_psd(g_noise, f, fs) * gain
             for res in narrow:
                 # the resonance's tails on the grid; its core (within two steps) as a line
