@@ -38,3 +38,46 @@ def test_live_equals_batch_and_waits_for_segments():
     assert doc["msc"][k][j] > doc["threshold"][j]
     with pytest.raises(KeyError, match="valid streams"):
         live.document("/other")
+
+
+def test_devices_sampled_at_their_own_instants_are_compared_live():
+    """Two devices, 0.37 of a period apart, block sizes that differ, a line they share and a
+    line of the second alone: the ``devices`` document finds the shared line coherent across
+    them and the other not."""
+    fs, n = 100.0, 30000
+    rng = np.random.default_rng(11)
+    t_a = np.arange(n) / fs
+    t_b = (np.arange(n) + 0.37) / fs
+    live = LiveCoherence(segment_s=10.24)
+
+    def signals(t, own_line: bool) -> dict[str, np.ndarray]:
+        ch = {name: 1e-3 * rng.standard_normal(t.size) for name in NAMES}
+        ch["gyro_x"] += 2e-3 * np.sin(2 * np.pi * 3.1 * t + 0.4)
+        if own_line:
+            ch["gyro_y"] += 2e-3 * np.sin(2 * np.pi * 7.7 * t)
+        return ch
+
+    a, b = signals(t_a, False), signals(t_b, True)
+    blocks = []
+    for k in range(0, n, 200):
+        blocks.append(SampleBlock("/a/imu", t_a[k:k + 200], {c: v[k:k + 200]
+                                                              for c, v in a.items()}, fs))
+    for k in range(0, n, 330):  # the second device hands out its own block sizes
+        blocks.append(SampleBlock("/b/imu", t_b[k:k + 330], {c: v[k:k + 330]
+                                                              for c, v in b.items()}, fs))
+    blocks.sort(key=lambda blk: blk.t[-1])  # as they arrive
+    for blk in blocks:
+        live.update(blk)
+    assert live.streams == ["/a/imu", "/b/imu", "devices"]
+    doc = live.document("devices")
+    assert doc["ready"], doc
+    assert doc["n_segments"] >= 0.9 * (n / 512 - 1)  # nearly every chunk fed
+    f = np.array(doc["f_hz"])
+
+    def msc(x: str, y: str, hz: float) -> float:
+        k = doc["pairs"].index([x, y])
+        return float(doc["msc"][k][int(np.argmin(np.abs(f - hz)))])
+
+    assert msc("/a/imu:gyro_x", "/b/imu:gyro_x", 3.1) > 0.9
+    assert msc("/a/imu:gyro_y", "/b/imu:gyro_y", 7.7) < 0.2
+    assert msc("/a/imu:gyro_x", "/b/imu:gyro_x", 20.0) < 0.2
