@@ -82,3 +82,42 @@ def test_dashboard_draws_the_coherence_view(url, tmp_path):
             assert "segments of 1024 samples" in page.locator("#coherence-info").inner_text()
             assert errors == [], errors
         browser.close()
+
+
+def _two_devices(n: int = 20000, size: int = 500):
+    """The same bench seen by two devices that sample 0.37 of a period apart."""
+    x, _ = bench_record(72, n=n)
+    rng = np.random.default_rng(72)
+    cols = {c: x[:, NAMES.index(c)] for c in CHANNELS}
+    other = {c: v + 0.3 * np.std(v) * rng.standard_normal(n) for c, v in cols.items()}
+    for a in range(0, n, size):
+        stop = min(a + size, n)
+        yield SampleBlock("/first/imu", np.arange(a, stop) / 100.0,
+                          {c: v[a:stop] for c, v in cols.items()}, 100.0)
+        yield SampleBlock("/second/imu", (np.arange(a, stop) + 0.37) / 100.0,
+                          {c: v[a:stop] for c, v in other.items()}, 100.0)
+
+
+@pytest.mark.skipif(not Path(CHROMIUM).exists() and shutil.which("chromium") is None,
+                    reason="Debian chromium is not installed (apt-get install -y chromium)")
+def test_dashboard_shows_the_coherence_across_devices(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    svc = LiveService(_two_devices(), realtime=False).start()
+    assert svc.wait(120)
+    svc.stop(timeout=120)
+    with running_server(create_app(svc)) as base, sync_playwright() as p:
+        doc = httpx.get(base + "/coherence", params={"stream": "devices"}, timeout=30).json()
+        assert doc["ready"] and len(doc["channels"]) == 6, doc.get("reason")
+        browser = p.chromium.launch(executable_path=CHROMIUM if Path(CHROMIUM).exists()
+                                    else shutil.which("chromium"), args=ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 2200})
+        with screenshot_on_failure(page, tmp_path, "coherence-devices"):
+            page.goto(base + "/")
+            page.wait_for_selector("#coherence-plot canvas", timeout=30000)
+            assert page.locator("#coherence-info").inner_text().startswith("devices:")
+            matrix = page.locator("#coherence-matrix")
+            assert matrix.locator("tr").count() == 7  # header + three channels of each
+            labels = page.evaluate("state.plots['coherence-plot'].series.map((s) => s.label)")
+            assert "/first/imu:gyro_x–/second/imu:gyro_x" in labels
+        browser.close()

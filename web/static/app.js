@@ -166,7 +166,10 @@ function drawCoherence(c) {
 
 async function refreshCoherence() {
   try {
-    drawCoherence(await getJSON("/coherence"));
+    let c = await getJSON("/coherence");
+    // several devices: the document across all of them holds every stream's pairs and more
+    if ((c.streams || []).includes("devices")) c = await getJSON("/coherence?stream=devices");
+    drawCoherence(c);
   } catch (e) {
     $("coherence-info").textContent = String(e);
   }
