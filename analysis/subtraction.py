@@ -71,6 +71,9 @@ class Subtraction:
         n_avg: equivalent independent averages per bin.
         error: the stated error (module notes): ``bias_factor``, ``removed_var``, ``leak_var``,
             ``left_var``, ``target_var`` and the ``*_share`` of each in the target's variance.
+        segment_starts, t0_s: the residual's segments and first sample time when they are not
+            those of the caller's series (the channels were first brought onto another
+            channel's time base); None otherwise.
     """
 
     target: str
@@ -85,6 +88,8 @@ class Subtraction:
     psd_leak: np.ndarray
     n_avg: float
     error: dict[str, float] = field(default_factory=dict)
+    segment_starts: np.ndarray | None = None
+    t0_s: float | None = None
 
     def avar_of(self, psd: np.ndarray, tau_s: np.ndarray | float) -> np.ndarray:
         """Allan variance (units^2) at ``tau_s`` of a component with the one-sided PSD ``psd``

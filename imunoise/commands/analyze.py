@@ -153,12 +153,11 @@ def _own_text(r, sub) -> str:
     from imunoise.analysis.default_model import DEFAULT_MODEL_TEXT
     from imunoise.analysis.fit import fit_allan
     from imunoise.commands.fit import fit_summary
-    from imunoise.core.series import ChannelSeries
     from imunoise.export.report_text import channel_text
     from imunoise.pipeline.channel_analysis import allan_curve, psd_estimate
 
     s = r.series
-    own = ChannelSeries(s.name, s.units, s.fs_hz, sub.residual, s.segment_starts, s.t0_s)
+    own = cross_channel.own_series(s, sub)
     e = sub.error
     lines = ["", f"{r.key} own noise (coherent part of the other channels removed: "
              f"{e['removed_share']:.1%} of the variance; at most {e['leak_share']:.1%} of the "
@@ -168,7 +167,7 @@ def _own_text(r, sub) -> str:
         lines.append(channel_text(f"{r.key} (own)", own, curve, psd_estimate(own), []))
         lines.append(fit_summary(fit_allan(curve, DEFAULT_MODEL_TEXT), s.units))
         level, (lo, hi) = sub.white_level(s.fs_hz, cross_channel.OWN_TAU_S,
-                                          segment_starts=s.segment_starts)
+                                          segment_starts=own.segment_starts)
         lines.append(f"  own white level at tau = {cross_channel.OWN_TAU_S:g} s: "
                      f"{level:.4g} {s.units}/sqrt(Hz) [{lo:.4g}, {hi:.4g}]")
     except ValueError as exc:

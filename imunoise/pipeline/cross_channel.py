@@ -124,6 +124,8 @@ def coherence_document(record: Record, keys: list[str],
     except ValueError as exc:
         return {"warnings": [f"no coherence: {exc}"]}, {}
     if notes:
+        for sub in residuals.values():  # the residuals lie on the aligned samples
+            sub.segment_starts, sub.t0_s = first.segment_starts, first.t0_s
         doc.setdefault("notes", []).extend(notes)
         doc["aligned"] = {"reference": aligned.reference, "interpolated": aligned.interpolated,
                           "kept_share": aligned.kept_share}
@@ -133,6 +135,16 @@ def coherence_document(record: Record, keys: list[str],
         doc.setdefault("warnings", []).append(
             f"not compared (another time base): {', '.join(apart)}")
     return doc, residuals
+
+
+def own_series(raw: ChannelSeries, sub: Any) -> ChannelSeries:
+    """The residual of a subtraction as a series of ``raw``'s channel (on the aligned samples
+    when the channels were aligned first)."""
+    if getattr(sub, "segment_starts", None) is not None:
+        return ChannelSeries(raw.name, raw.units, raw.fs_hz, sub.residual, sub.segment_starts,
+                             sub.t0_s if sub.t0_s is not None else raw.t0_s)
+    return ChannelSeries(raw.name, raw.units, raw.fs_hz, sub.residual, raw.segment_starts,
+                         raw.t0_s)
 
 
 def own_channel_json(record: Record, key: str, sub: Any) -> dict[str, Any]:
@@ -145,8 +157,7 @@ def own_channel_json(record: Record, key: str, sub: Any) -> dict[str, Any]:
     from imunoise.pipeline.documents import channel_json, fit_fields, number
 
     raw = record.series(key)
-    own = ChannelSeries(raw.name, raw.units, raw.fs_hz, sub.residual, raw.segment_starts,
-                        raw.t0_s)
+    own = own_series(raw, sub)
     warnings: list[str] = []
     curve = psd = fit = None
     try:
@@ -164,7 +175,7 @@ def own_channel_json(record: Record, key: str, sub: Any) -> dict[str, Any]:
     doc["subtraction"] = sub.to_dict()
     try:
         level, (lo, hi) = sub.white_level(raw.fs_hz, OWN_TAU_S,
-                                          segment_starts=raw.segment_starts)
+                                          segment_starts=own.segment_starts)
         doc["white_level"] = {"tau_s": OWN_TAU_S, "N": number(level),
                               "ci": [number(lo), number(hi)],
                               "what": "ADEV(tau) sqrt(tau) of the residual; the interval's "

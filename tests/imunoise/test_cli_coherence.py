@@ -238,6 +238,16 @@ def test_three_sensors_sampled_at_their_own_instants_are_compared(tmp_path):
     covered = [levels[k]["ci"][0] <= v <= levels[k]["ci"][1]
                for k, v in zip(keys, own_n, strict=True)]
     assert sum(covered) >= 2, levels
+    # the own noise lies on the aligned samples: the second sensor's gap splits them
+    proc = _run("analyze", path, "--json", "--subtract-common",
+                *[a for k in keys for a in ("--channel", k)])
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    kept = round(co["aligned"]["kept_share"] * n)
+    for k in keys:
+        own = doc["channels"][k]["own"]
+        assert own["n_samples"] == pytest.approx(kept, abs=1), (k, own["n_samples"], kept)
+        assert own["n_segments"] == 2, (k, own["n_segments"])
 
 
 def test_report_has_the_own_noise_diagnosis(bench_csv):
