@@ -25,6 +25,7 @@ A part that cannot be computed is ``None`` in its value with a ``reason``.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -34,7 +35,7 @@ from scipy.stats import norm
 
 from imunoise.analysis.psd import PsdEstimate, default_nperseg, log_psd
 from imunoise.analysis.psd_model import expected_log_psd, psd_z, whittle_part
-from imunoise.analysis.terms import get_term, labels, parse_model
+from imunoise.analysis.terms import TermError, get_term, labels, parse_model
 
 Model = Sequence[tuple[str, dict[str, float]]]
 
@@ -97,25 +98,76 @@ def _log_se(ci: tuple[float, float] | None) -> float | None:
     return (math.log(hi) - math.log(lo)) / (2.0 * 1.959963984540054)
 
 
-def _changed(fit_a: Any, fit_b: Any) -> list[dict[str, Any]]:
-    """Parameters fitted on both halves whose values differ beyond their intervals."""
+def _shape_distance(a: Any, b: Any) -> float:
+    """How far apart two fitted terms of one name are in their shape parameters (log scale)."""
+    amp = get_term(a.term).amplitude
+    keys = [k for k in a.params if k != amp and k in b.params]
+    return float(sum(abs(math.log(max(a.params[k], 1e-300)) - math.log(max(b.params[k], 1e-300)))
+                     for k in keys))
+
+
+def _pairs(fit_a: Any, fit_b: Any) -> list[int]:
+    """For each term of ``fit_a``, the index of the same term in ``fit_b``. Repeats of a term
+    (two resonances) are paired by their shape parameters, not by their order: a half's fit
+    may hold the 20 Hz peak in its first resonance and the other half in its second."""
+    out = list(range(len(fit_a.terms)))
+    names = [t.term for t in fit_a.terms]
+    for name in set(names):
+        idx = [i for i, n in enumerate(names) if n == name]
+        if len(idx) < 2 or len(idx) > 6:
+            continue
+        best = min(itertools.permutations(idx),
+                   key=lambda perm: sum(_shape_distance(fit_a.terms[i], fit_b.terms[j])
+                                        for i, j in zip(idx, perm, strict=True)))
+        for i, j in zip(idx, best, strict=True):
+            out[i] = j
+    return out
+
+
+def _spectral_shapes(halves: Sequence[tuple[np.ndarray, np.ndarray]], fs_hz: float,
+                     fits: Sequence[Any], held: set[tuple[int, str]]
+                     ) -> list[dict[int, Any]]:
+    """Each half's resonance shapes (f0, Q) from its own spectrum, by model index
+    (:func:`imunoise.analysis.spectral_pins.pin_resonances`)."""
+    from imunoise.analysis.spectral_pins import pin_resonances
+
+    out = []
+    for (h, starts), fit in zip(halves, fits, strict=True):
+        pins = pin_resonances(h, fs_hz, fit.params, held, starts)
+        out.append({p.index: p for p in pins})
+    return out
+
+
+def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
+             ) -> list[dict[str, Any]]:
+    """Parameters fitted on both halves whose values differ beyond their intervals. A
+    resonance's f0 and Q come from each half's spectrum where both spectra resolve its peak
+    (``shapes``; ``"source": "psd"``)."""
+    from imunoise.analysis.spectral_pins import PINNED
+
     names = [t.term for t in fit_a.terms]
     pairs = []
-    for label, ta, tb in zip(labels(names), fit_a.terms, fit_b.terms, strict=True):
+    for label, i, j in zip(labels(names), range(len(names)), _pairs(fit_a, fit_b), strict=True):
+        ta, tb = fit_a.terms[i], fit_b.terms[j]
         term = get_term(ta.term)
         if term.role == "regressor":
             continue
+        pa, pb = shapes[0].get(i), shapes[1].get(j)
         for k in ta.params:
-            sa, sb = _log_se(ta.ci95.get(k)), _log_se(tb.ci95.get(k))
+            a, b = float(ta.params[k]), float(tb.params[k])
+            ca, cb, source = ta.ci95.get(k), tb.ci95.get(k), "allan"
+            if pa is not None and pb is not None and k in PINNED:
+                a, b, ca, cb, source = pa.params[k], pb.params[k], pa.ci95[k], pb.ci95[k], "psd"
+            sa, sb = _log_se(ca), _log_se(cb)
             if sa is None or sb is None or sa == 0.0 and sb == 0.0:
                 continue  # held, or no estimate on a half
-            a, b = float(ta.params[k]), float(tb.params[k])
             z = abs(math.log(a) - math.log(b)) / math.hypot(sa, sb)
-            pairs.append((f"{label}.{k}", a, b, z))
+            pairs.append((f"{label}.{k}", a, b, z, source))
     if not pairs:
         return []
     crit = float(norm.isf(HOLDOUT_ALPHA / (2.0 * len(pairs))))
-    return [{"param": p, "values": [a, b], "z": z} for p, a, b, z in pairs if z > crit]
+    return [{"param": p, "values": [a, b], "z": z, "source": src}
+            for p, a, b, z, src in pairs if z > crit]
 
 
 def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
@@ -126,10 +178,11 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     ``model`` is the specification the user gave (held parameters stay held), ``fitted`` the
     whole record's :class:`imunoise.analysis.fit.FitResult` (the halves' fits start there).
     """
-    from imunoise.analysis.fit import fit_series
+    from imunoise.analysis.fit import _fixed_keys, fit_series
 
     x = np.asarray(values, dtype=np.float64)
     spec = parse_model(model)
+    held = set(_fixed_keys(spec.names, {**spec.fixed, **(fixed or {})}, float(fs_hz)))
     if any(get_term(n).role == "regressor" for n in spec.names):
         return {"chi2_per_dof": None, "parts": 2,
                 "reason": "a temperature regression is not carried into the halves"}
@@ -150,7 +203,8 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         return {"chi2_per_dof": None, "parts": 2, "reason": f"a half cannot be fitted: {exc}"}
     return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
-            "halves": [float(c) for c in chis], "changed": _changed(fits[0], fits[1])}
+            "halves": [float(c) for c in chis],
+            "changed": _changed(fits[0], fits[1], _spectral_shapes(halves, fs_hz, fits, held))}
 
 
 def time_domain_part(values: np.ndarray, fs_hz: float, model: Model,
@@ -235,6 +289,19 @@ def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
     lines = [out]
     for c in ho.get("changed") or []:
         a, b = c["values"]
-        lines.append(f"  finding: {c['param']} changed between the halves: {a:.4g} -> {b:.4g} "
-                     f"(z = {c['z']:.1f})")
+        unit = _unit_of(str(c["param"]))
+        src = " (from each half's spectrum)" if c.get("source") == "psd" else ""
+        lines.append(f"  finding: {c['param']} changed between the first and second half: "
+                     f"{a:.4g} -> {b:.4g}{unit}{src} (z = {c['z']:.1f})")
     return "\n".join(lines)
+
+
+def _unit_of(param: str) -> str:
+    """`` Hz``, `` s`` or `` samples`` for a parameter with that unit; nothing for one in the
+    channel's units (the line names the parameter, whose unit the model table gives)."""
+    label, _, name = param.rpartition(".")
+    try:
+        kind = get_term(label.split("#")[0]).param(name).kind
+    except (KeyError, ValueError, TermError):
+        return ""
+    return f" {kind}" if kind in ("Hz", "s", "samples") else ""

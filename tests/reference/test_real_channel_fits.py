@@ -167,3 +167,20 @@ def test_a_trim_that_lowers_the_whole_curves_chi2_is_kept(shared_data: Path, run
     x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
     res, _ = fit_series(x, fs, DEFAULT)
     assert low < res.chi2_per_dof < high
+
+
+def test_adis16405_gyro_z_resonance_moving_through_the_night_is_named(shared_data: Path
+                                                                     ) -> None:
+    # run 1's gyro_z peak slides from about 21.9 Hz in its first 10 minutes to about 19.5 Hz
+    # in its last (the peak of each 10-minute Welch estimate); the Allan fits of the halves
+    # leave f0 within +-0.5 Hz, each half's spectrum pins it to a few hundredths
+    from imunoise.analysis.model_error import holdout_part
+
+    d = np.load(shared_data / "adis16405" / "run1.npz")
+    x = d["gyro_counts"][:, 2] * float(d["gyro_scale_dps"]) * np.pi / 180.0
+    model = DEFAULT + ",resonance,resonance,resonance"  # the loop's model on this channel
+    fit = fit_series(x, float(d["fs_hz"]), model)[0]
+    changed = holdout_part(x, float(d["fs_hz"]), model, fit)["changed"]
+    f0 = [c for c in changed if c["param"].endswith(".f0") and c["source"] == "psd"]
+    assert len(f0) == 1, changed
+    assert f0[0]["values"] == pytest.approx([20.7, 19.9], abs=0.1)

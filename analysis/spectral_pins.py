@@ -1,0 +1,233 @@
+"""A resonance's centre frequency and quality factor, pinned by the measured spectrum.
+
+The Allan curve sees a resonance as a bump near tau = 1/(2 f0); moving f0 by the peak's own
+width changes it by a few per cent, so an Allan fit leaves f0 and Q loose (ADIS16405 gyro_z:
+f0 20.4 Hz [20.3, 20.7], Q 20 [12, 1e4]), while the spectrum shows the peak itself. For each
+resonance of a fitted model whose f0 and Q the user did not hold, this stage fits the measured
+PSD near the peak by Whittle likelihood, then the Allan fit is repeated with f0 and Q held at
+the spectrum's values (:func:`imunoise.analysis.fit.fit_series`).
+
+The spectrum: a Welch estimate on a fine linear grid (Hann, 50 % overlap, segment
+:func:`pin_nperseg`), its bins between f0/2 and min(2 f0, 0.49 fs) (f0 the Allan fit's). The
+model there is
+
+    S(f) = c S_rest(f) + S_res(f; sigma, f0, Q)
+
+with S_rest the fitted model's PSD without this resonance (the level ``c``, free, absorbs a
+background the Allan fit set a little off) and S_res the resonance's exact discrete-time PSD
+(through the model's output filter, if any). The four log-parameters minimise the Whittle
+deviance ``sum nu (u - 1 - ln u)``, ``u = P/S``.
+
+Intervals: the inverse Gauss-Newton matrix of the deviance residuals (the Whittle Fisher
+information), widened by the Hann window's equivalent noise bandwidth in bins (1.5:
+neighbouring bins share that much of their data) and by the deviance per degree of freedom
+where it exceeds 1. A peak whose shape the term does not follow exactly, such as one whose
+frequency drifts through the record, so gets an interval for its mean position that is as wide
+as the misfit says, not the width an ideal peak would allow.
+
+A pin is kept only where the spectrum resolves a peak: the fitted f0 inside the band (not at
+its edge), Q's interval above Q's lower bound (0.5, no peak), and the resonance lowering the
+band's deviance by more than the 0.1 % point of chi-square with 3 degrees of freedom, in units
+of the dispersion. Otherwise the Allan fit's values stand.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize, special
+
+from imunoise.analysis.psd import welch_psd
+from imunoise.analysis.terms import get_term
+from imunoise.analysis.terms.registry import model_psd
+
+PINNED = ("f0", "Q")
+"""The resonance parameters the spectrum pins."""
+
+ENBW_BINS = 1.5
+"""Equivalent noise bandwidth of the Hann window in bins: the factor neighbouring bins' shared
+data widens an interval's variance by."""
+
+GAIN_LEVEL = 0.001
+"""A resonance is resolved when its deviance gain exceeds this upper point of chi-square(3)."""
+
+MIN_Q = 2.0
+"""A pinned resonance's Q interval lies above this: a peak at most half an octave wide. A
+broader hump is a bend of the spectrum, which the Allan curve sees as well."""
+
+_Z95 = 1.959963984540054
+_EDGE = 0.01
+"""Log-frequency distance from the band's edge under which f0 counts as at the edge."""
+
+
+@dataclass(frozen=True)
+class Pin:
+    """The spectrum's values of one resonance (model index ``index``).
+
+    Attributes:
+        index: the term's index in the model.
+        params: ``sigma`` (units of the channel), ``f0`` (Hz), ``Q`` from the PSD fit.
+        ci95: 95 % intervals of ``f0`` and ``Q``.
+        band_hz: the band fitted, Hz.
+        deviance_per_dof: the band's Whittle deviance per degree of freedom (about 1 when the
+            peak has the term's shape).
+    """
+
+    index: int
+    params: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+    band_hz: tuple[float, float]
+    deviance_per_dof: float
+
+
+def pin_nperseg(n_longest: int) -> int:
+    """Welch segment length for the pins: a power of two, at most 2^14 (6 mHz at 100 Hz) and
+    at least 16 segments in the longest gap-free stretch; 0 when that stretch is under 4,096
+    samples (too short to resolve a peak better than the Allan curve does)."""
+    if n_longest < 4096:
+        return 0
+    return int(min(2 ** 14, 2 ** int(math.floor(math.log2(n_longest / 16)))))
+
+
+def _deviance_residuals(p: np.ndarray, nu: np.ndarray, s: np.ndarray) -> np.ndarray:
+    u = p / np.maximum(s, 1e-300)
+    d = nu * (u - 1.0 - np.log(u))
+    return np.sign(u - 1.0) * np.sqrt(np.maximum(d, 0.0))
+
+
+def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p: np.ndarray,
+         nu: np.ndarray, fs: float) -> Pin | None:
+    name, params = model[index]
+    term = get_term(name)
+    f0a = float(params["f0"])
+    lo_hz, hi_hz = f0a / 2.0, min(2.0 * f0a, 0.49 * fs)
+    sel = (f >= lo_hz) & (f <= hi_hz)
+    if np.count_nonzero(sel) < 40 or hi_hz <= lo_hz:
+        return None
+    fb, pb, nub = f[sel], p[sel], nu[sel]
+    rest = [(n, q) for k, (n, q) in enumerate(model) if k != index]
+    s_rest = model_psd(rest, fb, fs)
+    if not np.all(np.isfinite(s_rest)) or np.any(s_rest <= 0):
+        return None
+
+    q_lo = term.param("Q").lo
+    bounds_lo = np.array([math.log(1e-30), math.log(lo_hz), math.log(q_lo), math.log(0.2)])
+    bounds_hi = np.array([math.log(1e6), math.log(hi_hz), math.log(1e4), math.log(5.0)])
+
+    def spectrum(theta: np.ndarray) -> np.ndarray:
+        sig, f0, q, c = np.exp(theta)
+        with_res = model_psd(rest + [(name, {"sigma": sig, "f0": f0, "Q": q})], fb, fs)
+        return c * s_rest + (with_res - s_rest)
+
+    def resid(theta: np.ndarray) -> np.ndarray:
+        return _deviance_residuals(pb, nub, spectrum(theta))
+
+    # starts: the Allan fit's peak, and the band's largest excess over the background
+    ratio = np.convolve(pb / s_rest, np.ones(9) / 9.0, mode="same")
+    f_peak = float(fb[int(np.argmax(ratio))])
+    sig0 = max(float(params["sigma"]), 1e-12)
+    starts = [(sig0, f0a, float(params["Q"])), (sig0, f_peak, 10.0)]
+    best = None
+    for s0, f00, q0 in starts:
+        x0 = np.clip(np.log([s0, f00, max(q0, q_lo * 1.01), 1.0]), bounds_lo + 1e-9,
+                     bounds_hi - 1e-9)
+        try:
+            sol = optimize.least_squares(resid, x0, bounds=(bounds_lo, bounds_hi),
+                                         method="trf", x_scale=1.0, max_nfev=200)
+        except (ValueError, FloatingPointError):
+            continue
+        if best is None or sol.cost < best.cost:
+            best = sol
+    if best is None or not np.isfinite(best.cost):
+        return None
+    theta = best.x
+    n_dof = max(len(fb) - theta.size, 1)
+    dev1 = 2.0 * float(best.cost)
+    disp = max(1.0, dev1 / n_dof)
+
+    # without the resonance: the background level alone
+    def resid0(lc: np.ndarray) -> np.ndarray:
+        return _deviance_residuals(pb, nub, math.exp(float(lc[0])) * s_rest)
+
+    sol0 = optimize.least_squares(resid0, np.zeros(1), bounds=([math.log(0.2)],
+                                                               [math.log(5.0)]))
+    gain = (2.0 * float(sol0.cost) - dev1) / disp
+    if gain <= 2.0 * float(special.gammainccinv(1.5, GAIN_LEVEL)):
+        return None
+    jac = np.asarray(best.jac, dtype=np.float64)
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * ENBW_BINS * disp
+    except np.linalg.LinAlgError:
+        return None
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if not np.all(np.isfinite(sd)):
+        return None
+    lf0, lq = theta[1], theta[2]
+    if (lf0 - bounds_lo[1] < _EDGE or bounds_hi[1] - lf0 < _EDGE
+            or lq - _Z95 * sd[2] < math.log(MIN_Q)):
+        return None
+    sig, f0, q, _ = (float(v) for v in np.exp(theta))
+    ci = {"f0": (math.exp(lf0 - _Z95 * sd[1]), math.exp(lf0 + _Z95 * sd[1])),
+          "Q": (math.exp(lq - _Z95 * sd[2]), math.exp(min(lq + _Z95 * sd[2], bounds_hi[2])))}
+    return Pin(index, {"sigma": sig, "f0": f0, "Q": q}, ci, (float(fb[0]), float(fb[-1])),
+               dev1 / n_dof)
+
+
+def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, dict]],
+                   held: set[tuple[int, str]], segment_starts: np.ndarray | None = None,
+                   memo: dict | None = None) -> list[Pin]:
+    """The spectrum's f0 and Q of each resonance in a fitted ``model`` (``[(term, params)]``
+    in model order, regressors included) that the user did not hold (``held``: ``(index,
+    param)`` pairs), in model order; resonances whose peak the spectrum does not resolve are
+    left out. ``memo`` (shared by fits of one series) keeps the Welch estimate."""
+    noise = [(i, n, dict(p)) for i, (n, p) in enumerate(model)
+             if get_term(n).role != "regressor"]
+    targets = [i for i, n, _ in noise if n == "resonance"
+               and not any((i, k) in held for k in PINNED)]
+    if not targets:
+        return []
+    x = np.asarray(values, dtype=np.float64)
+    bounds = np.append(np.zeros(1, dtype=np.int64) if segment_starts is None
+                       else np.asarray(segment_starts, dtype=np.int64), x.size)
+    nperseg = pin_nperseg(int(np.max(np.diff(bounds))) if x.size else 0)
+    if nperseg == 0:
+        return []
+    key = ("pin-psd", id(values), nperseg)
+    if memo is not None and key in memo:
+        est = memo[key]
+    else:
+        try:
+            est = welch_psd(x, fs_hz, nperseg=nperseg, segment_starts=segment_starts)
+        except ValueError:
+            return []
+        if memo is not None:
+            memo[key] = est
+    # positions in the noise-only model used by the spectrum
+    work = [(n, p) for _, n, p in noise]
+    pos = {i: k for k, (i, _, _) in enumerate(noise)}
+    pins: list[Pin] = []
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        # the most prominent peak first: a broad resonance standing in for a bend must not
+        # take the peak a sharper one of the same model describes
+        targets.sort(key=lambda i: -_prominence(work, pos[i], float(fs_hz)))
+        for i in targets:
+            pin = _one(pos[i], work, est.f_hz, est.psd,
+                       np.broadcast_to(np.asarray(est.dof, dtype=np.float64), est.psd.shape),
+                       float(fs_hz))
+            if pin is None:
+                continue
+            work[pos[i]] = (work[pos[i]][0], dict(pin.params))
+            pins.append(Pin(i, pin.params, pin.ci95, pin.band_hz, pin.deviance_per_dof))
+    pins.sort(key=lambda p: p.index)
+    return pins
+
+
+def _prominence(model: list[tuple[str, dict[str, float]]], k: int, fs: float) -> float:
+    """Resonance ``k``'s PSD at its centre frequency over the rest of the model's there."""
+    f0 = np.array([float(model[k][1]["f0"])])
+    rest = model_psd([m for j, m in enumerate(model) if j != k], f0, fs)[0]
+    own = model_psd([model[k]], f0, fs)[0]
+    return float(own / rest) if rest > 0 else math.inf
