@@ -14,8 +14,9 @@ the model describes the sensor (CONTRACT.md ``error.psd``, ``error.holdout``,
   :func:`imunoise.analysis.fit.fit_allan`). The part is the mean of the two chi2/dof.
   ``changed`` names the parameters whose two values differ beyond their intervals: in log
   scale, ``z = |ln a - ln b| / sqrt(se_a^2 + se_b^2)`` with ``se`` from each 95 % interval,
-  above the two-sided Bonferroni level 5 % over the parameters compared. Amplitudes whose
-  interval reaches zero are not compared (no estimate).
+  above the two-sided Bonferroni level 5 % over the parameters compared. An amplitude
+  resolved on one half whose interval reaches zero on the other is compared on the linear
+  scale (:func:`_vanished_z`); one that reaches zero on both is not compared.
 - Time domain: the step and warm-up test of :func:`imunoise.analysis.evidence.transients`
   under the fitted model; its statistic (largest standardised contrast of block means) and
   Monte Carlo p-value over every split and time constant.
@@ -38,6 +39,8 @@ from imunoise.analysis.psd_model import expected_log_psd, psd_z, whittle_part
 from imunoise.analysis.terms import TermError, get_term, labels, parse_model
 
 Model = Sequence[tuple[str, dict[str, float]]]
+
+_Z95 = 1.959963984540054
 
 HOLDOUT_ALPHA = 0.05
 """Family level over the parameters compared between the halves."""
@@ -95,7 +98,32 @@ def _log_se(ci: tuple[float, float] | None) -> float | None:
     lo, hi = float(ci[0]), float(ci[1])
     if not (lo > 0 and hi > lo and math.isfinite(hi)):
         return None
-    return (math.log(hi) - math.log(lo)) / (2.0 * 1.959963984540054)
+    return (math.log(hi) - math.log(lo)) / (2.0 * _Z95)
+
+
+def _vanished_z(a: float, b: float, ci_a: tuple[float, float] | None,
+                ci_b: tuple[float, float] | None) -> float | None:
+    """z of an amplitude resolved on one half and consistent with zero on the other (its
+    interval reaches 0), on the linear scale: the resolved value's standard error from the
+    side of its interval facing zero, the vanished one's from its upper end taken as 1.96
+    standard errors above zero (wider than its two-sided interval gives). None unless exactly
+    one interval reaches zero."""
+    if ci_a is None or ci_b is None:
+        return None
+    lo_a, hi_a = float(ci_a[0]), float(ci_a[1])
+    lo_b, hi_b = float(ci_b[0]), float(ci_b[1])
+    if not all(math.isfinite(v) for v in (lo_a, hi_a, lo_b, hi_b)):
+        return None
+    if lo_a > 0.0 >= lo_b:
+        value, lo, other, other_hi = a, lo_a, b, hi_b
+    elif lo_b > 0.0 >= lo_a:
+        value, lo, other, other_hi = b, lo_b, a, hi_a
+    else:
+        return None
+    se_value, se_other = (value - lo) / _Z95, other_hi / _Z95
+    if se_value <= 0.0 or se_other <= 0.0:
+        return None
+    return max(value - other, 0.0) / math.hypot(se_value, se_other)
 
 
 def _shape_distance(a: Any, b: Any) -> float:
@@ -131,9 +159,12 @@ def _spectral_shapes(halves: Sequence[tuple[np.ndarray, np.ndarray]], fs_hz: flo
     (:func:`imunoise.analysis.spectral_pins.pin_resonances`)."""
     from imunoise.analysis.spectral_pins import pin_resonances
 
-    out = []
+    out: list[dict[int, Any]] = []
     for (h, starts), fit in zip(halves, fits, strict=True):
-        pins = pin_resonances(h, fs_hz, fit.params, held, starts)
+        try:
+            pins = pin_resonances(h, fs_hz, fit.params, held, starts)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+            return [{}, {}]  # the Allan fits' intervals judge the resonance then
         out.append({p.index: p for p in pins})
     return out
 
@@ -160,6 +191,9 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
                 a, b, ca, cb, source = pa.params[k], pb.params[k], pa.ci95[k], pb.ci95[k], "psd"
             sa, sb = _log_se(ca), _log_se(cb)
             if sa is None or sb is None or sa == 0.0 and sb == 0.0:
+                z = _vanished_z(a, b, ca, cb)
+                if z is not None:
+                    pairs.append((f"{label}.{k}", a, b, z, source))
                 continue  # held, or no estimate on a half
             z = abs(math.log(a) - math.log(b)) / math.hypot(sa, sb)
             pairs.append((f"{label}.{k}", a, b, z, source))

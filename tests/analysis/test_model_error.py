@@ -101,3 +101,17 @@ def test_a_bias_step_shows_in_the_time_domain_part(stationary):
 def test_parts_that_cannot_be_computed_say_why():
     td = time_domain_part(np.zeros(100), FS, MODEL)
     assert td["statistic"] is None and td["reason"]
+
+
+def test_a_drift_present_in_one_half_only_is_named():
+    # a random walk through the first half, none in the second: the second half's K interval
+    # reaches zero, so the two are compared on the linear scale
+    walk = [("white", {"N": 1e-3}), ("random_walk", {"K": 3e-5})]
+    x = np.concatenate((simulate(walk, N // 2, FS, rng=7),
+                        simulate(walk[:1], N // 2, FS, rng=8)))
+    spec = "white,random_walk"
+    fit = fit_series(x, FS, spec)[0]
+    ho = holdout_part(x, FS, spec, fit)
+    moved = [c for c in ho["changed"] if c["param"] == "random_walk.K"]
+    assert moved and moved[0]["source"] == "allan", ho
+    assert moved[0]["values"][0] > 1e-5 > moved[0]["values"][1]
