@@ -32,6 +32,7 @@ from imunoise.analysis import evidence
 from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.model_error import holdout_part, measured_psd, psd_parts, time_domain_part
+from imunoise.analysis.spectral_pins import PINNED, pin_resonances
 from imunoise.analysis.terms import (
     TERMS,
     Entry,
@@ -270,10 +271,16 @@ class _Context:
     psd_before: dict[str, Any] | None = None
 
 
-def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[str, float]]:
+_Interval = tuple[float, float]
+
+
+def _refit(ctx: _Context, term: str
+           ) -> tuple[FitResult | None, ModelSpec, dict[str, float], dict[str, _Interval]]:
     """The model with ``term`` appended, fitted exactly as ``imunoise fit --model`` fits it
-    (its ``apply.model``): ``(fit or None, model, parameters the evidence pinned)``."""
+    (its ``apply.model``): ``(fit or None, model, parameters the evidence pinned, their
+    intervals where the evidence gives them)``."""
     pinned: dict[str, float] = {}
+    pinned_ci: dict[str, _Interval] = {}
     if ctx.sensor_filter is not None and term == ctx.sensor_filter[0]:
         # the device's configuration states the filter: it is not fitted
         pinned = dict(ctx.sensor_filter[1])
@@ -282,6 +289,26 @@ def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[
             and "f" in f_ev.params:
         # The PSD pins the frequency far better than the Allan curve can.
         pinned = {"f": float(f_ev.params["f"])}
+        pinned_ci = {k: (float(lo), float(hi)) for k, (lo, hi)
+                     in f_ev.details.get("ci95", {}).items() if k in pinned}
+    after, spec = _fit_appended(ctx, term, pinned)
+    if term == "resonance" and after is not None and ctx.psd_est is not None:
+        # and a resonance's centre and width: an Allan fit of ADIS16405 run 3 gyro_z put the
+        # new resonance at 18.0 Hz with Q 1e4, beside a measured peak at 20 Hz
+        pin = _spectrum_pin(ctx, after)
+        if pin is not None:
+            pinned = {k: pin.params[k] for k in PINNED}
+            pinned_ci = dict(pin.ci95)
+            again, spec_again = _fit_appended(ctx, term, pinned)
+            if again is not None:
+                after, spec = again, spec_again
+            else:
+                pinned, pinned_ci = {}, {}
+    return after, spec, pinned, pinned_ci
+
+
+def _fit_appended(ctx: _Context, term: str, pinned: dict[str, float]
+                  ) -> tuple[FitResult | None, ModelSpec]:
     spec = ModelSpec(ctx.spec.entries + (Entry(term, pinned),))
     needs = any(get_term(n).needs_record == "temperature" for n in spec.names)
     try:
@@ -290,7 +317,20 @@ def _refit(ctx: _Context, term: str) -> tuple[FitResult | None, ModelSpec, dict[
                               intervals="jacobian")
     except (ValueError, np.linalg.LinAlgError):
         after = None
-    return after, spec, pinned
+    return after, spec
+
+
+def _spectrum_pin(ctx: _Context, after: FitResult) -> Any:
+    """The spectrum's f0 and Q of the resonance just appended to the model, or None where the
+    spectrum does not resolve its peak (:mod:`imunoise.analysis.spectral_pins`); the model's
+    other resonances stay as fitted."""
+    new = len(ctx.spec)
+    held = {(i, k) for i, t in enumerate(after.terms) if i != new for k in PINNED}
+    try:
+        pins = pin_resonances(ctx.x, ctx.fs_hz, after.params, held, ctx.starts, ctx.memo)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return None
+    return next((p for p in pins if p.index == new), None)
 
 
 def _part_sd(before: float, dof: float) -> float:
@@ -363,7 +403,7 @@ def _imitation(ctx: _Context, after: FitResult | None) -> str | None:
 def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     """Refit with ``term`` and weigh the fall of the error with the evidence."""
     base, before = ctx.base, ctx.base.chi2_per_dof
-    after, spec, pinned = _refit(ctx, term)
+    after, spec, pinned, pinned_ci = _refit(ctx, term)
     k = len(get_term(term).params)
     regressor = get_term(term).role == "regressor"
     falls = after is not None and bool(np.isfinite(after.chi2_per_dof)) \
@@ -395,10 +435,8 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     if after is not None:
         tf = after.terms[len(ctx.spec)]  # the added term (the model may repeat its name)
         params, ci = dict(tf.params), dict(tf.ci95)
-        if ev is not None and ev.significant:
-            # Parameters the evidence pinned (held fixed in the refit) take its interval.
-            ci.update({key: (lo, hi) for key, (lo, hi) in ev.details.get("ci95", {}).items()
-                       if key in pinned})
+        # Parameters the evidence pinned (held fixed in the refit) take its interval.
+        ci.update(pinned_ci)
         chi_after = after.chi2_per_dof
     elif ev is not None:
         params = dict(ev.params)
