@@ -153,16 +153,17 @@ def _pairs(fit_a: Any, fit_b: Any) -> list[int]:
 
 
 def _spectral_shapes(halves: Sequence[tuple[np.ndarray, np.ndarray]], fs_hz: float,
-                     fits: Sequence[Any], held: set[tuple[int, str]]
-                     ) -> list[dict[int, Any]]:
+                     fits: Sequence[Any]) -> list[dict[int, Any]]:
     """Each half's resonance shapes (f0, Q) from its own spectrum, by model index
-    (:func:`imunoise.analysis.spectral_pins.pin_resonances`)."""
+    (:func:`imunoise.analysis.spectral_pins.pin_resonances`). Held shapes are measured too:
+    a resonance the model holds at one frequency (as the diagnosis writes it) can still move
+    between the halves, and that is a finding about the sensor."""
     from imunoise.analysis.spectral_pins import pin_resonances
 
     out: list[dict[int, Any]] = []
     for (h, starts), fit in zip(halves, fits, strict=True):
         try:
-            pins = pin_resonances(h, fs_hz, fit.params, held, starts)
+            pins = pin_resonances(h, fs_hz, fit.params, set(), starts)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError):
             return [{}, {}]  # the Allan fits' intervals judge the resonance then
         out.append({p.index: p for p in pins})
@@ -212,11 +213,10 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     ``model`` is the specification the user gave (held parameters stay held), ``fitted`` the
     whole record's :class:`imunoise.analysis.fit.FitResult` (the halves' fits start there).
     """
-    from imunoise.analysis.fit import _fixed_keys, fit_series
+    from imunoise.analysis.fit import fit_series
 
     x = np.asarray(values, dtype=np.float64)
     spec = parse_model(model)
-    held = set(_fixed_keys(spec.names, {**spec.fixed, **(fixed or {})}, float(fs_hz)))
     if any(get_term(n).role == "regressor" for n in spec.names):
         return {"chi2_per_dof": None, "parts": 2,
                 "reason": "a temperature regression is not carried into the halves"}
@@ -238,7 +238,7 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
         return {"chi2_per_dof": None, "parts": 2, "reason": f"a half cannot be fitted: {exc}"}
     return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
             "halves": [float(c) for c in chis],
-            "changed": _changed(fits[0], fits[1], _spectral_shapes(halves, fs_hz, fits, held))}
+            "changed": _changed(fits[0], fits[1], _spectral_shapes(halves, fs_hz, fits))}
 
 
 def time_domain_part(values: np.ndarray, fs_hz: float, model: Model,

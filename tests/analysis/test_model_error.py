@@ -115,3 +115,16 @@ def test_a_drift_present_in_one_half_only_is_named():
     moved = [c for c in ho["changed"] if c["param"] == "random_walk.K"]
     assert moved and moved[0]["source"] == "allan", ho
     assert moved[0]["values"][0] > 1e-5 > moved[0]["values"][1]
+
+
+def test_a_held_resonance_that_moves_is_named_too():
+    # the diagnosis writes a resonance's f0 and Q into the model; the halves' spectra still
+    # measure them
+    first = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 20.7, "Q": 30.0})]
+    second = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 19.9, "Q": 30.0})]
+    x = np.concatenate((simulate(first, N // 2, FS, rng=3), simulate(second, N // 2, FS, rng=4)))
+    spec = "white,resonance:f0=20.3:Q=30"
+    fit = fit_series(x, FS, spec)[0]
+    moved = [c for c in holdout_part(x, FS, spec, fit)["changed"] if c["param"] == "resonance.f0"]
+    assert moved and moved[0]["source"] == "psd"
+    assert moved[0]["values"] == pytest.approx([20.7, 19.9], abs=0.1)
