@@ -58,6 +58,9 @@ class ErrorPoint:
     chi2_per_dof: float
     time_s: float
     n_samples: int
+    psd_deviance_per_bin: float | None = None
+    """The PSD part (Whittle deviance per bin of the streaming PSD under the fit), or None
+    when none was computed for this entry (no PSD estimate yet)."""
 
 
 def check_terms(terms: Iterable[str]) -> None:
@@ -476,9 +479,11 @@ class ChannelState:
         return ModelChange(new, self._fit, job)
 
     def finish_model_change(self, change: ModelChange, fit: FitResult | None,
-                            wall_s: float) -> ModelChangeResult:
+                            wall_s: float, psd_part: float | None = None
+                            ) -> ModelChangeResult:
         """Make ``change`` the model, publishing ``fit`` (its job's result) when there is one.
-        ``wall_s``: the wall-clock time (Unix seconds) of the history entry."""
+        ``wall_s``: the wall-clock time (Unix seconds) of the history entry; ``psd_part``:
+        the fit's PSD part."""
         if not change.unchanged:
             job = change.job
             if fit is not None and job is not None:
@@ -486,7 +491,7 @@ class ChannelState:
             self._model = change.model
             self._model_revision += 1
             if fit is not None and job is not None:
-                self._publish(fit, job.curve, job.intervals, job.n, wall_s)
+                self._publish(fit, job.curve, job.intervals, job.n, wall_s, psd_part)
             self.revision += 1
         return ModelChangeResult(self.channel, list(self._model), self._model_revision,
                                  change.before, self._fit)
@@ -555,26 +560,41 @@ class ChannelState:
         return FitJob(kind, model, self._model_revision, n, curve, intervals,
                       fn=_job_fit, args=args)
 
-    def finish_refit(self, job: FitJob, fit: FitResult, wall_s: float) -> bool:
+    def finish_refit(self, job: FitJob, fit: FitResult, wall_s: float,
+                     psd_part: float | None = None) -> bool:
         """Publish ``fit`` (``job``'s result) unless the model changed meanwhile (that change
-        published its own fit). Returns whether it was published."""
+        published its own fit). ``psd_part``: its PSD part, when :meth:`history_entry_due`
+        asked for one. Returns whether it was published."""
         if job.revision != self._model_revision:
             return False
         self._remember(fit, job.model, job.n, job.intervals)
         if job.kind == "full":
             self._full_n = job.n
-        self._publish(fit, job.curve, job.intervals, job.n, wall_s)
+        self._publish(fit, job.curve, job.intervals, job.n, wall_s, psd_part)
         return True
 
+    def history_entry_due(self, wall_s: float, model_changes: bool = False) -> bool:
+        """Whether a fit published at ``wall_s`` opens a new error-history entry (rather than
+        replacing the latest of its interval): only then is its PSD part worth computing, so
+        that costs at most one PSD expectation per history interval and model."""
+        last = self._history[-1] if self._history else None
+        return (model_changes or last is None or last.revision != self._model_revision
+                or wall_s - last.time_s >= self.history_interval_s)
+
     def _publish(self, fit: FitResult, curve: AllanCurve, intervals: str, n: int,
-                 wall_s: float) -> None:
-        """Make ``fit`` the current result and enter it in the error history."""
+                 wall_s: float, psd_part: float | None = None) -> None:
+        """Make ``fit`` the current result and enter it in the error history. An entry that
+        replaces the latest of its interval keeps that entry's PSD part (computed once per
+        interval) unless given one."""
         self._fit, self._curve, self._fit_intervals = fit, curve, intervals
         self._fit_n = n
         self._fit_wall = wall_s
         model = [t.term for t in fit.terms]
         last = self._history[-1] if self._history else None
-        point = ErrorPoint(self._model_revision, model, float(fit.chi2_per_dof), wall_s, n)
+        if psd_part is None and last is not None and last.revision == self._model_revision:
+            psd_part = last.psd_deviance_per_bin
+        point = ErrorPoint(self._model_revision, model, float(fit.chi2_per_dof), wall_s, n,
+                           psd_part)
         if last is None or last.revision != self._model_revision or \
                 wall_s - last.time_s >= self.history_interval_s:
             self._history.append(point)

@@ -86,6 +86,24 @@ def psd_parts(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int
     return block, part
 
 
+def streaming_psd_part(model: Model, est: PsdEstimate, fs_hz: float
+                       ) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """``(expected PSD or None, error.psd)`` of a model against the live service's streaming
+    log-PSD estimate (its own segment lengths: ``nperseg=None``)."""
+    try:
+        expected = expected_log_psd([(n, p) for n, p in model
+                                     if get_term(n).role != "regressor"], est, fs_hz,
+                                    nperseg=None)
+    except ValueError as exc:
+        return None, {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                      "reason": str(exc)}
+    part = whittle_part(est.psd, est.dof, expected)
+    if part is None:
+        return expected, {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                          "reason": "fewer than 5 usable PSD points"}
+    return expected, part
+
+
 def _half(x: np.ndarray, bounds: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``a..b`` and their gap-free segment starts (relative to ``a``)."""
     inner = bounds[(bounds > a) & (bounds < b)] - a

@@ -28,6 +28,7 @@ from imunoise.analysis.channel_state import (
     ModelChangeResult,
 )
 from imunoise.analysis.fit import FitResult
+from imunoise.analysis.model_error import streaming_psd_part
 from imunoise.analysis.terms import TermError
 
 
@@ -144,8 +145,10 @@ class LiveChannel:
                 except _FIT_ERRORS as exc:
                     raise ValueError(f"{self.channel}: cannot fit {'+'.join(change.model)}: "
                                      f"{exc}") from None
+            wall = time.time()
+            part = None if fit is None else self._psd_part(fit, wall, model_changes=True)
             with self._lock:
-                return self._state.finish_model_change(change, fit, time.time())
+                return self._state.finish_model_change(change, fit, wall, part)
 
     def add_term(self, term: str) -> ModelChangeResult:
         with self._lock:
@@ -170,8 +173,28 @@ class LiveChannel:
                 fit = self._fit(job)
             except _FIT_ERRORS:
                 return False
+            wall = time.time()
+            part = self._psd_part(fit, wall)
             with self._lock:
-                return self._state.finish_refit(job, fit, time.time())
+                return self._state.finish_refit(job, fit, wall, part)
+
+    def _psd_part(self, fit: FitResult, wall_s: float, model_changes: bool = False
+                  ) -> float | None:
+        """The fit's PSD part (Whittle deviance per bin of the streaming PSD) when its error-
+        history entry is a new one, else None (the entry keeps the interval's)."""
+        with self._lock:
+            if not self._state.history_entry_due(wall_s, model_changes):
+                return None
+            est = self._state.psd_estimate()
+            fs = self._state.fs_hz
+        if est is None:
+            return None
+        try:
+            _, part = self._run(streaming_psd_part, fit.params, est, fs)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+            return None
+        value = part.get("deviance_per_bin")
+        return None if value is None else float(value)
 
     def diagnose(self, now: float | None = None) -> bool:
         """Diagnose the current model on the recent samples. Returns whether suggestions

@@ -169,6 +169,9 @@ class HistoryPointOut(BaseModel):
     revision: int
     model: list[str]
     chi2_per_dof: float | None = Field(description="null when the fit's misfit is not finite")
+    psd_deviance_per_bin: float | None = Field(
+        None, description="the PSD part: Whittle deviance per bin of the streaming PSD under "
+        "the fit (computed once per history interval and model); null before a PSD estimate")
     time_s: float = Field(description="UNIX time, s")
     n_samples: int
 

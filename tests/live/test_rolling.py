@@ -202,6 +202,11 @@ def test_adding_a_missing_sinusoid_lowers_the_error_and_removing_it_restores_it(
     hist = views.history(a)
     assert [h["revision"] for h in hist] == [0, 1]
     assert hist[1]["chi2_per_dof"] < hist[0]["chi2_per_dof"]
+    # the PSD part beside the Allan part: the line missing from the spectrum, then modelled;
+    # the same number /coefficients reports for the current fit
+    assert hist[0]["psd_deviance_per_bin"] > 5.0 > hist[1]["psd_deviance_per_bin"]
+    assert hist[1]["psd_deviance_per_bin"] == pytest.approx(
+        views.coefficients(a)["error"]["psd"]["deviance_per_bin"], rel=1e-12)
     removed = views.model_change(a.remove_term("sinusoid"))
     assert removed["error_after"]["chi2_per_dof"] == before  # same model, same samples
 
@@ -347,3 +352,28 @@ def test_coefficients_say_the_interval_now_and_the_time_to_a_target():
     assert walk["time_to_target_s"]["K"] == pytest.approx(p.record_s - 600.0)
     again = views.coefficients(a)["model"][1]["time_to_target_s"]  # from the plan cache
     assert again == walk["time_to_target_s"]
+
+
+def test_the_psd_part_is_computed_once_per_history_interval() -> None:
+    t = np.arange(100_000) / FS
+    a = LiveChannel("gyro_x", FS)
+    a.update(_white_rw(t.size, 7))
+    calls: list[int] = []
+    plain = a.runner
+
+    def counting(fn, *args):
+        calls.append(fn.__name__ == "streaming_psd_part")
+        return plain(fn, *args)
+
+    a.runner = counting
+    assert a.refit(full=True) and sum(calls) == 1  # the first entry
+    for seed in (8, 9):  # within the interval: the latest entry carries the interval's part
+        a.update(_white_rw(2_000, seed))
+        assert a.refit() and sum(calls) == 1
+    hist = views.history(a)
+    assert len(hist) == 2 and hist[0]["psd_deviance_per_bin"] is not None
+    assert hist[1]["psd_deviance_per_bin"] == hist[0]["psd_deviance_per_bin"]
+    a._state.history_interval_s = 0.0
+    a.update(_white_rw(2_000, 10))
+    assert a.refit() and sum(calls) == 2
+    assert len(views.history(a)) == 3

@@ -146,6 +146,14 @@ def _check_add(page, url: str) -> None:
     assert "→" in page.locator("#action-msg").inner_text()
     history = page.locator("#history li").all_inner_texts()
     assert history[0].startswith("rev 1") and "sinusoid" in history[0]
+    # both parts of the error, each entry: the line lowers the PSD part as well
+    parts = [re.search(r"Allan χ²/dof ([-+0-9.e]+) · PSD deviance/bin ([-+0-9.e]+)", h)
+             for h in history]
+    assert all(parts), history
+    first_rev0 = next(p for h, p in zip(history, parts, strict=True) if h.startswith("rev 0"))
+    assert float(parts[0].group(2)) < float(first_rev0.group(2)), history
+    assert page.evaluate("state.plots['history-plot'].series.map((s) => s.label)") == \
+        ["s since the first fit", "Allan χ²/dof", "PSD deviance/bin"]
     # Any term can be added from the model editor, and removed with its x.
     page.locator("#model-editor button.add-any[data-term='rate_ramp']").click()
     page.wait_for_function("document.querySelector(\"#model-terms button[data-term="

@@ -225,17 +225,22 @@ function drawModel(m) {
     `<button class="add-any" data-term="${t}">+ ${t}</button>`).join("");
   const h = m.history;
   $("history").innerHTML = h.slice(-12).reverse().map((p) =>
-    `<li>rev ${p.revision}: χ²/dof ${fmt(p.chi2_per_dof)} [${p.model.join(", ")}]</li>`).join("");
+    `<li>rev ${p.revision}: Allan χ²/dof ${fmt(p.chi2_per_dof)} · PSD deviance/bin ` +
+    `${fmt(p.psd_deviance_per_bin)} [${p.model.join(", ")}]</li>`).join("");
   if (h.length) {
     // seconds since the first fit on a plain axis: uPlot's default time axis would read the
     // service's clock as calendar dates, and with one point span years around it
     const t0 = h[0].time_s;
     const elapsed = (u, lo, hi) => (hi > lo ? [lo, hi] : [lo - 1, lo + 1]);
     plot("history-plot", { height: 150, scales: { x: { time: false, range: elapsed }, y: LOG },
-      series: [{ label: "s since the first fit" }, { label: "χ²/dof", stroke: "#d62728",
-        width: 2, points: { show: true } }],
-      axes: [{ label: "time since the first fit (s)" }, logAxis("χ²/dof")] },
-    [h.map((p) => p.time_s - t0), h.map((p) => Math.max(p.chi2_per_dof, 1e-3))]);
+      // each part is about 1 when the model is right; the PSD part is absent (a gap) until
+      // the streaming PSD has an estimate
+      series: [{ label: "s since the first fit" },
+        { label: "Allan χ²/dof", stroke: "#d62728", width: 2, points: { show: true } },
+        { label: "PSD deviance/bin", stroke: "#1f77b4", width: 2, points: { show: true } }],
+      axes: [{ label: "time since the first fit (s)" }, logAxis("error part (1 = right)")] },
+    [h.map((p) => p.time_s - t0), h.map((p) => Math.max(p.chi2_per_dof, 1e-3)),
+      h.map((p) => (p.psd_deviance_per_bin == null ? null : Math.max(p.psd_deviance_per_bin, 1e-3)))]);
   }
 }
 

@@ -134,8 +134,7 @@ _LIVE_WHY = "not computed by the live service: imunoise fit on the recording rep
 def _live_parts(est: Any, s: ChannelSnapshot) -> tuple[np.ndarray | None, dict[str, Any]]:
     """The estimator's expected PSD under the fitted model (or None) and the error's PSD,
     hold-out and time-domain parts for the live views."""
-    from imunoise.analysis.model_error import plain
-    from imunoise.analysis.psd_model import expected_log_psd, whittle_part
+    from imunoise.analysis.model_error import plain, streaming_psd_part
 
     parts: dict[str, Any] = {
         "psd": {"deviance_per_bin": None, "bins": 0, "outside_95": None,
@@ -144,14 +143,8 @@ def _live_parts(est: Any, s: ChannelSnapshot) -> tuple[np.ndarray | None, dict[s
         "time_domain": {"statistic": None, "p": None, "reason": _LIVE_WHY}}
     if est is None or s.fit is None:
         return None, parts
-    try:
-        expected = expected_log_psd(s.fit.params, est, s.fs_hz, nperseg=None)
-    except ValueError as exc:
-        parts["psd"]["reason"] = str(exc)
-        return None, parts
-    part = whittle_part(est.psd, est.dof, expected)
-    if part is not None:
-        parts["psd"] = plain(part)
+    expected, part = streaming_psd_part(s.fit.params, est, s.fs_hz)
+    parts["psd"] = plain(part)
     return expected, parts
 
 
@@ -258,8 +251,9 @@ def diagnosis(channel: LiveChannel) -> dict[str, Any]:
 
 
 def history_view(s: ChannelSnapshot) -> list[dict[str, Any]]:
-    """Error history: (model revision, model, chi2 per dof, wall time, samples)."""
+    """Error history: (model revision, model, chi2 per dof, PSD part, wall time, samples)."""
     return [{"revision": p.revision, "model": p.model, "chi2_per_dof": number(p.chi2_per_dof),
+             "psd_deviance_per_bin": number(p.psd_deviance_per_bin),
              "time_s": p.time_s, "n_samples": p.n_samples} for p in s.history]
 
 
