@@ -61,7 +61,9 @@ def test_fit_and_diagnosis_find_a_wide_vibration_peak() -> None:
     assert not sinusoid.significant  # a peak f0/Q = 1.5 Hz wide is no line
 
 
-def test_the_suggested_resonance_takes_its_centre_and_width_from_the_spectrum() -> None:
+def test_a_resonance_the_allan_refit_places_on_the_peak_is_not_held() -> None:
+    # the Allan refit's peak agrees with the spectrum (the PSD part falls): it stands, and
+    # the apply model holds nothing (real data where it does not: tests/reference)
     truth = {"sigma": 3e-3, "f0": 20.0, "Q": 15.0}
     x = NoiseStream([("white", {"N": 1e-3}), ("bias_instability", {"B": 2e-4}),
                      ("random_walk", {"K": 1e-5}), ("resonance", truth)],
@@ -69,14 +71,8 @@ def test_the_suggested_resonance_takes_its_centre_and_width_from_the_spectrum() 
     d = diagnose(x, FS, "white,bias_instability,random_walk", holdout=False)
     top = d.suggestions[0]
     assert top.term == "resonance" and top.significant, top.why
-    held = parse_model(top.apply["model"]).entries[-1].fixed
-    assert set(held) == {"f0", "Q"}
-    # the apply model is what fit refits, to the last digit
-    fit, _ = fit_series(x, FS, top.apply["model"])
-    assert fit.chi2_per_dof == pytest.approx(top.chi2_per_dof_after, rel=1e-12)
-    # the spectrum's intervals: they cover the truth, and f0's is a fraction of the peak's
-    # 1.3 Hz width (the Allan fit alone leaves it several tenths of a hertz either way)
+    assert parse_model(top.apply["model"]).entries[-1].fixed == {}
+    assert top.error_after["psd"]["deviance_per_bin"] < d.error_parts["psd"]["deviance_per_bin"]
     for k in ("f0", "Q"):
         lo, hi = top.ci95[k]
-        assert lo <= truth[k] <= hi and lo <= held[k] <= hi, (k, lo, hi)
-    assert top.ci95["f0"][1] - top.ci95["f0"][0] < 0.15
+        assert lo <= truth[k] <= hi, (k, lo, hi)

@@ -184,3 +184,21 @@ def test_adis16405_gyro_z_resonance_moving_through_the_night_is_named(shared_dat
     f0 = [c for c in changed if c["param"].endswith(".f0") and c["source"] == "psd"]
     assert len(f0) == 1, changed
     assert f0[0]["values"] == pytest.approx([20.7, 19.9], abs=0.1)
+
+
+def test_adis16405_gyro_z_resonance_is_held_at_the_spectrum_peak(shared_data: Path) -> None:
+    # run 3: the Allan refit puts the new resonance at 18.0 Hz with Q 1e4, beside the measured
+    # peak at 19.8 Hz, and the PSD part rises (2112 -> 3827 per bin); held at the spectrum's
+    # centre and width it falls, and the resonance is the significant suggestion (it used to
+    # be none, and the loop cut the record at a bias step)
+    d = np.load(shared_data / "adis16405" / "run3.npz")
+    x = d["gyro_counts"][:, 2] * float(d["gyro_scale_dps"]) * np.pi / 180.0
+    diag = diagnose(x, float(d["fs_hz"]), DEFAULT, holdout=False)
+    top = diag.suggestions[0]
+    assert top.term == "resonance" and top.significant, top.why
+    held = parse_model(top.apply["model"]).entries[-1].fixed
+    assert held["f0"] == pytest.approx(19.76, abs=0.05) and 10 < held["Q"] < 30
+    lo, hi = top.ci95["f0"]
+    assert lo <= held["f0"] <= hi and hi - lo < 0.1
+    before = diag.error_parts["psd"]["deviance_per_bin"]
+    assert top.error_after["psd"]["deviance_per_bin"] < before / 3
