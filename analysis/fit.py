@@ -894,9 +894,12 @@ def _fixed_keys(names: list[str], fixed: dict[str | int, dict[str, float]], fs: 
         for pname, value in params.items():
             p = term.param(pname)
             hi = p.upper(fs)
-            if not (math.isfinite(value) and p.lo < value <= hi):
+            # a closed lower bound (a resonance's Q = 0.5) is a value a fit can return, so a
+            # fitted model given back with every parameter held must be accepted
+            above_lo = p.lo < value if p.lo_open else p.lo <= value
+            if not (math.isfinite(value) and above_lo and value <= hi):
                 raise TermError(f"{term.name}.{pname} = {value:g} outside its physical range "
-                                f"({p.lo:g}, {hi:g}]")
+                                f"{'(' if p.lo_open else '['}{p.lo:g}, {hi:g}]")
             out[(idx, pname)] = float(value)
     return out
 

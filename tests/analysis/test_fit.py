@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from imunoise.analysis.allan import oadev
-from imunoise.analysis.fit import find_line, fit_allan, regress_temperature
+from imunoise.analysis.fit import find_line, fit_allan, fit_series, regress_temperature
 from imunoise.analysis.misfit import avar_covariance, failure_threshold
 from imunoise.analysis.noise_stream import NoiseStream
 from imunoise.analysis.terms import TermError, parse_model
@@ -264,3 +264,15 @@ def test_a_markov_term_added_after_a_resonance_finds_its_time_constant(seed):
         # within three of its own standard deviations (a 95 % interval misses one in 20)
         assert abs(np.log(markov.params[name] / true)) < 3 * sd_log < 0.6, (name, markov)
     assert fit.chi2_per_dof < 2.0  # a correct model: about 1 (few taus: a wide spread)
+
+
+def test_a_fitted_model_held_at_a_closed_bound_is_accepted():
+    # a resonance's Q may be fitted to its closed lower bound 0.5 (no peak); the model given
+    # back with every parameter held (a hold-out prediction) must evaluate, not be refused
+    x = NoiseStream([("white", {"N": 1e-3}), ("resonance", {"sigma": 2e-3, "f0": 5.0, "Q": 0.5})],
+                    100.0, seed=3).take(1 << 16)
+    held = "white:N=0.001,resonance:sigma=0.002:f0=5:Q=0.5"
+    fit, _ = fit_series(x, 100.0, held)
+    assert fit.terms[1].params["Q"] == 0.5 and math.isfinite(fit.chi2_per_dof)
+    with pytest.raises(TermError, match=r"resonance.Q = 0.4 outside its physical range \[0.5"):
+        fit_series(x, 100.0, "white,resonance:Q=0.4")
