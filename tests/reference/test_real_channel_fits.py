@@ -11,7 +11,9 @@ import pytest
 
 from imunoise.analysis.allan import oadev
 from imunoise.analysis.diagnosis import diagnose
-from imunoise.analysis.fit import _CHI2_TIE, _problem, _trim, fit_allan, fit_series
+from imunoise.analysis.fit import fit_allan, fit_series
+from imunoise.analysis.fit.problem import _problem
+from imunoise.analysis.fit.solve import _CHI2_TIE, _trim
 from imunoise.analysis.terms import parse_model
 
 DEFAULT = "white,bias_instability,random_walk"

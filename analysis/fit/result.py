@@ -1,0 +1,136 @@
+"""What a fit returns: the fitted terms with their intervals, and the misfit of the model
+to the measured Allan curve.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from imunoise.analysis.misfit import Misfit
+from imunoise.analysis.terms import (
+    ModelSpec,
+    get_term,
+    labels,
+    model_avar,
+)
+
+
+class CurveLike(Protocol):
+    """What the fit needs from an Allan curve (``imunoise.analysis.allan.AllanCurve`` provides
+    it; read-only, as its frozen dataclass)."""
+
+    @property
+    def fs_hz(self) -> float: ...
+    @property
+    def tau_s(self) -> np.ndarray: ...
+    @property
+    def m(self) -> np.ndarray: ...
+    @property
+    def dev(self) -> np.ndarray: ...
+    @property
+    def n_terms(self) -> np.ndarray: ...
+
+
+ModelLike = Sequence[str] | Sequence[tuple[str, dict[str, float]]] | str | ModelSpec
+
+
+@dataclass
+class TermFit:
+    """One fitted term: parameters (SI) and their 95 % intervals."""
+
+    term: str
+    params: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"term": self.term, "params": dict(self.params),
+                "ci95": {k: [float(a), float(b)] for k, (a, b) in self.ci95.items()}}
+
+
+@dataclass
+class FitResult:
+    """A fitted model and how well it explains the measured Allan curve.
+
+    Attributes:
+        terms: fitted terms in model order (``temperature`` included when fitted upstream).
+        fs_hz: sampling rate, Hz.
+        tau_s, m, n_terms: the curve's averaging times (s), factors, number of differences.
+        avar_measured: measured Allan variance (units^2).
+        avar_fit: model Allan variance at ``tau_s``.
+        term_avar: per-term model Allan variance at ``tau_s`` (for plotting).
+        misfit: z per tau, chi2 and the rest (:class:`imunoise.analysis.misfit.Misfit`).
+        failures: ``failures`` entries of the JSON documents (docs/json.md).
+        param_cov: covariance of the log-parameters (order of :attr:`free_params`).
+        free_params: ``(term index, parameter name)`` of each fitted parameter.
+    """
+
+    terms: list[TermFit]
+    fs_hz: float
+    tau_s: np.ndarray
+    m: np.ndarray
+    n_terms: np.ndarray
+    avar_measured: np.ndarray
+    avar_fit: np.ndarray
+    term_avar: list[np.ndarray]
+    misfit: Misfit
+    failures: list[dict]
+    param_cov: np.ndarray
+    free_params: list[tuple[int, str]] = field(default_factory=list)
+    used: np.ndarray | None = None
+    """Taus the parameters rest on (failing shortest taus are set aside)."""
+
+    @property
+    def params(self) -> list[tuple[str, dict[str, float]]]:
+        """The model as ``[(term, params)]``, usable as a starting point of a refit."""
+        return [(t.term, dict(t.params)) for t in self.terms]
+
+    @property
+    def ci95(self) -> list[dict[str, tuple[float, float]]]:
+        return [t.ci95 for t in self.terms]
+
+    @property
+    def chi2_per_dof(self) -> float:
+        return self.misfit.chi2_per_dof
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.misfit.z
+
+    @property
+    def max_abs_z(self) -> float:
+        return self.misfit.max_abs_z
+
+    def model_avar(self, tau_s: np.ndarray | float) -> np.ndarray:
+        """Model Allan variance at any ``tau_s`` (the fitted noise terms; temperature, removed
+        upstream, contributes nothing)."""
+        tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))
+        return model_avar([(t.term, t.params) for t in self.terms
+                           if get_term(t.term).role != "regressor"], tau, self.fs_hz)
+
+    def term_avar_at(self, tau_s: np.ndarray | float) -> dict[str, np.ndarray]:
+        """Per-term Allan variance at ``tau_s`` keyed ``term`` (``term#2`` for repeats)."""
+        tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))
+        return {key: _term_avar(t.term, t.params, tau, self.fs_hz)
+                for key, t in zip(labels([t.term for t in self.terms]), self.terms,
+                                  strict=True)}
+
+    def allan_dict(self, ci_low: np.ndarray | None = None, ci_high: np.ndarray | None = None
+                   ) -> dict[str, list[float]]:
+        """The JSON ``allan`` block (docs/json.md; deviations, not variances)."""
+        adev = np.sqrt(self.avar_measured)
+        return {"tau_s": self.tau_s.tolist(), "adev": adev.tolist(),
+                "ci_low": (ci_low if ci_low is not None else adev).tolist(),
+                "ci_high": (ci_high if ci_high is not None else adev).tolist(),
+                "model_adev": np.sqrt(self.avar_fit).tolist(),
+                "z": self.misfit.z.tolist()}
+
+
+def _term_avar(name: str, params: dict[str, float], tau: np.ndarray, fs: float) -> np.ndarray:
+    term = get_term(name)
+    if term.role == "regressor":
+        return np.zeros_like(tau)
+    return term.avar(tau, fs, **params)

@@ -1,0 +1,153 @@
+"""Fitting a rate series: its Allan curve (once), its strongest spectral line, a
+temperature regression, then :func:`imunoise.analysis.fit.fit_allan`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from scipy import ndimage, signal
+
+from imunoise.analysis.fit.result import FitResult, ModelLike, TermFit
+from imunoise.analysis.fit.solve import _hold, fit_allan
+from imunoise.analysis.terms import (
+    TermError,
+    get_term,
+    parse_model,
+)
+
+
+def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0
+              ) -> tuple[float, float] | None:
+    """Frequency (Hz) and amplitude (units) of the strongest spectral line, or None.
+
+    Welch spectrum (Hann, up to 2^15 samples per segment); the line is the bin standing
+    furthest above the running median of its neighbourhood (by at least ``min_snr``); its
+    power is the excess summed over the main lobe (``A = sqrt(2 P)``)."""
+    x = np.asarray(values, dtype=np.float64)
+    if x.size < 64:
+        return None
+    nper = int(min(1 << 15, 1 << int(math.log2(x.size))))
+    f, p = signal.welch(x - x.mean(), fs=fs_hz, nperseg=nper)
+    if p.size < 16:
+        return None
+    floor = np.maximum(ndimage.median_filter(p, size=31, mode="nearest"), 1e-300)
+    ratio = p / floor
+    ratio[:4] = 0.0  # the lowest bins carry drift, not lines
+    ratio[-4:] = 0.0  # nor does the edge at the Nyquist frequency
+    k = int(np.argmax(ratio))
+    if ratio[k] < min_snr:
+        return None
+    lo, hi = max(k - 3, 0), min(k + 4, p.size)
+    df = f[1] - f[0]
+    power = float(np.sum(p[lo:hi] - floor[lo:hi]) * df)
+    weights = p[lo:hi] - floor[lo:hi]
+    f_line = float(np.sum(f[lo:hi] * weights) / np.sum(weights))
+    return f_line, math.sqrt(max(2.0 * power, 0.0))
+
+
+def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int = 10
+                        ) -> tuple[TermFit, np.ndarray]:
+    """Least-squares regression of the rate on temperature (with offset).
+
+    Returns the ``temperature`` term (coef in rate units per degC, 95 % interval) and the
+    corrected rate ``rate - coef (temperature - mean temperature)``. The interval comes from
+    refitting the coefficient on ``blocks`` contiguous blocks (Student t on their spread),
+    which stays honest when the residual noise is coloured, as it is for inertial sensors.
+    """
+    y = np.asarray(rate, dtype=np.float64)
+    t = np.asarray(temperature, dtype=np.float64)
+    if y.shape != t.shape:
+        raise ValueError(f"temperature record has {t.size} samples, rate {y.size}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError("temperature record holds non-finite values")
+    tc = t - t.mean()
+    sxx = float(tc @ tc)
+    if sxx <= 0:
+        raise ValueError("temperature is constant: its coefficient cannot be estimated")
+    coef = float(tc @ (y - y.mean()) / sxx)
+    per_block = []
+    for yb, tb in zip(np.array_split(y, blocks), np.array_split(t, blocks), strict=True):
+        tbc = tb - tb.mean()
+        s = float(tbc @ tbc)
+        if s > 0:
+            per_block.append(float(tbc @ (yb - yb.mean()) / s))
+    if len(per_block) >= 3:
+        from scipy import stats
+        half = float(stats.t.ppf(0.975, len(per_block) - 1) * np.std(per_block, ddof=1)
+                     / math.sqrt(len(per_block)))
+    else:
+        half = math.inf
+    term = TermFit("temperature", {"coef": coef}, {"coef": (coef - half, coef + half)})
+    return term, y - coef * tc
+
+
+def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | None = None
+                ) -> tuple[float, float] | None:
+    """The strongest spectral line of the longest gap-free segment (:func:`find_line`): the
+    start of a line term in :func:`fit_series`."""
+    x = np.asarray(values, dtype=np.float64)
+    bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
+    k = int(np.argmax(np.diff(bounds)))
+    return find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
+
+
+def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
+               segment_starts: np.ndarray | None = None,
+               temperature: np.ndarray | None = None,
+               fixed: dict[str | int, dict[str, float]] | None = None,
+               ci: float = 0.95, start: Any = None, memo: dict | None = None,
+               intervals: str = "profile") -> tuple[FitResult, Any]:
+    """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
+    for a sinusoid, temperature regression, then :func:`fit_allan`.
+
+    Args:
+        values: rate samples in SI units, all segments concatenated.
+        fs_hz: sampling rate, Hz.
+        model: a model specification (:func:`imunoise.analysis.terms.parse_model`).
+        segment_starts: gap-free segment starts (``ChannelSeries.segment_starts``).
+        temperature: temperature in degC at each sample (required with ``temperature``).
+        fixed: parameters held at known values (see :func:`fit_allan`).
+        ci: confidence level of the curve's ``ci_low``/``ci_high``.
+        start: starting point of a refit (see :func:`fit_allan`).
+        memo: a dict shared by fits of one series (the diagnosis's candidates): its Allan
+            curves, spectral line and nested solutions are computed once. A fit with a memo
+            gives exactly the numbers of one without.
+        intervals: see :func:`fit_allan` (intervals never change the parameters or chi2).
+
+    Returns:
+        ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
+        when the model holds ``temperature``.
+    """
+    from imunoise.analysis.allan import oadev
+
+    memo = {} if memo is None else memo
+    _hold(memo, values)
+    spec = parse_model(model)
+    names = spec.names
+    x = np.asarray(values, dtype=np.float64)
+    temp_term = None
+    regressed = any(get_term(n).role == "regressor" for n in names)
+    if regressed:
+        if temperature is None:
+            raise TermError("the temperature term needs a temperature record, and this "
+                            "record has none")
+        temp_key = ("temperature", id(values), ci)
+        if temp_key not in memo:
+            memo[temp_key] = regress_temperature(x, np.asarray(temperature, dtype=np.float64))
+        temp_term, x = memo[temp_key]
+    key = ("curve", id(values), regressed, ci)
+    if key not in memo:
+        memo[key] = oadev(x, fs_hz, m="octave", segment_starts=segment_starts, ci=ci)
+    curve = memo[key]
+    line = None
+    if any(get_term(n).role == "line" for n in names):
+        line_key = ("line", id(values), regressed)
+        if line_key not in memo:
+            memo[line_key] = series_line(x, fs_hz, segment_starts)
+        line = memo[line_key]
+    result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
+                       memo=memo, intervals=intervals)
+    return result, curve

@@ -1,0 +1,208 @@
+"""Starting values: a linear solve for the linear terms, grids for the shape parameters, and
+the starts taken from a smaller model's solution.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import optimize
+
+from imunoise.analysis.fit.problem import _Problem, _theta_of
+from imunoise.analysis.terms import (
+    Entry,
+    ModelSpec,
+    get_term,
+    model_avar,
+)
+from imunoise.analysis.terms.output_filter import OutputFilter
+
+
+def _linear_shape(name: str, tau: np.ndarray, fs: float) -> np.ndarray:
+    return get_term(name).unit_avar(tau, fs, {})
+
+
+def _nnls_weighted(design: np.ndarray, avar: np.ndarray, w: np.ndarray
+                   ) -> tuple[np.ndarray, float]:
+    a = design / avar[:, None] * w[:, None]
+    b = w.copy()
+    scale = np.max(np.abs(a), axis=0)
+    scale[scale == 0] = 1.0
+    coef, rnorm = optimize.nnls(a / scale, b, maxiter=50 * a.shape[1])
+    return coef / scale, float(rnorm)
+
+
+def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float,
+                  nu: np.ndarray, duration_s: float, line: tuple[float, float] | None,
+                  fixed: dict[tuple[int, str], float] | None = None) -> list[dict[str, float]]:
+    """Starting parameters: the linear terms' squared amplitudes by one weighted NNLS solve;
+    each nonlinear term (in model order) by a grid search over its shape parameters
+    (``Term.start_shapes``, a fixed value taking the grid's place) with its amplitude
+    linear."""
+    fixed = fixed or {}
+    w = np.sqrt(nu / 2.0)
+    columns: list[np.ndarray] = []
+    owners: list[int] = []
+    for i, n in enumerate(names):
+        term = get_term(n)
+        if term.linear and term.role != "regressor":
+            columns.append(_linear_shape(n, tau, fs))
+            owners.append(i)
+    shapes: dict[int, dict[str, float]] = {}
+    base = np.stack(columns, axis=1) if columns else np.zeros((len(tau), 0))
+
+    def solve(extra_cols: list[np.ndarray]) -> tuple[np.ndarray, float]:
+        d = np.concatenate([base] + [c[:, None] for c in extra_cols], axis=1)
+        if d.shape[1] == 0:
+            return np.zeros(0), float(np.sum(w * w))
+        return _nnls_weighted(d, avar, w)
+
+    extra_cols: list[np.ndarray] = []
+    extra_owner: list[int] = []
+    for i, n in enumerate(names):
+        term = get_term(n)
+        if term.linear or term.role == "regressor" or term.kind == "filter":
+            continue
+        held = {k: fixed[(i, k)] for k in term.shape_params if (i, k) in fixed}
+        candidates = [{**c, **held} for c in term.start_shapes(fs, duration_s, line)]
+        if held and len(held) == len(term.shape_params):
+            candidates = [held]
+        best = None
+        for cand in candidates:
+            col = term.unit_avar(tau, fs, cand)
+            _, r = solve(extra_cols + [col]) if len(candidates) > 1 else (None, 0.0)
+            if best is None or r < best[0]:
+                best = (r, cand, col)
+        if best is None:  # no start shape fits a record this short: a bad input, not a bug
+            raise ValueError(f"{n}: no starting shape for a record of {duration_s:.3g} s")
+        extra_cols.append(best[2])
+        extra_owner.append(i)
+        shapes[i] = {k: float(v) for k, v in best[1].items()}
+    coef, _ = solve(extra_cols)
+    start: list[dict[str, float]] = [dict() for _ in names]
+    for i, n in enumerate(names):
+        term = get_term(n)
+        if isinstance(term, OutputFilter):
+            start[i] = {**term.start_params(fs),
+                        **{k: fixed[(i, k)] for k in term.param_names if (i, k) in fixed}}
+    all_owners = owners + extra_owner
+    all_cols = list(base.T) + extra_cols
+    for c, owner, col in zip(coef, all_owners, all_cols, strict=True):
+        # a term the data do not need starts small but positive (log parameters)
+        floor = 1e-4 * float(np.min(avar / np.maximum(col, 1e-300)))
+        c2 = max(float(c), floor)
+        term = get_term(names[owner])
+        amp = math.sqrt(c2)
+        if not term.linear:
+            amp = term.start_amplitude(amp if c > 0 else 0.0, line) or amp
+        start[owner] = {term.amplitude: amp, **shapes.get(owner, {})}
+    return start
+
+
+def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndarray,
+                   avar: np.ndarray, fs: float) -> list[list[dict[str, float]]]:
+    """Extra starting points: each linear term that the linear solve left near zero is raised
+    to a third of the measured AVAR where its shape is most prominent. Correlated terms (rate
+    random walk and ramp, flicker and a Markov bias) otherwise let one term swallow the other
+    and the fit settle in the wrong valley."""
+    out: list[list[dict[str, float]]] = []
+    for i, n in enumerate(names):
+        term = get_term(n)
+        if not term.linear or term.role == "regressor":
+            continue
+        key = term.amplitude
+        shape = _linear_shape(n, tau, fs)
+        level = float(np.max(shape / avar))  # 1/c at which the term alone reaches the data
+        c_now = start[i][key] ** 2
+        if c_now * level < 0.05:
+            bumped = [dict(p) for p in start]
+            bumped[i][key] = math.sqrt(0.3 / level)
+            out.append(bumped)
+    return out
+
+
+def _cold_starts(prob: _Problem, line: tuple[float, float] | None
+                 ) -> list[list[dict[str, float]]]:
+    """Starting points without a previous fit: the linear solve weighted by each estimate's
+    degrees of freedom, the same with every tau weighted alike (it follows the long taus the
+    first neglects) and each near-zero linear term raised."""
+    names, lay = prob.names, prob.layout
+    if all(p is not None for _, p in prob.spec):
+        return [[dict(p or {}) for _, p in prob.spec]]
+    out = []
+    for nu in (prob.nu0, np.full_like(prob.nu0, 2.0)):
+        first = _start_values(names, prob.tau, prob.avar, prob.fs, nu, prob.duration, line,
+                              lay.fixed)
+        for i, (_, p) in enumerate(prob.spec):
+            if p is not None:
+                first[i].update(p)
+        out.append(first)
+    out += _bumped_starts(names, out[0], prob.tau, prob.avar, prob.fs)
+    return out
+
+
+def _folded(parsed: ModelSpec, prob: _Problem) -> ModelSpec:
+    """``parsed`` with every held parameter (also those given by keyword) in its entry."""
+    fixed = {i: {k: v for (j, k), v in prob.layout.fixed.items() if j == i}
+             for i in range(len(parsed.entries))}
+    return ModelSpec(tuple(Entry(e.name, fixed[i], e.start)
+                           for i, e in enumerate(parsed.entries)))
+
+
+def _prefix(parsed: ModelSpec, prob: _Problem) -> tuple[ModelSpec, int] | None:
+    """The model without its last term that has free parameters, and that term's index."""
+    free = {i for i, _ in prob.layout.keys}
+    if len(free) < 2 or any(e.start is not None for e in parsed.entries):
+        return None
+    last = max(free)
+    return ModelSpec(tuple(e for i, e in enumerate(parsed.entries) if i != last)), last
+
+
+def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
+                     line: tuple[float, float] | None, keep: int = 2) -> list[np.ndarray]:
+    """Starts for a shaped term (a Markov time constant, a resonance, a line) added to a
+    solved smaller model: each shape of its grid (``Term.start_shapes``) is scored by one
+    weighted NNLS solve of every amplitude with the other terms' shapes at the smaller
+    model's solution; the ``keep`` best start from that solve.
+
+    At zero amplitude a log-parameter has no gradient, and the cold starts place the term's
+    shape before the other terms are solved (a Markov term then takes a resonance's bump at
+    the shortest taus, or a random walk keeps what the Markov term should take, and the
+    solver stays in that valley)."""
+    names = prob.names
+    term = get_term(names[last])
+    if term.linear or term.role == "regressor" or term.kind == "filter" or \
+            not term.shape_params:
+        return []
+    held = {k: v for (i, k), v in prob.layout.fixed.items() if i == last}
+    if len(held) >= len(term.shape_params):
+        return []
+    filters = [(n, p) for n, p in zip(names, params, strict=True)
+               if get_term(n).kind == "filter"]
+
+    def column(name: str, shape: dict[str, float]) -> np.ndarray:
+        unit = {**shape, get_term(name).amplitude: 1.0}
+        return model_avar([(name, unit)] + filters, prob.tau, prob.fs, checked=False)
+
+    owners = [j for j, n in enumerate(names) if j != last and
+              get_term(n).role != "regressor" and get_term(n).kind != "filter"]
+    cols = [column(names[j], params[j]) for j in owners]
+    w = np.sqrt(prob.nu0 / 2.0)
+    scored: list[tuple[float, dict[str, float], np.ndarray]] = []
+    for cand in term.start_shapes(prob.fs, prob.duration, line):
+        cand = {**cand, **held}
+        design = np.stack(cols + [column(names[last], cand)], axis=1)
+        coef, rnorm = _nnls_weighted(design, prob.avar, w)
+        if coef[-1] > 0:
+            scored.append((rnorm, cand, coef))
+    scored.sort(key=lambda x: x[0])
+    out = []
+    for _, cand, coef in scored[:keep]:
+        trial = [dict(p) for p in params]
+        for j, c in zip(owners, coef[:-1], strict=True):
+            amp = get_term(names[j]).amplitude
+            trial[j][amp] = math.sqrt(max(float(c), 1e-6 * trial[j][amp] ** 2, 1e-300))
+        trial[last] = {**trial[last], **cand, term.amplitude: math.sqrt(float(coef[-1]))}
+        out.append(_theta_of(prob, trial))
+    return out
