@@ -558,6 +558,91 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     return suggestions
 
 
+def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np.ndarray],
+              t_rate: np.ndarray, base: FitResult, names: list[str],
+              temperature: tuple[np.ndarray, np.ndarray] | None, alpha: float, units: str
+              ) -> tuple[list[Finding], dict[str, Finding], Finding | None]:
+    """What the record shows beside the Allan curve: ``(findings, the findings that support
+    a term keyed by it, the sensor-filter finding or None)``. Each test runs at the family
+    level; the per-candidate Bonferroni comes in :func:`_suggest`."""
+    findings: list[Finding] = []
+    findings.append(evidence.outliers(segments, fs_hz, alpha=alpha, units=units))
+    findings.append(evidence.gaps(starts, x.size, fs_hz))
+    findings.append(evidence.noise_level_windows(
+        segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
+        units=units))
+    filt = _sensor_filter(base, alpha)
+    if filt is not None:
+        findings.append(filt)
+    by_term: dict[str, Finding] = {}
+    if "sinusoid" not in names:
+        try:
+            # the fitted model's own shape (a filter's notches) is no line
+            by_term["sinusoid"] = evidence.spectral_lines(
+                segments, fs_hz, alpha=alpha, units=units,
+                model_psd=lambda f: model_psd(base.params, f, fs_hz, continuous_only=True))
+        except ValueError:
+            pass
+    if "rate_ramp" not in names:
+        by_term["rate_ramp"] = evidence.drift(t_rate, x, alpha=alpha, units=units)
+    if temperature is not None and "temperature" not in names:
+        by_term["temperature"] = evidence.temperature_correlation(
+            t_rate, x, temperature[0], temperature[1], alpha=alpha, units=units)
+    findings.extend(by_term.values())
+    return findings, by_term, filt
+
+
+def _candidates(names: list[str], base: FitResult, filt: Finding | None, has_temperature: bool,
+                sensor_filter: tuple[str, dict[str, float]] | None) -> list[str]:
+    """The terms to try: every additive term not in the model (a repeatable one, such as a
+    second Markov time constant or a second resonance, even if it is), and the output
+    filters when the shortest taus show one (only the device's own when its configuration
+    states it)."""
+    candidates = [n for n, t in TERMS.items() if (n not in names or t.repeatable)
+                  and t.kind == "additive"
+                  and (t.needs_record != "temperature" or has_temperature)]
+    if not any(get_term(n).kind == "filter" for n in names):
+        if sensor_filter is not None:
+            candidates.append(get_term(sensor_filter[0]).name)
+        elif _filter_signature(base, filt):
+            candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
+    return candidates
+
+
+def _psd_baseline(x: np.ndarray, fs_hz: float, starts: np.ndarray, base: FitResult,
+                  names: list[str]) -> tuple[Any, int, dict[str, Any] | None, dict[str, Any]]:
+    """``(measured PSD or None, its segment length, the psd block, error.psd)`` of the given
+    model, against which each candidate's PSD part is judged."""
+    none = {"deviance_per_bin": None, "bins": 0, "outside_95": None}
+    if "temperature" in names:
+        return None, 256, None, {**none, "reason": "not computed under a temperature regression"}
+    try:
+        psd_est, nperseg = measured_psd(x, fs_hz, starts)
+    except ValueError as exc:
+        return None, 256, None, {**none, "reason": f"no PSD: {exc}"}
+    psd_block, psd_before = psd_parts(base.params, psd_est, fs_hz, nperseg)
+    return psd_est, nperseg, psd_block, psd_before
+
+
+def _ranked(ctx: _Context, candidates: list[str], cuts: list[Finding], units: str,
+            alpha: float) -> list[Suggestion]:
+    """Each candidate judged (:func:`_suggest`), the cuts of the record when no term is
+    significant, strongest evidence first (:func:`_simplest_first`)."""
+    suggestions = [_suggest(ctx, term, alpha) for term in candidates]
+    if not any(s.significant for s in suggestions):
+        # the step and warm-up tests take the fitted model as the sensor's noise: only once
+        # no term is missing is that a fair null (a model without its random walk sees
+        # steps everywhere); until then they stay findings
+        # one transient, one remedy: the shape that explains it better when both are found
+        found = {f.kind for f in cuts if f.significant}
+        suggestions += [_remedy(ctx, f, units, alpha) for f in cuts if f.significant
+                        and f.details.get("better_explained_by") not in found]
+    # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
+    # parameters, so a two-parameter Markov term does not win merely by being flexible.
+    suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
+    return _simplest_first(suggestions, alpha)
+
+
 def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              segment_starts: np.ndarray | None = None, t0_s: float = 0.0,
              temperature: tuple[np.ndarray, np.ndarray] | None = None,
@@ -614,42 +699,9 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
                                                    strict=True)) if s.size]
 
-    # Evidence. Each runs at the family level; the per-candidate Bonferroni comes below.
-    findings: list[Finding] = []
-    outl = evidence.outliers(segments, fs_hz, alpha=alpha, units=units)
-    findings.append(outl)
-    findings.append(evidence.gaps(starts, x.size, fs_hz))
-    findings.append(evidence.noise_level_windows(
-        segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
-        units=units))
-    filt = _sensor_filter(base, alpha)
-    if filt is not None:
-        findings.append(filt)
-    by_term: dict[str, Finding] = {}
-    if "sinusoid" not in names:
-        try:
-            # the fitted model's own shape (a filter's notches) is no line
-            by_term["sinusoid"] = evidence.spectral_lines(
-                segments, fs_hz, alpha=alpha, units=units,
-                model_psd=lambda f: model_psd(base.params, f, fs_hz, continuous_only=True))
-        except ValueError:
-            pass
-    if "rate_ramp" not in names:
-        by_term["rate_ramp"] = evidence.drift(t_rate, x, alpha=alpha, units=units)
-    if temperature is not None and "temperature" not in names:
-        by_term["temperature"] = evidence.temperature_correlation(
-            t_rate, x, temperature[0], temperature[1], alpha=alpha, units=units)
-    findings.extend(by_term.values())
-
-    # a repeatable term (a second Markov time constant, a second resonance) stays a candidate
-    candidates = [n for n, t in TERMS.items() if (n not in names or t.repeatable)
-                  and t.kind == "additive"
-                  and (t.needs_record != "temperature" or temperature is not None)]
-    if not any(get_term(n).kind == "filter" for n in names):
-        if sensor_filter is not None:
-            candidates.append(get_term(sensor_filter[0]).name)
-        elif _filter_signature(base, filt):
-            candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
+    findings, by_term, filt = _evidence(x, fs_hz, starts, segments, t_rate, base, names,
+                                        temperature, alpha, units)
+    candidates = _candidates(names, base, filt, temperature is not None, sensor_filter)
     cuts: list[Finding] = []
     if transients and "temperature" not in names:
         bounds = np.append(starts, x.size)
@@ -658,17 +710,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
                                         units=units,
                                         t0_s=time_origin_s + float(bounds[longest]) / fs_hz))
         findings.extend(cuts)
-    psd_est, nperseg, psd_block, psd_before = None, 256, None, None
-    if "temperature" not in names:
-        try:
-            psd_est, nperseg = measured_psd(x, fs_hz, starts)
-            psd_block, psd_before = psd_parts(base.params, psd_est, fs_hz, nperseg)
-        except ValueError as exc:
-            psd_before = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
-                          "reason": f"no PSD: {exc}"}
-    else:
-        psd_before = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
-                      "reason": "not computed under a temperature regression"}
+    psd_est, nperseg, psd_block, psd_before = _psd_baseline(x, fs_hz, starts, base, names)
     parts: dict[str, Any] = {"psd": psd_before}
     if cuts:
         parts["time_domain"] = time_domain_part(x, fs_hz, base.params, starts, units, cuts)
@@ -678,19 +720,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
                    len(candidates) + len(cuts), sensor_filter, time_origin_s,
                    psd_est, nperseg, psd_before)
-    suggestions = [_suggest(ctx, term, alpha) for term in candidates]
-    if not any(s.significant for s in suggestions):
-        # the step and warm-up tests take the fitted model as the sensor's noise: only once
-        # no term is missing is that a fair null (a model without its random walk sees
-        # steps everywhere); until then they stay findings
-        # one transient, one remedy: the shape that explains it better when both are found
-        found = {f.kind for f in cuts if f.significant}
-        suggestions += [_remedy(ctx, f, units, alpha) for f in cuts if f.significant
-                        and f.details.get("better_explained_by") not in found]
-    # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
-    # parameters, so a two-parameter Markov term does not win merely by being flexible.
-    suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
-    suggestions = _simplest_first(suggestions, alpha)
+    suggestions = _ranked(ctx, candidates, cuts, units, alpha)
     parts["holdout"] = _check_holdout(ctx, suggestions, fixed) if holdout else \
         {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
     return Diagnosis(fit=base, curve=curve, suggestions=suggestions, findings=findings,
