@@ -50,10 +50,18 @@ def test_a_model_missing_a_term_fails_the_psd_and_holdout_parts(stationary):
     assert parts["psd"]["deviance_per_bin"] > 5.0
 
 
-def test_a_resonance_that_moves_between_the_halves_is_named():
-    first = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 20.7, "Q": 30.0})]
-    second = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 19.9, "Q": 30.0})]
-    x = np.concatenate((simulate(first, N // 2, FS, rng=3), simulate(second, N // 2, FS, rng=4)))
+@pytest.fixture(scope="module")
+def moving_peak() -> np.ndarray:
+    """A 30-Q resonance at 20.7 Hz for the first half of the record and 19.9 Hz for the
+    second, over white noise."""
+    halves = [simulate([("white", {"N": 1e-3}),
+                        ("resonance", {"sigma": 3e-3, "f0": f0, "Q": 30.0})], N // 2, FS, rng=seed)
+              for f0, seed in ((20.7, 3), (19.9, 4))]
+    return np.concatenate(halves)
+
+
+def test_a_resonance_that_moves_between_the_halves_is_named(moving_peak):
+    x = moving_peak
     spec = "white,resonance"
     fit = fit_series(x, FS, spec)[0]
     ho = holdout_part(x, FS, spec, fit)
@@ -117,12 +125,10 @@ def test_a_drift_present_in_one_half_only_is_named():
     assert moved[0]["values"][0] > 1e-5 > moved[0]["values"][1]
 
 
-def test_a_held_resonance_that_moves_is_named_too():
+def test_a_held_resonance_that_moves_is_named_too(moving_peak):
     # the diagnosis writes a resonance's f0 and Q into the model; the halves' spectra still
     # measure them
-    first = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 20.7, "Q": 30.0})]
-    second = [("white", {"N": 1e-3}), ("resonance", {"sigma": 3e-3, "f0": 19.9, "Q": 30.0})]
-    x = np.concatenate((simulate(first, N // 2, FS, rng=3), simulate(second, N // 2, FS, rng=4)))
+    x = moving_peak
     spec = "white,resonance:f0=20.3:Q=30"
     fit = fit_series(x, FS, spec)[0]
     moved = [c for c in holdout_part(x, FS, spec, fit)["changed"] if c["param"] == "resonance.f0"]
