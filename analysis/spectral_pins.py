@@ -3,9 +3,12 @@
 The Allan curve sees a resonance as a bump near tau = 1/(2 f0); moving f0 by the peak's own
 width changes it by a few per cent, so an Allan fit leaves f0 and Q loose (ADIS16405 gyro_z:
 f0 20.4 Hz [20.3, 20.7], Q 20 [12, 1e4]), while the spectrum shows the peak itself. For each
-resonance of a fitted model whose f0 and Q the user did not hold, this stage fits the measured
-PSD near the peak by Whittle likelihood, then the Allan fit is repeated with f0 and Q held at
-the spectrum's values (:func:`imunoise.analysis.fit.fit_series`).
+resonance of a fitted model whose f0 and Q are not held, this fits the measured PSD near the
+peak by Whittle likelihood. Two callers use it: the hold-out part compares each half's peak
+(:func:`imunoise.analysis.model_error.holdout_part`), and the diagnosis holds a suggested
+resonance at the peak where the Allan refit put it elsewhere
+(:mod:`imunoise.analysis.diagnosis`). The fit itself stays an Allan fit: held at the peak of a
+drifting, asymmetric real peak, a resonance follows the Allan curve worse.
 
 The spectrum: a Welch estimate on a fine linear grid (Hann, 50 % overlap, segment
 :func:`pin_nperseg`), its bins between f0/2 and min(2 f0, 0.49 fs) (f0 the Allan fit's). The
