@@ -65,9 +65,10 @@ def measured_psd(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | 
     return log_psd(x, fs_hz, segment_starts=segment_starts, ci=0.95, nperseg=nperseg), nperseg
 
 
-def psd_parts(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int
+def psd_parts(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int | None
               ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``(psd block, error.psd)`` of a model against a measured estimate."""
+    """``(psd block, error.psd)`` of a model against a measured estimate (``nperseg``: its
+    segment length, None for the streaming estimate's own)."""
     block: dict[str, Any] = {"f_hz": est.f_hz, "psd": est.psd, "dof": est.dof,
                              "ci_low": est.ci_low, "ci_high": est.ci_high}
     try:
@@ -89,19 +90,10 @@ def psd_parts(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int
 def streaming_psd_part(model: Model, est: PsdEstimate, fs_hz: float
                        ) -> tuple[np.ndarray | None, dict[str, Any]]:
     """``(expected PSD or None, error.psd)`` of a model against the live service's streaming
-    log-PSD estimate (its own segment lengths: ``nperseg=None``)."""
-    try:
-        expected = expected_log_psd([(n, p) for n, p in model
-                                     if get_term(n).role != "regressor"], est, fs_hz,
-                                    nperseg=None)
-    except ValueError as exc:
-        return None, {"deviance_per_bin": None, "bins": 0, "outside_95": None,
-                      "reason": str(exc)}
-    part = whittle_part(est.psd, est.dof, expected)
-    if part is None:
-        return expected, {"deviance_per_bin": None, "bins": 0, "outside_95": None,
-                          "reason": "fewer than 5 usable PSD points"}
-    return expected, part
+    log-PSD estimate (:func:`psd_parts` with the estimate's own segment lengths)."""
+    block, part = psd_parts(model, est, fs_hz, None)
+    expected = np.asarray(block["model_psd"], dtype=np.float64)
+    return (expected if np.isfinite(expected).any() else None), part
 
 
 def _half(x: np.ndarray, bounds: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
