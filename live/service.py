@@ -170,6 +170,10 @@ class LiveService:
 
     # --- threads -------------------------------------------------------------------------
     def _acquire(self) -> None:
+        # A source that can be stopped ends its blocks by itself, after handing out what it
+        # has already read from the device (and counted): those blocks are still taken to
+        # the sinks. Only a plain iterable is left at the stop.
+        drains = callable(getattr(self.source, "stop", None))
         try:
             blocks = getattr(self.source, "blocks", None)
             for block in (blocks() if callable(blocks) else self.source):
@@ -203,7 +207,7 @@ class LiveService:
                             break
                         except queue.Full:
                             continue
-                if self._stop.is_set():
+                if self._stop.is_set() and not drains:
                     break
         except Exception as exc:  # noqa: BLE001 - the service stays up and reports it
             self.error = f"acquisition stopped: {type(exc).__name__}: {exc}"

@@ -10,7 +10,7 @@ import pytest
 
 from imunoise.live.scheduler import WorkerClosed, WorkerProcess
 from imunoise.live.service import LiveService
-from tests.live_helpers import SyntheticImu, touch_then_sleep
+from tests.live_helpers import SourceStats, SyntheticImu, touch_then_sleep
 
 
 def _wait_for(path: Path, timeout: float = 60.0) -> None:
@@ -169,3 +169,61 @@ def test_a_stop_signal_ends_the_recording_first_and_no_final_fit_is_awaited(tmp_
     assert took < 10  # neither the running fit nor a final one is awaited
     assert sink.closed and sink.samples == source.stats.samples > 0
     assert svc.error is None
+
+
+class _BatchedSource:
+    """Like the acquisition: reads a batch of blocks from the device, counts its samples, then
+    hands the blocks out one by one; after a stop, what was read is handed out last."""
+
+    def __init__(self) -> None:
+        self.stats = SourceStats()
+        self._stop = threading.Event()
+        self._imu = SyntheticImu(block=10)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _read(self, n: int) -> list:
+        blocks = [self._imu._make(0) for _ in range(n)]
+        self.stats.samples += sum(len(b.t) for b in blocks)
+        return blocks
+
+    def blocks(self):
+        while not self._stop.is_set():
+            yield from self._read(3)
+        yield from self._read(1)  # the device's last samples, read as the stop arrives
+
+
+class _StopOnFirstBlockSink(_CountingSink):
+    """Stops the service as the first block arrives, in the middle of the source's batch."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.svc: LiveService | None = None
+        self.stopper: threading.Thread | None = None
+
+    def write(self, block) -> None:
+        super().write(block)
+        if self.stopper is None and self.svc is not None:
+            self.stopper = threading.Thread(target=self.svc.stop)
+            self.stopper.start()
+            while not self.svc._stop.is_set():
+                time.sleep(0.001)
+
+
+def test_a_stop_in_the_middle_of_a_batch_still_records_every_sample_read() -> None:
+    source = _BatchedSource()
+    sink = _StopOnFirstBlockSink()
+    analysis = _GatedAnalysis()
+    analysis.gate.set()
+    svc = LiveService(source, analysis, sinks=[sink])
+    sink.svc = svc
+    svc.start()
+    deadline = time.monotonic() + 30
+    while sink.stopper is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    sink.stopper.join(30)
+    assert not sink.stopper.is_alive() and sink.closed
+    # the batch's other two blocks and the last read reach the file: 4 blocks of 10
+    assert sink.samples == source.stats.samples == 40
