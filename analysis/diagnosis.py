@@ -32,6 +32,7 @@ from imunoise.analysis import evidence
 from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.model_error import holdout_part, measured_psd, psd_parts, time_domain_part
+from imunoise.analysis.parallel import forked_map
 from imunoise.analysis.spectral_pins import PINNED, pin_resonances
 from imunoise.analysis.terms import (
     TERMS,
@@ -269,6 +270,7 @@ class _Context:
     psd_est: Any = None
     nperseg: int = 256
     psd_before: dict[str, Any] | None = None
+    workers: int = 1
 
 
 _Interval = tuple[float, float]
@@ -480,6 +482,12 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         apply={"model": spec.text(), "args": []}, error_after=error_after)
 
 
+def _suggest_at(shared: tuple[_Context, float], term: str) -> Suggestion:
+    """:func:`_suggest` of one candidate, as :func:`forked_map` calls it."""
+    ctx, alpha = shared
+    return _suggest(ctx, term, alpha)
+
+
 def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Suggestion:
     """A warm-up or bias step as a suggestion: not a term but a cut of the record (its
     ``apply.args``), refitted exactly as ``imunoise fit --model M ARGS`` fits it."""
@@ -628,7 +636,7 @@ def _ranked(ctx: _Context, candidates: list[str], cuts: list[Finding], units: st
             alpha: float) -> list[Suggestion]:
     """Each candidate judged (:func:`_suggest`), the cuts of the record when no term is
     significant, strongest evidence first (:func:`_simplest_first`)."""
-    suggestions = [_suggest(ctx, term, alpha) for term in candidates]
+    suggestions = forked_map(_suggest_at, (ctx, alpha), candidates, ctx.workers)
     if not any(s.significant for s in suggestions):
         # the step and warm-up tests take the fitted model as the sensor's noise: only once
         # no term is missing is that a fair null (a model without its random walk sees
@@ -650,7 +658,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              fixed: dict | None = None,
              sensor_filter: tuple[str, dict[str, float]] | None = None,
              transients: bool = True, time_origin_s: float = 0.0,
-             holdout: bool = True) -> Diagnosis:
+             holdout: bool = True, workers: int = 1) -> Diagnosis:
     """Fit ``model`` to a rate series and rank the terms it is missing.
 
     Args:
@@ -678,6 +686,10 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             ``t_s`` counts from the start of the file, as ``--split`` does).
         holdout: compute the hold-out part (the model fitted on each half predicting the
             other) and require a significant term to lower it; it costs two fits per check.
+        workers: processes that refit the candidates side by side
+            (:func:`imunoise.analysis.parallel.forked_map`; e.g.
+            :func:`~imunoise.analysis.parallel.available_cpus`). The result is the same for
+            any number; one (the default) refits them in this process.
 
     Returns:
         A :class:`Diagnosis` with suggestions best first.
@@ -719,7 +731,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             if transients else {"statistic": None, "p": None, "reason": "not requested"}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
                    len(candidates) + len(cuts), sensor_filter, time_origin_s,
-                   psd_est, nperseg, psd_before)
+                   psd_est, nperseg, psd_before, max(1, int(workers)))
     suggestions = _ranked(ctx, candidates, cuts, units, alpha)
     parts["holdout"] = _check_holdout(ctx, suggestions, fixed) if holdout else \
         {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}

@@ -102,6 +102,7 @@ def diagnose_channel(record: Record, key: str, model_text: str,
 
     Raises UsageError for an unknown term or a record too short to fit."""
     from imunoise.analysis.diagnosis import diagnose
+    from imunoise.analysis.parallel import available_cpus
 
     names, fixed = parse_model(model_text)
     series = record.series(key)
@@ -114,7 +115,7 @@ def diagnose_channel(record: Record, key: str, model_text: str,
                         segment_starts=series.segment_starts, t0_s=series.t0_s,
                         temperature=temperature, units=series.units, fixed=fixed,
                         sensor_filter=device_filter(record.metadata, key),
-                        time_origin_s=time_origin_s)
+                        time_origin_s=time_origin_s, workers=available_cpus())
 
 
 def device_filter(metadata: dict[str, str], key: str) -> tuple[str, dict[str, float]] | None:

@@ -1,0 +1,73 @@
+"""Candidates refitted side by side in forked processes give the serial diagnosis exactly."""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from imunoise.analysis import parallel
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.parallel import can_fork, forked_map
+
+pytestmark = pytest.mark.skipif(not can_fork(), reason="needs fork and a single thread")
+
+
+def _pid_and_square(shared: dict, item: int) -> tuple[int, int]:
+    return os.getpid(), shared["k"] * item * item
+
+
+def _fails_on_three(shared: None, item: int) -> int:
+    if item == 3:
+        raise ValueError(f"item {item} is refused")
+    return item
+
+
+def test_results_come_back_in_order_from_other_processes() -> None:
+    out = forked_map(_pid_and_square, {"k": 2}, list(range(7)), workers=2)
+    assert [v for _, v in out] == [2 * i * i for i in range(7)]
+    assert os.getpid() not in {pid for pid, _ in out}
+    assert parallel._SHARED is None  # nothing of the job is left behind
+
+
+def test_one_worker_or_one_item_runs_here() -> None:
+    for workers, items in ((1, [1, 2, 3]), (4, [5])):
+        out = forked_map(_pid_and_square, {"k": 1}, items, workers)
+        assert {pid for pid, _ in out} == {os.getpid()}
+
+
+def test_with_another_thread_running_nothing_is_forked() -> None:
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        assert not can_fork()
+        out = forked_map(_pid_and_square, {"k": 1}, [1, 2, 3], workers=2)
+    finally:
+        stop.set()
+        t.join()
+    assert {pid for pid, _ in out} == {os.getpid()}
+
+
+def test_a_job_that_raises_raises_in_the_caller() -> None:
+    with pytest.raises(ValueError, match="item 3 is refused"):
+        forked_map(_fails_on_three, None, [1, 2, 3, 4], workers=2)
+    assert parallel._SHARED is None
+
+
+def test_diagnosis_with_two_workers_equals_the_serial_one() -> None:
+    rng = np.random.default_rng(11)
+    fs, n = 100.0, 200_000
+    t = np.arange(n) / fs
+    x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n)) \
+        + 2e-3 * np.sin(2 * np.pi * 3.1 * t)
+    serial = diagnose(x, fs, "white,random_walk", holdout=False, transients=False)
+    forked = diagnose(x, fs, "white,random_walk", holdout=False, transients=False, workers=2)
+    assert [s.term for s in forked.suggestions] == [s.term for s in serial.suggestions]
+    assert any(s.significant for s in serial.suggestions)  # the line is found
+    for a, b in zip(serial.suggestions, forked.suggestions, strict=True):
+        assert (a.significant, a.log_p, a.params) == (b.significant, b.log_p, b.params)
+        assert a.chi2_per_dof_after == b.chi2_per_dof_after \
+            or (np.isnan(a.chi2_per_dof_after) and np.isnan(b.chi2_per_dof_after))
