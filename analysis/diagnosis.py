@@ -751,7 +751,8 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | N
     first, at most
     :data:`HOLDOUT_CHECKS` of them; the first significant suggestion left is the one to
     apply."""
-    before = holdout_part(ctx.x, ctx.fs_hz, ctx.spec, ctx.base, ctx.starts)
+    before = holdout_part(ctx.x, ctx.fs_hz, ctx.spec, ctx.base, ctx.starts,
+                          workers=ctx.workers)
     b = before.get("chi2_per_dof")
     dof = float(ctx.base.misfit.dof)
     lacking = b is not None and b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))
@@ -764,7 +765,8 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | N
         if checked >= HOLDOUT_CHECKS or b is None:
             break
         checked += 1
-        after = holdout_part(ctx.x, ctx.fs_hz, s.apply["model"], s.fit, ctx.starts)
+        after = holdout_part(ctx.x, ctx.fs_hz, s.apply["model"], s.fit, ctx.starts,
+                             workers=ctx.workers)
         s.error_after["holdout"] = after
         a = after.get("chi2_per_dof")
         if a is None or not _rises(b, a, dof) and (a < b or not lacking):

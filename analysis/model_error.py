@@ -162,22 +162,24 @@ def _pairs(fit_a: Any, fit_b: Any) -> list[int]:
     return out
 
 
-def _spectral_shapes(halves: Sequence[tuple[np.ndarray, np.ndarray]], fs_hz: float,
-                     fits: Sequence[Any]) -> list[dict[int, Any]]:
-    """Each half's resonance shapes (f0, Q) from its own spectrum, by model index
-    (:func:`imunoise.analysis.spectral_pins.pin_resonances`). Held shapes are measured too:
-    a resonance the model holds at one frequency (as the diagnosis writes it) can still move
-    between the halves, and that is a finding about the sensor."""
+def _fit_half(shared: tuple[Any, ...], k: int) -> tuple[Any, dict[int, Any] | None]:
+    """Half ``k``'s fit and its resonance shapes (f0, Q) from its own spectrum, by model index
+    (:func:`imunoise.analysis.spectral_pins.pin_resonances`; None where that spectrum cannot
+    be fitted). Held shapes are measured too: a resonance the model holds at one frequency
+    (as the diagnosis writes it) can still move between the halves, and that is a finding
+    about the sensor."""
+    from imunoise.analysis.fit import fit_series
     from imunoise.analysis.spectral_pins import pin_resonances
 
-    out: list[dict[int, Any]] = []
-    for (h, starts), fit in zip(halves, fits, strict=True):
-        try:
-            pins = pin_resonances(h, fs_hz, fit.params, set(), starts)
-        except (ValueError, ArithmeticError, np.linalg.LinAlgError):
-            return [{}, {}]  # the Allan fits' intervals judge the resonance then
-        out.append({p.index: p for p in pins})
-    return out
+    halves, fs_hz, spec, fixed, fitted = shared
+    h, starts = halves[k]
+    fit = fit_series(h, fs_hz, spec, segment_starts=starts, fixed=fixed, start=fitted,
+                     intervals="jacobian")[0]
+    try:
+        pins = pin_resonances(h, fs_hz, fit.params, set(), starts)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return fit, None
+    return fit, {p.index: p for p in pins}
 
 
 def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
@@ -217,13 +219,16 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
 
 def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
                  segment_starts: np.ndarray | None = None,
-                 fixed: dict | None = None) -> dict[str, Any]:
+                 fixed: dict | None = None, workers: int = 1) -> dict[str, Any]:
     """``error.holdout``: the model fitted on each half predicting the other half.
 
     ``model`` is the specification the user gave (held parameters stay held), ``fitted`` the
     whole record's :class:`imunoise.analysis.fit.FitResult` (the halves' fits start there).
+    ``workers``: with two or more, the halves are fitted side by side in forked processes
+    (:func:`imunoise.analysis.parallel.forked_map`; the same result).
     """
     from imunoise.analysis.fit import fit_series
+    from imunoise.analysis.parallel import forked_map
 
     x = np.asarray(values, dtype=np.float64)
     spec = parse_model(model)
@@ -233,11 +238,9 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     bounds = _bounds(x.size, segment_starts)
     mid = x.size // 2
     halves = [_half(x, bounds, 0, mid), _half(x, bounds, mid, x.size)]
-    fits = []
     try:
-        for h, starts in halves:
-            fits.append(fit_series(h, fs_hz, spec, segment_starts=starts, fixed=fixed,
-                                   start=fitted, intervals="jacobian")[0])
+        done = forked_map(_fit_half, (halves, fs_hz, spec, fixed, fitted), [0, 1], workers)
+        fits = [fit for fit, _ in done]
         chis = []
         for (h, starts), other in zip(halves, fits[::-1], strict=True):
             given = [(t.term, dict(t.params)) for t in other.terms]
@@ -248,7 +251,14 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
         return {"chi2_per_dof": None, "parts": 2, "reason": f"a half cannot be fitted: {exc}"}
     return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
             "halves": [float(c) for c in chis],
-            "changed": _changed(fits[0], fits[1], _spectral_shapes(halves, fs_hz, fits))}
+            "changed": _changed(fits[0], fits[1], _shapes_of(done))}
+
+
+def _shapes_of(done: Sequence[tuple[Any, dict[int, Any] | None]]) -> list[dict[int, Any]]:
+    """Both halves' resonance shapes, or none where one half's spectrum could not be fitted
+    (the Allan fits' intervals judge the resonance then)."""
+    shapes = [s for _, s in done]
+    return [{}, {}] if any(s is None for s in shapes) else [dict(s or {}) for s in shapes]
 
 
 def time_domain_part(values: np.ndarray, fs_hz: float, model: Model,
@@ -277,9 +287,10 @@ def time_domain_part(values: np.ndarray, fs_hz: float, model: Model,
 def error_parts(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
                 segment_starts: np.ndarray | None = None, fixed: dict | None = None,
                 units: str = "rad/s", holdout: bool = True,
-                transient_findings: Sequence[Any] | None = None
+                transient_findings: Sequence[Any] | None = None, workers: int = 1
                 ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
-    """``(psd block, {"psd", "holdout", "time_domain"})`` of a fitted model on a channel."""
+    """``(psd block, {"psd", "holdout", "time_domain"})`` of a fitted model on a channel
+    (``workers``: see :func:`holdout_part`)."""
     params = fitted.params
     parts: dict[str, Any] = {}
     block = None
@@ -289,7 +300,8 @@ def error_parts(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     except ValueError as exc:
         parts["psd"] = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
                         "reason": f"no PSD: {exc}"}
-    parts["holdout"] = (holdout_part(values, fs_hz, model, fitted, segment_starts, fixed)
+    parts["holdout"] = (holdout_part(values, fs_hz, model, fitted, segment_starts, fixed,
+                                     workers)
                         if holdout else {"chi2_per_dof": None, "parts": 2,
                                          "reason": "not requested"})
     parts["time_domain"] = time_domain_part(values, fs_hz, params, segment_starts, units,

@@ -84,11 +84,13 @@ def fit_error_parts(record: Record, key: str, model_text: str, result: Any
     hold-out and time-domain parts beside the Allan chi2/dof
     (:func:`imunoise.analysis.model_error.error_parts`)."""
     from imunoise.analysis.model_error import error_parts
+    from imunoise.analysis.parallel import available_cpus
 
     series = record.series(key)
     with fit_errors(key):
         return error_parts(series.values, series.fs_hz, model_text, result,
-                           segment_starts=series.segment_starts, units=series.units)
+                           segment_starts=series.segment_starts, units=series.units,
+                           workers=available_cpus())
 
 
 ADIS_INTERNAL_RATE_HZ = 819.2

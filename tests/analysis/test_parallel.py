@@ -71,3 +71,19 @@ def test_diagnosis_with_two_workers_equals_the_serial_one() -> None:
         assert (a.significant, a.log_p, a.params) == (b.significant, b.log_p, b.params)
         assert a.chi2_per_dof_after == b.chi2_per_dof_after \
             or (np.isnan(a.chi2_per_dof_after) and np.isnan(b.chi2_per_dof_after))
+
+
+def test_holdout_part_with_two_workers_equals_the_serial_one() -> None:
+    from imunoise.analysis.fit import fit_series
+    from imunoise.analysis.model_error import holdout_part
+
+    rng = np.random.default_rng(12)
+    fs, n = 100.0, 200_000
+    x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) \
+        + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n))
+    x[n // 2:] *= 1.05  # the second half 5 % noisier: a change to name
+    fit, _ = fit_series(x, fs, "white,random_walk", intervals="jacobian")
+    serial = holdout_part(x, fs, "white,random_walk", fit)
+    forked = holdout_part(x, fs, "white,random_walk", fit, workers=2)
+    assert forked == serial
+    assert [c["param"] for c in serial["changed"]] == ["white.N"]
