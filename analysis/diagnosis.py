@@ -707,7 +707,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     memo: dict = {}
     base, curve = fit_series(x, fs_hz, base_spec, segment_starts=starts,
                              temperature=temp_at if "temperature" in names else None,
-                             memo=memo)
+                             memo=memo, workers=workers)
     segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
                                                    strict=True)) if s.size]
 

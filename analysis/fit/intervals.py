@@ -12,6 +12,7 @@ from scipy import optimize
 
 from imunoise.analysis.fit.layout import _avar_of, _jacobian, _Layout, _log_weights, _unpack
 from imunoise.analysis.fit.problem import _Point, _Problem
+from imunoise.analysis.parallel import forked_map
 from imunoise.analysis.profile import profile_bounds
 from imunoise.analysis.terms import (
     get_term,
@@ -21,8 +22,10 @@ _Z95 = 1.959963984540054
 
 
 def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.ndarray,
-               intervals: str) -> tuple[list[dict[str, tuple[float, float]]], np.ndarray]:
-    """95 % intervals: linearised in log-parameter space, or by profile likelihood."""
+               intervals: str, workers: int = 1
+               ) -> tuple[list[dict[str, tuple[float, float]]], np.ndarray]:
+    """95 % intervals: linearised in log-parameter space, or by profile likelihood (the
+    parameters' profiles side by side in up to ``workers`` forked processes)."""
     layout, fs, used, theta = prob.layout, prob.fs, point.used, point.theta
     if prob.n_free == 0:
         return ([{k: (float(v), float(v)) for (i, k), v in layout.fixed.items() if i == j}
@@ -52,12 +55,11 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
         full = optimize.least_squares(resid_final, theta, bounds=(layout.lo, layout.hi),
                                       method="trf", max_nfev=60)
         base = min(2.0 * float(full.cost), float(np.sum(resid_final(theta) ** 2)))
+    profiled = [idx for idx in range(theta.size) if intervals == "profile" or weak[idx]]
+    ends = dict(zip(profiled, forked_map(_profile_at, (resid_final, theta, layout, sd, base),
+                                         profiled, workers), strict=True))
     for idx, ((i, k), th, s) in enumerate(zip(layout.keys, theta, sd, strict=True)):
-        if intervals == "profile" or weak[idx]:
-            assert base is not None  # set above whenever a profile is asked for
-            lo, hi = _profile_interval(resid_final, theta, idx, layout, s, base)
-        else:
-            lo, hi = th - _Z95 * s, th + _Z95 * s
+        lo, hi = ends[idx] if idx in ends else (th - _Z95 * s, th + _Z95 * s)
         # an amplitude whose interval reaches its lower bound is consistent with zero
         scale = get_term(prob.names[i]).param(k).is_scale
         lo_v = 0.0 if (lo <= layout.lo[idx] + 1e-6 and not scale) else math.exp(lo)
@@ -72,6 +74,13 @@ _CHI2_95_1DOF = 3.841458820694124
 
 _PROFILE_WIDTH = 0.02
 """An interval's end is found to within this (log units: 2 % of the value)."""
+
+
+def _profile_at(shared: tuple[Any, ...], idx: int) -> tuple[float, float]:
+    """:func:`_profile_interval` of parameter ``idx``, as :func:`forked_map` calls it."""
+    resid, theta, layout, sd, base = shared
+    assert base is not None  # set whenever a profile is asked for
+    return _profile_interval(resid, theta, idx, layout, float(sd[idx]), base)
 
 
 def _profile_interval(resid: Any, theta: np.ndarray, idx: int, layout: _Layout, sd: float,

@@ -99,7 +99,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
                temperature: np.ndarray | None = None,
                fixed: dict[str | int, dict[str, float]] | None = None,
                ci: float = 0.95, start: Any = None, memo: dict | None = None,
-               intervals: str = "profile") -> tuple[FitResult, Any]:
+               intervals: str = "profile", workers: int = 1) -> tuple[FitResult, Any]:
     """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
     for a sinusoid, temperature regression, then :func:`fit_allan`.
 
@@ -116,6 +116,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
             curves, spectral line and nested solutions are computed once. A fit with a memo
             gives exactly the numbers of one without.
         intervals: see :func:`fit_allan` (intervals never change the parameters or chi2).
+        workers: see :func:`fit_allan`.
 
     Returns:
         ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
@@ -149,5 +150,5 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
             memo[line_key] = series_line(x, fs_hz, segment_starts)
         line = memo[line_key]
     result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
-                       memo=memo, intervals=intervals)
+                       memo=memo, intervals=intervals, workers=workers)
     return result, curve

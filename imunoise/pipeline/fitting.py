@@ -68,6 +68,7 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
 
     Raises UsageError for an unknown term, a bad parameter or a record too short to fit."""
     from imunoise.analysis.fit import fit_series
+    from imunoise.analysis.parallel import available_cpus
 
     names, fixed = parse_model(model_text)
     series = record.series(key)
@@ -75,7 +76,7 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     with fit_errors(key):
         return fit_series(series.values, series.fs_hz, names,
                           segment_starts=series.segment_starts, temperature=temperature,
-                          fixed=fixed, ci=CI95)
+                          fixed=fixed, ci=CI95, workers=available_cpus())
 
 
 def fit_error_parts(record: Record, key: str, model_text: str, result: Any

@@ -87,3 +87,16 @@ def test_holdout_part_with_two_workers_equals_the_serial_one() -> None:
     forked = holdout_part(x, fs, "white,random_walk", fit, workers=2)
     assert forked == serial
     assert [c["param"] for c in serial["changed"]] == ["white.N"]
+
+
+def test_profile_intervals_with_two_workers_equal_the_serial_ones() -> None:
+    from imunoise.analysis.fit import fit_series
+
+    rng = np.random.default_rng(13)
+    fs, n = 100.0, 100_000
+    x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) \
+        + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n))
+    serial, _ = fit_series(x, fs, "white,bias_instability,random_walk")
+    forked, _ = fit_series(x, fs, "white,bias_instability,random_walk", workers=2)
+    assert [t.params for t in forked.terms] == [t.params for t in serial.terms]
+    assert [t.ci95 for t in forked.terms] == [t.ci95 for t in serial.terms]
