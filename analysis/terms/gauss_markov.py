@@ -52,6 +52,25 @@ spectrum is flat across the sampled band (white noise), and a fit could trade th
 level for it."""
 
 
+def half_angle_sin2(f_hz: np.ndarray, fs_hz: float) -> np.ndarray:
+    """``sin^2(w/2)`` at the frequencies ``f_hz`` (Hz), ``w = 2 pi f / fs`` the angular
+    frequency per sample: what :func:`ar1_psd` needs of the grid."""
+    w = 2.0 * np.pi * f_hz / fs_hz
+    return np.sin(w / 2.0) ** 2
+
+
+def ar1_psd(sin2: np.ndarray, fs_hz: float, sigma: float, T: float) -> np.ndarray:
+    """One-sided PSD (units^2/Hz) of the sampled first-order Markov process of standard
+    deviation ``sigma`` and correlation time ``T`` (s), on a grid given by
+    :func:`half_angle_sin2` (computed once for a sum of such processes)."""
+    b = 1.0 / (fs_hz * T)
+    a = math.exp(-b)
+    one_minus_a2 = -math.expm1(-2.0 * b)
+    # 1 - 2a cos w + a^2 = (1-a)^2 + 4a sin^2(w/2), written to avoid cancellation
+    den = (-math.expm1(-b)) ** 2 + 4.0 * a * sin2
+    return 2.0 * sigma * sigma * one_minus_a2 / (fs_hz * den)
+
+
 def ar1_avar_shape(m: np.ndarray, b: float) -> np.ndarray:
     """Allan variance of a unit-variance point-sampled AR(1) process, per sigma^2.
 
@@ -119,13 +138,7 @@ class GaussMarkov(Term):
         return sigma * sigma * ar1_avar_shape(tau * fs, 1.0 / (fs * T))
 
     def _psd(self, f: np.ndarray, fs: float, sigma: float, T: float) -> np.ndarray:
-        b = 1.0 / (fs * T)
-        a = math.exp(-b)
-        one_minus_a2 = -math.expm1(-2.0 * b)
-        w = 2.0 * np.pi * f / fs
-        # 1 - 2a cos w + a^2 = (1-a)^2 + 4a sin^2(w/2), written to avoid cancellation
-        den = (-math.expm1(-b)) ** 2 + 4.0 * a * np.sin(w / 2.0) ** 2
-        return 2.0 * sigma * sigma * one_minus_a2 / (fs * den)
+        return ar1_psd(half_angle_sin2(f, fs), fs, sigma, T)
 
     def log_fit_bounds(self, param, fs_hz, duration_s):
         if param.name == "T":
