@@ -31,8 +31,8 @@ from scipy import special, stats
 from imunoise.analysis import evidence
 from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.fit import FitResult, fit_series
+from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.model_error import holdout_part, measured_psd, psd_parts, time_domain_part
-from imunoise.analysis.parallel import forked_map
 from imunoise.analysis.spectral_pins import PINNED, pin_resonances
 from imunoise.analysis.terms import (
     TERMS,
@@ -270,7 +270,7 @@ class _Context:
     psd_est: Any = None
     nperseg: int = 256
     psd_before: dict[str, Any] | None = None
-    workers: int = 1
+    job_map: JobMap = serial_map
 
 
 _Interval = tuple[float, float]
@@ -483,7 +483,7 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
 
 
 def _suggest_at(shared: tuple[_Context, float], term: str) -> Suggestion:
-    """:func:`_suggest` of one candidate, as :func:`forked_map` calls it."""
+    """:func:`_suggest` of one candidate, as a job map calls it."""
     ctx, alpha = shared
     return _suggest(ctx, term, alpha)
 
@@ -636,7 +636,7 @@ def _ranked(ctx: _Context, candidates: list[str], cuts: list[Finding], units: st
             alpha: float) -> list[Suggestion]:
     """Each candidate judged (:func:`_suggest`), the cuts of the record when no term is
     significant, strongest evidence first (:func:`_simplest_first`)."""
-    suggestions = forked_map(_suggest_at, (ctx, alpha), candidates, ctx.workers)
+    suggestions = ctx.job_map(_suggest_at, (ctx, alpha), candidates)
     if not any(s.significant for s in suggestions):
         # the step and warm-up tests take the fitted model as the sensor's noise: only once
         # no term is missing is that a fair null (a model without its random walk sees
@@ -658,7 +658,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
              fixed: dict | None = None,
              sensor_filter: tuple[str, dict[str, float]] | None = None,
              transients: bool = True, time_origin_s: float = 0.0,
-             holdout: bool = True, workers: int = 1) -> Diagnosis:
+             holdout: bool = True, job_map: JobMap = serial_map) -> Diagnosis:
     """Fit ``model`` to a rate series and rank the terms it is missing.
 
     Args:
@@ -686,10 +686,9 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             ``t_s`` counts from the start of the file, as ``--split`` does).
         holdout: compute the hold-out part (the model fitted on each half predicting the
             other) and require a significant term to lower it; it costs two fits per check.
-        workers: processes that refit the candidates side by side
-            (:func:`imunoise.analysis.parallel.forked_map`; e.g.
-            :func:`~imunoise.analysis.parallel.available_cpus`). The result is the same for
-            any number; one (the default) refits them in this process.
+        job_map: how the independent jobs run (the candidates' refits, the hold-out halves,
+            the profile intervals; see :mod:`imunoise.analysis.jobs`): one after the other
+            by default; the command line forks workers. The result is the same.
 
     Returns:
         A :class:`Diagnosis` with suggestions best first.
@@ -707,7 +706,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     memo: dict = {}
     base, curve = fit_series(x, fs_hz, base_spec, segment_starts=starts,
                              temperature=temp_at if "temperature" in names else None,
-                             memo=memo, workers=workers)
+                             memo=memo, job_map=job_map)
     segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
                                                    strict=True)) if s.size]
 
@@ -731,7 +730,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             if transients else {"statistic": None, "p": None, "reason": "not requested"}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
                    len(candidates) + len(cuts), sensor_filter, time_origin_s,
-                   psd_est, nperseg, psd_before, max(1, int(workers)))
+                   psd_est, nperseg, psd_before, job_map)
     suggestions = _ranked(ctx, candidates, cuts, units, alpha)
     parts["holdout"] = _check_holdout(ctx, suggestions, fixed) if holdout else \
         {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
@@ -752,7 +751,7 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | N
     :data:`HOLDOUT_CHECKS` of them; the first significant suggestion left is the one to
     apply."""
     before = holdout_part(ctx.x, ctx.fs_hz, ctx.spec, ctx.base, ctx.starts,
-                          workers=ctx.workers)
+                          job_map=ctx.job_map)
     b = before.get("chi2_per_dof")
     dof = float(ctx.base.misfit.dof)
     lacking = b is not None and b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))
@@ -766,7 +765,7 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | N
             break
         checked += 1
         after = holdout_part(ctx.x, ctx.fs_hz, s.apply["model"], s.fit, ctx.starts,
-                             workers=ctx.workers)
+                             job_map=ctx.job_map)
         s.error_after["holdout"] = after
         a = after.get("chi2_per_dof")
         if a is None or not _rises(b, a, dof) and (a < b or not lacking):

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import norm
 
+from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.psd import PsdEstimate, default_nperseg, log_psd
 from imunoise.analysis.psd_model import expected_log_psd, psd_z, whittle_part
 from imunoise.analysis.terms import TermError, get_term, labels, parse_model
@@ -219,16 +220,15 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
 
 def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
                  segment_starts: np.ndarray | None = None,
-                 fixed: dict | None = None, workers: int = 1) -> dict[str, Any]:
+                 fixed: dict | None = None, job_map: JobMap = serial_map) -> dict[str, Any]:
     """``error.holdout``: the model fitted on each half predicting the other half.
 
     ``model`` is the specification the user gave (held parameters stay held), ``fitted`` the
     whole record's :class:`imunoise.analysis.fit.FitResult` (the halves' fits start there).
-    ``workers``: with two or more, the halves are fitted side by side in forked processes
-    (:func:`imunoise.analysis.parallel.forked_map`; the same result).
+    ``job_map`` runs the two halves' fits (:mod:`imunoise.analysis.jobs`; the same result
+    whichever runs them).
     """
     from imunoise.analysis.fit import fit_series
-    from imunoise.analysis.parallel import forked_map
 
     x = np.asarray(values, dtype=np.float64)
     spec = parse_model(model)
@@ -239,7 +239,7 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     mid = x.size // 2
     halves = [_half(x, bounds, 0, mid), _half(x, bounds, mid, x.size)]
     try:
-        done = forked_map(_fit_half, (halves, fs_hz, spec, fixed, fitted), [0, 1], workers)
+        done = job_map(_fit_half, (halves, fs_hz, spec, fixed, fitted), [0, 1])
         fits = [fit for fit, _ in done]
         chis = []
         for (h, starts), other in zip(halves, fits[::-1], strict=True):
@@ -287,10 +287,11 @@ def time_domain_part(values: np.ndarray, fs_hz: float, model: Model,
 def error_parts(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
                 segment_starts: np.ndarray | None = None, fixed: dict | None = None,
                 units: str = "rad/s", holdout: bool = True,
-                transient_findings: Sequence[Any] | None = None, workers: int = 1
+                transient_findings: Sequence[Any] | None = None,
+                job_map: JobMap = serial_map
                 ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
     """``(psd block, {"psd", "holdout", "time_domain"})`` of a fitted model on a channel
-    (``workers``: see :func:`holdout_part`)."""
+    (``job_map``: see :func:`holdout_part`)."""
     params = fitted.params
     parts: dict[str, Any] = {}
     block = None
@@ -301,7 +302,7 @@ def error_parts(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
         parts["psd"] = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
                         "reason": f"no PSD: {exc}"}
     parts["holdout"] = (holdout_part(values, fs_hz, model, fitted, segment_starts, fixed,
-                                     workers)
+                                     job_map)
                         if holdout else {"chi2_per_dof": None, "parts": 2,
                                          "reason": "not requested"})
     parts["time_domain"] = time_domain_part(values, fs_hz, params, segment_starts, units,

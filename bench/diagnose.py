@@ -17,8 +17,8 @@ Run from the repository root:
 
 ``imunoise diagnose`` refits the candidate terms, the hold-out halves and the profile
 intervals in worker processes, one per CPU of its affinity mask
-(:func:`imunoise.analysis.parallel.available_cpus`); the ``sim`` figures pass the same number
-of workers to :func:`~imunoise.analysis.diagnosis.diagnose`, and the header line says how
+(:func:`imunoise.pipeline.workers.cpu_job_map`); the ``sim`` figures pass the same job map
+to :func:`~imunoise.analysis.diagnosis.diagnose`, and the header line says how
 many that is. Each process keeps its linear algebra on one thread.
 
 The machine may be shared: each figure is the median of ``--repeat`` runs, wall and CPU time
@@ -136,11 +136,11 @@ def _sim_record() -> np.ndarray:
 
 def bench_sim(repeat: int, with_filter: bool, x: np.ndarray) -> None:
     from imunoise.analysis.diagnosis import diagnose
-    from imunoise.analysis.parallel import available_cpus
+    from imunoise.pipeline.workers import cpu_job_map
 
     model = GIVEN + (",moving_average" if with_filter else "")
     t_med, times, d = _median_time(
-        lambda: diagnose(x, FS, model, workers=available_cpus()), repeat)
+        lambda: diagnose(x, FS, model, job_map=cpu_job_map()), repeat)
     label = (f"sim   3 h at 100 Hz through a 4-tap moving average, one round, model {model}")
     _line(label, t_med, times, _reference(x, repeat), False)
     top = d.suggestions[0] if d.suggestions else None
@@ -156,7 +156,7 @@ def main() -> int:
                         help="run only these figures (repeatable)")
     args = parser.parse_args()
     only = set(args.only or ("real", "sim", "sim_filter"))
-    from imunoise.analysis.parallel import available_cpus
+    from imunoise.pipeline.workers import available_cpus
 
     print(f"diagnosis workers: {available_cpus()} (the CPUs of this process's affinity)")
     if "real" in only:

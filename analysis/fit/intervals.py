@@ -12,7 +12,7 @@ from scipy import optimize
 
 from imunoise.analysis.fit.layout import _avar_of, _jacobian, _Layout, _log_weights, _unpack
 from imunoise.analysis.fit.problem import _Point, _Problem
-from imunoise.analysis.parallel import forked_map
+from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.profile import profile_bounds
 from imunoise.analysis.terms import (
     get_term,
@@ -22,10 +22,10 @@ _Z95 = 1.959963984540054
 
 
 def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.ndarray,
-               intervals: str, workers: int = 1
+               intervals: str, job_map: JobMap = serial_map
                ) -> tuple[list[dict[str, tuple[float, float]]], np.ndarray]:
-    """95 % intervals: linearised in log-parameter space, or by profile likelihood (the
-    parameters' profiles side by side in up to ``workers`` forked processes)."""
+    """95 % intervals: linearised in log-parameter space, or by profile likelihood (each
+    parameter's profile a job of ``job_map``)."""
     layout, fs, used, theta = prob.layout, prob.fs, point.used, point.theta
     if prob.n_free == 0:
         return ([{k: (float(v), float(v)) for (i, k), v in layout.fixed.items() if i == j}
@@ -56,8 +56,8 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
                                       method="trf", max_nfev=60)
         base = min(2.0 * float(full.cost), float(np.sum(resid_final(theta) ** 2)))
     profiled = [idx for idx in range(theta.size) if intervals == "profile" or weak[idx]]
-    ends = dict(zip(profiled, forked_map(_profile_at, (resid_final, theta, layout, sd, base),
-                                         profiled, workers), strict=True))
+    ends = dict(zip(profiled, job_map(_profile_at, (resid_final, theta, layout, sd, base),
+                                      profiled), strict=True))
     for idx, ((i, k), th, s) in enumerate(zip(layout.keys, theta, sd, strict=True)):
         lo, hi = ends[idx] if idx in ends else (th - _Z95 * s, th + _Z95 * s)
         # an amplitude whose interval reaches its lower bound is consistent with zero
@@ -77,7 +77,7 @@ _PROFILE_WIDTH = 0.02
 
 
 def _profile_at(shared: tuple[Any, ...], idx: int) -> tuple[float, float]:
-    """:func:`_profile_interval` of parameter ``idx``, as :func:`forked_map` calls it."""
+    """:func:`_profile_interval` of parameter ``idx``, as a job map calls it."""
     resid, theta, layout, sd, base = shared
     assert base is not None  # set whenever a profile is asked for
     return _profile_interval(resid, theta, idx, layout, float(sd[idx]), base)

@@ -12,6 +12,7 @@ from scipy import ndimage, signal
 
 from imunoise.analysis.fit.result import FitResult, ModelLike, TermFit
 from imunoise.analysis.fit.solve import _hold, fit_allan
+from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.terms import (
     TermError,
     get_term,
@@ -99,7 +100,8 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
                temperature: np.ndarray | None = None,
                fixed: dict[str | int, dict[str, float]] | None = None,
                ci: float = 0.95, start: Any = None, memo: dict | None = None,
-               intervals: str = "profile", workers: int = 1) -> tuple[FitResult, Any]:
+               intervals: str = "profile", job_map: JobMap = serial_map
+               ) -> tuple[FitResult, Any]:
     """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
     for a sinusoid, temperature regression, then :func:`fit_allan`.
 
@@ -116,7 +118,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
             curves, spectral line and nested solutions are computed once. A fit with a memo
             gives exactly the numbers of one without.
         intervals: see :func:`fit_allan` (intervals never change the parameters or chi2).
-        workers: see :func:`fit_allan`.
+        job_map: see :func:`fit_allan`.
 
     Returns:
         ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
@@ -150,5 +152,5 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
             memo[line_key] = series_line(x, fs_hz, segment_starts)
         line = memo[line_key]
     result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
-                       memo=memo, intervals=intervals, workers=workers)
+                       memo=memo, intervals=intervals, job_map=job_map)
     return result, curve

@@ -23,6 +23,7 @@ from imunoise.analysis.fit.layout import (
 from imunoise.analysis.fit.problem import _chi2, _Point, _Problem, _problem, _theta_of
 from imunoise.analysis.fit.result import CurveLike, FitResult, ModelLike, TermFit, _term_avar
 from imunoise.analysis.fit.starts import _cold_starts, _folded, _prefix, _residual_starts
+from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.misfit import failure_threshold, failures, misfit
 from imunoise.analysis.terms import (
     ModelSpec,
@@ -90,7 +91,7 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
               fixed: dict[str | int, dict[str, float]] | None = None,
               family_rate: float = 0.10, max_nfev: int = 200,
               intervals: str = "profile", memo: dict | None = None,
-              workers: int = 1) -> FitResult:
+              job_map: JobMap = serial_map) -> FitResult:
     """Fit a sum of noise terms to a measured overlapping Allan curve.
 
     Args:
@@ -116,8 +117,8 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         intervals: ``"profile"`` (profile likelihood: the other parameters re-fitted while
             one is moved until chi2 rises by 3.84; honest for weakly determined terms, about
             0.1-0.5 s) or ``"jacobian"`` (linearised, log-parameter space; for quick refits).
-        workers: processes that compute the profile intervals side by side
-            (:func:`imunoise.analysis.parallel.forked_map`); the result is the same.
+        job_map: runs the parameters' profile intervals (:mod:`imunoise.analysis.jobs`);
+            the result is the same whichever runs them.
 
     Solutions: the fit is solved from several starts (the linear solve, each near-zero linear
     term raised, the linear solve with every tau weighted alike and, unless ``start`` is given,
@@ -137,7 +138,7 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         # every parameter given: the model is evaluated as it stands, nothing fitted
         theta = np.zeros(0)
         return _result(prob, _Point(theta, np.ones(len(prob.tau), dtype=bool),
-                                    _chi2(prob, theta)), intervals, temperature, workers)
+                                    _chi2(prob, theta)), intervals, temperature, job_map)
     memo = {} if memo is None else memo
     _hold(memo, curve)
     folded = _folded(parsed, prob)
@@ -149,7 +150,7 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         point = _best_point(prob, curve, folded, start, line, memo)
         if start is None:
             memo[key] = (prob, point)
-    return _result(prob, point, intervals, temperature, workers)
+    return _result(prob, point, intervals, temperature, job_map)
 
 
 def _solve_all(prob: _Problem, theta0: np.ndarray) -> _Point:
@@ -280,7 +281,7 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
 
 
 def _result(prob: _Problem, point: _Point, intervals: str, temperature: TermFit | None,
-            workers: int = 1) -> FitResult:
+            job_map: JobMap = serial_map) -> FitResult:
     names, layout, fs, tau = prob.names, prob.layout, prob.fs, prob.tau
     m, n_terms, avar, theta, used = prob.m, prob.n_terms, prob.avar, point.theta, point.used
     params = _unpack(layout, theta)
@@ -288,7 +289,7 @@ def _result(prob: _Problem, point: _Point, intervals: str, temperature: TermFit 
     avar_fit = _avar_of(layout, params, tau, fs)
     cov = _covariance(model_final, fs, m, n_terms)
     mf = misfit(avar, avar_fit, cov, prob.n_free, prob.family_rate)
-    ci, param_cov = _intervals(prob, point, model_final, avar_fit, intervals, workers)
+    ci, param_cov = _intervals(prob, point, model_final, avar_fit, intervals, job_map)
     terms_out: list[TermFit] = []
     for i, n in enumerate(names):
         if get_term(n).role == "regressor":

@@ -17,6 +17,7 @@ import numpy as np
 from imunoise.core.record import Record
 from imunoise.core.units import CI95
 from imunoise.errors import RuntimeFailure, UsageError
+from imunoise.pipeline.workers import cpu_job_map
 
 
 def parse_model(text: str) -> tuple[list[str], dict[str | int, dict[str, float]]]:
@@ -68,7 +69,6 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
 
     Raises UsageError for an unknown term, a bad parameter or a record too short to fit."""
     from imunoise.analysis.fit import fit_series
-    from imunoise.analysis.parallel import available_cpus
 
     names, fixed = parse_model(model_text)
     series = record.series(key)
@@ -76,7 +76,7 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     with fit_errors(key):
         return fit_series(series.values, series.fs_hz, names,
                           segment_starts=series.segment_starts, temperature=temperature,
-                          fixed=fixed, ci=CI95, workers=available_cpus())
+                          fixed=fixed, ci=CI95, job_map=cpu_job_map())
 
 
 def fit_error_parts(record: Record, key: str, model_text: str, result: Any
@@ -85,13 +85,12 @@ def fit_error_parts(record: Record, key: str, model_text: str, result: Any
     hold-out and time-domain parts beside the Allan chi2/dof
     (:func:`imunoise.analysis.model_error.error_parts`)."""
     from imunoise.analysis.model_error import error_parts
-    from imunoise.analysis.parallel import available_cpus
 
     series = record.series(key)
     with fit_errors(key):
         return error_parts(series.values, series.fs_hz, model_text, result,
                            segment_starts=series.segment_starts, units=series.units,
-                           workers=available_cpus())
+                           job_map=cpu_job_map())
 
 
 ADIS_INTERNAL_RATE_HZ = 819.2
@@ -105,7 +104,6 @@ def diagnose_channel(record: Record, key: str, model_text: str,
 
     Raises UsageError for an unknown term or a record too short to fit."""
     from imunoise.analysis.diagnosis import diagnose
-    from imunoise.analysis.parallel import available_cpus
 
     names, fixed = parse_model(model_text)
     series = record.series(key)
@@ -118,7 +116,7 @@ def diagnose_channel(record: Record, key: str, model_text: str,
                         segment_starts=series.segment_starts, t0_s=series.t0_s,
                         temperature=temperature, units=series.units, fixed=fixed,
                         sensor_filter=device_filter(record.metadata, key),
-                        time_origin_s=time_origin_s, workers=available_cpus())
+                        time_origin_s=time_origin_s, job_map=cpu_job_map())
 
 
 def device_filter(metadata: dict[str, str], key: str) -> tuple[str, dict[str, float]] | None:

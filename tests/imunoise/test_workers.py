@@ -1,4 +1,5 @@
-"""Candidates refitted side by side in forked processes give the serial diagnosis exactly."""
+"""The command line's job map: candidates, hold-out halves and profile intervals refitted side
+by side in forked processes give the serial results exactly."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ import threading
 import numpy as np
 import pytest
 
-from imunoise.analysis import parallel
 from imunoise.analysis.diagnosis import diagnose
-from imunoise.analysis.parallel import can_fork, forked_map
+from imunoise.pipeline import workers
+from imunoise.pipeline.workers import can_fork, cpu_job_map, forked_map
 
 pytestmark = pytest.mark.skipif(not can_fork(), reason="needs fork and a single thread")
 
@@ -29,12 +30,12 @@ def test_results_come_back_in_order_from_other_processes() -> None:
     out = forked_map(_pid_and_square, {"k": 2}, list(range(7)), workers=2)
     assert [v for _, v in out] == [2 * i * i for i in range(7)]
     assert os.getpid() not in {pid for pid, _ in out}
-    assert parallel._SHARED is None  # nothing of the job is left behind
+    assert workers._SHARED is None  # nothing of the job is left behind
 
 
 def test_one_worker_or_one_item_runs_here() -> None:
-    for workers, items in ((1, [1, 2, 3]), (4, [5])):
-        out = forked_map(_pid_and_square, {"k": 1}, items, workers)
+    for count, items in ((1, [1, 2, 3]), (4, [5])):
+        out = forked_map(_pid_and_square, {"k": 1}, items, count)
         assert {pid for pid, _ in out} == {os.getpid()}
 
 
@@ -54,7 +55,7 @@ def test_with_another_thread_running_nothing_is_forked() -> None:
 def test_a_job_that_raises_raises_in_the_caller() -> None:
     with pytest.raises(ValueError, match="item 3 is refused"):
         forked_map(_fails_on_three, None, [1, 2, 3, 4], workers=2)
-    assert parallel._SHARED is None
+    assert workers._SHARED is None
 
 
 def test_diagnosis_with_two_workers_equals_the_serial_one() -> None:
@@ -64,7 +65,8 @@ def test_diagnosis_with_two_workers_equals_the_serial_one() -> None:
     x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n)) \
         + 2e-3 * np.sin(2 * np.pi * 3.1 * t)
     serial = diagnose(x, fs, "white,random_walk", holdout=False, transients=False)
-    forked = diagnose(x, fs, "white,random_walk", holdout=False, transients=False, workers=2)
+    forked = diagnose(x, fs, "white,random_walk", holdout=False, transients=False,
+                      job_map=cpu_job_map(2))
     assert [s.term for s in forked.suggestions] == [s.term for s in serial.suggestions]
     assert any(s.significant for s in serial.suggestions)  # the line is found
     for a, b in zip(serial.suggestions, forked.suggestions, strict=True):
@@ -84,7 +86,7 @@ def test_holdout_part_with_two_workers_equals_the_serial_one() -> None:
     x[n // 2:] *= 1.05  # the second half 5 % noisier: a change to name
     fit, _ = fit_series(x, fs, "white,random_walk", intervals="jacobian")
     serial = holdout_part(x, fs, "white,random_walk", fit)
-    forked = holdout_part(x, fs, "white,random_walk", fit, workers=2)
+    forked = holdout_part(x, fs, "white,random_walk", fit, job_map=cpu_job_map(2))
     assert forked == serial
     assert [c["param"] for c in serial["changed"]] == ["white.N"]
 
@@ -97,6 +99,7 @@ def test_profile_intervals_with_two_workers_equal_the_serial_ones() -> None:
     x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) \
         + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n))
     serial, _ = fit_series(x, fs, "white,bias_instability,random_walk")
-    forked, _ = fit_series(x, fs, "white,bias_instability,random_walk", workers=2)
+    forked, _ = fit_series(x, fs, "white,bias_instability,random_walk",
+                           job_map=cpu_job_map(2))
     assert [t.params for t in forked.terms] == [t.params for t in serial.terms]
     assert [t.ci95 for t in forked.terms] == [t.ci95 for t in serial.terms]

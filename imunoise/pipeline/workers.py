@@ -1,15 +1,17 @@
-"""Independent jobs that share one large context, side by side in forked worker processes.
+"""The command line's job map (:mod:`imunoise.analysis.jobs`): independent jobs that share one
+large context, side by side in forked worker processes.
 
 The diagnosis refits the model once per candidate term; each refit is a few hundred small
 least-squares solves, Python-bound, so threads would only take turns on the interpreter
 lock. Worker processes forked from this one inherit the context (the record, the fitted
 model, the memo of solved sub-models) without copying it through a pipe; only each job's
-result is pickled back. The results are those of the serial loop, in the same order: a job
+result is pickled back. The results are those of the serial map, in the same order: a job
 reads the context, and what it adds to the context's memo stays in its worker.
 """
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 import threading
@@ -17,6 +19,8 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
+
+from imunoise.analysis.jobs import JobMap
 
 C = TypeVar("C")
 T = TypeVar("T")
@@ -69,3 +73,10 @@ def forked_map(fn: Callable[[C, T], R], shared: C, items: Sequence[T], workers: 
         return [fn(shared, item) for item in items]
     finally:
         _SHARED = None
+
+
+def cpu_job_map(workers: int | None = None) -> JobMap:
+    """The job map of :func:`forked_map` with ``workers`` processes (default: every CPU of
+    :func:`available_cpus`)."""
+    return functools.partial(forked_map, workers=available_cpus() if workers is None
+                             else int(workers))
