@@ -205,8 +205,9 @@ class _StopOnFirstBlockSink(_CountingSink):
     def write(self, block) -> None:
         super().write(block)
         if self.stopper is None and self.svc is not None:
-            self.stopper = threading.Thread(target=self.svc.stop)
-            self.stopper.start()
+            stopper = threading.Thread(target=self.svc.stop)
+            stopper.start()
+            self.stopper = stopper  # seen by the test only once started
             while not self.svc._stop.is_set():
                 time.sleep(0.001)
 
