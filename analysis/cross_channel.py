@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from imunoise.analysis.coherence import DEFAULT_ALPHA, cross_spectra, log_coherence
+from imunoise.analysis.coherence import DEFAULT_ALPHA, CrossSpectra, cross_spectra, log_coherence
 from imunoise.analysis.environment import (
     SpectralFeature,
     annotate,
@@ -49,7 +49,8 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
                        suggestions: dict[str, list[Any]] | None = None,
                        nperseg: int | None = None, points_per_decade: float = 10.0,
                        alpha: float = DEFAULT_ALPHA, ci: float = 0.95,
-                       subtract: bool = False, only: list[str] | None = None
+                       subtract: bool = False, only: list[str] | None = None,
+                       cross: CrossSpectra | None = None
                        ) -> tuple[dict[str, Any], dict[str, Subtraction]]:
     """Coherence, classification and (``subtract``) own-noise residuals of a record's channels.
 
@@ -69,6 +70,8 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
         subtract: also remove from each channel what the others explain.
         only: classify (and subtract) these channels only (default: every channel); the
             others still serve as partners and references.
+        cross: the cross-spectra of these ``values`` (:func:`cross_spectra` with the same
+            ``nperseg`` and ``segment_starts``), when already computed.
 
     Channels of several devices with one name (``imu1/gyro_x``, ``imu2/gyro_x``) also give
     ``sensors``: the three-cornered hat of three, the two-sensor bounds of two
@@ -85,7 +88,10 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
     if len(lengths) != 1:
         raise ValueError("the channels do not share one time base (different lengths)")
     x = np.column_stack([np.asarray(values[c], dtype=np.float64) for c in names])
-    cs = cross_spectra(x, fs_hz, names, nperseg=nperseg, segment_starts=segment_starts)
+    cs = cross if cross is not None else cross_spectra(x, fs_hz, names, nperseg=nperseg,
+                                                       segment_starts=segment_starts)
+    if tuple(cs.channels) != tuple(names):
+        raise ValueError(f"the cross-spectra given are of {list(cs.channels)}, not {names}")
     co = log_coherence(cs, points_per_decade=points_per_decade, ci=ci, alpha=alpha)
     features: list[SpectralFeature] = []
     chosen = names if only is None else [c for c in names if c in only]

@@ -32,7 +32,15 @@ from imunoise.analysis import evidence
 from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.jobs import JobMap, serial_map
-from imunoise.analysis.model_error import holdout_part, measured_psd, psd_parts, time_domain_part
+from imunoise.analysis.model_error import (
+    HoldoutHalves,
+    fit_half,
+    holdout_halves,
+    holdout_part,
+    measured_psd,
+    psd_parts,
+    time_domain_part,
+)
 from imunoise.analysis.spectral_pins import PINNED, pin_resonances
 from imunoise.analysis.terms import (
     TERMS,
@@ -482,10 +490,18 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         apply={"model": spec.text(), "args": []}, error_after=error_after)
 
 
-def _suggest_at(shared: tuple[_Context, float], term: str) -> Suggestion:
-    """:func:`_suggest` of one candidate, as a job map calls it."""
-    ctx, alpha = shared
-    return _suggest(ctx, term, alpha)
+def _first_job(shared: tuple[_Context, float, HoldoutHalves | None], item: tuple[str, Any]
+               ) -> Any:
+    """One job of the diagnosis's first map, as a job map calls it: a candidate's
+    :func:`_suggest` (``("term", name)``), or a hold-out half of the given model
+    (``("half", k)``, :func:`imunoise.analysis.model_error.fit_half`), which needs no
+    candidate and so runs beside them."""
+    ctx, alpha, halves = shared
+    kind, what = item
+    if kind == "half":
+        assert halves is not None  # halves are only asked for when set up
+        return fit_half(halves.shared(), what)
+    return _suggest(ctx, what, alpha)
 
 
 def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Suggestion:
@@ -632,11 +648,11 @@ def _psd_baseline(x: np.ndarray, fs_hz: float, starts: np.ndarray, base: FitResu
     return psd_est, nperseg, psd_block, psd_before
 
 
-def _ranked(ctx: _Context, candidates: list[str], cuts: list[Finding], units: str,
+def _ranked(ctx: _Context, suggestions: list[Suggestion], cuts: list[Finding], units: str,
             alpha: float) -> list[Suggestion]:
-    """Each candidate judged (:func:`_suggest`), the cuts of the record when no term is
-    significant, strongest evidence first (:func:`_simplest_first`)."""
-    suggestions = ctx.job_map(_suggest_at, (ctx, alpha), candidates)
+    """The candidates' suggestions (:func:`_suggest`) and the cuts of the record when no term
+    is significant, strongest evidence first (:func:`_simplest_first`)."""
+    suggestions = list(suggestions)
     if not any(s.significant for s in suggestions):
         # the step and warm-up tests take the fitted model as the sensor's noise: only once
         # no term is missing is that a fair null (a model without its random walk sees
@@ -710,48 +726,87 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
                                                    strict=True)) if s.size]
 
-    findings, by_term, filt = _evidence(x, fs_hz, starts, segments, t_rate, base, names,
-                                        temperature, alpha, units)
+    # the evidence and the transient and PSD tests read the base fit, not each other
+    tests = _BaseTests(x, fs_hz, starts, segments, t_rate, base, names, temperature, alpha,
+                       units, transients, time_origin_s)
+    (findings, by_term, filt), (cuts, psd_baseline, time_domain) = job_map(
+        _base_test, tests, ["evidence", "spectrum"])
+    findings.extend(cuts)
+    psd_est, nperseg, psd_block, psd_before = psd_baseline
     candidates = _candidates(names, base, filt, temperature is not None, sensor_filter)
-    cuts: list[Finding] = []
-    if transients and "temperature" not in names:
-        bounds = np.append(starts, x.size)
-        longest = int(np.argmax(np.diff(bounds)))
-        cuts = list(evidence.transients(segments, fs_hz, base.params, alpha=alpha,
-                                        units=units,
-                                        t0_s=time_origin_s + float(bounds[longest]) / fs_hz))
-        findings.extend(cuts)
-    psd_est, nperseg, psd_block, psd_before = _psd_baseline(x, fs_hz, starts, base, names)
-    parts: dict[str, Any] = {"psd": psd_before}
-    if cuts:
-        parts["time_domain"] = time_domain_part(x, fs_hz, base.params, starts, units, cuts)
-    else:
-        parts["time_domain"] = time_domain_part(x, fs_hz, base.params, starts, units) \
-            if transients else {"statistic": None, "p": None, "reason": "not requested"}
+    parts: dict[str, Any] = {"psd": psd_before, "time_domain": time_domain}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
                    len(candidates) + len(cuts), sensor_filter, time_origin_s,
                    psd_est, nperseg, psd_before, job_map)
-    suggestions = _ranked(ctx, candidates, cuts, units, alpha)
-    parts["holdout"] = _check_holdout(ctx, suggestions, fixed) if holdout else \
-        {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
+    # the given model's hold-out halves are fitted beside the candidates' refits
+    halves = holdout_halves(x, fs_hz, base_spec, base, starts) if holdout else None
+    jobs: list[tuple[str, Any]] = [("term", c) for c in candidates]
+    if isinstance(halves, HoldoutHalves):
+        jobs += [("half", 0), ("half", 1)]
+    done = job_map(_first_job, (ctx, alpha, halves if isinstance(halves, HoldoutHalves)
+                                else None), jobs)
+    suggestions = _ranked(ctx, done[:len(candidates)], cuts, units, alpha)
+    if halves is None:
+        parts["holdout"] = {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
+    else:
+        before = halves.part(done[len(candidates):]) if isinstance(halves, HoldoutHalves) \
+            else halves
+        parts["holdout"] = _check_holdout(ctx, suggestions, before)
     return Diagnosis(fit=base, curve=curve, suggestions=suggestions, findings=findings,
                      alpha=alpha, psd=psd_block, error_parts=parts)
 
 
-def _check_holdout(ctx: _Context, suggestions: list[Suggestion], fixed: dict | None
+@dataclass
+class _BaseTests:
+    """What the tests that follow the base fit read (:func:`_base_test`)."""
+
+    x: np.ndarray
+    fs_hz: float
+    starts: np.ndarray
+    segments: list[np.ndarray]
+    t_rate: np.ndarray
+    base: FitResult
+    names: list[str]
+    temperature: tuple[np.ndarray, np.ndarray] | None
+    alpha: float
+    units: str
+    transients: bool  # the step and warm-up tests and the time-domain part asked for
+    time_origin_s: float
+
+
+def _base_test(t: _BaseTests, which: str) -> Any:
+    """One of the two independent groups of tests on the base fit, as a job map calls it:
+    ``"evidence"`` (:func:`_evidence`), or ``"spectrum"``: ``(the step and warm-up
+    findings, :func:`_psd_baseline`, the time-domain part)``."""
+    if which == "evidence":
+        return _evidence(t.x, t.fs_hz, t.starts, t.segments, t.t_rate, t.base, t.names,
+                         t.temperature, t.alpha, t.units)
+    cuts: list[Finding] = []
+    if t.transients and "temperature" not in t.names:
+        bounds = np.append(t.starts, t.x.size)
+        longest = int(np.argmax(np.diff(bounds)))
+        cuts = list(evidence.transients(t.segments, t.fs_hz, t.base.params, alpha=t.alpha,
+                                        units=t.units,
+                                        t0_s=t.time_origin_s + float(bounds[longest]) / t.fs_hz))
+    baseline = _psd_baseline(t.x, t.fs_hz, t.starts, t.base, t.names)
+    time_domain = time_domain_part(t.x, t.fs_hz, t.base.params, t.starts, t.units,
+                                   cuts or None) if t.transients \
+        else {"statistic": None, "p": None, "reason": "not requested"}
+    return cuts, baseline, time_domain
+
+
+def _check_holdout(ctx: _Context, suggestions: list[Suggestion], before: dict[str, Any]
                    ) -> dict[str, Any]:
-    """The given model's hold-out part; and a significant term suggestion is demoted when it
-    raises the hold-out part beyond its noise, or, where the given model's hold-out part is
-    itself beyond its noise (the model does not predict the other half), when it does not
-    lower it. A fall within one standard deviation counts: the part's spread is taken from
+    """The given model's hold-out part (``before``, passed through); and a significant term
+    suggestion is demoted when it raises the hold-out part beyond its noise, or, where the
+    given model's hold-out part is itself beyond its noise (the model does not predict the
+    other half), when it does not lower it. A fall within one standard deviation counts: the part's spread is taken from
     the Allan fit's dof, which is smaller than the two predictions' (nothing is fitted in
     them), and demanding a full standard deviation demoted a true second Markov term whose
     hold-out part fell from 2.2 to 1.5 (tests/analysis/test_repeated_terms.py). Checked best
     first, at most
     :data:`HOLDOUT_CHECKS` of them; the first significant suggestion left is the one to
     apply."""
-    before = holdout_part(ctx.x, ctx.fs_hz, ctx.spec, ctx.base, ctx.starts,
-                          job_map=ctx.job_map)
     b = before.get("chi2_per_dof")
     dof = float(ctx.base.misfit.dof)
     lacking = b is not None and b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))

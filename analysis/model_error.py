@@ -29,6 +29,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -218,6 +219,78 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
             for p, a, b, z, src in pairs if z > crit]
 
 
+@dataclass
+class HoldoutHalves:
+    """The two halves of a record and what their fits start from: the jobs of a hold-out
+    part (:func:`fit_half` of ``k`` = 0, 1), which a caller may run among its own jobs and
+    hand to :meth:`part`."""
+
+    halves: list[tuple[np.ndarray, np.ndarray]]
+    fs_hz: float
+    spec: Any
+    fixed: dict | None
+    fitted: Any
+
+    def shared(self) -> tuple[Any, ...]:
+        """The context of :func:`fit_half`."""
+        return (self.halves, self.fs_hz, self.spec, self.fixed, self.fitted)
+
+    def part(self, done: Sequence[Any]) -> dict[str, Any]:
+        """``error.holdout`` from both halves' :func:`fit_half` results: each half's model
+        predicting the other half, and the parameters that changed."""
+        from imunoise.analysis.fit import fit_series
+
+        failed = next((d for d in done if isinstance(d, Exception)), None)
+        if failed is not None:
+            return _unfitted(failed)
+        try:
+            fits = [fit for fit, _ in done]
+            chis = []
+            for (h, starts), other in zip(self.halves, fits[::-1], strict=True):
+                given = [(t.term, dict(t.params)) for t in other.terms]
+                chis.append(fit_series(h, self.fs_hz, given, segment_starts=starts,
+                                       fixed=dict(enumerate(p for _, p in given)),
+                                       intervals="jacobian")[0].chi2_per_dof)
+        except _HALF_ERRORS as exc:
+            return _unfitted(exc)
+        return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
+                "halves": [float(c) for c in chis],
+                "changed": _changed(fits[0], fits[1], _shapes_of(done))}
+
+
+_HALF_ERRORS = (ValueError, ArithmeticError, np.linalg.LinAlgError)
+"""What a half that cannot be fitted raises (too short, no finite curve)."""
+
+
+def _unfitted(exc: BaseException) -> dict[str, Any]:
+    return {"chi2_per_dof": None, "parts": 2, "reason": f"a half cannot be fitted: {exc}"}
+
+
+def fit_half(shared: tuple[Any, ...], k: int) -> Any:
+    """:func:`_fit_half`, or the exception that says why half ``k`` cannot be fitted (given
+    back, not raised, so that it does not stop the other jobs of a job map)."""
+    try:
+        return _fit_half(shared, k)
+    except _HALF_ERRORS as exc:
+        return exc
+
+
+def holdout_halves(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
+                   segment_starts: np.ndarray | None = None, fixed: dict | None = None
+                   ) -> HoldoutHalves | dict[str, Any]:
+    """The :class:`HoldoutHalves` of :func:`holdout_part`, or its ``error.holdout`` when the
+    model cannot be carried into halves."""
+    x = np.asarray(values, dtype=np.float64)
+    spec = parse_model(model)
+    if any(get_term(n).role == "regressor" for n in spec.names):
+        return {"chi2_per_dof": None, "parts": 2,
+                "reason": "a temperature regression is not carried into the halves"}
+    bounds = _bounds(x.size, segment_starts)
+    mid = x.size // 2
+    return HoldoutHalves([_half(x, bounds, 0, mid), _half(x, bounds, mid, x.size)], fs_hz,
+                         spec, fixed, fitted)
+
+
 def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
                  segment_starts: np.ndarray | None = None,
                  fixed: dict | None = None, job_map: JobMap = serial_map) -> dict[str, Any]:
@@ -228,30 +301,10 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     ``job_map`` runs the two halves' fits (:mod:`imunoise.analysis.jobs`; the same result
     whichever runs them).
     """
-    from imunoise.analysis.fit import fit_series
-
-    x = np.asarray(values, dtype=np.float64)
-    spec = parse_model(model)
-    if any(get_term(n).role == "regressor" for n in spec.names):
-        return {"chi2_per_dof": None, "parts": 2,
-                "reason": "a temperature regression is not carried into the halves"}
-    bounds = _bounds(x.size, segment_starts)
-    mid = x.size // 2
-    halves = [_half(x, bounds, 0, mid), _half(x, bounds, mid, x.size)]
-    try:
-        done = job_map(_fit_half, (halves, fs_hz, spec, fixed, fitted), [0, 1])
-        fits = [fit for fit, _ in done]
-        chis = []
-        for (h, starts), other in zip(halves, fits[::-1], strict=True):
-            given = [(t.term, dict(t.params)) for t in other.terms]
-            chis.append(fit_series(h, fs_hz, given, segment_starts=starts,
-                                   fixed=dict(enumerate(p for _, p in given)),
-                                   intervals="jacobian")[0].chi2_per_dof)
-    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
-        return {"chi2_per_dof": None, "parts": 2, "reason": f"a half cannot be fitted: {exc}"}
-    return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
-            "halves": [float(c) for c in chis],
-            "changed": _changed(fits[0], fits[1], _shapes_of(done))}
+    setup = holdout_halves(values, fs_hz, model, fitted, segment_starts, fixed)
+    if isinstance(setup, dict):
+        return setup
+    return setup.part(job_map(fit_half, setup.shared(), [0, 1]))
 
 
 def _shapes_of(done: Sequence[tuple[Any, dict[int, Any] | None]]) -> list[dict[int, Any]]:

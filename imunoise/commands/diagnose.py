@@ -221,11 +221,15 @@ def run(args: argparse.Namespace) -> int:
                                    args.static)
     group = cross_channel.comparison_group(record.channels, key)
     apply_window(record, key, args.skip, args.split)
+    # the channels' cross-spectra do not depend on the fit: computed beside it
+    pending = cross_channel.start_channel_coherence(record, key, group, args.skip,
+                                                    args.split or ())
     diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)
     for sug in diag.suggestions:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
     # the lines and resonances judged against the other channels: common or own
-    doc, coherence = diagnosis_document(record, key, diag, group, args.skip, args.split or ())
+    doc, coherence = diagnosis_document(record, key, diag, group, args.skip, args.split or (),
+                                        pending)
     if args.json:
         from imunoise.pipeline import documents
 

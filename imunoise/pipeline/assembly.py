@@ -58,12 +58,15 @@ def fit_document(record: Record, key: str, model_text: str, result: Any, curve: 
 
 
 def diagnosis_document(record: Record, key: str, diagnosis: Any, group: list[str],
-                       skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = ()
+                       skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = (),
+                       pending: cross_channel.PendingCoherence | None = None
                        ) -> tuple[dict[str, Any], dict[str, Any] | None]:
     """``diagnose``'s document, its lines and resonances judged against the other channels of
-    ``group`` (``key``'s time base before the cuts): ``(document, coherence)``."""
+    ``group`` (``key``'s time base before the cuts): ``(document, coherence)``. ``pending``:
+    the cross-spectra started before the diagnosis
+    (:func:`imunoise.pipeline.cross_channel.start_channel_coherence`)."""
     coherence = cross_channel.channel_coherence(record, key, diagnosis, group, skip_s,
-                                                list(split_s))
+                                                list(split_s), pending)
     doc = diagnosis_json(record, key, diagnosis)
     if coherence is not None:
         doc["coherence"] = coherence

@@ -5,6 +5,7 @@ noise analysed beside the raw one."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -39,19 +40,38 @@ def comparison_group(series: dict[str, ChannelSeries], key: str) -> list[str]:
     return [key] + same + [k for k in series if k != key and k not in same]
 
 
+def _windowed_group(record: Record, key: str, group: list[str], skip_s: float,
+                    split_s: list[float] | tuple[float, ...]) -> dict[str, ChannelSeries]:
+    """The series of ``group`` cut by ``--skip``/``--split`` as ``key`` was (``key``'s own
+    series is already cut in the record)."""
+    return {k: (record.channels[k] if k == key or not (skip_s or split_s)
+                else record.channels[k].windowed(skip_s, list(split_s))) for k in group}
+
+
+def start_channel_coherence(record: Record, key: str, group: list[str], skip_s: float = 0.0,
+                            split_s: list[float] | tuple[float, ...] = ()
+                            ) -> PendingCoherence | None:
+    """The cross-spectra :func:`channel_coherence` needs, started in the background now (None
+    without another channel); pass the result to it as ``pending``."""
+    if len(group) < 2:
+        return None
+    series = _windowed_group(record, key, group, skip_s, split_s)
+    return PendingCoherence(coherence_inputs(record, group, series))
+
+
 def channel_coherence(record: Record, key: str, diagnosis: Any, group: list[str],
-                      skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = ()
-                      ) -> dict[str, Any] | None:
+                      skip_s: float = 0.0, split_s: list[float] | tuple[float, ...] = (),
+                      pending: PendingCoherence | None = None) -> dict[str, Any] | None:
     """One channel's diagnosis (its suggestions and its spectral-line evidence) judged against
     the other channels of ``group`` (its time base before ``--skip``/``--split``, which cut
     them all alike): its suggestions' ``why`` gets common or own; returns the coherence
-    document (None without another channel)."""
+    document (None without another channel). ``pending``: the cross-spectra started by
+    :func:`start_channel_coherence` with the same arguments."""
     if len(group) < 2:
         return None
-    series = {k: (record.channels[k] if k == key or not (skip_s or split_s)
-                  else record.channels[k].windowed(skip_s, list(split_s))) for k in group}
+    series = _windowed_group(record, key, group, skip_s, split_s)
     doc, _ = coherence_document(record, group, suggestions={key: diagnosis}, only=[key],
-                                series=series)
+                                series=series, pending=pending)
     return doc
 
 
@@ -82,24 +102,36 @@ def temperature_on(record: Record, series: ChannelSeries) -> np.ndarray | None:
     return np.interp(ti, tt, temp.values)
 
 
-def coherence_document(record: Record, keys: list[str],
-                       suggestions: dict[str, list[Any]] | None = None,
-                       subtract: bool = False, only: list[str] | None = None,
-                       series: dict[str, ChannelSeries] | None = None
-                       ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
-    """``(coherence document or None, residuals)`` of the channels ``keys`` select
-    (:func:`imunoise.analysis.cross_channel.cross_channel_view`), the record's temperature
-    joining them when it covers them. None with fewer than two channels on one time base; a
-    document with only ``warnings`` when the estimate fails (a record too short).
+@dataclass
+class CoherenceInputs:
+    """What the coherence of a record's channels is computed from: the channels on one time
+    base (``values``, the temperature joining them when it covers them), the series whose
+    time base they share (``first``), and how channels of other devices were aligned."""
 
-    ``suggestions`` (channel -> suggestion dicts or objects) get the verdict in their
-    ``why``; ``only`` limits the channels classified; ``series`` replaces the record's own
-    (a windowed copy)."""
-    from imunoise.analysis.cross_channel import cross_channel_view
+    values: dict[str, np.ndarray]
+    first: ChannelSeries
+    notes: list[str]
+    aligned: Any = None
 
+    def cross_spectra(self) -> Any:
+        """The Welch cross-spectra of ``values``
+        (:func:`imunoise.analysis.coherence.cross_spectra`, its default segment length)."""
+        from imunoise.analysis.coherence import cross_spectra
+
+        x = np.column_stack([np.asarray(v, dtype=np.float64) for v in self.values.values()])
+        return cross_spectra(x, self.first.fs_hz, list(self.values),
+                             segment_starts=self.first.segment_starts)
+
+
+def coherence_inputs(record: Record, keys: list[str],
+                     series: dict[str, ChannelSeries] | None = None
+                     ) -> CoherenceInputs | None:
+    """The channels of ``keys`` that share one time base (those of other devices brought onto
+    it), with the record's temperature where it covers them; None with fewer than two."""
     series = series if series is not None else record.channels
     group = time_base_group(series, keys)
     notes: list[str] = []
+    aligned = None
     others = [k for k in keys if k not in group and k != TEMPERATURE_KEY and k in series]
     if others and group:
         # other devices, sampled at their own instants: onto the largest group's times
@@ -110,26 +142,84 @@ def coherence_document(record: Record, keys: list[str],
             series = {**series, **aligned.series}
             group = [k for k in keys if k in aligned.series]
             notes.append(aligned.note())
+        else:
+            aligned = None
     if len(group) < 2:
-        return None, {}
+        return None
     first = series[group[0]]
     values = {k: series[k].values for k in group}
     temp = temperature_on(record, first)
     if temp is not None:
         values[TEMPERATURE_KEY] = temp
+    return CoherenceInputs(values, first, notes, aligned)
+
+
+class PendingCoherence:
+    """The cross-spectra of :func:`coherence_inputs`, computed in a background process
+    (:class:`imunoise.pipeline.workers.Background`) while the caller fits; hand it to
+    :func:`coherence_document` (``pending=``) once the suggestions to classify are known."""
+
+    def __init__(self, inputs: CoherenceInputs | None) -> None:
+        from imunoise.pipeline.workers import Background
+
+        self.inputs = inputs
+        self._job = Background(_cross_spectra_or_error, inputs) if inputs is not None else None
+
+    def cross_spectra(self) -> Any:
+        """The cross-spectra (raises the estimate's ValueError, e.g. a record too short)."""
+        assert self._job is not None  # only asked for with inputs
+        cs = self._job.result()
+        if isinstance(cs, ValueError):
+            raise cs
+        return cs
+
+
+def _cross_spectra_or_error(inputs: CoherenceInputs) -> Any:
+    """The cross-spectra, or the ValueError that says why there are none (returned, so that
+    the background process sends it back rather than failing)."""
     try:
+        return inputs.cross_spectra()
+    except ValueError as exc:
+        return exc
+
+
+def coherence_document(record: Record, keys: list[str],
+                       suggestions: dict[str, list[Any]] | None = None,
+                       subtract: bool = False, only: list[str] | None = None,
+                       series: dict[str, ChannelSeries] | None = None,
+                       pending: PendingCoherence | None = None
+                       ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """``(coherence document or None, residuals)`` of the channels ``keys`` select
+    (:func:`imunoise.analysis.cross_channel.cross_channel_view`), the record's temperature
+    joining them when it covers them. None with fewer than two channels on one time base; a
+    document with only ``warnings`` when the estimate fails (a record too short).
+
+    ``suggestions`` (channel -> suggestion dicts or objects) get the verdict in their
+    ``why``; ``only`` limits the channels classified; ``series`` replaces the record's own
+    (a windowed copy); ``pending`` is the same channels' cross-spectra started earlier
+    (:class:`PendingCoherence` of the same ``keys`` and ``series``)."""
+    from imunoise.analysis.cross_channel import cross_channel_view
+
+    inputs = pending.inputs if pending is not None else coherence_inputs(record, keys, series)
+    if inputs is None:
+        return None, {}
+    first, aligned = inputs.first, inputs.aligned
+    try:
+        cross = pending.cross_spectra() if pending is not None else None
         doc, residuals = cross_channel_view(
-            values, first.fs_hz, segment_starts=first.segment_starts, suggestions=suggestions,
-            subtract=subtract, only=[k for k in group if only is None or k in only])
+            inputs.values, first.fs_hz, segment_starts=first.segment_starts,
+            suggestions=suggestions, subtract=subtract, cross=cross,
+            only=[k for k in inputs.values if k != TEMPERATURE_KEY
+                  and (only is None or k in only)])
     except ValueError as exc:
         return {"warnings": [f"no coherence: {exc}"]}, {}
-    if notes:
+    if inputs.notes:
         for sub in residuals.values():  # the residuals lie on the aligned samples
             sub.segment_starts, sub.t0_s = first.segment_starts, first.t0_s
-        doc.setdefault("notes", []).extend(notes)
+        doc.setdefault("notes", []).extend(inputs.notes)
         doc["aligned"] = {"reference": aligned.reference, "interpolated": aligned.interpolated,
                           "kept_share": aligned.kept_share}
-    apart = [k for k in keys if k not in group and k != TEMPERATURE_KEY]
+    apart = [k for k in keys if k not in inputs.values and k != TEMPERATURE_KEY]
     if apart:
         doc["not_compared"] = apart
         doc.setdefault("warnings", []).append(

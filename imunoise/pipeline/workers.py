@@ -80,3 +80,74 @@ def cpu_job_map(workers: int | None = None) -> JobMap:
     :func:`available_cpus`)."""
     return functools.partial(forked_map, workers=available_cpus() if workers is None
                              else int(workers))
+
+
+class Background:
+    """``fn(*args)`` computed in a forked child process while this one goes on.
+
+    The diagnose command starts the cross-spectra of a record's channels this way before it
+    fits: they do not depend on the fit, and the fit keeps one CPU busy for seconds at a
+    time. The child inherits the arguments without copying them through a pipe and sends
+    back only the result.
+
+    :meth:`result` gives what ``fn(*args)`` returns, or raises what it raises: where the child
+    cannot be used (one CPU, no fork, another thread running, the child killed or its result
+    not picklable) the call is made in this process instead, when the result is asked for.
+    No thread is started here, so the job map's workers can still be forked meanwhile.
+    """
+
+    def __init__(self, fn: Callable[..., R], *args: Any) -> None:
+        self._fn, self._args = fn, args
+        self._done: tuple[Any] | None = None
+        self._process: Any = None
+        self._conn: Any = None
+        if available_cpus() < 2 or not can_fork():
+            return
+        ctx = multiprocessing.get_context("fork")
+        receive, send = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_send_result, args=(send, fn, args), daemon=True)
+        try:
+            self._process.start()
+        except OSError:  # no process left to fork (ulimit, memory): computed here instead
+            self._process = None
+            receive.close()
+        else:
+            self._conn = receive
+        finally:
+            send.close()
+
+    def result(self) -> Any:
+        """The result (waits for the child; computes it here where the child failed)."""
+        if self._done is not None:
+            return self._done[0]
+        if self._conn is not None:
+            try:
+                ok, value = self._conn.recv()
+            except (EOFError, OSError):
+                ok, value = False, None  # the child died before sending
+            finally:
+                self._conn.close()
+                self._conn = None
+                self._process.join()
+            if ok:
+                self._done = (value,)
+                return value
+        # the child's failure or exception is reproduced here, with its real traceback
+        value = self._fn(*self._args)
+        self._done = (value,)
+        return value
+
+
+def _send_result(conn: Any, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
+    """The child's side of :class:`Background`: send ``(True, result)``, or ``(False, None)``
+    when ``fn`` raised or the result cannot be pickled."""
+    try:
+        out = (True, fn(*args))
+    except BaseException:  # noqa: BLE001 - the parent repeats the call and raises it there
+        out = (False, None)
+    try:
+        conn.send(out)
+    except Exception:  # noqa: BLE001 - an unpicklable result: the parent computes it itself
+        conn.send((False, None))
+    finally:
+        conn.close()

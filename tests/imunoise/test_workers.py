@@ -103,3 +103,69 @@ def test_profile_intervals_with_two_workers_equal_the_serial_ones() -> None:
                            job_map=cpu_job_map(2))
     assert [t.params for t in forked.terms] == [t.params for t in serial.terms]
     assert [t.ci95 for t in forked.terms] == [t.ci95 for t in serial.terms]
+
+
+def test_diagnosis_parts_with_two_workers_equal_the_serial_ones() -> None:
+    # the given model's hold-out halves run among the candidates' refits, the evidence beside
+    # the transient and PSD tests: the error parts and the ranking do not change
+    rng = np.random.default_rng(14)
+    fs, n = 100.0, 200_000
+    t = np.arange(n) / fs
+    x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n)) \
+        + 2e-3 * np.sin(2 * np.pi * 3.1 * t)
+    serial = diagnose(x, fs, "white,random_walk")
+    forked = diagnose(x, fs, "white,random_walk", job_map=cpu_job_map(2))
+    assert forked.error_parts == serial.error_parts
+    assert serial.error_parts["holdout"]["chi2_per_dof"] > 0.0
+    assert serial.error_parts["time_domain"]["statistic"] is not None
+    assert [(s.term, s.significant, s.log_p) for s in forked.suggestions] \
+        == [(s.term, s.significant, s.log_p) for s in serial.suggestions]
+    assert [f.kind for f in forked.findings] == [f.kind for f in serial.findings]
+
+
+def _pid_and_sum(values: list[int]) -> tuple[int, int]:
+    return os.getpid(), sum(values)
+
+
+def _refuse(what: str) -> None:
+    raise ValueError(f"{what} is refused")
+
+
+def _die_unless_in(pid: int) -> int:
+    if os.getpid() != pid:
+        os._exit(3)  # the child killed before it sends anything
+    return 42
+
+
+@pytest.mark.skipif(workers.available_cpus() < 2, reason="one CPU: computed in this process")
+def test_background_computes_in_another_process_and_starts_no_thread() -> None:
+    job = workers.Background(_pid_and_sum, [1, 2, 3])
+    assert threading.active_count() == 1  # a job map may still fork meanwhile
+    out = forked_map(_pid_and_square, {"k": 1}, [1, 2], workers=2)
+    assert os.getpid() not in {pid for pid, _ in out}
+    pid, total = job.result()
+    assert total == 6 and pid != os.getpid()
+    assert job.result() == (pid, 6)  # asked again: the same result, not a second run
+
+
+def test_background_raises_what_the_function_raises() -> None:
+    job = workers.Background(_refuse, "the record")
+    with pytest.raises(ValueError, match="the record is refused"):
+        job.result()
+
+
+def test_background_whose_child_dies_is_computed_here() -> None:
+    job = workers.Background(_die_unless_in, os.getpid())
+    assert job.result() == 42
+
+
+def test_background_with_another_thread_running_is_computed_here() -> None:
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        job = workers.Background(_pid_and_sum, [4, 5])
+    finally:
+        stop.set()
+        t.join()
+    assert job.result() == (os.getpid(), 9)
