@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from imunoise.analysis.coherence import DEFAULT_ALPHA, CrossSpectra, cross_spectra, log_coherence
+from imunoise.analysis.coherence import DEFAULT_ALPHA, Coherence, cross_spectra, log_coherence
 from imunoise.analysis.environment import (
     SpectralFeature,
     annotate,
@@ -50,7 +50,7 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
                        nperseg: int | None = None, points_per_decade: float = 10.0,
                        alpha: float = DEFAULT_ALPHA, ci: float = 0.95,
                        subtract: bool = False, only: list[str] | None = None,
-                       cross: CrossSpectra | None = None
+                       coherence: Coherence | None = None
                        ) -> tuple[dict[str, Any], dict[str, Subtraction]]:
     """Coherence, classification and (``subtract``) own-noise residuals of a record's channels.
 
@@ -70,8 +70,9 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
         subtract: also remove from each channel what the others explain.
         only: classify (and subtract) these channels only (default: every channel); the
             others still serve as partners and references.
-        cross: the cross-spectra of these ``values`` (:func:`cross_spectra` with the same
-            ``nperseg`` and ``segment_starts``), when already computed.
+        coherence: the coherence of these ``values``, when already computed
+            (:func:`log_coherence` of their :func:`cross_spectra`, with the same
+            ``nperseg``, ``segment_starts``, ``points_per_decade``, ``ci`` and ``alpha``).
 
     Channels of several devices with one name (``imu1/gyro_x``, ``imu2/gyro_x``) also give
     ``sensors``: the three-cornered hat of three, the two-sensor bounds of two
@@ -88,11 +89,16 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
     if len(lengths) != 1:
         raise ValueError("the channels do not share one time base (different lengths)")
     x = np.column_stack([np.asarray(values[c], dtype=np.float64) for c in names])
-    cs = cross if cross is not None else cross_spectra(x, fs_hz, names, nperseg=nperseg,
-                                                       segment_starts=segment_starts)
-    if tuple(cs.channels) != tuple(names):
-        raise ValueError(f"the cross-spectra given are of {list(cs.channels)}, not {names}")
-    co = log_coherence(cs, points_per_decade=points_per_decade, ci=ci, alpha=alpha)
+    if coherence is None:
+        cs = cross_spectra(x, fs_hz, names, nperseg=nperseg, segment_starts=segment_starts)
+        co = log_coherence(cs, points_per_decade=points_per_decade, ci=ci, alpha=alpha)
+    else:
+        co = coherence
+        if co.cross is None or tuple(co.channels) != tuple(names) \
+                or (co.ci, co.alpha) != (ci, alpha):
+            raise ValueError(f"the coherence given is of {list(co.channels)} at ci {co.ci}, "
+                             f"alpha {co.alpha}, not of {names} at ci {ci}, alpha {alpha}")
+        cs = co.cross
     features: list[SpectralFeature] = []
     chosen = names if only is None else [c for c in names if c in only]
     for k, c in enumerate(names):

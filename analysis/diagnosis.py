@@ -330,9 +330,12 @@ def _fit_appended(ctx: _Context, term: str, pinned: dict[str, float]
     spec = ModelSpec(ctx.spec.entries + (Entry(term, pinned),))
     needs = any(get_term(n).needs_record == "temperature" for n in spec.names)
     try:
+        # the suggestion reports the appended term's intervals; the white level's tells
+        # whether the term took its place (_imitation)
+        reported = {len(ctx.spec)} | {i for i, n in enumerate(spec.names) if n == "white"}
         after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
                               temperature=ctx.temp_at if needs else None, memo=ctx.memo,
-                              intervals="jacobian")
+                              intervals="jacobian", profile_terms=reported)
     except (ValueError, np.linalg.LinAlgError):
         after = None
     return after, spec
@@ -800,11 +803,11 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], before: dict[st
     """The given model's hold-out part (``before``, passed through); and a significant term
     suggestion is demoted when it raises the hold-out part beyond its noise, or, where the
     given model's hold-out part is itself beyond its noise (the model does not predict the
-    other half), when it does not lower it. A fall within one standard deviation counts: the part's spread is taken from
-    the Allan fit's dof, which is smaller than the two predictions' (nothing is fitted in
-    them), and demanding a full standard deviation demoted a true second Markov term whose
-    hold-out part fell from 2.2 to 1.5 (tests/analysis/test_repeated_terms.py). Checked best
-    first, at most
+    other half), when it does not lower it. A fall within one standard deviation counts: the
+    part's spread is taken from the Allan fit's dof, which is smaller than the two
+    predictions' (nothing is fitted in them), and demanding a full standard deviation
+    demoted a true second Markov term whose hold-out part fell from 2.2 to 1.5
+    (tests/analysis/test_repeated_terms.py). Checked best first, at most
     :data:`HOLDOUT_CHECKS` of them; the first significant suggestion left is the one to
     apply."""
     b = before.get("chi2_per_dof")

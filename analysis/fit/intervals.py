@@ -5,6 +5,7 @@ likelihood where the linearisation cannot be trusted.
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -22,10 +23,12 @@ _Z95 = 1.959963984540054
 
 
 def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.ndarray,
-               intervals: str, job_map: JobMap = serial_map
+               intervals: str, job_map: JobMap = serial_map,
+               profile_terms: Collection[int] | None = None
                ) -> tuple[list[dict[str, tuple[float, float]]], np.ndarray]:
     """95 % intervals: linearised in log-parameter space, or by profile likelihood (each
-    parameter's profile a job of ``job_map``)."""
+    parameter's profile a job of ``job_map``); with ``profile_terms`` (``"jacobian"``
+    only), the weakly determined parameters of the other terms get ``(nan, nan)``."""
     layout, fs, used, theta = prob.layout, prob.fs, point.used, point.theta
     if prob.n_free == 0:
         return ([{k: (float(v), float(v)) for (i, k), v in layout.fixed.items() if i == j}
@@ -50,6 +53,11 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
     col_norm = np.linalg.norm(jac, axis=0)
     weak = ((col_norm <= 1e-6 * max(float(col_norm.max(initial=0.0)), 1e-300))
             | ~np.isfinite(sd) | (sd > 0.5) | (theta - _Z95 * sd <= layout.lo + 1e-6))
+    if intervals != "profile" and profile_terms is not None:
+        skipped = weak & ~np.isin([i for i, _ in layout.keys], list(profile_terms))
+        weak &= ~skipped
+    else:
+        skipped = np.zeros_like(weak)
     base = None
     if intervals == "profile" or np.any(weak):
         full = optimize.least_squares(resid_final, theta, bounds=(layout.lo, layout.hi),
@@ -59,6 +67,9 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
     ends = dict(zip(profiled, job_map(_profile_at, (resid_final, theta, layout, sd, base),
                                       profiled), strict=True))
     for idx, ((i, k), th, s) in enumerate(zip(layout.keys, theta, sd, strict=True)):
+        if skipped[idx]:
+            ci[i][k] = (math.nan, math.nan)  # not computed: a linearisation would mislead
+            continue
         lo, hi = ends[idx] if idx in ends else (th - _Z95 * s, th + _Z95 * s)
         # an amplitude whose interval reaches its lower bound is consistent with zero
         scale = get_term(prob.names[i]).param(k).is_scale

@@ -5,6 +5,7 @@ temperature regression, then :func:`imunoise.analysis.fit.fit_allan`.
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -100,7 +101,8 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
                temperature: np.ndarray | None = None,
                fixed: dict[str | int, dict[str, float]] | None = None,
                ci: float = 0.95, start: Any = None, memo: dict | None = None,
-               intervals: str = "profile", job_map: JobMap = serial_map
+               intervals: str = "profile", job_map: JobMap = serial_map,
+               profile_terms: Collection[int] | None = None
                ) -> tuple[FitResult, Any]:
     """Fit ``model`` to a rate series: Allan curve (octave taus, computed once), spectral line
     for a sinusoid, temperature regression, then :func:`fit_allan`.
@@ -119,6 +121,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
             gives exactly the numbers of one without.
         intervals: see :func:`fit_allan` (intervals never change the parameters or chi2).
         job_map: see :func:`fit_allan`.
+        profile_terms: see :func:`fit_allan`.
 
     Returns:
         ``(FitResult, AllanCurve)``; the curve is that of the temperature-corrected series
@@ -152,5 +155,6 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
             memo[line_key] = series_line(x, fs_hz, segment_starts)
         line = memo[line_key]
     result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
-                       memo=memo, intervals=intervals, job_map=job_map)
+                       memo=memo, intervals=intervals, job_map=job_map,
+                       profile_terms=profile_terms)
     return result, curve

@@ -4,6 +4,7 @@ shortest taus aside, and :func:`fit_allan`.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -91,7 +92,8 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
               fixed: dict[str | int, dict[str, float]] | None = None,
               family_rate: float = 0.10, max_nfev: int = 200,
               intervals: str = "profile", memo: dict | None = None,
-              job_map: JobMap = serial_map) -> FitResult:
+              job_map: JobMap = serial_map,
+              profile_terms: Collection[int] | None = None) -> FitResult:
     """Fit a sum of noise terms to a measured overlapping Allan curve.
 
     Args:
@@ -119,6 +121,13 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
             0.1-0.5 s) or ``"jacobian"`` (linearised, log-parameter space; for quick refits).
         job_map: runs the parameters' profile intervals (:mod:`imunoise.analysis.jobs`);
             the result is the same whichever runs them.
+        profile_terms: with ``"jacobian"``, the terms (model indices) whose weakly
+            determined parameters (an amplitude near zero, a log-scale standard error above
+            0.5) still get their profile interval; the weakly determined parameters of the
+            other terms get none, ``(nan, nan)``, rather than a linearised interval that
+            could not be trusted. Default: every term. The diagnosis's candidate refits
+            report the appended term's intervals only, so they profile that term and the
+            white noise alone.
 
     Solutions: the fit is solved from several starts (the linear solve, each near-zero linear
     term raised, the linear solve with every tau weighted alike and, unless ``start`` is given,
@@ -138,7 +147,8 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         # every parameter given: the model is evaluated as it stands, nothing fitted
         theta = np.zeros(0)
         return _result(prob, _Point(theta, np.ones(len(prob.tau), dtype=bool),
-                                    _chi2(prob, theta)), intervals, temperature, job_map)
+                                    _chi2(prob, theta)), intervals, temperature, job_map,
+                       profile_terms)
     memo = {} if memo is None else memo
     _hold(memo, curve)
     folded = _folded(parsed, prob)
@@ -150,7 +160,7 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
         point = _best_point(prob, curve, folded, start, line, memo)
         if start is None:
             memo[key] = (prob, point)
-    return _result(prob, point, intervals, temperature, job_map)
+    return _result(prob, point, intervals, temperature, job_map, profile_terms)
 
 
 def _solve_all(prob: _Problem, theta0: np.ndarray) -> _Point:
@@ -281,7 +291,8 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
 
 
 def _result(prob: _Problem, point: _Point, intervals: str, temperature: TermFit | None,
-            job_map: JobMap = serial_map) -> FitResult:
+            job_map: JobMap = serial_map, profile_terms: Collection[int] | None = None
+            ) -> FitResult:
     names, layout, fs, tau = prob.names, prob.layout, prob.fs, prob.tau
     m, n_terms, avar, theta, used = prob.m, prob.n_terms, prob.avar, point.theta, point.used
     params = _unpack(layout, theta)
@@ -289,7 +300,8 @@ def _result(prob: _Problem, point: _Point, intervals: str, temperature: TermFit 
     avar_fit = _avar_of(layout, params, tau, fs)
     cov = _covariance(model_final, fs, m, n_terms)
     mf = misfit(avar, avar_fit, cov, prob.n_free, prob.family_rate)
-    ci, param_cov = _intervals(prob, point, model_final, avar_fit, intervals, job_map)
+    ci, param_cov = _intervals(prob, point, model_final, avar_fit, intervals, job_map,
+                               profile_terms)
     terms_out: list[TermFit] = []
     for i, n in enumerate(names):
         if get_term(n).role == "regressor":

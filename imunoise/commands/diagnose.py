@@ -221,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
                                    args.static)
     group = cross_channel.comparison_group(record.channels, key)
     apply_window(record, key, args.skip, args.split)
-    # the channels' cross-spectra do not depend on the fit: computed beside it
+    # the channels' coherence does not depend on the fit: computed beside it
     pending = cross_channel.start_channel_coherence(record, key, group, args.skip,
                                                     args.split or ())
     diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)

@@ -63,7 +63,7 @@ def diagnosis_document(record: Record, key: str, diagnosis: Any, group: list[str
                        ) -> tuple[dict[str, Any], dict[str, Any] | None]:
     """``diagnose``'s document, its lines and resonances judged against the other channels of
     ``group`` (``key``'s time base before the cuts): ``(document, coherence)``. ``pending``:
-    the cross-spectra started before the diagnosis
+    the coherence started before the diagnosis
     (:func:`imunoise.pipeline.cross_channel.start_channel_coherence`)."""
     coherence = cross_channel.channel_coherence(record, key, diagnosis, group, skip_s,
                                                 list(split_s), pending)

@@ -51,7 +51,7 @@ def _windowed_group(record: Record, key: str, group: list[str], skip_s: float,
 def start_channel_coherence(record: Record, key: str, group: list[str], skip_s: float = 0.0,
                             split_s: list[float] | tuple[float, ...] = ()
                             ) -> PendingCoherence | None:
-    """The cross-spectra :func:`channel_coherence` needs, started in the background now (None
+    """The coherence :func:`channel_coherence` needs, started in the background now (None
     without another channel); pass the result to it as ``pending``."""
     if len(group) < 2:
         return None
@@ -65,7 +65,7 @@ def channel_coherence(record: Record, key: str, diagnosis: Any, group: list[str]
     """One channel's diagnosis (its suggestions and its spectral-line evidence) judged against
     the other channels of ``group`` (its time base before ``--skip``/``--split``, which cut
     them all alike): its suggestions' ``why`` gets common or own; returns the coherence
-    document (None without another channel). ``pending``: the cross-spectra started by
+    document (None without another channel). ``pending``: the coherence started by
     :func:`start_channel_coherence` with the same arguments."""
     if len(group) < 2:
         return None
@@ -113,14 +113,15 @@ class CoherenceInputs:
     notes: list[str]
     aligned: Any = None
 
-    def cross_spectra(self) -> Any:
-        """The Welch cross-spectra of ``values``
-        (:func:`imunoise.analysis.coherence.cross_spectra`, its default segment length)."""
-        from imunoise.analysis.coherence import cross_spectra
+    def coherence(self) -> Any:
+        """The coherence of ``values`` as :func:`imunoise.analysis.cross_channel.
+        cross_channel_view` computes it by default (its Welch cross-spectra, their
+        log-frequency coherence)."""
+        from imunoise.analysis.coherence import cross_spectra, log_coherence
 
         x = np.column_stack([np.asarray(v, dtype=np.float64) for v in self.values.values()])
-        return cross_spectra(x, self.first.fs_hz, list(self.values),
-                             segment_starts=self.first.segment_starts)
+        return log_coherence(cross_spectra(x, self.first.fs_hz, list(self.values),
+                                           segment_starts=self.first.segment_starts))
 
 
 def coherence_inputs(record: Record, keys: list[str],
@@ -155,7 +156,7 @@ def coherence_inputs(record: Record, keys: list[str],
 
 
 class PendingCoherence:
-    """The cross-spectra of :func:`coherence_inputs`, computed in a background process
+    """The coherence of :func:`coherence_inputs`, computed in a background process
     (:class:`imunoise.pipeline.workers.Background`) while the caller fits; hand it to
     :func:`coherence_document` (``pending=``) once the suggestions to classify are known."""
 
@@ -163,22 +164,22 @@ class PendingCoherence:
         from imunoise.pipeline.workers import Background
 
         self.inputs = inputs
-        self._job = Background(_cross_spectra_or_error, inputs) if inputs is not None else None
+        self._job = Background(_coherence_or_error, inputs) if inputs is not None else None
 
-    def cross_spectra(self) -> Any:
-        """The cross-spectra (raises the estimate's ValueError, e.g. a record too short)."""
+    def coherence(self) -> Any:
+        """The coherence (raises the estimate's ValueError, e.g. a record too short)."""
         assert self._job is not None  # only asked for with inputs
-        cs = self._job.result()
-        if isinstance(cs, ValueError):
-            raise cs
-        return cs
+        co = self._job.result()
+        if isinstance(co, ValueError):
+            raise co
+        return co
 
 
-def _cross_spectra_or_error(inputs: CoherenceInputs) -> Any:
-    """The cross-spectra, or the ValueError that says why there are none (returned, so that
-    the background process sends it back rather than failing)."""
+def _coherence_or_error(inputs: CoherenceInputs) -> Any:
+    """The coherence, or the ValueError that says why there is none (returned, so that the
+    background process sends it back rather than failing)."""
     try:
-        return inputs.cross_spectra()
+        return inputs.coherence()
     except ValueError as exc:
         return exc
 
@@ -196,7 +197,7 @@ def coherence_document(record: Record, keys: list[str],
 
     ``suggestions`` (channel -> suggestion dicts or objects) get the verdict in their
     ``why``; ``only`` limits the channels classified; ``series`` replaces the record's own
-    (a windowed copy); ``pending`` is the same channels' cross-spectra started earlier
+    (a windowed copy); ``pending`` is the same channels' coherence started earlier
     (:class:`PendingCoherence` of the same ``keys`` and ``series``)."""
     from imunoise.analysis.cross_channel import cross_channel_view
 
@@ -205,10 +206,10 @@ def coherence_document(record: Record, keys: list[str],
         return None, {}
     first, aligned = inputs.first, inputs.aligned
     try:
-        cross = pending.cross_spectra() if pending is not None else None
+        coherence = pending.coherence() if pending is not None else None
         doc, residuals = cross_channel_view(
             inputs.values, first.fs_hz, segment_starts=first.segment_starts,
-            suggestions=suggestions, subtract=subtract, cross=cross,
+            suggestions=suggestions, subtract=subtract, coherence=coherence,
             only=[k for k in inputs.values if k != TEMPERATURE_KEY
                   and (only is None or k in only)])
     except ValueError as exc:

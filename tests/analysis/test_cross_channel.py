@@ -59,18 +59,21 @@ def test_only_the_chosen_channels_are_classified():
     assert sugg["accel_y"][0]["origin"] == "common"
 
 
-def test_cross_spectra_computed_beforehand_give_the_same_document():
-    from imunoise.analysis.coherence import cross_spectra
+def test_coherence_computed_beforehand_gives_the_same_document():
+    from imunoise.analysis.coherence import cross_spectra, log_coherence
 
     x, _ = bench_record(44, n=1 << 15)
     values = {c: x[:, k] for k, c in enumerate(NAMES)}
     sugg = {"accel_y": [{"term": "sinusoid", "params": {"A": 0.002, "f": 1.5},
                          "significant": True, "why": "A line."}]}
     doc, _ = cross_channel_view(values, 100.0, suggestions=sugg, only=["accel_y"])
-    cs = cross_spectra(x, 100.0, NAMES)
+    co = log_coherence(cross_spectra(x, 100.0, NAMES))
     again = {"accel_y": [dict(sugg["accel_y"][0], why="A line.")]}
-    given, _ = cross_channel_view(values, 100.0, suggestions=again, only=["accel_y"], cross=cs)
+    given, _ = cross_channel_view(values, 100.0, suggestions=again, only=["accel_y"],
+                                  coherence=co)
     assert json.dumps(given) == json.dumps(doc)
-    other = cross_spectra(x[:, ::-1], 100.0, NAMES[::-1])
-    with pytest.raises(ValueError, match="cross-spectra given are of"):
-        cross_channel_view(values, 100.0, cross=other)
+    other = log_coherence(cross_spectra(x[:, ::-1], 100.0, NAMES[::-1]))
+    with pytest.raises(ValueError, match="coherence given is of"):
+        cross_channel_view(values, 100.0, coherence=other)
+    with pytest.raises(ValueError, match="at ci 0.95"):
+        cross_channel_view(values, 100.0, coherence=co, ci=0.9)

@@ -72,3 +72,21 @@ def test_the_memo_still_serves_the_same_curve(white):
     second = fit_allan(curve, "white,random_walk", memo=memo, intervals="jacobian")
     assert len(memo) == entries
     assert second.terms[0].params == first.terms[0].params
+
+
+def test_profile_terms_leave_the_other_terms_weak_parameters_without_an_interval():
+    # white noise alone: the random walk's amplitude is not determined (a profile gives
+    # [0, upper]); a candidate refit that reports only the white term's interval skips it
+    from imunoise.analysis.terms import get_term
+
+    rng = np.random.default_rng(21)
+    fs = 100.0
+    x = rng.normal(0.0, 1e-3 * np.sqrt(fs), 200_000)
+    full, _ = fit_series(x, fs, "white,random_walk", intervals="jacobian")
+    part, _ = fit_series(x, fs, "white,random_walk", intervals="jacobian", profile_terms={0})
+    assert [t.params for t in part.terms] == [t.params for t in full.terms]
+    assert part.chi2_per_dof == full.chi2_per_dof
+    assert part.terms[0].ci95 == full.terms[0].ci95
+    assert full.terms[1].ci95["K"][0] == 0.0 and np.isfinite(full.terms[1].ci95["K"][1])
+    assert all(np.isnan(v) for v in part.terms[1].ci95["K"])
+    assert not get_term("random_walk").resolved("K", part.terms[1].ci95["K"])
