@@ -302,18 +302,22 @@ def _refit(ctx: _Context, term: str
         pinned_ci = {k: (float(lo), float(hi)) for k, (lo, hi)
                      in f_ev.details.get("ci95", {}).items() if k in pinned}
     after, spec = _fit_appended(ctx, term, pinned)
-    if term == "resonance" and after is not None and _psd_rises(ctx, after):
+    imitates = term == "resonance" and _imitation(ctx, after) is not None
+    if term == "resonance" and after is not None and (imitates or _psd_rises(ctx, after)):
         # The Allan refit put the resonance where the spectrum has no such peak (ADIS16405
         # run 3 gyro_z: 18.0 Hz with Q 1e4 beside a measured peak at 19.8 Hz, the PSD part
-        # 2112 -> 3827): the spectrum's centre and width are held instead, where that raises
-        # no PSD part. Where the Allan refit is consistent with the spectrum it stands: held
-        # at the peak, a resonance may follow the Allan curve worse (run 1 accel_x: 2029
-        # against 1054 for a lowpass filter, a different first round of the loop)
-        pin = _spectrum_pin(ctx, after)
+        # 2112 -> 3827), or let it take the white noise's place (run 5 gyro_z: chi2/dof
+        # 1.77e4 -> 1.04e3 with the white level traded to zero): the spectrum's centre and
+        # width are held instead, where that raises no PSD part (and, for the second, gives
+        # the white noise back). Where the Allan refit is consistent with the spectrum it
+        # stands: held at the peak, a resonance may follow the Allan curve worse (run 1
+        # accel_x: 2029 against 1054 for a lowpass filter, a different first round)
+        pin = _spectrum_pin(ctx, after, own_model=not imitates)
         if pin is not None:
             shape = {k: pin.params[k] for k in PINNED}
             again, spec_again = _fit_appended(ctx, term, shape)
-            if again is not None and not _psd_rises(ctx, again):
+            if again is not None and not _psd_rises(ctx, again) \
+                    and not (imitates and _imitation(ctx, again) is not None):
                 after, spec, pinned, pinned_ci = again, spec_again, shape, dict(pin.ci95)
     return after, spec, pinned, pinned_ci
 
@@ -341,14 +345,17 @@ def _fit_appended(ctx: _Context, term: str, pinned: dict[str, float]
     return after, spec
 
 
-def _spectrum_pin(ctx: _Context, after: FitResult) -> Any:
+def _spectrum_pin(ctx: _Context, after: FitResult, own_model: bool = True) -> Any:
     """The spectrum's f0 and Q of the resonance just appended to the model, or None where the
     spectrum does not resolve its peak (:mod:`imunoise.analysis.spectral_pins`); the model's
-    other resonances stay as fitted."""
+    other resonances stay as fitted. The other terms are the refit's, or with ``own_model``
+    false the given model's fit (a refit that traded the white noise away leaves the peak
+    no floor to stand on)."""
     new = len(ctx.spec)
     held = {(i, k) for i, t in enumerate(after.terms) if i != new for k in PINNED}
+    model = after.params if own_model else list(ctx.base.params) + [after.params[new]]
     try:
-        pins = pin_resonances(ctx.x, ctx.fs_hz, after.params, held, ctx.starts, ctx.memo)
+        pins = pin_resonances(ctx.x, ctx.fs_hz, model, held, ctx.starts, ctx.memo)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):
         return None
     return next((p for p in pins if p.index == new), None)
