@@ -1,8 +1,8 @@
 """``imunoise fit``: fit one noise model to a channel and show where it fails.
 
-The model is a comma-separated list of terms (white, quantization, bias_instability,
-random_walk, rate_ramp, gauss_markov, sinusoid, temperature). A parameter written after a term
-is held at that value (SI units): ``--model white,gauss_markov:T=100,random_walk``.
+The model is a comma-separated list of terms (listed below). A parameter written after a term
+is held at that value (SI units): ``--model white,gauss_markov:T=100,random_walk``; a model
+with every parameter given is evaluated as it stands.
 """
 
 from __future__ import annotations
@@ -26,7 +26,13 @@ from imunoise.pipeline.reading import apply_window, open_imu_channel
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("fit", help="fit one model, show where it fails", description=__doc__,
+    import textwrap
+
+    from imunoise.analysis.terms import TERMS
+
+    names = textwrap.fill(f"Terms: {', '.join(TERMS)}.", width=92)
+    p = sub.add_parser("fit", help="fit one model, show where it fails",
+                       description=f"{__doc__}\n{names}",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("file", help="input recording (.csv, .mcap or rosbag2 folder)")
     p.add_argument("--channel", required=True, metavar="SEL",
