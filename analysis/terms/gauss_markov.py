@@ -14,6 +14,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from imunoise.analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.shape_memo import ShapeMemo
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,7 @@ def markov_state(term: str, sigma: float, T_s: float, fs_hz: float) -> MarkovSta
 
 
 _BIG = 1.0e3
+_SHAPES = ShapeMemo()
 
 MIN_T_SAMPLES = 2.0
 """Shortest correlation time the fit may give, in sample periods: below about two its
@@ -135,7 +137,8 @@ class GaussMarkov(Term):
     small_default = {"sigma": 1e-6, "T": 10.0}
 
     def _avar(self, tau: np.ndarray, fs: float, sigma: float, T: float) -> np.ndarray:
-        return sigma * sigma * ar1_avar_shape(tau * fs, 1.0 / (fs * T))
+        return sigma * sigma * _SHAPES.get((tau.tobytes(), fs, T),
+                                           lambda: ar1_avar_shape(tau * fs, 1.0 / (fs * T)))
 
     def _psd(self, f: np.ndarray, fs: float, sigma: float, T: float) -> np.ndarray:
         return ar1_psd(half_angle_sin2(f, fs), fs, sigma, T)

@@ -198,8 +198,7 @@ class OutputFilter(Term):
         for term, p in noise:
             r_in = term.autocovariance(fs_hz, p)
             if r_in is not None:
-                full = np.convolve(_symmetric(np.asarray(r_in, float)), r_g)
-                out += avar_from_autocovariance(full[len(full) // 2:], m)
+                out += self._short_memory_avar(term, p, r_in, r_g, m, fs_hz, params)
             else:
                 own.append((term, p, term.avar_fast(tau, fs_hz, p)))
         total = out + sum((a for _, _, a in own), np.zeros_like(tau))
@@ -210,6 +209,20 @@ class OutputFilter(Term):
             corr = self._correction(term, p, np.where(matters, m, np.inf), fs_hz, params)
             out += a + corr
         return out
+
+    def _short_memory_avar(self, term: Term, p: dict[str, float], r_in: np.ndarray,
+                           r_g: np.ndarray, m: np.ndarray, fs_hz: float,
+                           params: dict[str, float]) -> np.ndarray:
+        """Filtered Allan variance of a term whose autocovariance ``r_in`` ends after a few
+        lags (white noise, quantization), remembered for these exact parameters: a fit's
+        finite-difference step on another term asks for it again unchanged."""
+        def make() -> np.ndarray:
+            full = np.convolve(_symmetric(np.asarray(r_in, float)), r_g)
+            avar = avar_from_autocovariance(full[len(full) // 2:], m)
+            avar.setflags(write=False)
+            return avar
+        return self._remember(("short", term.name, fs_hz, tuple(sorted(p.items())),
+                               tuple(sorted(params.items())), m.tobytes()), make)
 
     def _correction(self, term: Term, p: dict[str, float], m: np.ndarray, fs_hz: float,
                     params: dict[str, float]) -> np.ndarray:

@@ -19,8 +19,10 @@ import numpy as np
 from scipy.signal import lfilter
 
 from imunoise.analysis.terms.base import Param, Term, TermSimulator
+from imunoise.analysis.terms.shape_memo import ShapeMemo
 
 _MAX_Q = 1.0e4
+_SHAPES = ShapeMemo()
 
 
 def _poles(fs: float, f0: float, q: float) -> tuple[complex, float, float]:
@@ -107,7 +109,8 @@ class Resonance(Term):
 
     def _avar(self, tau: np.ndarray, fs: float, sigma: float, f0: float, Q: float
               ) -> np.ndarray:
-        return sigma * sigma * resonance_avar_shape(tau * fs, fs, f0, Q)
+        return sigma * sigma * _SHAPES.get((tau.tobytes(), fs, f0, Q),
+                                           lambda: resonance_avar_shape(tau * fs, fs, f0, Q))
 
     def _psd(self, f: np.ndarray, fs: float, sigma: float, f0: float, Q: float) -> np.ndarray:
         _, phi1, phi2 = _poles(fs, f0, Q)
