@@ -93,12 +93,16 @@ def run(args: argparse.Namespace) -> int:
     subtract = bool(getattr(args, "subtract_common", False))
     if subtract and streamed:
         raise UsageError("--subtract-common needs the samples in memory: add --stream never")
+    pending = None
     if streamed:
         record, results = streamed_analysis.analyze_streamed(args.file, args.channel, args.rate,
                                                              args.static, src=src)
     else:
         record = _read(args.file, args.rate, args.static)
         keys = select(record, args.channel)
+        # the channels' coherence does not depend on their analyses: computed beside them
+        pending = cross_channel.PendingCoherence(keys,
+                                                 cross_channel.coherence_inputs(record, keys))
         results = analyze_record(record, keys)
     coherence = residuals = None
     if args.json or args.report:
@@ -107,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
 
         doc, coherence, residuals = analysis_document(
             args.file, record, results, streamed=streamed, subtract=subtract,
-            full=bool(args.report), band_hz=args.overbound_band)
+            full=bool(args.report), band_hz=args.overbound_band, pending=pending)
         if args.report:
             from imunoise.export.files import write_text_atomically
             from imunoise.export.report_html import render_report
@@ -119,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         if coherence is None and not streamed:
             coherence, residuals = cross_channel.coherence_document(
-                record, [r.key for r in results], subtract=subtract)
+                record, [r.key for r in results], subtract=subtract, pending=pending)
         _print_text(args.file, record, results, coherence, residuals)
     return 0
 

@@ -19,11 +19,14 @@ from imunoise.pipeline.fitting import fit_error_parts
 
 def analysis_document(path: str, record: Record, results: list, *, streamed: bool = False,
                       subtract: bool = False, full: bool = False,
-                      band_hz: tuple[float, float] | None = None
+                      band_hz: tuple[float, float] | None = None,
+                      pending: cross_channel.PendingCoherence | None = None
                       ) -> tuple[dict, dict | None, dict | None]:
     """``analyze``'s document with its ``coherence`` (and each channel's ``own`` with
     ``subtract``): ``(document, coherence, residuals)``. ``full`` keeps what only the HTML
-    report shows (and diagnoses the own noise); a streamed analysis has no coherence."""
+    report shows (and diagnoses the own noise); a streamed analysis has no coherence.
+    ``pending``: the same channels' coherence, started before the channels were analysed
+    (:class:`imunoise.pipeline.cross_channel.PendingCoherence`)."""
     doc = channel_extras.complete_document(analysis_json(path, record, results), record,
                                            full=full, band_hz=band_hz, diagnose=not streamed)
     if streamed:
@@ -31,7 +34,8 @@ def analysis_document(path: str, record: Record, results: list, *, streamed: boo
     suggestions = {k: ch["suggestions"] for k, ch in doc["channels"].items()
                    if ch.get("suggestions")}
     coherence, residuals = cross_channel.coherence_document(
-        record, [r.key for r in results], suggestions=suggestions or None, subtract=subtract)
+        record, [r.key for r in results], suggestions=suggestions or None, subtract=subtract,
+        pending=pending)
     if coherence is not None:
         doc["coherence"] = coherence
     if residuals:

@@ -56,7 +56,7 @@ def start_channel_coherence(record: Record, key: str, group: list[str], skip_s: 
     if len(group) < 2:
         return None
     series = _windowed_group(record, key, group, skip_s, split_s)
-    return PendingCoherence(coherence_inputs(record, group, series))
+    return PendingCoherence(group, coherence_inputs(record, group, series))
 
 
 def channel_coherence(record: Record, key: str, diagnosis: Any, group: list[str],
@@ -156,13 +156,15 @@ def coherence_inputs(record: Record, keys: list[str],
 
 
 class PendingCoherence:
-    """The coherence of :func:`coherence_inputs`, computed in a background process
-    (:class:`imunoise.pipeline.workers.Background`) while the caller fits; hand it to
-    :func:`coherence_document` (``pending=``) once the suggestions to classify are known."""
+    """The coherence of the channels ``keys`` (their :func:`coherence_inputs`), computed in a
+    background process (:class:`imunoise.pipeline.workers.Background`) while the caller
+    fits; hand it to :func:`coherence_document` (``pending=``) once the suggestions to
+    classify are known."""
 
-    def __init__(self, inputs: CoherenceInputs | None) -> None:
+    def __init__(self, keys: list[str], inputs: CoherenceInputs | None) -> None:
         from imunoise.pipeline.workers import Background
 
+        self.keys = list(keys)
         self.inputs = inputs
         self._job = Background(_coherence_or_error, inputs) if inputs is not None else None
 
@@ -198,9 +200,12 @@ def coherence_document(record: Record, keys: list[str],
     ``suggestions`` (channel -> suggestion dicts or objects) get the verdict in their
     ``why``; ``only`` limits the channels classified; ``series`` replaces the record's own
     (a windowed copy); ``pending`` is the same channels' coherence started earlier
-    (:class:`PendingCoherence` of the same ``keys`` and ``series``)."""
+    (:class:`PendingCoherence` of the same ``keys`` and ``series``; one started for other
+    keys is left unused)."""
     from imunoise.analysis.cross_channel import cross_channel_view
 
+    if pending is not None and pending.keys != list(keys):
+        pending = None  # started for other channels (one dropped from the analysis)
     inputs = pending.inputs if pending is not None else coherence_inputs(record, keys, series)
     if inputs is None:
         return None, {}

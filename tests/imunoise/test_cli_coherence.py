@@ -277,3 +277,22 @@ def test_report_has_the_own_noise_diagnosis(bench_csv):
     assert own["error"]["chi2_per_dof"] < raw_chi2 / 10
     html = render_report(doc)
     assert html.count("Diagnosis of the own noise") == 1
+
+
+def test_coherence_started_before_the_analysis_gives_the_same_document(bench_csv):
+    # the commands start the channels' coherence in a background process while they fit;
+    # the document is the one computed afterwards, and one started for other channels (a
+    # channel dropped from the analysis) is not used
+    from imunoise.pipeline import cross_channel
+    from imunoise.pipeline.reading import read_record
+
+    record = read_record(str(bench_csv))
+    keys = list(record.channels)
+    plain, _ = cross_channel.coherence_document(record, keys)
+    pending = cross_channel.PendingCoherence(keys, cross_channel.coherence_inputs(record, keys))
+    early, _ = cross_channel.coherence_document(record, keys, pending=pending)
+    assert json.dumps(early) == json.dumps(plain)
+    fewer = keys[:3]
+    other, _ = cross_channel.coherence_document(record, fewer, pending=pending)
+    assert len(other["pairs"]) == 3 and len(plain["pairs"]) == 15
+    assert json.dumps(other) == json.dumps(cross_channel.coherence_document(record, fewer)[0])
