@@ -17,9 +17,10 @@ Run from the repository root:
 
 ``imunoise diagnose`` refits the candidate terms, the hold-out halves and the profile
 intervals in worker processes, one per CPU of its affinity mask
-(:func:`imunoise.pipeline.workers.cpu_job_map`); the ``sim`` figures pass the same job map
-to :func:`~imunoise.analysis.diagnosis.diagnose`, and the header line says how
-many that is. Each process keeps its linear algebra on one thread.
+(:func:`imunoise.pipeline.workers.cpu_job_map`), and computes the other channels' coherence
+in a background process meanwhile; the ``sim`` figures pass the same job map to
+:func:`~imunoise.analysis.diagnosis.diagnose`, and the header line says how many that is.
+Each process keeps its linear algebra on one thread (the command line's default too).
 
 The machine may be shared: each figure is the median of ``--repeat`` runs, wall and CPU time
 (user + system, the command's own for ``real``), and beside it, as the reference measured in

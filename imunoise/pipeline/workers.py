@@ -85,10 +85,11 @@ def cpu_job_map(workers: int | None = None) -> JobMap:
 class Background:
     """``fn(*args)`` computed in a forked child process while this one goes on.
 
-    The diagnose command starts the cross-spectra of a record's channels this way before it
-    fits: they do not depend on the fit, and the fit keeps one CPU busy for seconds at a
-    time. The child inherits the arguments without copying them through a pipe and sends
-    back only the result.
+    The diagnose and analyze commands start the coherence of a record's channels this way
+    before they fit: it does not depend on the fit, and the fit keeps one CPU busy for
+    seconds at a time. The child inherits the arguments without copying them through a pipe
+    and sends back only the result. A child still running when this process exits is ended
+    with it (it is a daemon).
 
     :meth:`result` gives what ``fn(*args)`` returns, or raises what it raises: where the child
     cannot be used (one CPU, no fork, another thread running, the child killed or its result
