@@ -76,7 +76,9 @@ class Suggestion:
         significant: ``p_value < alpha``.
         why: plain-words explanation: the effect, where it shows, the expected improvement.
         evidence: the evidence findings that support it (kinds).
-        fit: the refitted model (not serialised).
+        fit: the refitted model (not serialised). Its intervals are linearised; those of the
+            added term and the white level are profiled where weakly determined, the other
+            terms' weakly determined parameters have none (``nan``).
         apply: how to apply it: ``{"model": the full model specification, "args": extra
             command-line options of fit and diagnose}``; ``imunoise fit --model
             apply.model`` reports exactly ``chi2_per_dof_after``.
