@@ -51,7 +51,6 @@ from imunoise.analysis.terms import (
     model_psd,
     parse_model,
 )
-from imunoise.analysis.terms.gauss_markov import MIN_T_SAMPLES
 from imunoise.core.series import ChannelSeries
 
 DEFAULT_ALPHA = 0.05
@@ -410,8 +409,7 @@ def _not_computed(what: str) -> dict[str, Any]:
 
 def _imitation(ctx: _Context, after: FitResult | None) -> str | None:
     """Why the refit's solution is not identifiable in the sampled band (one term doing
-    another's part), or None: a Markov term whose time constant sits at its shortest
-    allowed value; a resonance whose peak does not lie below the Nyquist
+    another's part), or None: a resonance whose peak does not lie below the Nyquist
     frequency (its centre plus half its bandwidth at or above it) is a rising spectrum, not a
     resonance; a refit that leaves the white level unresolved where the given model resolved
     it has traded the white noise to zero for the new term."""
@@ -419,15 +417,6 @@ def _imitation(ctx: _Context, after: FitResult | None) -> str | None:
         return None
     added = after.terms[len(ctx.spec)]
     nyquist = 0.5 * ctx.fs_hz
-    if added.term == "gauss_markov":
-        t_min = MIN_T_SAMPLES / ctx.fs_hz
-        if float(added.params["T"]) <= t_min * (1.0 + 1e-3):
-            # the fit would take a shorter time constant if it could: at two sample periods
-            # the term is all but white in the sampled band, and stands in for another
-            # shape (ADIS16405 run 2 accel_x: T = 0.02 s at 100 Hz beside a 10 Hz resonance)
-            return (f"its time constant sits at the shortest the fit allows ({t_min:.3g} s, "
-                    f"{MIN_T_SAMPLES:g} sample periods), where it is white noise in the "
-                    f"sampled band")
     if added.term == "resonance":
         f0, q = float(added.params["f0"]), float(added.params["Q"])
         if f0 * (1.0 + 0.5 / q) >= nyquist:

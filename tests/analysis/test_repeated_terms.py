@@ -116,20 +116,3 @@ def test_the_order_rules_act_on_the_first_significant_suggestion() -> None:
                  _suggestion("resonance", 15.0, True, ci95=unresolved),
                  _suggestion("gauss_markov", 21.0, True)]
     assert _simplest_first(list(cut_first), 0.05) == cut_first
-
-
-def test_a_markov_term_held_at_two_sample_periods_is_not_identifiable() -> None:
-    """A Markov term of 12 ms at 100 Hz (1.2 sample periods) with the base terms: the refit
-    of a Markov term goes to the shortest time constant the fit allows (2 samples, 20 ms)
-    and would go shorter. There it stands in for another shape (the spectrum's roll-off,
-    which a lowpass describes), so it is refused as not identifiable, not suggested."""
-    fs = 100.0
-    x = simulate([("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
-                  ("random_walk", {"K": 2e-6}), ("gauss_markov", {"sigma": 3e-3, "T": 0.012})],
-                 int(3600 * fs), fs, rng=1)
-    d = diagnose(x, fs, "white,bias_instability,random_walk", holdout=False, transients=False)
-    gm = next(s for s in d.suggestions if s.term == "gauss_markov")
-    assert gm.params["T"] == pytest.approx(2.0 / fs, rel=1e-3)
-    assert not gm.significant
-    assert "Not identifiable: its time constant sits at the shortest" in gm.why
-    assert d.suggestions[0].significant and d.suggestions[0].term != "gauss_markov"
