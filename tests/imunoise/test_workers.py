@@ -58,12 +58,17 @@ def test_a_job_that_raises_raises_in_the_caller() -> None:
     assert workers._SHARED is None
 
 
-def test_diagnosis_with_two_workers_equals_the_serial_one() -> None:
-    rng = np.random.default_rng(11)
-    fs, n = 100.0, 200_000
+def _white_walk_and_line(seed: int, fs: float = 100.0, n: int = 200_000) -> np.ndarray:
+    """White noise, a rate random walk and a 3.1 Hz line (rad/s)."""
+    rng = np.random.default_rng(seed)
     t = np.arange(n) / fs
-    x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n)) \
-        + 2e-3 * np.sin(2 * np.pi * 3.1 * t)
+    return rng.normal(0.0, 1e-3 * np.sqrt(fs), n) \
+        + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n)) + 2e-3 * np.sin(2 * np.pi * 3.1 * t)
+
+
+def test_diagnosis_with_two_workers_equals_the_serial_one() -> None:
+    fs = 100.0
+    x = _white_walk_and_line(11, fs)
     serial = diagnose(x, fs, "white,random_walk", holdout=False, transients=False)
     forked = diagnose(x, fs, "white,random_walk", holdout=False, transients=False,
                       job_map=cpu_job_map(2))
@@ -108,11 +113,8 @@ def test_profile_intervals_with_two_workers_equal_the_serial_ones() -> None:
 def test_diagnosis_parts_with_two_workers_equal_the_serial_ones() -> None:
     # the given model's hold-out halves run among the candidates' refits, the evidence beside
     # the transient and PSD tests: the error parts and the ranking do not change
-    rng = np.random.default_rng(14)
-    fs, n = 100.0, 200_000
-    t = np.arange(n) / fs
-    x = rng.normal(0.0, 1e-3 * np.sqrt(fs), n) + np.cumsum(rng.normal(0.0, 2e-5 / np.sqrt(fs), n)) \
-        + 2e-3 * np.sin(2 * np.pi * 3.1 * t)
+    fs = 100.0
+    x = _white_walk_and_line(14, fs)
     serial = diagnose(x, fs, "white,random_walk")
     forked = diagnose(x, fs, "white,random_walk", job_map=cpu_job_map(2))
     assert forked.error_parts == serial.error_parts
