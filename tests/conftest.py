@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
 
 from tests.shared_paths import ABSENT, SHARED_DATA, SHARED_REFERENCE
+
+# the parsed-record cache (imunoise.daq.readers.record_cache) of this test process, and of the
+# commands it starts: a run never meets a user's entries or another run's, and leaves none
+_CACHE = tempfile.mkdtemp(prefix="imunoise-test-cache-")
+os.environ["IMUNOISE_CACHE_DIR"] = _CACHE
+atexit.register(shutil.rmtree, _CACHE, True)
 
 TESTS = Path(__file__).resolve().parent
 REALTIME = ("live", "web", "daq", "imunoise/test_record_command.py",

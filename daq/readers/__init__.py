@@ -4,8 +4,12 @@
 - ``.mcap``: the bulk numpy reader (:mod:`imunoise.daq.readers.mcap`), falling back to per-message
   decoding through rosbags (:mod:`imunoise.daq.readers.rosbag`) for layouts the bulk reader does
   not take.
+- ``.bag``: ROS 1 (:mod:`imunoise.daq.readers.rosbag1`).
 - a rosbag2 folder (``metadata.yaml``): rosbags; a folder holding exactly one ``.mcap`` file is
   read as that file.
+
+CSV, MCAP and ROS 1 bag files are parsed once per state of the file
+(:mod:`imunoise.daq.readers.record_cache`).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from pathlib import Path
 
 from imunoise.core.record import Record
 from imunoise.daq.errors import ReadError
+from imunoise.daq.readers.record_cache import cached
 
 __all__ = ["ReadError", "open_record"]
 
@@ -46,20 +51,24 @@ def open_record(path: str | Path, rate_hz: float | None = None) -> Record:
     if suffix == ".csv":
         from imunoise.daq.readers.csv_file import read_csv
 
-        return read_csv(p, rate_hz=rate_hz)
+        return cached(p, rate_hz, lambda: read_csv(p, rate_hz=rate_hz))
     if suffix == ".mcap":
-        return _read_mcap_file(p, rate_hz)
+        return cached(p, rate_hz, lambda: _read_mcap_file(p, rate_hz))
     if suffix == ".bag":
-        from imunoise.daq.readers.rosbag1 import Rosbag1Error, read_rosbag1
-
-        try:
-            return read_rosbag1(p, rate_hz)
-        except Rosbag1Error as exc:
-            raise ReadError(str(exc)) from exc
-        except OSError as exc:
-            raise ReadError(f"{p}: cannot read ({exc.strerror or exc})") from None
+        return cached(p, rate_hz, lambda: _read_rosbag1(p, rate_hz))
     raise ReadError(f"{p}: unsupported file type {suffix or '(none)'!r}: expected .csv, .mcap, "
                     ".bag (ROS 1) or a rosbag2 folder")
+
+
+def _read_rosbag1(path: Path, rate_hz: float | None) -> Record:
+    from imunoise.daq.readers.rosbag1 import Rosbag1Error, read_rosbag1
+
+    try:
+        return read_rosbag1(path, rate_hz)
+    except Rosbag1Error as exc:
+        raise ReadError(str(exc)) from exc
+    except OSError as exc:
+        raise ReadError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
 def _read_bag(path: Path, rate_hz: float | None = None) -> Record:
