@@ -538,6 +538,20 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
     why = finding.why
     if np.isfinite(chi_after):
         why += f" Doing so brings chi2/dof from {before:.3g} to {chi_after:.3g}."
+    # The Allan curve barely sees a step (a random walk takes it in), so the cut is judged by
+    # the part that does: the transient test on the cut record under its own refit. It must
+    # no longer find a transient, and the Allan part must not rise beyond its noise.
+    td_after: dict[str, Any] | None = None
+    clears = False
+    if after is not None:
+        td_after = time_domain_part(series.values, ctx.fs_hz, after.params,
+                                    series.segment_starts, units)
+        p_after = td_after.get("p")
+        clears = bool(p_after is not None and p_after >= alpha
+                      and not _rises(before, chi_after, after.misfit.dof))
+        if clears and not falls:
+            why += (f" The cut record shows no transient (time-domain p {p_after:.2g}) and "
+                    f"the Allan part stays within its noise.")
     names = ("t_s", "size") if step else ("tau_s", "amplitude")
     ci = {k: (float(finding.details[f"{k}_ci95"][0]), float(finding.details[f"{k}_ci95"][1]))
           for k in names if np.all(np.isfinite(finding.details.get(f"{k}_ci95", [np.nan])))}
@@ -545,9 +559,13 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
         term=finding.kind, params=dict(finding.params), ci95=ci,
         chi2_per_dof_before=before, chi2_per_dof_after=chi_after,
         p_value=float(np.exp(logp)), log_p=logp,
-        significant=bool(logp < np.log(alpha) and falls), why=why,
+        significant=bool(logp < np.log(alpha) and (falls or clears)), why=why,
         evidence=[finding.kind] if finding.significant else [], fit=after,
-        apply={"model": ctx.spec.text(), "args": args})
+        apply={"model": ctx.spec.text(), "args": args},
+        error_after={} if after is None else {
+            "chi2_per_dof": chi_after, "max_abs_z": float(after.max_abs_z),
+            "psd": _not_computed("the PSD part"), "holdout": _not_computed("the hold-out part"),
+            "time_domain": td_after})
 
 
 def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggestion]:
