@@ -10,7 +10,7 @@ samples) and count the seeds where anything is significant (target: at most 5 %)
 mean chi2/dof (target: 1 +- 0.3).
 
 Run: python bench/calibrate.py [--cases a,b] [--seeds 40] [--workers 2]
-Cases: moving_average lowpass resonance gauss_markov_30 gauss_markov_100 warmup bias_step
+Cases: moving_average lowpass resonance gauss_markov_30 gauss_markov_100 sinusoid warmup bias_step
 null_plain null_filter null_lost (default: all; about 15 min on two cores).
 """
 
@@ -38,6 +38,7 @@ BASE = [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
 GIVEN = ["white", "bias_instability", "random_walk"]
 T_STEP, STEP = 3030.0, 1.2e-3          # s, rad/s: a knock 50.5 min in
 T_WARM, WARM = 300.0, 1.5e-3           # s, rad/s: settling after power-on
+F_LINE, A_LINE = 0.55, 2e-4             # Hz, rad/s: a bench line (a pump, a fan)
 
 
 def _gm2(t2: float) -> tuple:
@@ -61,6 +62,8 @@ CASES: dict[str, tuple] = {
                   "resonance", lambda p: {"sigma": 3e-4, "f0": 6.0, "Q": 3.0}, None, 0),
     "gauss_markov_30": (*_gm2(30.0), None, 0),
     "gauss_markov_100": (*_gm2(100.0), None, 0),
+    "sinusoid": (BASE, GIVEN, "sinusoid", lambda p: {"A": A_LINE, "f": F_LINE},
+                 lambda t: A_LINE * np.sin(2.0 * np.pi * F_LINE * t + 0.3), 900),
     "warmup": (BASE, GIVEN, "warmup", lambda p: {"tau_s": T_WARM, "amplitude": WARM},
                lambda t: WARM * np.exp(-t / T_WARM), 700),
     "bias_step": (BASE, GIVEN, "bias_step", lambda p: {"t_s": T_STEP, "size": STEP},
