@@ -7,7 +7,8 @@ the true parameters also lie inside the suggestion's 95 % intervals; the targets
 seeds named first and significant, and coverage in 90-98 % of seeds. The null cases give the
 correct model (plain, with a 4-tap moving-average output filter, with 20 runs of lost
 samples) and count the seeds where anything is significant (target: at most 5 %) and the
-mean chi2/dof (target: 1 +- 0.3).
+mean of each error part: Allan chi2/dof, PSD deviance per bin and hold-out chi2/dof (target:
+1 +- 0.3 each).
 
 Run: python bench/calibrate.py [--cases a,b] [--seeds 40] [--workers 2]
 Cases: moving_average lowpass resonance gauss_markov_30 gauss_markov_100 sinusoid warmup bias_step
@@ -85,7 +86,7 @@ def _element(case: str, seed: int) -> tuple[bool, bool, str]:
     return named, inside, f"{top.term}{'' if top.significant else ' (not significant)'}"
 
 
-def _null(case: str, seed: int) -> tuple[bool, float, str]:
+def _null(case: str, seed: int) -> tuple[bool, tuple[float, float, float], str]:
     variant = case.removeprefix("null_")
     model = BASE + ([("moving_average", {"taps": 4})] if variant == "filter" else [])
     given = GIVEN + (["moving_average:taps=4"] if variant == "filter" else [])
@@ -101,7 +102,11 @@ def _null(case: str, seed: int) -> tuple[bool, float, str]:
         x = x[keep]
     d = diagnose(x, FS, given, segment_starts=starts)
     flagged = [s.term for s in d.suggestions if s.significant]
-    return bool(flagged), float(d.fit.chi2_per_dof), ",".join(flagged) or "-"
+    psd = (d.error_parts.get("psd") or {}).get("deviance_per_bin")
+    holdout = (d.error_parts.get("holdout") or {}).get("chi2_per_dof")
+    parts = (float(d.fit.chi2_per_dof), float("nan") if psd is None else float(psd),
+             float("nan") if holdout is None else float(holdout))
+    return bool(flagged), parts, ",".join(flagged) or "-"
 
 
 def _run(job: tuple[str, int]) -> tuple[str, int, tuple]:
@@ -138,9 +143,10 @@ def main() -> int:
         rows = results[case]
         if case in NULLS:
             flagged = sum(r[0] for r in rows)
-            chi = float(np.mean([r[1] for r in rows]))
+            allan, psd, holdout = np.nanmean(np.array([r[1] for r in rows]), axis=0)
             print(f"  {case:17s} anything significant {flagged:2d}/{n} (target <= {0.05 * n:g})"
-                  f"  mean chi2/dof {chi:.2f} (target 1 +- 0.3)")
+                  f"  mean error parts (target 1 +- 0.3 each): allan {allan:.2f}, psd "
+                  f"{psd:.2f}, hold-out {holdout:.2f}")
         else:
             named = sum(r[0] for r in rows)
             inside = sum(r[1] for r in rows)

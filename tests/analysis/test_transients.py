@@ -28,6 +28,17 @@ def test_block_variogram_at_lag_one_is_the_allan_variance() -> None:
         assert v[0] == 0.0 and v[1] == pytest.approx(want, rel=3e-5)
 
 
+def test_block_variogram_through_a_filter_is_the_filtered_allan_variance() -> None:
+    # white noise through the filter exactly in the time domain; flicker and random walk
+    # without the filter where it cannot matter (a moving average's ripple needs no grid)
+    for extra in ([("moving_average", {"taps": 1.3})], [("moving_average", {"taps": 4.0})],
+                  [("lowpass", {"fc": 3.0})]):
+        for b in (100, 1000):
+            v = _variogram(MODEL + extra, FS, b, np.array([0, 1]))
+            want = model_avar(MODEL + extra, np.array([b / FS]), FS)[0]
+            assert v[1] == pytest.approx(want, rel=3e-5), (extra, b)
+
+
 def test_false_alarms_on_records_that_wander_without_steps() -> None:
     # random walk and flicker wander; with the model that holds them, each test's false-alarm
     # rate is alpha = 5 %: over 60 seeds, 8 or more alarms has probability 1.7 % (binomial)
