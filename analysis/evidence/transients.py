@@ -41,6 +41,7 @@ from scipy.linalg import solve_triangular
 from imunoise.analysis.blas import one_blas_thread
 from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.terms import get_term, model_psd
+from imunoise.analysis.terms.output_filter import OutputFilter
 
 BLOCKS = 120
 """Number of blocks the longest segment is cut into."""
@@ -79,10 +80,10 @@ def _variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: i
     sensor's short filter; the Allan variance's own filter correction is left out below the
     same level), the integral leaves the filters out and needs no grid fine enough for
     their ripple (120 lags by 65536 bins took 0.47 s of every fit with a filter)."""
-    filters = [(get_term(n), p) for n, p in model if get_term(n).kind == "filter"]
+    filters = [(t, p) for n, p in model if isinstance(t := get_term(n), OutputFilter)]
     r_g = np.array([1.0])
-    for term, p in filters:
-        g = term.impulse_response(fs_hz, p)
+    for filt, p in filters:
+        g = filt.impulse_response(fs_hz, p)
         r_g = np.convolve(r_g, np.correlate(g, g, mode="full"))
     out = np.zeros(len(lags))
     spectral = []
@@ -108,7 +109,7 @@ def _variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: i
     ua, ub = _edges(u_lo, 2048)
     um = 0.5 * (ua + ub)
     s = model_psd(spectral, um * fs_hz, fs_hz)
-    gain = np.prod([t.response(um * fs_hz, fs_hz, p) for t, p in filters], axis=0)
+    gain = np.prod([f.response(um * fs_hz, fs_hz, p) for f, p in filters], axis=0)
     # the integrand's weight 2 mean_gain sin^2(pi u k b) is at most
     # 2 min(1, (b sin pi u)^-2) min(1, (pi u k b)^2), lag by lag
     with np.errstate(divide="ignore"):
