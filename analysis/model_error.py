@@ -29,9 +29,10 @@ A part that cannot be computed is ``None`` in its value with a ``reason``.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -187,15 +188,24 @@ def _fit_half(shared: tuple[Any, ...], k: int) -> tuple[Any, dict[int, Any] | No
     return fit, {p.index: p for p in pins}
 
 
-def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
-             ) -> list[dict[str, Any]]:
+Recheck = Callable[[int, int, str, float], float | None]
+"""``(half, term index, parameter, value) -> rise of that half's chi2`` when the parameter is
+held at the value and the rest refitted (None when the refit fails)."""
+
+
+def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {}),
+             recheck: Recheck | None = None) -> list[dict[str, Any]]:
     """Parameters fitted on both halves whose values differ beyond their intervals. A
     resonance's f0 and Q come from each half's spectrum where both spectra resolve its peak
-    (``shapes``; ``"source": "psd"``)."""
+    (``shapes``; ``"source": "psd"``). An amplitude that vanished on one half is named only
+    if that half's data also refuse the near end of the other half's interval (``recheck``):
+    flicker and random walk trade places on a half's few long-tau points, so one of them can
+    reach zero while the half's curve is the other's."""
     from imunoise.analysis.spectral_pins import PINNED
 
     names = [t.term for t in fit_a.terms]
     pairs = []
+    vanished: dict[int, tuple[int, int, str, Any, Any]] = {}
     for label, i, j in zip(labels(names), range(len(names)), _pairs(fit_a, fit_b), strict=True):
         ta, tb = fit_a.terms[i], fit_b.terms[j]
         term = get_term(ta.term)
@@ -212,16 +222,38 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
                 z = _vanished_z(a, b, ca, cb)
                 if z is not None:
                     pairs.append((f"{label}.{k}", a, b, z, source))
+                    vanished[len(pairs) - 1] = (i, j, k, ca, cb)
                 continue  # held, or no estimate on a half
+            if source == "allan":
+                # a half whose own fit misses its curve has wider intervals than it reports
+                sa *= math.sqrt(max(1.0, fit_a.chi2_per_dof))
+                sb *= math.sqrt(max(1.0, fit_b.chi2_per_dof))
             z = abs(math.log(a) - math.log(b)) / math.hypot(sa, sb)
             pairs.append((f"{label}.{k}", a, b, z, source))
     if not pairs:
         return []
     crit = float(norm.isf(HOLDOUT_ALPHA / (2.0 * len(pairs))))
     out = [{"param": p, "values": [a, b], "z": z, "source": src}
-           for p, a, b, z, src in pairs if z > crit]
+           for n, (p, a, b, z, src) in enumerate(pairs)
+           if z > crit and (n not in vanished or recheck is None
+                            or _refused(recheck, fits=(fit_a, fit_b), at=vanished[n],
+                                        crit=crit))]
     named = {str(c["param"]) for c in out}
     return out + _jointly_changed(fit_a, fit_b, named, crit)
+
+
+def _refused(recheck: Recheck, fits: tuple[Any, Any], at: tuple[int, int, str, Any, Any],
+             crit: float) -> bool:
+    """Whether the half where an amplitude vanished refuses the near end of the other half's
+    interval: held there, its chi2 (scaled by its chi2/dof where above 1) rises beyond
+    ``crit^2``."""
+    i, j, k, ca, cb = at
+    resolved_a = float(ca[0]) > 0.0
+    half, index, near = (1, j, float(ca[0])) if resolved_a else (0, i, float(cb[0]))
+    rise = recheck(half, index, k, near)
+    if rise is None:
+        return True  # no refit to judge by: the intervals alone decide
+    return rise / max(1.0, float(fits[half].chi2_per_dof)) > crit * crit
 
 
 def _jointly_changed(fit_a: Any, fit_b: Any, named: set[str], crit: float
@@ -328,7 +360,23 @@ class HoldoutHalves:
             return _unfitted(exc)
         return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
                 "halves": [float(c) for c in chis],
-                "changed": _changed(fits[0], fits[1], _shapes_of(done))}
+                "changed": _changed(fits[0], fits[1], _shapes_of(done),
+                                    functools.partial(self._held_rise, fits))}
+
+    def _held_rise(self, fits: Sequence[Any], half: int, index: int, param: str,
+                   value: float) -> float | None:
+        """Rise of half ``half``'s chi2 with ``param`` of term ``index`` held at ``value``."""
+        from imunoise.analysis.fit import fit_series
+
+        fixed = {i: dict(p) for i, p in (self.fixed or {}).items()}
+        fixed.setdefault(index, {})[param] = float(value)
+        h, starts = self.halves[half]
+        try:
+            held = fit_series(h, self.fs_hz, self.spec, segment_starts=starts, fixed=fixed,
+                              start=fits[half], intervals="jacobian")[0]
+        except _HALF_ERRORS:
+            return None
+        return max(0.0, float(held.misfit.chi2 - fits[half].misfit.chi2))
 
 
 _HALF_ERRORS = (ValueError, ArithmeticError, np.linalg.LinAlgError)
