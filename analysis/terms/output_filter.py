@@ -253,16 +253,19 @@ class OutputFilter(Term):
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Bins in ``u = f/fs`` (log-spaced from well below ``1/m_max``, linear and fine enough
         for the response's ripple near Nyquist) and ``|G|^2`` at their mid-points."""
+        # the grid is shared by every m_max of one tenth of an octave, and is a function of
+        # that tenth alone: which m_max asked first must not change the result
+        octave = math.ceil(10.0 * math.log2(max(m_max, 1.0))) / 10.0
+
         def make() -> tuple[np.ndarray, ...]:
             length = max(self.length(fs_hz, params), 1.0)
-            u_lo = 1e-3 / max(m_max, 1.0)
+            u_lo = 1e-3 / 2.0 ** octave
             # a response with ripple (a moving average's sidelobes, period fs/L) needs a
             # few dozen points per lobe; a smooth one only the log grid and a coarse cover
             n_lin = int(min(max(32.0 * length, 512.0), 8192.0)) if self.ripple else 256
             ua, ub, um = _bins(u_lo, n_lin)
             return ua, ub, um, self.response(um * fs_hz, fs_hz, params)
-        return self._remember(("grid", fs_hz, tuple(sorted(params.items())),
-                               round(math.log2(max(m_max, 1.0)), 1)), make)
+        return self._remember(("grid", fs_hz, tuple(sorted(params.items())), octave), make)
 
     def simulator(self, params, fs_hz, rng, **options):
         b, a = self.coefficients(fs_hz, params)
