@@ -81,10 +81,6 @@ def _variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: i
     same level), the integral leaves the filters out and needs no grid fine enough for
     their ripple (120 lags by 65536 bins took 0.47 s of every fit with a filter)."""
     filters = [(t, p) for n, p in model if isinstance(t := get_term(n), OutputFilter)]
-    r_g = np.array([1.0])
-    for filt, p in filters:
-        g = filt.impulse_response(fs_hz, p)
-        r_g = np.convolve(r_g, np.correlate(g, g, mode="full"))
     out = np.zeros(len(lags))
     spectral = []
     for n, p in model:
@@ -92,9 +88,8 @@ def _variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: i
         if term.kind == "filter" or term.role != "noise":
             continue
         r = term.autocovariance(fs_hz, p)
-        if r is not None and filters:
-            full = np.convolve(np.concatenate((r[:0:-1], r)), r_g)
-            r = full[len(full) // 2:]
+        for filt, fp in filters if r is not None else []:
+            r = filt.filtered_autocovariance(r, fs_hz, fp)
         if r is not None and len(r) < b:
             out += _exact_variogram(r, b, lags)
         else:
@@ -103,12 +98,11 @@ def _variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: i
         return out
     k_max = float(max(lags.max(), 1))
     u_lo = 1e-3 / (k_max * b)
-    coarse = _spectral_variogram(spectral, fs_hz, b, lags, u_lo, 2048)
-    if not filters:
-        return out + coarse
-    ua, ub = _edges(u_lo, 2048)
-    um = 0.5 * (ua + ub)
+    ua, ub, um = _edges(u_lo, 2048)
     s = model_psd(spectral, um * fs_hz, fs_hz)
+    total = out + _spectral_variogram(s, ua, ub, um, fs_hz, b, lags)
+    if not filters:
+        return total
     gain = np.prod([f.response(um * fs_hz, fs_hz, p) for f, p in filters], axis=0)
     # the integrand's weight 2 mean_gain sin^2(pi u k b) is at most
     # 2 min(1, (b sin pi u)^-2) min(1, (pi u k b)^2), lag by lag
@@ -117,28 +111,27 @@ def _variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: i
             * np.minimum(1.0, (b * np.sin(np.pi * um)) ** -2.0) * (ub - ua)
     k = np.asarray(lags, dtype=np.float64)[:, None]
     bound = np.minimum(1.0, (np.pi * um[None, :] * k * b) ** 2) @ per_bin
-    total = out + coarse
     if np.all(bound[lags > 0] <= _FILTER_NEGLIGIBLE * total[lags > 0]):
         return total
-    n_lin = int(min(max(16 * b, 512), 65536))
-    filtered = spectral + [(t.name, p) for t, p in filters]
-    return out + _spectral_variogram(filtered, fs_hz, b, lags, u_lo, n_lin)
+    ua, ub, um = _edges(u_lo, int(min(max(16 * b, 512), 65536)))
+    s = model_psd(spectral + [(f.name, p) for f, p in filters], um * fs_hz, fs_hz)
+    return out + _spectral_variogram(s, ua, ub, um, fs_hz, b, lags)
 
 
-def _edges(u_lo: float, n_lin: int) -> tuple[np.ndarray, np.ndarray]:
-    """Bins in ``u = f/fs`` from ``u_lo`` to 1/2: log-spaced, and ``n_lin`` linear ones."""
+def _edges(u_lo: float, n_lin: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bins ``(ua, ub, um)`` in ``u = f/fs`` from ``u_lo`` to 1/2: log-spaced, and ``n_lin``
+    linear ones."""
     edges = np.unique(np.concatenate((
         np.geomspace(u_lo, 0.5, int(np.log10(0.5 / u_lo) * 200) + 2),
         np.linspace(0.0, 0.5, n_lin + 1)[1:])))
-    return edges[:-1], edges[1:]
+    ua, ub = edges[:-1], edges[1:]
+    return ua, ub, 0.5 * (ua + ub)
 
 
-def _spectral_variogram(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float, b: int,
-                        lags: np.ndarray, u_lo: float, n_lin: int) -> np.ndarray:
-    """The spectral integral of the module's docstring for ``model`` on :func:`_edges`."""
-    ua, ub = _edges(u_lo, n_lin)
-    um = 0.5 * (ua + ub)
-    s = model_psd(model, um * fs_hz, fs_hz)
+def _spectral_variogram(s: np.ndarray, ua: np.ndarray, ub: np.ndarray, um: np.ndarray,
+                        fs_hz: float, b: int, lags: np.ndarray) -> np.ndarray:
+    """The spectral integral of the module's docstring over the bins ``ua..ub`` (mid-points
+    ``um``) of a PSD ``s`` (units^2/Hz at ``um * fs``)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         mean_gain = (np.sin(np.pi * um * b) / (b * np.sin(np.pi * um))) ** 2
     base = 2.0 * s * mean_gain * (ub - ua) * fs_hz

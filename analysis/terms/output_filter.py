@@ -193,12 +193,11 @@ class OutputFilter(Term):
         tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
         m = tau * fs_hz
         out = np.zeros_like(tau)
-        r_g = self._autocorrelation(fs_hz, params)
         own: list[tuple[Term, dict[str, float], np.ndarray]] = []
         for term, p in noise:
             r_in = term.autocovariance(fs_hz, p)
             if r_in is not None:
-                out += self._short_memory_avar(term, p, r_in, r_g, m, fs_hz, params)
+                out += self._short_memory_avar(term, p, r_in, m, fs_hz, params)
             else:
                 own.append((term, p, term.avar_fast(tau, fs_hz, p)))
         total = out + sum((a for _, _, a in own), np.zeros_like(tau))
@@ -210,15 +209,23 @@ class OutputFilter(Term):
             out += a + corr
         return out
 
+    def filtered_autocovariance(self, r_in: np.ndarray, fs_hz: float,
+                                params: dict[str, float]) -> np.ndarray:
+        """Autocovariance ``R(0), R(1), ...`` at the filter's output of a stationary input
+        whose autocovariance ``r_in`` (``R(0), R(1), ...``) ends after a few lags."""
+        full = np.convolve(_symmetric(np.asarray(r_in, float)),
+                           self._autocorrelation(fs_hz, params))
+        return full[len(full) // 2:]
+
     def _short_memory_avar(self, term: Term, p: dict[str, float], r_in: np.ndarray,
-                           r_g: np.ndarray, m: np.ndarray, fs_hz: float,
-                           params: dict[str, float]) -> np.ndarray:
+                           m: np.ndarray, fs_hz: float, params: dict[str, float]
+                           ) -> np.ndarray:
         """Filtered Allan variance of a term whose autocovariance ``r_in`` ends after a few
         lags (white noise, quantization), remembered for these exact parameters: a fit's
         finite-difference step on another term asks for it again unchanged."""
         def make() -> np.ndarray:
-            full = np.convolve(_symmetric(np.asarray(r_in, float)), r_g)
-            avar = avar_from_autocovariance(full[len(full) // 2:], m)
+            avar = avar_from_autocovariance(self.filtered_autocovariance(r_in, fs_hz, params),
+                                            m)
             avar.setflags(write=False)
             return avar
         return self._remember(("short", term.name, fs_hz, tuple(sorted(p.items())),

@@ -67,3 +67,29 @@ def test_diagnose_json_carries_the_parts_and_each_suggestions_error_after(csv):
     after = top["error_after"]
     assert after["chi2_per_dof"] == top["chi2_per_dof_after"]
     assert after["psd"]["deviance_per_bin"] < doc["error"]["psd"]["deviance_per_bin"]
+
+
+def test_a_cut_reports_the_time_domain_part_that_fit_reports_after_the_cut(tmp_path):
+    # the contract: a suggestion's error_after is what `fit` reports for the applied model;
+    # for a cut that includes the time-domain part the cut is judged by
+    fs, n = 50.0, int(2 * 3600 * 50.0)
+    t = np.arange(n) / fs
+    base = [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+            ("random_walk", {"K": 2e-6})]
+    x = simulate(base, n, fs, rng=700) + 1.2e-3 * (t >= 3030.0)
+    path = tmp_path / "knock.csv"
+    np.savetxt(path, np.column_stack([t, x]), delimiter=",", header="t,gyro_x", comments="",
+               fmt="%.10g")
+    spec = "white,bias_instability,random_walk"
+    doc = json.loads(_run("diagnose", str(path), "--channel", "gyro_x", "--model", spec,
+                          "--json"))
+    top = doc["suggestions"][0]
+    assert top["term"] == "bias_step" and top["significant"], top["why"]
+    after = json.loads(_run("fit", str(path), "--channel", "gyro_x", "--model",
+                            top["apply"]["model"], *top["apply"]["args"], "--json"))
+    assert top["error_after"]["chi2_per_dof"] == pytest.approx(
+        after["error"]["chi2_per_dof"], rel=1e-6)
+    td, want = top["error_after"]["time_domain"], after["error"]["time_domain"]
+    assert td["p"] >= 0.05 and doc["error"]["time_domain"]["p"] < 1e-4
+    assert td["statistic"] == pytest.approx(want["statistic"], rel=1e-6)
+    assert td["p"] == pytest.approx(want["p"], rel=1e-6)
