@@ -120,8 +120,12 @@ def bench_real(repeat: int) -> None:
             ([] if exe.exists() else ["-m", "imunoise.cli"]) + \
             ["diagnose", str(path), "--channel", "accel_x", "--model", GIVEN, "--json"]
 
+        # every run parses the CSV afresh: the record cache would otherwise serve the
+        # repeats, and the figure is that of a first diagnosis of a new recording
+        env = {**os.environ, "IMUNOISE_CACHE_MB": "0"}
+
         def run() -> str:
-            p = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            p = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
             return p.stdout
 
         t_med, times, _ = _median_time(run, repeat)
