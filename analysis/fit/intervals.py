@@ -11,7 +11,12 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
-from imunoise.analysis.fit.layout import _avar_of, _jacobian, _Layout, _log_weights, _unpack
+from imunoise.analysis.fit.layout import (
+    _AvarModel,
+    _Layout,
+    _log_weights,
+    _LogResidual,
+)
 from imunoise.analysis.fit.problem import _Point, _Problem
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.profile import profile_bounds
@@ -35,13 +40,9 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
                  for j in range(len(prob.names))], np.zeros((0, 0)))
     whiten, bias, _ = _log_weights(model_final, fs, prob.m[used], prob.n_terms[used],
                                    avar_fit[used])
-    y_used, tau_used = prob.y[used], prob.tau[used]
-
-    def resid_final(th: np.ndarray) -> np.ndarray:
-        mod = _avar_of(layout, _unpack(layout, th), tau_used, fs)
-        return whiten @ (y_used - np.log(np.maximum(mod, 1e-300)) - bias)
-
-    jac = _jacobian(resid_final, theta)
+    resid_final = _LogResidual(_AvarModel(layout, prob.tau[used], fs), prob.y[used], whiten,
+                               bias)
+    jac = resid_final.jac(theta)
     param_cov = np.linalg.pinv(jac.T @ jac)
     sd = np.sqrt(np.clip(np.diag(param_cov), 0.0, None))
     ci: list[dict[str, tuple[float, float]]] = [dict() for _ in prob.names]
@@ -60,8 +61,8 @@ def _intervals(prob: _Problem, point: _Point, model_final: list, avar_fit: np.nd
         skipped = np.zeros_like(weak)
     base = None
     if intervals == "profile" or np.any(weak):
-        full = optimize.least_squares(resid_final, theta, bounds=(layout.lo, layout.hi),
-                                      method="trf", max_nfev=60)
+        full = optimize.least_squares(resid_final, theta, jac=resid_final.jac,
+                                      bounds=(layout.lo, layout.hi), method="trf", max_nfev=60)
         base = min(2.0 * float(full.cost), float(np.sum(resid_final(theta) ** 2)))
     profiled = [idx for idx in range(theta.size) if intervals == "profile" or weak[idx]]
     ends = dict(zip(profiled, job_map(_profile_at, (resid_final, theta, layout, sd, base),
@@ -94,8 +95,8 @@ def _profile_at(shared: tuple[Any, ...], idx: int) -> tuple[float, float]:
     return _profile_interval(resid, theta, idx, layout, float(sd[idx]), base)
 
 
-def _profile_interval(resid: Any, theta: np.ndarray, idx: int, layout: _Layout, sd: float,
-                      base: float) -> tuple[float, float]:
+def _profile_interval(resid: _LogResidual, theta: np.ndarray, idx: int, layout: _Layout,
+                      sd: float, base: float) -> tuple[float, float]:
     """95 % profile-likelihood interval of log-parameter ``idx`` (whitening held fixed;
     ``base`` is the minimum of the plain sum of squares)."""
     others = [j for j in range(theta.size) if j != idx]
@@ -105,15 +106,12 @@ def _profile_interval(resid: Any, theta: np.ndarray, idx: int, layout: _Layout, 
         th[idx] = v
         if not others:
             return float(np.sum(resid(th) ** 2)) - base, guess
-
-        def sub(x: np.ndarray) -> np.ndarray:
-            th2 = th.copy()
-            th2[others] = x
-            return resid(th2)
-
+        sub = _LogResidual(resid.model, resid.target, resid.whiten, np.zeros_like(resid.target),
+                           base=th, free=others)
         lo_b, hi_b = layout.lo[others], layout.hi[others]
         x0 = np.clip(guess, lo_b + 1e-9, hi_b - 1e-9)
-        sol = optimize.least_squares(sub, x0, bounds=(lo_b, hi_b), method="trf", max_nfev=40)
+        sol = optimize.least_squares(sub, x0, jac=sub.jac, bounds=(lo_b, hi_b), method="trf",
+                                     max_nfev=40)
         return 2.0 * float(sol.cost) - base, sol.x
 
     step = max(2.0 * _Z95 * sd, 0.05) if np.isfinite(sd) and sd > 0 else 1.0

@@ -8,7 +8,6 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from scipy import special
@@ -69,6 +68,108 @@ def _avar_of(layout: _Layout, params: list[dict[str, float]], tau: np.ndarray, f
              ) -> np.ndarray:
     # parameters already validated by the layout's bounds
     return model_avar(_model_terms(layout, params), tau, fs, checked=False)
+
+
+_FD_STEP = float(np.sqrt(np.finfo(np.float64).eps))
+"""Relative forward-difference step of a shape parameter's derivative (scipy's '2-point')."""
+
+
+class _AvarModel:
+    """A model's Allan variance (units^2) at fixed ``tau`` as a function of the layout's
+    log-parameters, and its derivative.
+
+    The derivative is what a fit's solver asks for most often. Differencing the whole model
+    costs one full evaluation per parameter; here the model is split into groups that add
+    (each additive term alone, and the output filter together with the noise terms it
+    filters), and a parameter moves only its own group. An amplitude scales its term's Allan
+    variance by its square, so its column is exact (``2 avar_term``); every other column is a
+    forward difference of its group alone.
+    """
+
+    def __init__(self, layout: _Layout, tau: np.ndarray, fs: float) -> None:
+        self.layout, self.tau, self.fs = layout, tau, fs
+        terms = [get_term(n) for n in layout.names]
+        live = [i for i, t in enumerate(terms) if t.role != "regressor"]
+        filters = [i for i in live if terms[i].kind == "filter"]
+        through = filters + [i for i in live if filters and terms[i].role == "noise"
+                             and terms[i].kind != "filter"] if filters else []
+        self.groups: list[list[int]] = ([sorted(through)] if through else []) + \
+            [[i] for i in live if i not in through]
+        group_of = {i: g for g, members in enumerate(self.groups) for i in members}
+        self.col_group = [group_of[i] for i, _ in layout.keys]
+        self.col_amplitude = [len(self.groups[group_of[i]]) == 1 and terms[i].kind != "filter"
+                              and k == terms[i].amplitude for i, k in layout.keys]
+        self._last: tuple[bytes, list[np.ndarray]] | None = None
+
+    def _group(self, g: int, params: list[dict[str, float]]) -> np.ndarray:
+        names = self.layout.names
+        return model_avar([(names[i], params[i]) for i in self.groups[g]], self.tau, self.fs,
+                          checked=False)
+
+    def _parts(self, theta: np.ndarray) -> list[np.ndarray]:
+        key = theta.tobytes()
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        params = _unpack(self.layout, theta)
+        parts = [self._group(g, params) for g in range(len(self.groups))]
+        self._last = (key, parts)
+        return parts
+
+    def value(self, theta: np.ndarray) -> np.ndarray:
+        """Allan variance at ``theta``."""
+        parts = self._parts(theta)
+        return np.sum(parts, axis=0) if parts else np.zeros_like(self.tau)
+
+    def derivative(self, theta: np.ndarray) -> np.ndarray:
+        """``d avar / d theta_k`` (units^2 per log unit), one column per free parameter."""
+        parts = self._parts(theta)
+        params = _unpack(self.layout, theta)
+        out = np.empty((self.tau.size, theta.size))
+        for k, (g, amp) in enumerate(zip(self.col_group, self.col_amplitude, strict=True)):
+            if amp:
+                out[:, k] = 2.0 * parts[g]
+                continue
+            h = _FD_STEP * max(1.0, abs(float(theta[k])))
+            if theta[k] + h > self.layout.hi[k]:
+                h = -h  # a parameter at its upper bound is differenced from below
+            i, name = self.layout.keys[k]
+            moved = list(params)
+            moved[i] = {**params[i], name: math.exp(float(theta[k]) + h)}
+            out[:, k] = (self._group(g, moved) - parts[g]) / h
+        return out
+
+
+class _LogResidual:
+    """Whitened residuals of ln(avar) against a model, ``whiten (y - ln avar - bias)``, and
+    their Jacobian (for :func:`scipy.optimize.least_squares`), optionally over a subset of the
+    parameters with the others held (``free``: the indices that vary, ``base``: the full
+    vector the held ones are taken from)."""
+
+    def __init__(self, model: _AvarModel, y: np.ndarray, whiten: np.ndarray,
+                 bias: np.ndarray, base: np.ndarray | None = None,
+                 free: list[int] | None = None) -> None:
+        self.model, self.target, self.whiten = model, y - bias, whiten
+        self.base, self.free = base, free
+
+    def _full(self, x: np.ndarray) -> np.ndarray:
+        if self.free is None or self.base is None:
+            return x
+        th = self.base.copy()
+        th[self.free] = x
+        return th
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        mod = self.model.value(self._full(x))
+        return self.whiten @ (self.target - np.log(np.maximum(mod, 1e-300)))
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        th = self._full(x)
+        mod = self.model.value(th)
+        d = self.model.derivative(th)
+        if self.free is not None:
+            d = d[:, self.free]
+        d = np.where((mod > 1e-300)[:, None], d / np.maximum(mod, 1e-300)[:, None], 0.0)
+        return -(self.whiten @ d)
 
 
 _COV_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
@@ -147,16 +248,6 @@ def _fixed_keys(names: list[str], fixed: dict[str | int, dict[str, float]], fs: 
                                 f"{'(' if p.lo_open else '['}{p.lo:g}, {hi:g}]")
             out[(idx, pname)] = float(value)
     return out
-
-
-def _jacobian(fun: Any, theta: np.ndarray, step: float = 1e-5) -> np.ndarray:
-    f0 = fun(theta)
-    jac = np.empty((f0.size, theta.size))
-    for k in range(theta.size):
-        th = theta.copy()
-        th[k] += step
-        jac[:, k] = (fun(th) - f0) / step
-    return jac
 
 
 def _match_start(names: list[str], start: list[tuple[str, dict[str, float]]]

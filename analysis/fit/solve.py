@@ -14,9 +14,11 @@ from imunoise.analysis.blas import one_blas_thread
 from imunoise.analysis.fit.intervals import _intervals
 from imunoise.analysis.fit.layout import (
     _avar_of,
+    _AvarModel,
     _covariance,
     _Layout,
     _log_weights,
+    _LogResidual,
     _match_start,
     _model_terms,
     _unpack,
@@ -54,17 +56,13 @@ def _solve(layout: _Layout, theta0: np.ndarray, y: np.ndarray, tau: np.ndarray,
     A start outside the bounds (a Markov T shorter than the two sample periods it may take) is
     moved onto them."""
     theta = np.clip(theta0, layout.lo, layout.hi)
+    avar = _AvarModel(layout, tau, fs)
     for _ in range(2):
         params = _unpack(layout, theta)
         whiten, bias, _ = _log_weights(_model_terms(layout, params), fs, m, n_terms,
-                                       _avar_of(layout, params, tau, fs))
-
-        def resid(th: np.ndarray, whiten: np.ndarray = whiten, bias: np.ndarray = bias
-                  ) -> np.ndarray:
-            mod = _avar_of(layout, _unpack(layout, th), tau, fs)
-            return whiten @ (y - np.log(np.maximum(mod, 1e-300)) - bias)
-
-        sol = optimize.least_squares(resid, theta, bounds=(layout.lo, layout.hi),
+                                       avar.value(theta))
+        resid = _LogResidual(avar, y, whiten, bias)
+        sol = optimize.least_squares(resid, theta, jac=resid.jac, bounds=(layout.lo, layout.hi),
                                      method="trf", max_nfev=max_nfev, loss=_LOSS,
                                      f_scale=_F_SCALE)
         moved = float(np.max(np.abs(sol.x - theta))) if theta.size else 0.0
