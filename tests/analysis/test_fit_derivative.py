@@ -1,0 +1,67 @@
+"""The Allan fit's derivative (analysis.fit.layout._AvarModel): exact for amplitudes, a
+difference of the moved term's group for the other parameters, equal to a central difference
+of the whole model."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from imunoise.analysis.fit.layout import _AvarModel, _layout
+from imunoise.analysis.terms import model_avar
+
+FS = 100.0
+TAU = np.geomspace(1.0 / FS, 2000.0, 40)
+
+MODELS = {
+    "additive": [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+                 ("random_walk", {"K": 2e-6}), ("resonance", {"sigma": 2e-3, "f0": 13.0,
+                                                              "Q": 1.4}),
+                 ("sinusoid", {"A": 9e-3, "f": 0.56}), ("gauss_markov", {"sigma": 3e-4,
+                                                                         "T": 4.0})],
+    "filtered": [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+                 ("random_walk", {"K": 2e-6}), ("moving_average", {"taps": 3.3}),
+                 ("resonance", {"sigma": 5e-3, "f0": 20.4, "Q": 20.0}),
+                 ("sinusoid", {"A": 9e-3, "f": 0.56})],
+}
+
+
+@pytest.mark.parametrize("case", sorted(MODELS))
+def test_the_derivative_is_the_whole_models_central_difference(case):
+    model = MODELS[case]
+    names = [n for n, _ in model]
+    layout = _layout(names, FS, 3e4, {})
+    theta = np.array([math.log(model[i][1][k]) for i, k in layout.keys])
+    am = _AvarModel(layout, TAU, FS)
+
+    def whole(th):
+        params = [dict(p) for _, p in model]
+        for (i, k), v in zip(layout.keys, th, strict=True):
+            params[i][k] = math.exp(v)
+        return model_avar(list(zip(names, params, strict=True)), TAU, FS, checked=False)
+
+    assert np.allclose(am.value(theta), whole(theta), rtol=1e-14, atol=0)
+    d = am.derivative(theta)
+    h = 1e-5
+    for k, (i, name) in enumerate(layout.keys):
+        up, down = theta.copy(), theta.copy()
+        up[k] += h
+        down[k] -= h
+        ref = (whole(up) - whole(down)) / (2 * h)
+        scale = float(np.max(np.abs(ref))) or 1.0
+        # forward difference with a 1.5e-8 relative step: error of order that step
+        assert np.max(np.abs(d[:, k] - ref)) <= 1e-5 * scale + 1e-7 * float(
+            np.max(am.value(theta))), (names[i], name)
+
+
+def test_an_amplitudes_column_is_twice_its_terms_allan_variance():
+    model = MODELS["additive"]
+    names = [n for n, _ in model]
+    layout = _layout(names, FS, 3e4, {})
+    theta = np.array([math.log(model[i][1][k]) for i, k in layout.keys])
+    d = _AvarModel(layout, TAU, FS).derivative(theta)
+    k = layout.keys.index((3, "sigma"))
+    own = model_avar([model[3]], TAU, FS)
+    assert np.allclose(d[:, k], 2.0 * own, rtol=1e-12, atol=0)
