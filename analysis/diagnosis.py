@@ -29,6 +29,7 @@ import numpy as np
 from scipy import special, stats
 
 from imunoise.analysis import evidence
+from imunoise.analysis.default_model import DEFAULT_MODEL
 from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.jobs import JobMap, serial_map
@@ -95,6 +96,13 @@ class Suggestion:
     evidence: list[str] = field(default_factory=list)
     fit: FitResult | None = None
     apply: dict[str, Any] = field(default_factory=dict)
+    action: str = "add"
+    """``"add"`` the term, ``"cut"`` the record (a bias step or warm-up: ``apply.args``), or
+    ``"remove"`` a term of the given model whose amplitude the record does not resolve
+    (:func:`_removal`)."""
+    label: str = ""
+    """The removed term's label in the given model (``name#K`` for the K-th of a repeated
+    name); empty for the other actions."""
     error_after: dict[str, Any] = field(default_factory=dict)
     """The whole error object of the applied model (``chi2_per_dof``, ``max_abs_z``,
     ``psd``, ``holdout``, ``time_domain``; a part not computed for a suggestion is null with a
@@ -106,7 +114,9 @@ class Suggestion:
             return float(v) if np.isfinite(v) else None
 
         term = TERMS.get(self.term)  # a cut (bias step, warm-up) is no term
-        return {"term": self.term, "params": {k: num(v) for k, v in self.params.items()},
+        return {"term": self.term, "action": self.action,
+                **({"label": self.label} if self.action == "remove" else {}),
+                "params": {k: num(v) for k, v in self.params.items()},
                 "ci95": {k: [num(a), num(b)] for k, (a, b) in self.ci95.items()},
                 # amplitudes whose interval reaches zero: no estimate, only an upper bound
                 "unresolved": [k for k in self.params if term is not None
@@ -561,11 +571,85 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
         p_value=float(np.exp(logp)), log_p=logp,
         significant=bool(logp < np.log(alpha) and (falls or clears)), why=why,
         evidence=[finding.kind] if finding.significant else [], fit=after,
-        apply={"model": ctx.spec.text(), "args": args},
+        apply={"model": ctx.spec.text(), "args": args}, action="cut",
         error_after={} if after is None else {
             "chi2_per_dof": chi_after, "max_abs_z": float(after.max_abs_z),
             "psd": _not_computed("the PSD part"), "holdout": _not_computed("the hold-out part"),
             "time_domain": td_after})
+
+
+def _unresolved_terms(ctx: _Context) -> list[int]:
+    """Indices of the given model's terms that may be dropped: an amplitude whose 95 %
+    interval reaches zero, in a term the user did not ask for by name. The default model's
+    terms (:data:`~imunoise.analysis.default_model.DEFAULT_MODEL`) are the coefficients every
+    datasheet quotes, reported as an upper bound when unresolved; a term with a parameter the
+    user held was asked for; filters have no amplitude; a regressor is the user's record."""
+    out = []
+    for i, (entry, tf) in enumerate(zip(ctx.spec.entries, ctx.base.terms, strict=True)):
+        term = get_term(entry.name)
+        if entry.name in DEFAULT_MODEL or entry.fixed or term.kind == "filter" \
+                or term.role == "regressor":
+            continue
+        if not term.resolved(term.amplitude, tf.ci95.get(term.amplitude)):
+            out.append(i)
+    return out
+
+
+def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
+    """Term ``index`` of the given model dropped and the rest refitted, exactly as ``imunoise
+    fit --model`` fits the remaining model (its ``apply.model``).
+
+    The term's amplitude interval reaches zero, so the record shows no more than an upper
+    bound of it. It goes (``significant``) when the data do not need it: the rise of chi2
+    without it, chi-square with the term's free parameters as degrees of freedom, has
+    ``p >= alpha`` (``p_value``; Bonferroni over the candidates does not apply, a removal
+    claims no effect), and neither the Allan nor the PSD part rises beyond its noise."""
+    entries = ctx.spec.entries
+    entry, label = entries[index], ctx.spec.labels[index]
+    spec = ModelSpec(entries[:index] + entries[index + 1:])
+    before = ctx.base.chi2_per_dof
+    k = len(get_term(entry.name).params) - len(entry.fixed)
+    try:
+        after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
+                              temperature=ctx.temp_at if "temperature" in spec.names else None,
+                              memo=ctx.memo, intervals="jacobian")
+    except (ValueError, np.linalg.LinAlgError):
+        after = None
+    tf = ctx.base.terms[index]
+    amp = get_term(entry.name).amplitude
+    bound = tf.ci95.get(amp, (float("nan"),) * 2)[1]
+    why = (f"The record does not resolve {label}: its {amp} has a 95 % interval reaching "
+           f"zero (upper bound {bound:.3g}).")
+    if after is None:
+        return Suggestion(term=entry.name, params=dict(tf.params), ci95=dict(tf.ci95),
+                          chi2_per_dof_before=before, chi2_per_dof_after=float("nan"),
+                          p_value=0.0, log_p=-np.inf, significant=False,
+                          why=why + " The model without it could not be fitted.",
+                          apply={"model": spec.text(), "args": []}, action="remove",
+                          label=label)
+    rise = max(float(after.misfit.chi2 - ctx.base.misfit.chi2), 0.0)
+    logp = _chi2_logsf(rise, max(k, 1)) if rise > 0 else 0.0
+    psd_after = _psd_after(ctx, after)
+    rises = _rises(before, after.chi2_per_dof, after.misfit.dof) \
+        or _rises(_deviance(ctx.psd_before), _deviance(psd_after),
+                  (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION)
+    needed = logp < np.log(alpha)
+    why += (f" Without it chi2 rises by {rise:.3g} on {k} parameter(s) (p = "
+            f"{np.exp(logp):.2g}) and chi2/dof goes from {before:.3g} to "
+            f"{after.chi2_per_dof:.3g}.")
+    if needed:
+        why += " The curve needs it all the same: keep it."
+    elif rises:
+        why += " Dropping it raises a part of the error beyond its noise: keep it."
+    return Suggestion(
+        term=entry.name, params=dict(tf.params), ci95=dict(tf.ci95),
+        chi2_per_dof_before=before, chi2_per_dof_after=after.chi2_per_dof,
+        p_value=float(np.exp(logp)), log_p=logp,
+        significant=bool(not needed and not rises), why=why, fit=after,
+        apply={"model": spec.text(), "args": []}, action="remove", label=label,
+        error_after={"chi2_per_dof": after.chi2_per_dof, "max_abs_z": float(after.max_abs_z),
+                     "psd": psd_after, "holdout": _not_computed("the hold-out part"),
+                     "time_domain": _not_computed("the time-domain part")})
 
 
 def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggestion]:
@@ -587,7 +671,7 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
         return len(get_term(s.term).params)
 
     terms = [s for s in suggestions if s.significant and s.fit is not None
-             and not s.apply.get("args")]
+             and s.action == "add" and not s.apply.get("args")]
     # the first significant suggestion is the one to apply; a cut there keeps its place
     first = next((s for s in suggestions if s.significant), None)
     if not terms or first is not terms[0]:
@@ -691,6 +775,9 @@ def _ranked(ctx: _Context, suggestions: list[Suggestion], cuts: list[Finding], u
         found = {f.kind for f in cuts if f.significant}
         suggestions += [_remedy(ctx, f, units, alpha) for f in cuts if f.significant
                         and f.details.get("better_explained_by") not in found]
+    if not any(s.significant for s in suggestions):
+        # nothing is missing: a term the record does not resolve goes
+        suggestions += [_removal(ctx, i, alpha) for i in _unresolved_terms(ctx)]
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
     # parameters, so a two-parameter Markov term does not win merely by being flexible.
     suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
@@ -853,10 +940,12 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], before: dict[st
                              job_map=ctx.job_map)
         s.error_after["holdout"] = after
         a = after.get("chi2_per_dof")
-        if a is None or not _rises(b, a, dof) and (a < b or not lacking):
+        # a removal claims nothing new: it only must not make the prediction worse
+        need_fall = lacking and s.action == "add"
+        if a is None or not _rises(b, a, dof) and (a < b or not need_fall):
             break  # kept (a part that cannot be computed judges nothing)
         s.significant = False
-        s.why += (f" Not significant: it does not {'lower' if lacking else 'keep'} the "
+        s.why += (f" Not significant: it does not {'lower' if need_fall else 'keep'} the "
                   f"hold-out part (the model fitted on one half predicting the other: "
                   f"chi2/dof {b:.3g} -> {'n/a' if a is None else f'{a:.3g}'}).")
     suggestions.sort(key=lambda s: not s.significant)  # stable: the order among each kept

@@ -133,6 +133,10 @@ class ApplyOut(BaseModel):
 
 class SuggestionOut(BaseModel):
     term: str
+    action: str = Field("add", description=(
+        "add the term, cut the record (apply.args), or remove a term of the model whose "
+        "amplitude the record does not resolve"))
+    label: str = Field("", description="the removed term's label (name#K when repeated)")
     params: dict[str, float | None]
     ci95: dict[str, list[float | None]] = Field(default_factory=dict)
     unresolved: list[str] = Field(default_factory=list, description=(

@@ -94,11 +94,12 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                  else "n/a")
         term = TERMS.get(s.term)
         # a warm-up or bias step is no term: its remedy cuts the record (apply.args)
-        verb = "add" if term is not None else "cut"
+        verb = getattr(s, "action", "add" if term is not None else "cut")
+        name = getattr(s, "label", "") or s.term
         psd_after = ((getattr(s, "error_after", None) or {}).get("psd") or {}).get(
             "deviance_per_bin")
         psd_txt = "" if psd_after is None else f" psd/bin -> {psd_after:.3g}"
-        lines.append(f"  {mark}{i:2d}. {verb} {s.term:17s} chi2/dof {s.chi2_per_dof_before:.3g} "
+        lines.append(f"  {mark}{i:2d}. {verb} {name:17s} chi2/dof {s.chi2_per_dof_before:.3g} "
                      f"-> {after:8s}{psd_txt} p = {s.p_value:.2g}")
         if term is not None:
             pars = [_suggested_param(s.term, p.name, s.params[p.name], s.ci95.get(p.name),

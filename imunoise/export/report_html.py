@@ -513,7 +513,7 @@ def _diagnosis_block(ch: Mapping) -> str:
     if not sugg:
         return "<h3>Diagnosis</h3><p>No candidate term could be tried.</p>"
     fitted = (ch.get("error") or {}).get("chi2_per_dof")
-    head = ("<tr><th>add term</th><th>parameters</th><th>\u03c7\u00b2/dof before \u2192 after"
+    head = ("<tr><th>change</th><th>parameters</th><th>\u03c7\u00b2/dof before \u2192 after"
             "</th><th>significant</th><th>why</th></tr>")
 
     def row(s: Mapping) -> str:
@@ -522,7 +522,9 @@ def _diagnosis_block(ch: Mapping) -> str:
                            f"{escape(k)} = {_num(v, 3)}"
                            for k, v in (s.get("params") or {}).items())
         sig = s.get("significant")
-        return (f"<tr><td>{escape(str(s.get('term')))}</td><td>{params}</td>"
+        verb = str(s.get("action") or "add")
+        name = str(s.get("label") or s.get("term"))
+        return (f"<tr><td>{escape(verb)} {escape(name)}</td><td>{params}</td>"
                 f'<td class="num">{_num(s.get("chi2_per_dof_before", fitted), 3)} \u2192 '
                 f"{_num(s.get('chi2_per_dof_after'), 3)}</td>"
                 f'<td class="{"ok" if sig else "muted"}">{"yes" if sig else "no"}</td>'

@@ -49,3 +49,44 @@ def test_nothing_significant_on_a_record_the_model_explains():
         (s.term, s.p_value) for s in d.suggestions[:3]]
     assert 0.6 < d.error_parts["psd"]["deviance_per_bin"] < 1.5
     assert np.isfinite(d.error_parts["holdout"]["chi2_per_dof"])
+
+
+BASE = [("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}), ("random_walk", {"K": 2e-6})]
+
+
+def test_a_term_the_record_does_not_resolve_is_offered_for_removal():
+    """A Markov term the data do not hold: its sigma's interval reaches zero, nothing is
+    missing, so the diagnosis offers to drop it, and its apply.model is the model without it
+    (seeds 0-1: chi2 rises by 1.3 and 0.7 on two parameters without it)."""
+    for seed in (0, 1):
+        x = simulate(BASE, 1 << 18, 50.0, rng=seed)
+        d = diagnose(x, 50.0, "white,bias_instability,random_walk,gauss_markov")
+        top = d.suggestions[0]
+        assert (top.action, top.term, top.label, top.significant) == \
+            ("remove", "gauss_markov", "gauss_markov", True)
+        assert top.apply["model"] == "white,bias_instability,random_walk"
+        assert top.p_value > 0.05
+        assert top.ci95["sigma"][0] == 0.0
+        doc = top.to_dict()
+        assert doc["action"] == "remove" and doc["label"] == "gauss_markov"
+        assert "does not resolve gauss_markov" in doc["why"]
+
+
+def test_a_term_asked_for_by_a_held_parameter_or_the_default_model_is_kept():
+    """The same Markov term with its time constant held was asked for; the default model's
+    terms are the coefficients a datasheet quotes: neither is offered for removal, although
+    its amplitude is not resolved."""
+    from imunoise.analysis.terms import get_term
+
+    def unresolved(fit, i):
+        term = get_term(fit.terms[i].term)
+        return not term.resolved(term.amplitude, fit.terms[i].ci95.get(term.amplitude))
+
+    x = simulate(BASE, 1 << 18, 50.0, rng=0)
+    d = diagnose(x, 50.0, "white,bias_instability,random_walk,gauss_markov:T=183")
+    assert unresolved(d.fit, 3)
+    assert not any(s.action == "remove" for s in d.suggestions)
+    x = simulate([("white", {"N": 3e-4})], 1 << 18, 50.0, rng=3)
+    d = diagnose(x, 50.0, "white,bias_instability,random_walk")
+    assert unresolved(d.fit, 1) or unresolved(d.fit, 2)
+    assert not any(s.action == "remove" for s in d.suggestions)
