@@ -27,12 +27,14 @@ against the noise of many blocks the level would be 7.35 (the limit of the likel
 is then twice the larger of two independent unit exponentials); but over the steps this test
 detects, the profile within the step's block is sharp enough that 3.84 keeps the coverage of
 the time near 95 % (simulated: 91 % at the detection limit, 98-99 % at 1.6-4 times it), where
-7.35 covers 99-100 %.
+7.35 covers 99-100 %. The step's time is then refined to the sample (:func:`_sample_step`),
+where every step is small against the noise of single samples and 7.35 is the level.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -209,6 +211,84 @@ def _step_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tupl
             "size_ci": _amplitude_interval(amp, var, lr)}
 
 
+_LR95_CHANGE_POINT = 7.35
+"""95 % point of the likelihood ratio of a change point whose step is small against the noise
+of the samples around it (twice the larger of two independent unit exponentials): the
+regime of every step this test finds, seen sample by sample."""
+
+
+_LONG_RUN_SPAN = 32
+"""Span (in step-response lengths) of the sums whose variance scales the change point's
+likelihood ratio (:func:`_sample_step`)."""
+
+
+def _step_response(model: Sequence[tuple[str, dict[str, float]]], fs_hz: float) -> np.ndarray:
+    """The sensor's response to a unit bias step, sample by sample until it settles: the
+    cumulated impulse response of the model's output filter (unit gain), or ``[1.0]``."""
+    for name, params in model:
+        term = get_term(name)
+        if term.kind == "filter" and isinstance(term, OutputFilter):
+            g = np.asarray(term.impulse_response(fs_hz, params), dtype=np.float64)
+            if g.size and abs(float(g.sum())) > 0.0:
+                return np.cumsum(g) / float(g.sum())
+    return np.ones(1)
+
+
+def _sample_step(x: np.ndarray, b: int, est: dict[str, Any], response: np.ndarray
+                 ) -> tuple[int, int, int] | None:
+    """The step's first sample, refined from the block estimate ``est`` (block units) to the
+    sample, with its 95 % interval: ``(sample, low, high)`` in samples of ``x``, or None
+    where the record around it is too short.
+
+    Within the block estimate's interval widened by a block each side, every sample ``s`` is
+    tried as the step's first one: ``x = mu + d u_s`` by least squares over the searched
+    samples and a block beyond them on each side, ``u_s`` the sensor's step response
+    starting at ``s`` (:func:`_step_response`). The residual sum of squares, in units of the
+    residuals' long-run variance per sample (that of their sums over
+    :data:`_LONG_RUN_SPAN` step-response lengths), is the likelihood ratio of ``s`` against
+    the best; the interval holds the samples within :data:`_LR95_CHANGE_POINT` of it. The
+    slow wander of the bias over those few blocks (random walk, flicker) stays in the
+    residuals, which widens the interval rather than moving the step.
+    """
+    n = x.size
+    lo = max(int(np.floor((est["t_ci"][0] - 1.0) * b)), 1)
+    hi = min(int(np.ceil((est["t_ci"][1] + 1.0) * b)), n - 1)
+    a, z = max(lo - b, 0), min(hi + b, n)
+    y = np.asarray(x[a:z], dtype=np.float64)
+    m, L = y.size, response.size
+    cand = np.arange(lo - a, hi - a + 1)
+    cand = cand[cand + L <= m]
+    if cand.size == 0 or m < 4:
+        return None
+    y = y - float(np.mean(y))  # the level is fitted anyway; this keeps the sums small
+    tail = np.concatenate((np.cumsum(y[::-1])[::-1], [0.0]))  # tail[k] = sum(y[k:])
+    ramp = np.correlate(y, response, mode="valid")  # sum_j response[j] y[s + j]
+    s_uy = ramp[cand] + tail[cand + L]
+    after = (m - cand - L).astype(np.float64)
+    s_u = float(np.sum(response)) + after
+    s_uu = float(np.sum(response * response)) + after
+    # y has zero mean: the level's projection leaves S_uy and reduces S_uu by S_u^2 / m
+    info = s_uu - s_u * s_u / m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = np.where(info > 0, s_uy * s_uy / info, 0.0)
+    best = int(np.argmax(gain))
+    s0 = int(cand[best])
+    u = np.concatenate((np.zeros(s0), response, np.ones(m - s0 - L)))
+    resid = y - float(s_uy[best] / info[best]) * (u - float(np.mean(u)))
+    # The ratio compares sums of the noise over the samples between two candidate times,
+    # so its scale is the noise's variance per sample over such spans (its long-run
+    # variance), not per single sample: a filter correlates neighbouring samples and would
+    # otherwise narrow the interval by its length (four times for a 4-tap average).
+    q = _LONG_RUN_SPAN * L
+    chunks = resid[: (m // q) * q].reshape(-1, q).sum(axis=1) if m >= 4 * q else resid
+    var = float(np.mean(chunks * chunks)) / (q if m >= 4 * q else 1)
+    if not np.isfinite(var) or var <= 0.0:
+        return None
+    lr = (float(gain[best]) - gain) / var
+    inside = cand[lr <= _LR95_CHANGE_POINT]
+    return int(cand[best] + a), int(inside.min() + a), int(inside.max() + a)
+
+
 def _warmup_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tuple]:
     """Warm-up time constant (blocks) and amplitude at the segment start, with 95 %
     intervals; a bound that reaches the searched range's end is that end."""
@@ -327,10 +407,17 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
             t_s = t0_s + est["t"] * blk
             size = est["size"]
             t_ci = [t0_s + est["t_ci"][0] * blk, t0_s + est["t_ci"][1] * blk]
+            block_t = {"t_s_block": t_s, "t_s_block_ci95": list(t_ci)}
+            refined = _sample_step(x, b, est, _step_response(model, fs_hz)) \
+                if chol is not None else None
+            if refined is not None:
+                # the step's first sample, so that a cut there leaves no stepped sample
+                t_s = t0_s + refined[0] / fs_hz
+                t_ci = [t0_s + refined[1] / fs_hz, t0_s + refined[2] / fs_hz]
             size_ci = list(est["size_ci"])
             params = {"t_s": t_s, "size": size}
-            why = (f"The bias steps by {size:.3g} {units} at t = {t_s:.0f} s "
-                   f"(95 % intervals {t_ci[0]:.0f} .. {t_ci[1]:.0f} s, size {size_ci[0]:.3g} "
+            why = (f"The bias steps by {size:.3g} {units} at t = {t_s:.6g} s "
+                   f"(95 % intervals {t_ci[0]:.6g} .. {t_ci[1]:.6g} s, size {size_ci[0]:.3g} "
                    f".. {size_ci[1]:.3g}), more than the fitted noise model's random wander "
                    f"allows (|z| = {zmax:.1f}): a knock or a change of state. Analyse the two "
                    f"sides as separate segments.")
@@ -338,7 +425,7 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
                                {"t_s": t_ci}, why if p < alpha else
                                f"No bias step beyond the model's wander (largest |z| = "
                                f"{zmax:.1f}).", {"size_ci95": size_ci, "t_s_ci95": t_ci,
-                                                  "block_s": blk}))
+                                                  "block_s": blk, **block_t}))
         else:
             if chol is not None:
                 est = ests["warmup"]

@@ -138,9 +138,39 @@ def test_a_step_is_found_with_its_time_and_size_inside_their_intervals() -> None
     t_in = sum(lo <= 3030.0 <= hi for lo, hi in (f.details["t_s_ci95"] for f in runs))
     s_in = sum(lo <= 4e-4 <= hi for lo, hi in (f.details["size_ci95"] for f in runs))
     assert t_in >= _CAL_MIN_INSIDE and s_in >= _CAL_MIN_INSIDE, (t_in, s_in)
-    # resolved below one block: the median interval is narrower than a block (60 s)
+    # refined to the sample: the median interval is a sixth of a block (9.2 s against 60 s;
+    # 39 of 40 inside), where the block means alone resolve it to about one block
     widths = [hi - lo for lo, hi in (f.details["t_s_ci95"] for f in runs)]
-    assert runs[0].details["block_s"] == 60.0 and np.median(widths) < 60.0
+    assert runs[0].details["block_s"] == 60.0 and np.median(widths) < 15.0
+    block_widths = [hi - lo for lo, hi in (f.details["t_s_block_ci95"] for f in runs)]
+    assert np.median(block_widths) > 2.0 * np.median(widths)
+
+
+def test_a_step_through_the_sensors_filter_is_placed_to_the_sample() -> None:
+    """A 1.2e-3 rad/s knock at sample 151,517 of two hours at 50 Hz, seen through a 4-tap
+    moving average like every sample's noise: its first sample is found within a few
+    samples, the interval (scaled by the residuals' long-run variance, not the filtered
+    samples' own) covers it, and the cut the diagnosis offers falls on that sample."""
+    first = 151_517
+    n = int(2 * 3600 * _CAL_FS)
+    model = _CAL_MODEL + [("moving_average", {"taps": 4.0})]
+    step = np.convolve((np.arange(n) >= first) * 1.2e-3, np.full(4, 0.25))[:n]
+    for seed in range(3):
+        x = simulate(model, n, _CAL_FS, rng=700 + seed) + step
+        found, _ = transients([x], _CAL_FS, model)
+        assert found.significant
+        at = found.params["t_s"] * _CAL_FS
+        lo, hi = (v * _CAL_FS for v in found.details["t_s_ci95"])
+        assert at == pytest.approx(round(at), abs=1e-6)  # a sample, not a block fraction
+        assert abs(at - first) <= 20 and lo <= first <= hi, (at, lo, hi)
+        assert hi - lo < 0.1 * found.details["block_s"] * _CAL_FS
+    d = diagnose(x, _CAL_FS, "white,bias_instability,random_walk,moving_average:taps=4")
+    cut = next(s for s in d.suggestions if s.term == "bias_step")
+    split = float(cut.apply["args"][1])
+    assert round(split * _CAL_FS) == round(d.findings[[f.kind for f in d.findings]
+                                                       .index("bias_step")].params["t_s"]
+                                           * _CAL_FS)
+    assert abs(round(split * _CAL_FS) - first) <= 20
 
 
 def test_a_warm_up_is_found_with_its_time_constant_and_amplitude_inside_their_intervals(
