@@ -91,8 +91,9 @@ class _AvarModel:
         terms = [get_term(n) for n in layout.names]
         live = [i for i, t in enumerate(terms) if t.role != "regressor"]
         filters = [i for i in live if terms[i].kind == "filter"]
-        through = filters + [i for i in live if filters and terms[i].role == "noise"
-                             and terms[i].kind != "filter"] if filters else []
+        # with a filter, it and the noise terms it filters form one group
+        through = (filters + [i for i in live if terms[i].role == "noise"
+                              and terms[i].kind != "filter"]) if filters else []
         self.groups: list[list[int]] = ([sorted(through)] if through else []) + \
             [[i] for i in live if i not in through]
         group_of = {i: g for g, members in enumerate(self.groups) for i in members}
