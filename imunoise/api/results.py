@@ -436,11 +436,12 @@ class Diagnosis:
         return documents.dumps(self.document())
 
     def to_pandas(self) -> Any:
-        """One row per suggestion: ``term``, ``significant``, ``p_value``,
-        ``chi2_per_dof_before``, ``chi2_per_dof_after``, ``model`` to apply, ``why``
-        (``notebook`` extra)."""
+        """One row per suggestion: ``action`` (add, cut or remove), ``term``,
+        ``significant``, ``p_value``, ``chi2_per_dof_before``, ``chi2_per_dof_after``,
+        ``model`` to apply, ``why`` (``notebook`` extra)."""
         pd = _pandas()
-        return pd.DataFrame([{"term": s["term"], "significant": s["significant"],
+        return pd.DataFrame([{"action": s.get("action", "add"), "term": s["term"],
+                              "significant": s["significant"],
                               "p_value": s["p_value"],
                               "chi2_per_dof_before": s["chi2_per_dof_before"],
                               "chi2_per_dof_after": s["chi2_per_dof_after"],
@@ -451,12 +452,13 @@ class Diagnosis:
         """The fit's plot, titled with the best suggestion (``plot`` extra)."""
         ax = self.fit.plot(ax)
         best = self.best
-        ax.set_title(f"{self.channel.key}: add {best['term']} (p = {best['p_value']:.2g})"
+        ax.set_title(f"{self.channel.key}: {best.get('action', 'add')} "
+                     f"{best.get('label') or best['term']} (p = {best['p_value']:.2g})"
                      if best else f"{self.channel.key}: the model explains the curve")
         return ax
 
     def __repr__(self) -> str:
         best = self.best
-        verdict = (f"best: {best['term']} (p = {best['p_value']:.2g})" if best
-                   else "nothing significant is missing")
+        verdict = (f"best: {best.get('action', 'add')} {best.get('label') or best['term']} "
+                   f"(p = {best['p_value']:.2g})" if best else "nothing significant is missing")
         return f"<Diagnosis {self.channel.key}: {len(self.suggestions)} suggestion(s), {verdict}>"

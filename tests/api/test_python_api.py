@@ -119,6 +119,8 @@ def test_tables_and_labelled_arrays(recording):
     dx = imunoise.diagnose(rec["gyro_x"], "white")
     table = dx.to_pandas()
     assert list(table["term"]) == [s["term"] for s in dx.suggestions]
+    assert list(table["action"]) == [s["action"] for s in dx.suggestions]
+    assert set(table["action"]) <= {"add", "cut", "remove"}
 
 
 def test_plots_draw_the_curves(recording):
