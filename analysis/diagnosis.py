@@ -775,13 +775,16 @@ def _ranked(ctx: _Context, suggestions: list[Suggestion], cuts: list[Finding], u
         found = {f.kind for f in cuts if f.significant}
         suggestions += [_remedy(ctx, f, units, alpha) for f in cuts if f.significant
                         and f.details.get("better_explained_by") not in found]
+    removals: list[Suggestion] = []
     if not any(s.significant for s in suggestions):
-        # nothing is missing: a term the record does not resolve goes
-        suggestions += [_removal(ctx, i, alpha) for i in _unresolved_terms(ctx)]
+        # nothing is missing: a term the record does not resolve goes, the one the data
+        # need least (the largest p of the chi2 rise without it) first
+        removals = sorted((_removal(ctx, i, alpha) for i in _unresolved_terms(ctx)),
+                          key=lambda s: -s.log_p)
     # Strongest evidence first: the likelihood-ratio p-value already charges a term for its
     # parameters, so a two-parameter Markov term does not win merely by being flexible.
     suggestions.sort(key=lambda s: (s.log_p, np.nan_to_num(s.chi2_per_dof_after, nan=np.inf)))
-    return _simplest_first(suggestions, alpha)
+    return removals + _simplest_first(suggestions, alpha)
 
 
 def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
