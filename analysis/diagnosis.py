@@ -603,7 +603,9 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
     bound of it. It goes (``significant``) when the data do not need it: the rise of chi2
     without it, chi-square with the term's free parameters as degrees of freedom, has
     ``p >= alpha`` (``p_value``; Bonferroni over the candidates does not apply, a removal
-    claims no effect), and neither the Allan nor the PSD part rises beyond its noise."""
+    claims no effect), the chi2 per degree of freedom does not rise (the simpler model must
+    not look worse to the user who applies it), and the PSD part does not rise beyond its
+    noise."""
     entries = ctx.spec.entries
     entry, label = entries[index], ctx.spec.labels[index]
     spec = ModelSpec(entries[:index] + entries[index + 1:])
@@ -634,6 +636,9 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
         or _rises(_deviance(ctx.psd_before), _deviance(psd_after),
                   (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION)
     needed = logp < np.log(alpha)
+    # a suggestion applied must not make the error the user watches larger: the chi2 per
+    # degree of freedom of the simpler model may not exceed the given model's
+    worse = bool(after.chi2_per_dof > before)
     why += (f" Without it chi2 rises by {rise:.3g} on {k} parameter(s) (p = "
             f"{np.exp(logp):.2g}) and chi2/dof goes from {before:.3g} to "
             f"{after.chi2_per_dof:.3g}.")
@@ -641,11 +646,13 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
         why += " The curve needs it all the same: keep it."
     elif rises:
         why += " Dropping it raises a part of the error beyond its noise: keep it."
+    elif worse:
+        why += " Dropping it raises the chi2 per degree of freedom: keep it as an upper bound."
     return Suggestion(
         term=entry.name, params=dict(tf.params), ci95=dict(tf.ci95),
         chi2_per_dof_before=before, chi2_per_dof_after=after.chi2_per_dof,
         p_value=float(np.exp(logp)), log_p=logp,
-        significant=bool(not needed and not rises), why=why, fit=after,
+        significant=bool(not needed and not rises and not worse), why=why, fit=after,
         apply={"model": spec.text(), "args": []}, action="remove", label=label,
         error_after={"chi2_per_dof": after.chi2_per_dof, "max_abs_z": float(after.max_abs_z),
                      "psd": psd_after, "holdout": _not_computed("the hold-out part"),

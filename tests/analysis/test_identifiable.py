@@ -72,6 +72,18 @@ def test_a_term_the_record_does_not_resolve_is_offered_for_removal():
         assert "does not resolve gauss_markov" in doc["why"]
 
 
+def test_a_removal_that_would_raise_the_chi2_per_dof_is_not_significant():
+    """Seed 2: the unresolved Markov term's removal raises chi2 by 2.2 on two parameters
+    (p 0.34, not needed) but chi2/dof from 0.52 to 0.60: applied, the user would see the
+    error rise, so it is offered and not significant."""
+    x = simulate(BASE, 1 << 18, 50.0, rng=2)
+    d = diagnose(x, 50.0, "white,bias_instability,random_walk,gauss_markov")
+    removal = next(s for s in d.suggestions if s.action == "remove")
+    assert removal.p_value > 0.05
+    assert removal.chi2_per_dof_after > removal.chi2_per_dof_before
+    assert not removal.significant and "keep it as an upper bound" in removal.why
+
+
 def test_a_term_asked_for_by_a_held_parameter_or_the_default_model_is_kept():
     """The same Markov term with its time constant held was asked for; the default model's
     terms are the coefficients a datasheet quotes: neither is offered for removal, although
