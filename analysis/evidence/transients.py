@@ -243,10 +243,10 @@ def _sample_step(x: np.ndarray, b: int, est: dict[str, Any], response: np.ndarra
     Within the block estimate's interval widened by a block each side, every sample ``s`` is
     tried as the step's first one: ``x = mu + d u_s`` by least squares over the searched
     samples and a block beyond them on each side, ``u_s`` the sensor's step response
-    starting at ``s`` (:func:`_step_response`). The residual sum of squares, in units of the
-    residuals' long-run variance per sample (that of their sums over
-    :data:`_LONG_RUN_SPAN` step-response lengths), is the likelihood ratio of ``s`` against
-    the best; the interval holds the samples within :data:`_LR95_CHANGE_POINT` of it. The
+    starting at ``s`` (:func:`_step_response`). The rise of the residual sum of squares over
+    the best's, in units of the residuals' long-run variance per sample (that of their sums
+    over :data:`_LONG_RUN_SPAN` step-response lengths), is the likelihood ratio of ``s``
+    against the best; the interval holds the samples within :data:`_LR95_CHANGE_POINT` of it. The
     slow wander of the bias over those few blocks (random walk, flicker) stays in the
     residuals, which widens the interval rather than moving the step.
     """
