@@ -533,7 +533,11 @@ def _diagnosis_block(ch: Mapping) -> str:
     significant = [s for s in sugg if s.get("significant")]
     others = [s for s in sugg if not s.get("significant")]
     out = ["<h3>Diagnosis</h3>"]
-    if significant:
+    if significant and all(s.get("action") == "remove" for s in significant):
+        out.append("<p>Nothing is missing; the record does not resolve these terms of the "
+                   "model (drop them, best first):</p>")
+        out.append(f"<table>{head}{''.join(row(s) for s in significant)}</table>")
+    elif significant:
         out.append("<p>The model misses these effects (best first):</p>")
         out.append(f"<table>{head}{''.join(row(s) for s in significant)}</table>")
     else:

@@ -372,3 +372,24 @@ def test_report_names_a_missing_effect(tmp_path):
     assert float(m.group(1)) == pytest.approx(2.7, abs=0.05)
     assert float(m.group(2)) == pytest.approx(2e-3, rel=0.1)  # amplitude in rad/s
     assert float(m.group(4)) < float(m.group(3))
+
+
+def test_a_significant_removal_is_reported_as_a_term_to_drop():
+    doc = _doc()
+    for other in doc["channels"].values():
+        other.pop("suggestions", None)
+    ch = doc["channels"]["gyro_x"]
+    ch["suggestions"] = [{"term": "gauss_markov", "action": "remove", "label": "gauss_markov",
+                          "params": {"sigma": 5e-5, "T": 183.0},
+                          "ci95": {"sigma": [0.0, 1.9e-3], "T": [0.04, 2.6e5]},
+                          "unresolved": ["sigma"], "chi2_per_dof_before": 1.48,
+                          "chi2_per_dof_after": 1.36, "significant": True, "p_value": 0.52,
+                          "why": "The record does not resolve gauss_markov.",
+                          "apply": {"model": "white,bias_instability,random_walk",
+                                    "args": []}}]
+    p = _Collector()
+    p.feed(render_report(doc))
+    text = " ".join(p.text)
+    assert "the record does not resolve these terms" in text
+    assert "remove gauss_markov" in text
+    assert "misses these effects" not in text
