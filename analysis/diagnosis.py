@@ -417,6 +417,24 @@ def _not_computed(what: str) -> dict[str, Any]:
     return {"reason": f"{what} is not computed for every suggestion"}
 
 
+def _error_after(after: FitResult, psd: dict[str, Any] | None,
+                 time_domain: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A suggestion's ``error_after``: the refit's Allan part, its PSD part as given, and the
+    time-domain part where computed (a part left out says so; the hold-out part is filled in
+    for the suggestions checked)."""
+    return {"chi2_per_dof": after.chi2_per_dof, "max_abs_z": float(after.max_abs_z),
+            "psd": psd, "holdout": _not_computed("the hold-out part"),
+            "time_domain": time_domain if time_domain is not None
+            else _not_computed("the time-domain part")}
+
+
+def _parts_rise(ctx: _Context, after: FitResult, psd_after: dict[str, Any] | None) -> bool:
+    """Whether a refit raises the Allan or the PSD part beyond its noise."""
+    return _rises(ctx.base.chi2_per_dof, after.chi2_per_dof, after.misfit.dof) \
+        or _rises(_deviance(ctx.psd_before), _deviance(psd_after),
+                  (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION)
+
+
 def _imitation(ctx: _Context, after: FitResult | None) -> str | None:
     """Why the refit's solution is not identifiable in the sampled band (one term doing
     another's part), or None: a resonance whose peak does not lie below the Nyquist
@@ -486,17 +504,10 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     imitation = _imitation(ctx, after)
     if imitation is not None:
         why += f" Not identifiable: {imitation}."
-    rises = after is not None and (
-        _rises(before, chi_after, after.misfit.dof)
-        or _rises(_deviance(ctx.psd_before), _deviance(psd_after),
-                  (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION))
+    rises = after is not None and _parts_rise(ctx, after, psd_after)
     if rises:
         why += " It raises a part of the error beyond its noise."
-    error_after: dict[str, Any] = {}
-    if after is not None:
-        error_after = {"chi2_per_dof": chi_after, "max_abs_z": float(after.max_abs_z),
-                       "psd": psd_after, "holdout": _not_computed("the hold-out part"),
-                       "time_domain": _not_computed("the time-domain part")}
+    error_after = {} if after is None else _error_after(after, psd_after)
     if pinned and get_term(term).kind == "filter":
         held = ", ".join(f"{k} = {v:g}" for k, v in pinned.items())
         why += f" The recording's device configuration states this filter ({held}), so it " \
@@ -572,10 +583,8 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
         significant=bool(logp < np.log(alpha) and (falls or clears)), why=why,
         evidence=[finding.kind] if finding.significant else [], fit=after,
         apply={"model": ctx.spec.text(), "args": args}, action="cut",
-        error_after={} if after is None else {
-            "chi2_per_dof": chi_after, "max_abs_z": float(after.max_abs_z),
-            "psd": _not_computed("the PSD part"), "holdout": _not_computed("the hold-out part"),
-            "time_domain": td_after})
+        error_after={} if after is None
+        else _error_after(after, _not_computed("the PSD part"), td_after))
 
 
 def _unresolved_terms(ctx: _Context) -> list[int]:
@@ -632,9 +641,7 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
     rise = max(float(after.misfit.chi2 - ctx.base.misfit.chi2), 0.0)
     logp = _chi2_logsf(rise, max(k, 1)) if rise > 0 else 0.0
     psd_after = _psd_after(ctx, after)
-    rises = _rises(before, after.chi2_per_dof, after.misfit.dof) \
-        or _rises(_deviance(ctx.psd_before), _deviance(psd_after),
-                  (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION)
+    rises = _parts_rise(ctx, after, psd_after)
     needed = logp < np.log(alpha)
     # a suggestion applied must not make the error the user watches larger: the chi2 per
     # degree of freedom of the simpler model may not exceed the given model's
@@ -654,9 +661,7 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
         p_value=float(np.exp(logp)), log_p=logp,
         significant=bool(not needed and not rises and not worse), why=why, fit=after,
         apply={"model": spec.text(), "args": []}, action="remove", label=label,
-        error_after={"chi2_per_dof": after.chi2_per_dof, "max_abs_z": float(after.max_abs_z),
-                     "psd": psd_after, "holdout": _not_computed("the hold-out part"),
-                     "time_domain": _not_computed("the time-domain part")})
+        error_after=_error_after(after, psd_after))
 
 
 def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggestion]:

@@ -92,10 +92,8 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
         mark = "*" if s.significant else " "
         after = (f"{s.chi2_per_dof_after:.3g}" if np.isfinite(s.chi2_per_dof_after)
                  else "n/a")
-        term = TERMS.get(s.term)
-        # a warm-up or bias step is no term: its remedy cuts the record (apply.args)
-        verb = getattr(s, "action", "add" if term is not None else "cut")
-        name = getattr(s, "label", "") or s.term
+        term = TERMS.get(s.term)  # a warm-up or bias step is no term: its remedy is a cut
+        verb, name = s.action, s.label or s.term
         psd_after = ((getattr(s, "error_after", None) or {}).get("psd") or {}).get(
             "deviance_per_bin")
         psd_txt = "" if psd_after is None else f" psd/bin -> {psd_after:.3g}"

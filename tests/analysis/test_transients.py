@@ -167,9 +167,8 @@ def test_a_step_through_the_sensors_filter_is_placed_to_the_sample() -> None:
     d = diagnose(x, _CAL_FS, "white,bias_instability,random_walk,moving_average:taps=4")
     cut = next(s for s in d.suggestions if s.term == "bias_step")
     split = float(cut.apply["args"][1])
-    assert round(split * _CAL_FS) == round(d.findings[[f.kind for f in d.findings]
-                                                       .index("bias_step")].params["t_s"]
-                                           * _CAL_FS)
+    step_found = next(f for f in d.findings if f.kind == "bias_step")
+    assert round(split * _CAL_FS) == round(step_found.params["t_s"] * _CAL_FS)
     assert abs(round(split * _CAL_FS) - first) <= 20
 
 
