@@ -195,6 +195,7 @@ def _run_on(client: Any, todo: list[str], args: argparse.Namespace, known: froze
     queue = iter(todo)
 
     where: dict[str, str] = {}  # future key -> location, for a task that is lost
+    resubmitted: set[str] = set()  # locations whose task the cluster cancelled once
 
     def submit(loc: str):
         fut = client.submit(analyse_file, loc, version=__version__, unit_pattern=args.unit,
@@ -215,6 +216,15 @@ def _run_on(client: Any, todo: list[str], args: argparse.Namespace, known: froze
                                                int(out.worker_peak_mb))
             except Exception as exc:  # noqa: BLE001 - a lost task (killed worker) is a row
                 loc = where.get(fut.key, "unknown file (task lost)")
+                if "Cancelled" in type(exc).__name__ and loc in where.values() \
+                        and loc not in resubmitted:
+                    # the cluster cancelled it (a worker holding its inputs died): that is
+                    # no verdict on the file, which gets one more run
+                    resubmitted.add(loc)
+                    where.pop(fut.key, None)
+                    fut.release()
+                    running.add(submit(loc))
+                    continue
                 rows = [failed_row(loc, None, f"{type(exc).__name__}: {exc}", __version__)]
                 status = "failed"
             counts[status] += 1
