@@ -233,3 +233,54 @@ def test_a_copied_file_is_known_by_its_hash(recordings, tmp_path):
     shutil.copy(original, copy)
     out = analyse_file(str(copy), version="t", known_hashes=frozenset({content_hash(original)}))
     assert out.status == "skipped" and out.rows == []
+
+
+class _CancellingClient:
+    """A real Dask client whose submissions of one file the cluster "cancels" (as it does the
+    tasks that depended on a worker which died) the first ``times`` times."""
+
+    def __init__(self, client, victim: str, times: int) -> None:
+        self._client, self.victim, self.left = client, victim, times
+
+    def submit(self, fn, loc, **kwargs):
+        fut = self._client.submit(fn, loc, **kwargs)
+        if loc == self.victim and self.left > 0:
+            self.left -= 1
+            fut.cancel()
+        return fut
+
+    def __getattr__(self, name):
+        return getattr(self._client, name)
+
+
+@pytest.mark.parametrize("times, status", [(1, "ok"), (2, "failed")])
+def test_a_task_the_cluster_cancels_is_run_once_more(recordings, tmp_path, times, status):
+    """A cancelled task is no verdict on its file: it is submitted once more; a second
+    cancellation is recorded as the file's failure, with the cluster's reason."""
+    import argparse
+
+    from distributed import Client, LocalCluster
+
+    from imunoise.commands.fleet import _run_on, _Sink
+
+    files = [str(p.resolve()) for p in sorted(recordings.glob("U1_*.mcap"))[:3]]
+    victim = files[1]
+    args = argparse.Namespace(unit=None, static=None, no_diagnose=True)
+    sink = _Sink(str(tmp_path / "catalog"))
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        proxy = _CancellingClient(client, victim, times)
+        counts = _run_on(proxy, files, args, frozenset(), sink)
+    sink.flush()
+    assert proxy.left == 0
+    assert counts["ok"] == (3 if status == "ok" else 2)
+    assert counts["failed"] == (0 if status == "ok" else 1)
+    rows = {}
+    for row in read_catalog(tmp_path / "catalog").to_pylist():
+        rows.setdefault(row["file"], []).append(row)
+    assert sorted(rows) == sorted(files)  # every file once: no row for the cancelled try
+    assert {r["status"] for r in rows[victim]} == {status}
+    if status == "failed":
+        assert len(rows[victim]) == 1 and "Cancelled" in rows[victim][0]["error"]
+    else:
+        assert len(rows[victim]) == 6
