@@ -75,6 +75,23 @@ def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float]
     return text.replace(" 1)", ")").removesuffix(" 1")
 
 
+_HELD_BACK = (" Not significant:", " Not identifiable:", " It raises a part of the error")
+"""How a suggestion's ``why`` states the reason it is held back (the diagnosis's wording)."""
+
+
+def held_back(why: str) -> str | None:
+    """The sentence of a suggestion's ``why`` that says why it is held back despite its
+    evidence (the hold-out part, identifiability, a rising part), or None."""
+    found = [why.find(m) for m in _HELD_BACK if m in why]
+    if not found:
+        return None
+    start = min(found) + 1
+    end = why.find(". ", start)
+    text = why[start:end + 1] if end >= 0 else why[start:]
+    text = text.removeprefix("Not significant: ")
+    return text[0].lower() + text[1:]
+
+
 def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                    model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
@@ -88,6 +105,7 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
         lines.append("  " + parts_line(diag.fit.chi2_per_dof, parts).replace("\n", "\n  "))
     lines += ["", "  suggestions (best first; "
               f"* = significant at family level {diag.alpha:g})"]
+    held: list[str] = []  # strong evidence, held back (their reason is printed)
     for i, s in enumerate(diag.suggestions, 1):
         mark = "*" if s.significant else " "
         after = (f"{s.chi2_per_dof_after:.3g}" if np.isfinite(s.chi2_per_dof_after)
@@ -110,12 +128,20 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
             lines.append(f"        {', '.join(pars)}")
         if s.significant:
             lines.append(f"        {s.why}")
+        elif s.p_value < diag.alpha and (reason := held_back(s.why)) is not None:
+            held.append(name)
+            lines.append(f"        held back: {reason}")
     best = next((s for s in diag.suggestions if s.significant), None)
     if best is not None:
         extra = "".join(f" {a}" for a in best.apply.get("args", []))
         lines.append(f"  next: imunoise fit {file} --channel {key} "
                      f"--model {best.apply.get('model', model_text + ',' + best.term)}{extra}")
-    if best is None and diag.fit.failures:
+    if best is None and diag.fit.failures and held:
+        lines.append(f"  the model fails; {', '.join(held)} lower its error but are held back "
+                     "for the reason each states: added alone they do not describe the sensor "
+                     "better. Look at the failing tau ranges above, the hold-out findings and "
+                     "the evidence below; a term they make redundant may need to go first")
+    elif best is None and diag.fit.failures:
         lines.append("  the model fails, but no single added term explains the failure: look at "
                      "the failing tau ranges above and at the evidence below")
     lines.append("")

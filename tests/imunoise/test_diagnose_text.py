@@ -1,0 +1,44 @@
+"""The diagnosis text says why a term with strong evidence is held back."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.commands.diagnose import diagnosis_text, held_back
+from imunoise.core.series import ChannelSeries
+
+
+def test_the_reason_a_term_is_held_back_is_read_from_its_why():
+    why = ("Adding it brings chi2/dof from 1.24e+03 to 631. Not significant: it does not "
+           "lower the hold-out part (chi2/dof 409 -> 1.03e+03). Common, not accel_x's own.")
+    assert held_back(why) == ("it does not lower the hold-out part (chi2/dof 409 -> "
+                              "1.03e+03).")
+    assert held_back("Adding it helps. Not identifiable: its peak (49 Hz) does not lie below "
+                     "the Nyquist frequency 50 Hz.") == (
+        "not identifiable: its peak (49 Hz) does not lie below the Nyquist frequency 50 Hz.")
+    assert held_back("Adding it brings chi2/dof from 3 to 1.") is None
+
+
+def test_a_held_back_term_is_named_where_the_model_fails():
+    """White noise plus a strong sinusoid, diagnosed with white noise alone: the sinusoid is
+    the top suggestion. With every significant term held back (as the hold-out check does
+    to a term that predicts the other half worse), the text gives each one's reason and
+    names them instead of saying that no term explains the failure."""
+    fs, n = 50.0, 2**17
+    rng = np.random.default_rng(7)
+    t = np.arange(n) / fs
+    x = 1e-3 * rng.standard_normal(n) * np.sqrt(fs) + 5e-3 * np.sin(2 * np.pi * 1.3 * t)
+    diag = diagnose(x, fs, "white", holdout=False, transients=False)
+    assert diag.suggestions[0].term == "sinusoid" and diag.fit.failures
+    held = [s for s in diag.suggestions if s.significant]
+    for s in held:
+        s.significant = False
+        s.why += (" Not significant: it does not lower the hold-out part (the model fitted on "
+                  "one half predicting the other: chi2/dof 9 -> 20).")
+    series = ChannelSeries("x", "rad/s", fs, x, np.zeros(1, dtype=np.int64))
+    text = diagnosis_text("x", series, diag)
+    assert "        held back: it does not lower the hold-out part (the model fitted on one " \
+           "half predicting the other: chi2/dof 9 -> 20)." in text
+    assert f"the model fails; {', '.join(s.term for s in held)} lower its error" in text
+    assert "no single added term explains" not in text
