@@ -293,6 +293,9 @@ class _Context:
     nperseg: int = 256
     psd_before: dict[str, Any] | None = None
     job_map: JobMap = serial_map
+    profile_added: bool = True
+    """Whether a candidate's refit profiles the added term's weakly determined parameters
+    (the white level's always are); the lookahead's round reports none of them."""
 
 
 _Interval = tuple[float, float]
@@ -350,7 +353,9 @@ def _fit_appended(ctx: _Context, term: str, pinned: dict[str, float]
     try:
         # the suggestion reports the appended term's intervals; the white level's tells
         # whether the term took its place (_imitation)
-        reported = {len(ctx.spec)} | {i for i, n in enumerate(spec.names) if n == "white"}
+        reported = {i for i, n in enumerate(spec.names) if n == "white"}
+        if ctx.profile_added:
+            reported.add(len(ctx.spec))
         after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
                               temperature=ctx.temp_at if needs else None, memo=ctx.memo,
                               intervals="jacobian", profile_terms=reported)
@@ -847,6 +852,22 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     Returns:
         A :class:`Diagnosis` with suggestions best first.
     """
+    return _diagnose(values, fs_hz, model, segment_starts=segment_starts, t0_s=t0_s,
+                     temperature=temperature, units=units, alpha=alpha, fixed=fixed,
+                     sensor_filter=sensor_filter, transients=transients,
+                     time_origin_s=time_origin_s, holdout=holdout,
+                     lookahead=lookahead, job_map=job_map)
+
+
+def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
+              segment_starts: np.ndarray | None, t0_s: float,
+              temperature: tuple[np.ndarray, np.ndarray] | None, units: str, alpha: float,
+              fixed: dict | None, sensor_filter: tuple[str, dict[str, float]] | None,
+              transients: bool, time_origin_s: float, holdout: bool, lookahead: bool,
+              job_map: JobMap, only: frozenset[str] | None = None) -> Diagnosis:
+    """:func:`diagnose`, trying only the candidates named in ``only`` when it is given (the
+    lookahead's next round: the terms the first round found strong evidence for); that round
+    takes the given model's intervals linearised (its own are not reported)."""
     x = np.asarray(values, dtype=np.float64)
     starts = (np.asarray(segment_starts, dtype=np.int64) if segment_starts is not None
               else np.zeros(1, dtype=np.int64))
@@ -860,7 +881,8 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     memo: dict = {}
     base, curve = fit_series(x, fs_hz, base_spec, segment_starts=starts,
                              temperature=temp_at if "temperature" in names else None,
-                             memo=memo, job_map=job_map)
+                             memo=memo, job_map=job_map,
+                             intervals="profile" if only is None else "jacobian")
     segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
                                                    strict=True)) if s.size]
 
@@ -872,10 +894,12 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     findings.extend(cuts)
     psd_est, nperseg, psd_block, psd_before = psd_baseline
     candidates = _candidates(names, base, filt, temperature is not None, sensor_filter)
+    if only is not None:
+        candidates = [c for c in candidates if c in only]
     parts: dict[str, Any] = {"psd": psd_before, "time_domain": time_domain}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
                    len(candidates) + len(cuts), sensor_filter, time_origin_s,
-                   psd_est, nperseg, psd_before, job_map)
+                   psd_est, nperseg, psd_before, job_map, profile_added=only is None)
     # the given model's hold-out halves are fitted beside the candidates' refits
     halves = holdout_halves(x, fs_hz, base_spec, base, starts) if holdout else None
     jobs: list[tuple[str, Any]] = [("term", c) for c in candidates]
@@ -891,12 +915,12 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             else halves
         parts["holdout"] = _check_holdout(ctx, suggestions, before)
         if lookahead:
-            def next_round(spec_text: str) -> Diagnosis:
-                return diagnose(x, fs_hz, spec_text, segment_starts=starts, t0_s=t0_s,
-                                temperature=temperature, units=units, alpha=alpha,
-                                sensor_filter=sensor_filter, transients=False,
-                                time_origin_s=time_origin_s, holdout=True, lookahead=False,
-                                job_map=job_map)
+            def next_round(spec_text: str, names: frozenset[str]) -> Diagnosis:
+                return _diagnose(x, fs_hz, spec_text, segment_starts=starts, t0_s=t0_s,
+                                 temperature=temperature, units=units, alpha=alpha,
+                                 fixed=None, sensor_filter=sensor_filter, transients=False,
+                                 time_origin_s=time_origin_s, holdout=False,
+                                 lookahead=False, job_map=job_map, only=names)
 
             pair = _pair(ctx, suggestions, parts["holdout"], alpha, next_round)
             if pair is not None:
@@ -911,7 +935,8 @@ hold-out part."""
 
 
 def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str, Any],
-          alpha: float, next_round: Callable[[str], Diagnosis]) -> Suggestion | None:
+          alpha: float, next_round: Callable[[str, frozenset[str]], Diagnosis]
+          ) -> Suggestion | None:
     """Two terms that describe the record together where neither is significant alone, or
     None.
 
@@ -922,7 +947,10 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
     line brings the Allan part 1240 -> 631 and the hold-out part 409 -> 1030; with the
     10 Hz resonance as well the parts are 40, 11 and 20). So, when the given model fails
     and no suggestion is significant, the strongest term held back by the hold-out part is
-    applied tentatively and the next round's candidates tried on it. The pair is suggested
+    applied tentatively and the next round tried on it, with the candidates this round found
+    strong evidence for (a resonance that takes the line's place alone moves to another
+    peak once the line is modelled; terms without evidence here are not tried, which keeps
+    the lookahead to a few refits). The pair is suggested
     when, against the given model, its chi2 drop passes the likelihood-ratio test with both
     terms' parameters (Bonferroni over the pairs tried), its chi2/dof falls, no part rises
     beyond its noise, and its hold-out part does not rise and, where the given model does not
@@ -935,26 +963,34 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
                   and s.log_p < np.log(alpha) and _HELD_BY_HOLDOUT in s.why), None)
     if first is None:
         return None
+    strong = frozenset(s.term for s in suggestions
+                       if s.action == "add" and s.log_p < np.log(alpha))
     try:
-        then = next_round(str(first.apply["model"]))
+        then = next_round(str(first.apply["model"]), strong)
     except (ValueError, np.linalg.LinAlgError):
         return None
-    second = next((s for s in then.suggestions if s.significant), None)
-    if second is None or second.action != "add" or second.fit is None:
-        return None
-    after = second.fit
     before = ctx.base.chi2_per_dof
-    ho = (second.error_after.get("holdout") or {}).get("chi2_per_dof")
-    psd_after = second.error_after.get("psd")
-    k = len(get_term(first.term).params) + len(get_term(second.term).params)
     tried = ctx.n_candidates * max(len(then.suggestions), 1)
-    logp = min(0.0, _lr_logp(ctx.base, after, k) + float(np.log(tried)))
     dof = float(ctx.base.misfit.dof)
     lacking = b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))
-    predicts = ho is not None and not _rises(b, ho, dof) and (ho < b or not lacking)
-    if not (logp < np.log(alpha) and after.chi2_per_dof < before and predicts
-            and not _parts_rise(ctx, after, psd_after)):
+    found = None
+    for second in [s for s in then.suggestions if s.significant and s.action == "add"
+                   and s.fit is not None][:HOLDOUT_CHECKS]:
+        after, psd_after = second.fit, second.error_after.get("psd")
+        k = len(get_term(first.term).params) + len(get_term(second.term).params)
+        logp = min(0.0, _lr_logp(ctx.base, after, k) + float(np.log(tried)))
+        if not (logp < np.log(alpha) and after.chi2_per_dof < before
+                and not _parts_rise(ctx, after, psd_after)):
+            continue
+        holdout = holdout_part(ctx.x, ctx.fs_hz, second.apply["model"], after, ctx.starts,
+                               job_map=ctx.job_map)
+        ho = holdout.get("chi2_per_dof")
+        if ho is not None and not _rises(b, ho, dof) and (ho < b or not lacking):
+            found = second, after, psd_after, logp, holdout, float(ho)
+            break
+    if found is None:
         return None
+    second, after, psd_after, logp, holdout, ho = found
     first_ho = (first.error_after.get("holdout") or {}).get("chi2_per_dof")
     psd_b, psd_a = _deviance(ctx.psd_before), _deviance(psd_after)
     psd_txt = "" if psd_b is None or psd_a is None else \
@@ -963,7 +999,8 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
            f"{first.chi2_per_dof_after:.3g} but predicts the other half worse (hold-out part "
            f"{b:.3g} -> {first_ho if first_ho is None else f'{first_ho:.3g}'}): the terms "
            f"already in the model take other roles in each half. With {second.term} as well "
-           f"(the next round's strongest term) the model brings chi2/dof from {before:.3g} "
+           f"(the strongest term of the next round that does) the model brings chi2/dof "
+           f"from {before:.3g} "
            f"to {after.chi2_per_dof:.3g}{psd_txt} and the hold-out part from {b:.3g} to "
            f"{ho:.3g}: the two are added together.")
     tf = after.terms[len(ctx.spec)]
@@ -973,7 +1010,7 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
         p_value=float(np.exp(logp)), log_p=logp, significant=True, why=why,
         evidence=sorted(set(first.evidence) | set(second.evidence)), fit=after,
         apply=dict(second.apply), action="add", label=f"{first.term} and {second.term}",
-        error_after=dict(second.error_after))
+        error_after={**second.error_after, "holdout": holdout})
 
 
 @dataclass
