@@ -864,10 +864,12 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
               temperature: tuple[np.ndarray, np.ndarray] | None, units: str, alpha: float,
               fixed: dict | None, sensor_filter: tuple[str, dict[str, float]] | None,
               transients: bool, time_origin_s: float, holdout: bool, lookahead: bool,
-              job_map: JobMap, only: frozenset[str] | None = None) -> Diagnosis:
+              job_map: JobMap, only: frozenset[str] | None = None,
+              memo: dict | None = None) -> Diagnosis:
     """:func:`diagnose`, trying only the candidates named in ``only`` when it is given (the
     lookahead's next round: the terms the first round found strong evidence for); that round
-    takes the given model's intervals linearised (its own are not reported)."""
+    takes the given model's intervals linearised (its own are not reported) and shares the
+    first round's ``memo`` of the series (its Allan curve and solutions)."""
     x = np.asarray(values, dtype=np.float64)
     starts = (np.asarray(segment_starts, dtype=np.int64) if segment_starts is not None
               else np.zeros(1, dtype=np.int64))
@@ -878,7 +880,7 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     if temperature is not None:
         temp_at = np.interp(t_rate, np.asarray(temperature[0], float),
                             np.asarray(temperature[1], float))
-    memo: dict = {}
+    memo = {} if memo is None else memo
     base, curve = fit_series(x, fs_hz, base_spec, segment_starts=starts,
                              temperature=temp_at if "temperature" in names else None,
                              memo=memo, job_map=job_map,
@@ -920,7 +922,8 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
                                  temperature=temperature, units=units, alpha=alpha,
                                  fixed=None, sensor_filter=sensor_filter, transients=False,
                                  time_origin_s=time_origin_s, holdout=False,
-                                 lookahead=False, job_map=job_map, only=names)
+                                 lookahead=False, job_map=job_map, only=names,
+                                 memo=memo)
 
             pair = _pair(ctx, suggestions, parts["holdout"], alpha, next_round)
             if pair is not None:

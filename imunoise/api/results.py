@@ -436,11 +436,13 @@ class Diagnosis:
         return documents.dumps(self.document())
 
     def to_pandas(self) -> Any:
-        """One row per suggestion: ``action`` (add, cut or remove), ``term``,
+        """One row per suggestion: ``action`` (add, cut or remove), ``term`` (its ``label``
+        where it has one: a removed term's ``name#K``, the two terms of a pair),
         ``significant``, ``p_value``, ``chi2_per_dof_before``, ``chi2_per_dof_after``,
         ``model`` to apply, ``why`` (``notebook`` extra)."""
         pd = _pandas()
-        return pd.DataFrame([{"action": s.get("action", "add"), "term": s["term"],
+        return pd.DataFrame([{"action": s.get("action", "add"),
+                              "term": s.get("label") or s["term"],
                               "significant": s["significant"],
                               "p_value": s["p_value"],
                               "chi2_per_dof_before": s["chi2_per_dof_before"],

@@ -118,7 +118,7 @@ def test_tables_and_labelled_arrays(recording):
     assert spectrum.to_xarray()["psd"].attrs["units"] == "(rad/s)^2/Hz"
     dx = imunoise.diagnose(rec["gyro_x"], "white")
     table = dx.to_pandas()
-    assert list(table["term"]) == [s["term"] for s in dx.suggestions]
+    assert list(table["term"]) == [s.get("label") or s["term"] for s in dx.suggestions]
     assert list(table["action"]) == [s["action"] for s in dx.suggestions]
     assert set(table["action"]) <= {"add", "cut", "remove"}
 
