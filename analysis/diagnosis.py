@@ -105,6 +105,12 @@ class Suggestion:
     """The removed term's label in the given model (``name#K`` for the K-th of a repeated
     name); for a pair of terms added together (:func:`_pair`), ``"X and Y"``; empty
     otherwise."""
+    held_by: str = ""
+    """What keeps a suggestion whose evidence passes the test from being significant:
+    ``"identifiability"``, ``"rise"`` (it raises a part beyond its noise) or ``"holdout"``;
+    empty otherwise (not serialised: ``why`` says it, and :attr:`held_reason`)."""
+    held_reason: str = ""
+    """That reason in words (the sentence ``why`` ends with)."""
     error_after: dict[str, Any] = field(default_factory=dict)
     """The whole error object of the applied model (``chi2_per_dof``, ``max_abs_z``,
     ``psd``, ``holdout``, ``time_domain``; a part not computed for a suggestion is null with a
@@ -509,10 +515,14 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     supporting = [ev] if ev is not None else []
     why = _why(term, rng, before, chi_after, supporting)
     imitation = _imitation(ctx, after)
-    if imitation is not None:
-        why += f" Not identifiable: {imitation}."
     rises = after is not None and _parts_rise(ctx, after, psd_after)
+    held_by, held_reason = "", ""
+    if imitation is not None:
+        held_by, held_reason = "identifiability", f"not identifiable: {imitation}."
+        why += f" Not identifiable: {imitation}."
     if rises:
+        held_by = held_by or "rise"
+        held_reason = held_reason or "it raises a part of the error beyond its noise."
         why += " It raises a part of the error beyond its noise."
     error_after = {} if after is None else _error_after(after, psd_after)
     if pinned and get_term(term).kind == "filter":
@@ -527,7 +537,8 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
                          and not rises and imitation is None),
         why=why,
         evidence=[f.kind for f in supporting if f.significant], fit=after,
-        apply={"model": spec.text(), "args": []}, error_after=error_after)
+        apply={"model": spec.text(), "args": []}, held_by=held_by, held_reason=held_reason,
+        error_after=error_after)
 
 
 def _first_job(shared: tuple[_Context, float, HoldoutHalves | None], item: tuple[str, Any]
@@ -844,7 +855,7 @@ def diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
             other) and require a significant term to lower it; it costs two fits per check.
         lookahead: where the model fails and the hold-out part holds back every term with
             strong evidence, try the strongest of them with the next round's term
-            (:func:`_pair`); it costs one more round of candidates.
+            (:func:`_pair`); it costs a few more refits, in that situation only.
         job_map: how the independent jobs run (the candidates' refits, the hold-out halves,
             the profile intervals; see :mod:`imunoise.analysis.jobs`): one after the other
             by default; the command line forks workers. The result is the same.
@@ -932,11 +943,6 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
                      alpha=alpha, psd=psd_block, error_parts=parts)
 
 
-_HELD_BY_HOLDOUT = " Not significant: it does not "
-"""How :func:`_check_holdout` begins to state that a term did not lower (or keep) the
-hold-out part."""
-
-
 def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str, Any],
           alpha: float, next_round: Callable[[str, frozenset[str]], Diagnosis]
           ) -> Suggestion | None:
@@ -953,17 +959,17 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
     applied tentatively and the next round tried on it, with the candidates this round found
     strong evidence for (a resonance that takes the line's place alone moves to another
     peak once the line is modelled; terms without evidence here are not tried, which keeps
-    the lookahead to a few refits). The pair is suggested
-    when, against the given model, its chi2 drop passes the likelihood-ratio test with both
-    terms' parameters (Bonferroni over the pairs tried), its chi2/dof falls, no part rises
-    beyond its noise, and its hold-out part does not rise and, where the given model does not
-    predict the other half, falls: the rules a single term meets. ``apply.model`` adds both.
+    the lookahead to a few refits). The pair is suggested when, against the given model, its
+    chi2 drop passes the likelihood-ratio test with both terms' parameters (Bonferroni over
+    the pairs tried), its chi2/dof falls, no part rises beyond its noise, and its hold-out
+    part does not rise and, where the given model does not predict the other half, falls: the
+    rules a single term meets. ``apply.model`` adds both.
     """
     b = holdout_before.get("chi2_per_dof")
     if b is None or any(s.significant for s in suggestions) or not ctx.base.failures:
         return None
     first = next((s for s in suggestions if s.action == "add" and s.fit is not None
-                  and s.log_p < np.log(alpha) and _HELD_BY_HOLDOUT in s.why), None)
+                  and s.log_p < np.log(alpha) and s.held_by == "holdout"), None)
     if first is None:
         return None
     strong = frozenset(s.term for s in suggestions
@@ -1003,9 +1009,8 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
            f"{b:.3g} -> {first_ho if first_ho is None else f'{first_ho:.3g}'}): the terms "
            f"already in the model take other roles in each half. With {second.term} as well "
            f"(the strongest term of the next round that does) the model brings chi2/dof "
-           f"from {before:.3g} "
-           f"to {after.chi2_per_dof:.3g}{psd_txt} and the hold-out part from {b:.3g} to "
-           f"{ho:.3g}: the two are added together.")
+           f"from {before:.3g} to {after.chi2_per_dof:.3g}{psd_txt} and the hold-out part "
+           f"from {b:.3g} to {ho:.3g}: the two are added together.")
     tf = after.terms[len(ctx.spec)]
     return Suggestion(
         term=first.term, params=dict(tf.params), ci95=dict(tf.ci95),
@@ -1088,8 +1093,10 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], before: dict[st
         if a is None or not _rises(b, a, dof) and (a < b or not need_fall):
             break  # kept (a part that cannot be computed judges nothing)
         s.significant = False
-        s.why += (f" Not significant: it does not {'lower' if need_fall else 'keep'} the "
-                  f"hold-out part (the model fitted on one half predicting the other: "
-                  f"chi2/dof {b:.3g} -> {'n/a' if a is None else f'{a:.3g}'}).")
+        s.held_by = "holdout"
+        s.held_reason = (f"it does not {'lower' if need_fall else 'keep'} the hold-out part "
+                         f"(the model fitted on one half predicting the other: chi2/dof "
+                         f"{b:.3g} -> {'n/a' if a is None else f'{a:.3g}'}).")
+        s.why += f" Not significant: {s.held_reason}"
     suggestions.sort(key=lambda s: not s.significant)  # stable: the order among each kept
     return before

@@ -75,23 +75,6 @@ def _suggested_param(term: str, name: str, value: float, ci: tuple[float, float]
     return text.replace(" 1)", ")").removesuffix(" 1")
 
 
-_HELD_BACK = (" Not significant:", " Not identifiable:", " It raises a part of the error")
-"""How a suggestion's ``why`` states the reason it is held back (the diagnosis's wording)."""
-
-
-def held_back(why: str) -> str | None:
-    """The sentence of a suggestion's ``why`` that says why it is held back despite its
-    evidence (the hold-out part, identifiability, a rising part), or None."""
-    found = [why.find(m) for m in _HELD_BACK if m in why]
-    if not found:
-        return None
-    start = min(found) + 1
-    end = why.find(". ", start)
-    text = why[start:end + 1] if end >= 0 else why[start:]
-    text = text.removeprefix("Not significant: ")
-    return text[0].lower() + text[1:]
-
-
 def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
                    model_text: str = "TERMS") -> str:
     """Readable report: the fit, then the suggestions and the evidence."""
@@ -128,9 +111,9 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
             lines.append(f"        {', '.join(pars)}")
         if s.significant:
             lines.append(f"        {s.why}")
-        elif s.p_value < diag.alpha and (reason := held_back(s.why)) is not None:
+        elif s.p_value < diag.alpha and getattr(s, "held_by", ""):
             held.append(name)
-            lines.append(f"        held back: {reason}")
+            lines.append(f"        held back: {s.held_reason}")
     best = next((s for s in diag.suggestions if s.significant), None)
     if best is not None:
         extra = "".join(f" {a}" for a in best.apply.get("args", []))

@@ -5,19 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from imunoise.analysis.diagnosis import diagnose
-from imunoise.commands.diagnose import diagnosis_text, held_back
+from imunoise.commands.diagnose import diagnosis_text
 from imunoise.core.series import ChannelSeries
-
-
-def test_the_reason_a_term_is_held_back_is_read_from_its_why():
-    why = ("Adding it brings chi2/dof from 1.24e+03 to 631. Not significant: it does not "
-           "lower the hold-out part (chi2/dof 409 -> 1.03e+03). Common, not accel_x's own.")
-    assert held_back(why) == ("it does not lower the hold-out part (chi2/dof 409 -> "
-                              "1.03e+03).")
-    assert held_back("Adding it helps. Not identifiable: its peak (49 Hz) does not lie below "
-                     "the Nyquist frequency 50 Hz.") == (
-        "not identifiable: its peak (49 Hz) does not lie below the Nyquist frequency 50 Hz.")
-    assert held_back("Adding it brings chi2/dof from 3 to 1.") is None
 
 
 def test_a_held_back_term_is_named_where_the_model_fails():
@@ -34,8 +23,9 @@ def test_a_held_back_term_is_named_where_the_model_fails():
     held = [s for s in diag.suggestions if s.significant]
     for s in held:
         s.significant = False
-        s.why += (" Not significant: it does not lower the hold-out part (the model fitted on "
-                  "one half predicting the other: chi2/dof 9 -> 20).")
+        s.held_by = "holdout"
+        s.held_reason = ("it does not lower the hold-out part (the model fitted on one half "
+                         "predicting the other: chi2/dof 9 -> 20).")
     series = ChannelSeries("x", "rad/s", fs, x, np.zeros(1, dtype=np.int64))
     text = diagnosis_text("x", series, diag)
     assert "        held back: it does not lower the hold-out part (the model fitted on one " \

@@ -98,6 +98,7 @@ def test_a_markov_bias_that_closes_the_allan_curve_but_not_the_other_half_is_no_
     assert markov.chi2_per_dof_after < 3.0 < diag.fit.chi2_per_dof
     assert 3.0 < markov.params["T"] < 30.0
     assert not markov.significant and "does not lower the hold-out part" in markov.why
+    assert markov.held_by == "holdout"
     before = diag.error_parts["holdout"]["chi2_per_dof"]
     assert markov.error_after["holdout"]["chi2_per_dof"] > before
     changed = {c["param"] for c in markov.error_after["holdout"]["changed"]}
@@ -285,6 +286,8 @@ def test_two_terms_that_describe_the_record_only_together_are_suggested_as_a_pai
         "deviance_per_bin"] / 10
     single = next(s for s in rest if s.term == "sinusoid")
     assert not single.significant and "does not lower the hold-out part" in single.why
+    assert single.held_by == "holdout" and single.held_reason.startswith(
+        "it does not lower the hold-out part")
     assert single.error_after["holdout"]["chi2_per_dof"] > before
     res, _ = fit_series(x, fs, model)
     assert res.chi2_per_dof == pytest.approx(pair.chi2_per_dof_after, rel=1e-9)
