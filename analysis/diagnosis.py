@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
+from imunoise.analysis import distributions as dist
 from imunoise.analysis import evidence
 from imunoise.analysis.default_model import DEFAULT_MODEL
 from imunoise.analysis.evidence.finding import Finding, family_p
@@ -193,7 +194,7 @@ def _chi2_logsf(drop: float, k: int) -> float:
     """``ln P(chi2_k > drop)``, with the tail's leading terms where scipy underflows."""
     if not np.isfinite(drop) or drop <= 0:
         return 0.0
-    logp = float(stats.chi2.logsf(drop, k))
+    logp = float(dist.chi2.logsf(drop, k))
     if np.isfinite(logp):
         return logp
     # Far in the tail scipy returns -inf; the tail's leading terms keep the ranking meaningful,
@@ -215,7 +216,7 @@ def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
     if not bool(np.all(z < 0)):
         return None  # measured above the model there: a missing term, which the refits test
     zmax = float(np.max(np.abs(z)))
-    p = family_p(float(2.0 * stats.norm.sf(zmax)), int(np.size(fit.z)))
+    p = family_p(float(2.0 * dist.norm.sf(zmax)), int(np.size(fit.z)))
     why = (f"The Allan deviation at tau = {tau.min():.3g} .. {tau.max():.3g} s lies "
            f"below every sum of noise terms (|z| up to "
            f"{zmax:.1f}): the sensor's anti-aliasing or decimation filter averages the white "
@@ -711,7 +712,7 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     unresolved = top_term.unresolved(top.params, top.ci95)
     for simpler in sorted((s for s in terms[1:] if k_of(s) < k_of(top)), key=k_of):
         drop = simpler.fit.misfit.chi2 - top.fit.misfit.chi2
-        p = float(stats.chi2.sf(drop, k_of(top) - k_of(simpler))) if drop > 0 else 1.0
+        p = float(dist.chi2.sf(drop, k_of(top) - k_of(simpler))) if drop > 0 else 1.0
         if unresolved is not None and simpler.term == top_term.reduces_to:
             simpler.why += (f" It comes before {top.term}, whose fit lowers chi2 by "
                             f"{max(drop, 0.0):.3g} more with {k_of(top) - k_of(simpler)} "

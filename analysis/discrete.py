@@ -39,7 +39,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import nnls
-from scipy.signal import lfilter
 
 from imunoise.analysis.terms import TermError, get_term
 from imunoise.analysis.terms.gauss_markov import TERM as GAUSS_MARKOV
@@ -268,6 +267,8 @@ def simulate(dm: DiscreteModel, n: int, seed: int | np.random.Generator | None =
     sinusoids at a random phase. ``temperature`` (degC, length ``n``) drives the temperature
     term when given; otherwise that term is left out.
     """
+    from scipy.signal import lfilter  # slow to import: see analysis.dsp
+
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     n = int(n)
     y = np.zeros(n)

@@ -35,9 +35,10 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
 from imunoise.analysis import allan_kernels
+from imunoise.analysis import distributions as dist
 
 #: Largest number of summands evaluated directly in the Greenhall basic sum.
 GREENHALL_JMAX = 100
@@ -211,8 +212,8 @@ def chi2_interval(
     ok = np.isfinite(edf) & (edf > 0)
     e = np.where(ok, edf, 1.0)
     tail = (1.0 - ci) / 2.0
-    chi_hi = stats.chi2.ppf(1.0 - tail, e)
-    chi_lo = stats.chi2.ppf(tail, e)
+    chi_hi = dist.chi2.ppf(1.0 - tail, e)
+    chi_lo = dist.chi2.ppf(tail, e)
     low = np.where(ok, dev * np.sqrt(e / chi_hi), np.nan)
     high = np.where(ok, dev * np.sqrt(e / chi_lo), np.nan)
     return low, high

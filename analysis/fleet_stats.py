@@ -31,9 +31,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
-Z95 = float(stats.norm.ppf(0.975))
+from imunoise.analysis import distributions as dist
+
+Z95 = float(dist.norm.ppf(0.975))
 """Two-sided 95 % normal quantile (1.95996)."""
 OUTLIER_M = 3.5
 """Modified z-score beyond which a unit is an outlier (Iglewicz and Hoaglin)."""
@@ -96,7 +97,7 @@ def pool_replicates(values: np.ndarray, lo95: np.ndarray, hi95: np.ndarray) -> P
     fixed = float(np.sum(w * x) / np.sum(w))
     k = int(ok.sum())
     q = float(np.sum(w * (x - fixed) ** 2))
-    p = float(stats.chi2.sf(q, k - 1)) if k >= 2 else float("nan")
+    p = float(dist.chi2.sf(q, k - 1)) if k >= 2 else float("nan")
     i2 = max(0.0, (q - (k - 1)) / q) if k >= 2 and q > 0 else 0.0
     s1, s2 = float(np.sum(w)), float(np.sum(w**2))
     tau2 = max(0.0, (q - (k - 1)) / (s1 - s2 / s1)) if k >= 2 else 0.0

@@ -32,10 +32,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2, norm
 
 from imunoise.analysis.allan import allan
 from imunoise.analysis.coherence import CrossSpectra
+from imunoise.analysis.distributions import chi2, norm
 
 
 @dataclass

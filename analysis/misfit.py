@@ -33,8 +33,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
+from imunoise.analysis import distributions as dist
 from imunoise.analysis.bin_average import SIN4, bin_avg_cos, sin4_table
 from imunoise.analysis.terms import get_term, model_psd
 
@@ -238,7 +238,7 @@ def failure_threshold(n_tau: int, family_rate: float = 0.10) -> float:
     """|z| threshold so that a correct model flags any tau with probability <= family_rate
     (Sidak correction over ``n_tau`` two-sided tests; conservative for correlated taus)."""
     per = 1.0 - (1.0 - family_rate) ** (1.0 / max(n_tau, 1))
-    return float(stats.norm.isf(per / 2.0))
+    return float(dist.norm.isf(per / 2.0))
 
 
 def standardised_residuals(avar_meas: np.ndarray, avar_model: np.ndarray, nu: np.ndarray
@@ -252,12 +252,12 @@ def standardised_residuals(avar_meas: np.ndarray, avar_model: np.ndarray, nu: np
     bounded by ``Z_CLIP``."""
     nu = np.asarray(nu, dtype=np.float64)
     x = nu * np.asarray(avar_meas) / np.asarray(avar_model)
-    lower = stats.chi2.logcdf(x, nu)
-    upper = stats.chi2.logsf(x, nu)
+    lower = dist.chi2.logcdf(x, nu)
+    upper = dist.chi2.logsf(x, nu)
     sign = np.where(lower < upper, -1.0, 1.0)
     logp = np.minimum(lower, upper)
     with np.errstate(all="ignore"):
-        z = stats.norm.isf(np.exp(logp))
+        z = dist.norm.isf(np.exp(logp))
         tail = logp < -700.0
         if np.any(tail):
             # log Phi(-z) = -z^2/2 - ln z - ln(2 pi)/2, solved by fixed-point iteration

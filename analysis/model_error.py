@@ -37,8 +37,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.stats import norm
 
+from imunoise.analysis.distributions import norm
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.psd import PsdEstimate, default_nperseg, log_psd
 from imunoise.analysis.psd_model import expected_log_psd, psd_z, whittle_part
@@ -272,7 +272,7 @@ def _jointly_changed(fit_a: Any, fit_b: Any, named: set[str], crit: float
     named, one at a time: the parameter's change estimated with the others held equal
     (``z = (S^-1 d)_p / sqrt((S^-1)_pp)``) is named when beyond ``crit``, and is then left
     out, so the next is judged with the named ones free to differ."""
-    from scipy.stats import chi2
+    from imunoise.analysis.distributions import chi2
 
     names = [t.term for t in fit_a.terms]
     rows_a = {k: n for n, k in enumerate(fit_a.free_params)}

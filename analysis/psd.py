@@ -2,7 +2,7 @@
 
 Two estimators, one output type (:class:`PsdEstimate`, channel units^2/Hz):
 
-- :func:`welch_psd`: plain Welch (``scipy.signal.welch``: Hann window, 50 % overlap, segment
+- :func:`welch_psd`: plain Welch (as ``scipy.signal.welch``: Hann window, 50 % overlap, segment
   mean removed) on a linear frequency axis. Good for the upper band and for looking at lines.
 - :func:`log_psd` / :class:`StreamingPsd`: a decimation cascade that reaches down to about ten
   times the reciprocal of the record length on a log-spaced axis. Level 0 is Welch at the full
@@ -45,12 +45,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.signal
-from scipy.stats import chi2
 
+from imunoise.analysis.distributions import chi2
+from imunoise.analysis.dsp import fir_response, hann, lowpass_fir, welch_density
 from imunoise.core.series import SAMPLE_LIMIT
 
-_FIR_TAPS = scipy.signal.firwin(47, 0.3, window=("kaiser", 10.0))
+_FIR_TAPS = lowpass_fir(47, 0.3, beta=10.0)
 _DECIMATION = 2
 _CHUNK = 1 << 18  # samples processed at once, bounds temporary memory
 _MIN_BATCH = 1 << 16  # small blocks are gathered up to this many samples before processing
@@ -101,7 +101,7 @@ def chi2_interval(psd: np.ndarray, dof: np.ndarray, ci: float) -> tuple[np.ndarr
 
 
 def _window(nperseg: int) -> np.ndarray:
-    return scipy.signal.get_window("hann", nperseg)
+    return hann(nperseg)
 
 
 def _overlap_rho2(window: np.ndarray, step: int) -> np.ndarray:
@@ -210,9 +210,7 @@ def welch_psd(
         if len(seg) < nperseg:
             continue
         _check_finite(seg)
-        f, p = scipy.signal.welch(seg, fs=fs_hz, window=win, nperseg=nperseg,
-                                  noverlap=nperseg - step, detrend="constant",
-                                  scaling="density", return_onesided=True)
+        f, p = welch_density(seg, fs_hz, win, step)
         k = 1 + (len(seg) - nperseg) // step
         total = p * k if total is None else total + p * k
         n_seg += k
@@ -286,7 +284,7 @@ def _cascade_gain(f_hz: np.ndarray, fs_hz: float, level: int) -> np.ndarray:
     gain = np.ones(len(f_hz))
     for i in range(level):
         fs_i = fs_hz / _DECIMATION**i
-        _, h = scipy.signal.freqz(_FIR_TAPS, worN=2.0 * np.pi * f_hz / fs_i)
+        h = fir_response(_FIR_TAPS, 2.0 * np.pi * f_hz / fs_i)
         gain *= np.abs(h) ** 2
     return gain
 

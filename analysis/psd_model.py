@@ -39,8 +39,8 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.signal
 
+from imunoise.analysis.dsp import hann
 from imunoise.analysis.psd import PsdEstimate, _cascade_gain
 from imunoise.analysis.terms import get_term, model_psd
 from imunoise.analysis.terms.bias_instability import flicker_psd
@@ -61,7 +61,7 @@ def _hann_kernel(u: np.ndarray, L: int) -> np.ndarray:
     """``|W(u)|^2 / sum(w^2)`` of the periodic L-point Hann window at ``u`` cycles/sample;
     its integral over one period is 1."""
     n = np.arange(L)
-    w = scipy.signal.get_window("hann", L)
+    w = hann(L)
     u = np.atleast_1d(np.asarray(u, dtype=np.float64))
     # direct DTFT (few points: lines and ramps only)
     ph = np.exp(-2j * np.pi * np.outer(u, n))
@@ -198,7 +198,7 @@ def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float,
     gaussian, lines, ramps = _noise_and_rest(model)
     out = np.zeros(len(est.f_hz))
     counts = np.zeros(len(est.f_hz))
-    w = scipy.signal.get_window("hann", L)
+    w = hann(L)
     kern = np.abs(np.fft.fft(w, N)) ** 2
     kern /= kern.sum()
     kern_f = np.fft.fft(kern)
@@ -256,7 +256,7 @@ def whittle_part(psd: np.ndarray, dof: np.ndarray, model: np.ndarray, ci: float 
     with ``r = psd/model`` (about 1 when the model is right: each term is a scaled chi-square
     with ``nu`` degrees of freedom), the number of bins and the share outside their ``ci``
     chi-square interval. None with fewer than 5 usable bins."""
-    from scipy.stats import chi2
+    from imunoise.analysis.distributions import chi2
 
     p, nu, s = (np.asarray(x, dtype=np.float64) for x in (psd, dof, model))
     ok = np.isfinite(p) & np.isfinite(nu) & np.isfinite(s) & (p > 0) & (nu > 0) & (s > 0)
@@ -272,7 +272,7 @@ def whittle_part(psd: np.ndarray, dof: np.ndarray, model: np.ndarray, ci: float 
 def psd_z(psd: np.ndarray, dof: np.ndarray, model: np.ndarray) -> np.ndarray:
     """Per point, the normal score of the measured PSD under the model (its chi-square law
     with ``dof`` degrees of freedom): positive when the measurement lies above the model."""
-    from scipy.stats import chi2, norm
+    from imunoise.analysis.distributions import chi2, norm
 
     p, nu, s = (np.asarray(x, dtype=np.float64) for x in (psd, dof, model))
     with np.errstate(divide="ignore", invalid="ignore"):

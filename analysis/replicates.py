@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
+from imunoise.analysis import distributions as dist
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.terms import TERMS, get_term, parse_model
 
@@ -233,7 +233,7 @@ def homogeneity(estimates: list[Estimate | None], labels: list[str]
     se = 1.0 / math.sqrt(float(np.sum(w)))
     if dof > 0:
         se *= math.sqrt(max(1.0, q / dof))  # Birge ratio: the spread between runs counts
-    p = float(stats.chi2.sf(q, dof)) if dof > 0 else 1.0
+    p = float(dist.chi2.sf(q, dof)) if dof > 0 else 1.0
     return (math.exp(mean), (math.exp(mean - Z95 * se), math.exp(mean + Z95 * se)), q, dof, p,
             [lab for lab, _ in usable])
 

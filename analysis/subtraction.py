@@ -38,7 +38,6 @@ from typing import Any
 
 import numpy as np
 import scipy.ndimage
-import scipy.signal
 from scipy import special
 
 from imunoise.analysis.coherence import DEFAULT_ALPHA, CrossSpectra, cross_spectra
@@ -132,8 +131,10 @@ class Subtraction:
 
 def _fir(h_bins: np.ndarray, nperseg: int) -> np.ndarray:
     """A centred, Hann-tapered FIR of ``nperseg`` taps with the rfft-grid response ``h_bins``."""
+    from scipy.signal import get_window  # slow to import: see analysis.dsp
+
     h = np.fft.irfft(h_bins, n=nperseg)
-    return np.roll(h, nperseg // 2) * scipy.signal.get_window("hann", nperseg, fftbins=False)
+    return np.roll(h, nperseg // 2) * get_window("hann", nperseg, fftbins=False)
 
 
 def subtract_common(x: np.ndarray, fs_hz: float, channels: list[str] | tuple[str, ...],
@@ -154,6 +155,8 @@ def subtract_common(x: np.ndarray, fs_hz: float, channels: list[str] | tuple[str
         alpha: family-wise level of the per-bin test deciding where to subtract.
         cross: cross-spectra of ``x`` already computed (same ``nperseg``), to reuse.
     """
+    from scipy.signal import oaconvolve  # slow to import: see analysis.dsp
+
     x = np.asarray(x, dtype=np.float64)
     names = list(channels)
     if target not in names:
@@ -190,7 +193,7 @@ def subtract_common(x: np.ndarray, fs_hz: float, channels: list[str] | tuple[str
             continue
         for j, fir in zip(ir, firs, strict=True):
             seg = x[a:b, j] - np.mean(x[a:b, j])
-            residual[a:b] -= scipy.signal.oaconvolve(seg, fir, mode="full")[L // 2:L // 2 + b - a]
+            residual[a:b] -= oaconvolve(seg, fir, mode="full")[L // 2:L // 2 + b - a]
     df = cs.df_hz
     sjj = np.stack([cs.s[:, j, j].real for j in ir], axis=1)
     gjy = np.abs(sxy) ** 2 / np.maximum(sjj * syy[:, None], 1e-300)

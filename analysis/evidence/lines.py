@@ -22,8 +22,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal, special, stats
+from scipy import special
 
+from imunoise.analysis import distributions as dist
+from imunoise.analysis.dsp import detrend_linear, hann
 from imunoise.analysis.evidence.finding import Finding, family_p
 
 _MAINS_HZ = (50.0, 60.0)
@@ -72,8 +74,8 @@ def welch_bins(segments: list[np.ndarray], fs_hz: float, nperseg: int | None = N
     if not blocks:
         raise ValueError(f"no gap-free segment of {nperseg} samples for a spectrum")
     x = np.concatenate(blocks, axis=0)
-    x = signal.detrend(x, axis=1, type="linear")
-    w = signal.windows.hann(nperseg, sym=False)
+    x = detrend_linear(x, axis=1)
+    w = hann(nperseg)
     spec = np.abs(np.fft.rfft(x * w, axis=1)) ** 2
     psd = spec.mean(axis=0) * 2.0 / (fs_hz * np.sum(w**2))
     psd[0] /= 2.0
@@ -185,7 +187,7 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
         return Finding("spectral_line", "sinusoid", 0.0, "F", 1.0, alpha,
                        why="record too short to search the spectrum for lines")
     ratio = psd[idx] / cont
-    p_single = stats.f.sf(ratio, wb.nu, d2)
+    p_single = dist.f.sf(ratio, wb.nu, d2)
     m = idx.size
     # Local maxima only: a line also raises its Hann neighbours (compared with the bins
     # themselves, searched or not).

@@ -12,8 +12,8 @@ of any length is flagged with probability below ``alpha``.
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
+from imunoise.analysis import distributions as dist
 from imunoise.analysis.evidence.finding import Finding, family_p
 
 _MAD_TO_SIGMA = 1.482602218505602
@@ -41,7 +41,7 @@ def _flag(segments: list[np.ndarray], alpha: float) -> tuple[np.ndarray, np.ndar
     """Flagged indices (into the concatenated samples), all |z|, and the threshold."""
     z = np.concatenate([robust_z(s) for s in segments if len(s)])
     n = z.size
-    thr = float(stats.norm.isf(0.5 * (-np.expm1(np.log1p(-alpha) / max(n, 1)))))
+    thr = float(dist.norm.isf(0.5 * (-np.expm1(np.log1p(-alpha) / max(n, 1)))))
     az = np.abs(z)
     peak = np.ones(n, dtype=bool)
     peak[1:] &= az[1:] >= az[:-1]
@@ -66,7 +66,7 @@ def outliers(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
     flagged, az, thr = _flag(segments, alpha)
     n = az.size
     zmax = float(az.max()) if n else 0.0
-    p = family_p(float(2.0 * stats.norm.sf(zmax)), n)
+    p = family_p(float(2.0 * dist.norm.sf(zmax)), n)
     details = {"count": int(flagged.size), "threshold_z": thr,
                "indices": [int(i) for i in flagged[:_MAX_LISTED]],
                "t_s": [float(i / fs_hz) for i in flagged[:_MAX_LISTED]]}

@@ -7,8 +7,8 @@ with the autocorrelation-aware test of :func:`imunoise.analysis.evidence.slowgri
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
+from imunoise.analysis import distributions as dist
 from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.evidence.slowgrid import bin_means, slow_grid, slow_regression
 
@@ -55,7 +55,7 @@ def temperature_correlation(rate_t_s: np.ndarray, rate: np.ndarray, temp_t_s: np
                        details={"temp_span_c": 0.0},
                        why="the temperature did not change, so its effect cannot be measured")
     reg = slow_regression(xb, yb)
-    half = stats.t.isf(0.025, max(reg.dof, 1)) * reg.slope_se
+    half = dist.t.isf(0.025, max(reg.dof, 1)) * reg.slope_se
     ci = [reg.slope - half, reg.slope + half]
     details = {"coef_ci95": ci, "bin_s": bin_s, "block_slopes": reg.block_slopes, "n_bins": reg.n,
                "temp_span_c": span}
@@ -91,7 +91,7 @@ def drift(rate_t_s: np.ndarray, rate: np.ndarray, alpha: float = 0.05,
     yb, _ = bin_means(t, rate, edges)
     xb = 0.5 * (edges[:-1] + edges[1:])
     reg = slow_regression(xb, yb)
-    half = stats.t.isf(0.025, max(reg.dof, 1)) * reg.slope_se
+    half = dist.t.isf(0.025, max(reg.dof, 1)) * reg.slope_se
     details = {"R_ci95": [reg.slope - half, reg.slope + half],
                "bin_s": bin_s, "block_slopes": reg.block_slopes}
     if hadamard_ratio is not None:

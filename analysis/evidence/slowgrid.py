@@ -14,7 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+
+from imunoise.analysis import distributions as dist
 
 
 def bin_means(t_s: np.ndarray, x: np.ndarray, edges_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -98,5 +99,5 @@ def slow_regression(x: np.ndarray, y: np.ndarray, n_blocks: int = 8) -> SlowRegr
     s2 = float(np.sum(w * (bs - mean) ** 2)) / (j - 1)
     se = float(np.sqrt(s2 / np.sum(w)))
     tval = mean / se if se > 0 else 0.0
-    p = float(2.0 * stats.t.sf(abs(tval), j - 1))
+    p = float(2.0 * dist.t.sf(abs(tval), j - 1))
     return SlowRegression(mean, se, tval, j - 1, p, slopes, n)

@@ -12,8 +12,8 @@ A change is reported only when the test is significant and the density changes b
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
+from imunoise.analysis import distributions as dist
 from imunoise.analysis.evidence.finding import Finding
 
 _MA1_VARIANCE_FACTOR = 1.5
@@ -70,7 +70,7 @@ def noise_level_windows(segments: list[np.ndarray], fs_hz: float, n_windows: int
     mean = np.sum(wgt * loga) / np.sum(wgt)
     chi2 = float(np.sum(wgt * (loga - mean) ** 2))
     dof = int(ok.sum() - 1)
-    p = float(stats.chi2.sf(chi2, dof))
+    p = float(dist.chi2.sf(chi2, dof))
     n_density = np.sqrt(avar1 / fs_hz)  # AVAR(tau0) = N^2/tau0 for white noise
     t_edges = np.linspace(0.0, total / fs_hz, n_windows + 1)
     ratio = float(np.sqrt(avar1[ok].max() / avar1[ok].min()))

@@ -37,9 +37,9 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from scipy import stats
 from scipy.linalg import solve_triangular
 
+from imunoise.analysis import distributions as dist
 from imunoise.analysis.blas import one_blas_thread
 from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.terms import get_term, model_psd
@@ -155,7 +155,7 @@ def _contrast_cov(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     return -(w @ gamma @ w.T)
 
 
-_LR95_REGULAR = float(stats.chi2.isf(0.05, 1))
+_LR95_REGULAR = float(dist.chi2.isf(0.05, 1))
 _STEP_GRID_PER_BLOCK = 50
 _WARMUP_GRID = 400
 
@@ -469,5 +469,5 @@ def _max_z_p(z: np.ndarray, draws: np.ndarray, sel: np.ndarray) -> float:
     null draws reaching it, with a Bonferroni normal tail where the draws run out."""
     zmax = float(np.max(np.abs(z[sel])))
     p_mc = (1.0 + float(np.sum(np.max(np.abs(draws[:, sel]), axis=1) >= zmax))) / (DRAWS + 1)
-    p_tail = min(1.0, float(sel.sum()) * 2.0 * float(stats.norm.sf(zmax)))
+    p_tail = min(1.0, float(sel.sum()) * 2.0 * float(dist.norm.sf(zmax)))
     return min(p_mc, p_tail) if p_mc <= 2.0 / (DRAWS + 1) else p_mc

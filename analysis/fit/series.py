@@ -9,8 +9,9 @@ from collections.abc import Collection
 from typing import Any
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import ndimage
 
+from imunoise.analysis.dsp import welch_density
 from imunoise.analysis.fit.result import FitResult, ModelLike, TermFit
 from imunoise.analysis.fit.solve import _hold, fit_allan
 from imunoise.analysis.jobs import JobMap, serial_map
@@ -32,7 +33,7 @@ def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0
     if x.size < 64:
         return None
     nper = int(min(1 << 15, 1 << int(math.log2(x.size))))
-    f, p = signal.welch(x - x.mean(), fs=fs_hz, nperseg=nper)
+    f, p = welch_density(x - x.mean(), fs_hz, nper)
     if p.size < 16:
         return None
     floor = np.maximum(ndimage.median_filter(p, size=31, mode="nearest"), 1e-300)
@@ -77,8 +78,8 @@ def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int =
         if s > 0:
             per_block.append(float(tbc @ (yb - yb.mean()) / s))
     if len(per_block) >= 3:
-        from scipy import stats
-        half = float(stats.t.ppf(0.975, len(per_block) - 1) * np.std(per_block, ddof=1)
+        from imunoise.analysis import distributions as dist
+        half = float(dist.t.ppf(0.975, len(per_block) - 1) * np.std(per_block, ddof=1)
                      / math.sqrt(len(per_block)))
     else:
         half = math.inf

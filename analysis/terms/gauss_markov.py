@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 from imunoise.analysis.terms.base import Param, Term, TermSimulator
 from imunoise.analysis.terms.shape_memo import ShapeMemo
@@ -110,6 +109,8 @@ class Ar1Bank(TermSimulator):
         self.x = rng.standard_normal(len(self.a)) * np.asarray(sigmas)
 
     def take(self, n: int, temperature: np.ndarray | None = None) -> np.ndarray:
+        from scipy.signal import lfilter  # slow to import: see analysis.dsp
+
         w = self.rng.standard_normal((n, len(self.a))) * self.w_sd
         out = np.zeros(n)
         for j, a in enumerate(self.a):

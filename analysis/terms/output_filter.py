@@ -34,7 +34,6 @@ from collections import OrderedDict
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter, lfilter_zi
 
 from imunoise.analysis.bin_average import sin4_table_shared
 from imunoise.analysis.terms.base import Term, TermError, TermSimulator
@@ -104,6 +103,8 @@ class FilterSimulator(TermSimulator):
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """The next block of filter output for the input block ``x``."""
+        from scipy.signal import lfilter, lfilter_zi  # slow to import: see analysis.dsp
+
         if x.size == 0:
             return x
         if not self.started:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import lfilter
 
 from imunoise.analysis.terms.base import Param, Term, TermSimulator
 from imunoise.analysis.terms.shape_memo import ShapeMemo
@@ -54,6 +53,8 @@ def resonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float) -> np.nd
 class _ResonanceSim(TermSimulator):
     def __init__(self, sigma: float, fs: float, f0: float, q: float,
                  rng: np.random.Generator) -> None:
+        from scipy.signal import lfilter  # slow to import: see analysis.dsp
+
         _, phi1, phi2 = _poles(fs, f0, q)
         self.a = np.array([1.0, -phi1, -phi2])
         self.e_sd = sigma * math.sqrt(_innovation_var(phi1, phi2))
@@ -64,6 +65,8 @@ class _ResonanceSim(TermSimulator):
                              zi=np.zeros(2))
 
     def take(self, n: int, temperature: np.ndarray | None = None) -> np.ndarray:
+        from scipy.signal import lfilter
+
         if n <= 0:
             return np.zeros(0)
         y, self.zi = lfilter([1.0], self.a, self.rng.standard_normal(n) * self.e_sd,
