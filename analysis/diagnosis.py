@@ -99,13 +99,14 @@ class Suggestion:
     fit: FitResult | None = None
     apply: dict[str, Any] = field(default_factory=dict)
     action: str = "add"
-    """``"add"`` the term, ``"cut"`` the record (a bias step or warm-up: ``apply.args``), or
+    """``"add"`` the term, ``"cut"`` the record (a bias step or warm-up: ``apply.args``),
     ``"remove"`` a term of the given model whose amplitude the record does not resolve
-    (:func:`_removal`)."""
+    (:func:`_removal`), or ``"replace"`` the model's output filter by another kind
+    (:func:`_swap`; ``term`` is the new filter)."""
     label: str = ""
     """The removed term's label in the given model (``name#K`` for the K-th of a repeated
-    name); for a pair of terms added together (:func:`_pair`), ``"X and Y"``; empty
-    otherwise."""
+    name); for a pair of terms added together (:func:`_pair`), ``"X and Y"``; for a filter
+    replaced, ``"OLD by NEW"``; empty otherwise."""
     held_by: str = ""
     """What keeps a suggestion whose evidence passes the test from being significant:
     ``"identifiability"``, ``"rise"`` (it raises a part beyond its noise) or ``"holdout"``;
@@ -449,15 +450,17 @@ def _parts_rise(ctx: _Context, after: FitResult, psd_after: dict[str, Any] | Non
                   (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION)
 
 
-def _imitation(ctx: _Context, after: FitResult | None) -> str | None:
+def _imitation(ctx: _Context, after: FitResult | None, index: int | None = None
+               ) -> str | None:
     """Why the refit's solution is not identifiable in the sampled band (one term doing
     another's part), or None: a resonance whose peak does not lie below the Nyquist
     frequency (its centre plus half its bandwidth at or above it) is a rising spectrum, not a
     resonance; a refit that leaves the white level unresolved where the given model resolved
-    it has traded the white noise to zero for the new term."""
+    it has traded the white noise to zero for the new term (at ``index``: by default the
+    term appended)."""
     if after is None:
         return None
-    added = after.terms[len(ctx.spec)]
+    added = after.terms[len(ctx.spec) if index is None else index]
     nyquist = 0.5 * ctx.fs_hz
     if added.term == "resonance":
         f0, q = float(added.params["f0"]), float(added.params["Q"])
@@ -545,7 +548,8 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
 def _first_job(shared: tuple[_Context, float, HoldoutHalves | None], item: tuple[str, Any]
                ) -> Any:
     """One job of the diagnosis's first map, as a job map calls it: a candidate's
-    :func:`_suggest` (``("term", name)``), or a hold-out half of the given model
+    :func:`_suggest` (``("term", name)``), a filter swap's :func:`_swap` (``("swap",
+    (index, name))``), or a hold-out half of the given model
     (``("half", k)``, :func:`imunoise.analysis.model_error.fit_half`), which needs no
     candidate and so runs beside them."""
     ctx, alpha, halves = shared
@@ -553,6 +557,9 @@ def _first_job(shared: tuple[_Context, float, HoldoutHalves | None], item: tuple
     if kind == "half":
         assert halves is not None  # halves are only asked for when set up
         return fit_half(halves.shared(), what)
+    if kind == "swap":
+        index, new = what
+        return _swap(ctx, index, new, alpha)
     return _suggest(ctx, what, alpha)
 
 
@@ -680,6 +687,87 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
         p_value=float(np.exp(logp)), log_p=logp,
         significant=bool(not needed and not rises and not worse), why=why, fit=after,
         apply={"model": spec.text(), "args": []}, action="remove", label=label,
+        error_after=_error_after(after, psd_after))
+
+
+def _swaps(spec: ModelSpec, base: FitResult,
+           sensor_filter: tuple[str, dict[str, float]] | None) -> list[tuple[int, str]]:
+    """``(index, other filter)`` for each other kind of output filter that may replace the
+    given model's, when the model fails: a filter the user held or the device's
+    configuration states stays."""
+    if not base.failures or sensor_filter is not None:
+        return []
+    filters = [n for n, t in TERMS.items() if t.kind == "filter"]
+    return [(i, other) for i, entry in enumerate(spec.entries)
+            if get_term(entry.name).kind == "filter" and not entry.fixed
+            for other in filters if other != entry.name]
+
+
+def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
+    """The given model's output filter (term ``index``) replaced by filter ``new`` and the
+    model refitted, as ``imunoise fit --model apply.model`` fits it.
+
+    The round that first adds a filter picks among the filter kinds by differences of the
+    Allan chi2 of a few per cent, while an effect not yet modelled (a bench line, a
+    resonance) dominates the misfit; once that is modelled a different filter can describe
+    the shortest taus far better (ADIS16405 run 1 accel_z with its line and 10 Hz
+    resonance: chi2/dof 21.5 with a one-pole low-pass, 5.0 with a Bartlett window). The
+    two models are not nested and have the same number of parameters, so the chi2 drop is
+    judged as that of one parameter (Bonferroni over the candidates), beside the fall of the
+    PSD part; it is significant under the rules an added term meets: the chi2/dof falls,
+    no part rises beyond its noise, the white level stays resolved, and (checked with the
+    added terms) the hold-out part does not rise."""
+    entries = ctx.spec.entries
+    old = ctx.spec.labels[index]
+    spec = ModelSpec(entries[:index] + (Entry(new, {}),) + entries[index + 1:])
+    before = ctx.base.chi2_per_dof
+    label = f"{old} by {new}"
+    try:
+        reported = {i for i, n in enumerate(spec.names) if n == "white"} | {index}
+        after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
+                              temperature=ctx.temp_at if "temperature" in spec.names else None,
+                              memo=ctx.memo, intervals="jacobian", profile_terms=reported)
+    except (ValueError, np.linalg.LinAlgError):
+        after = None
+    why = f"The shortest taus may follow a {new} filter better than the model's {old}."
+    if after is None:
+        return Suggestion(term=new, params={}, ci95={}, chi2_per_dof_before=before,
+                          chi2_per_dof_after=float("nan"), p_value=1.0, log_p=0.0,
+                          significant=False, why=why + " The model with it could not be "
+                          "fitted.", apply={"model": spec.text(), "args": []},
+                          action="replace", label=label)
+    drop = float(ctx.base.misfit.chi2 - after.misfit.chi2)
+    falls = bool(np.isfinite(after.chi2_per_dof) and after.chi2_per_dof < before)
+    sources = [_chi2_logsf(drop, 1)] if falls and drop > 0 else []
+    psd_after = _psd_after(ctx, after)
+    psd_logp = _psd_logp(ctx, psd_after, 1)
+    if psd_logp < 0.0:
+        sources.append(psd_logp)
+    logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(ctx.n_candidates)) \
+        if sources else 0.0
+    tf = after.terms[index]
+    why = (f"Replacing {old} by a {new} filter brings chi2/dof from {before:.3g} to "
+           f"{after.chi2_per_dof:.3g}")
+    psd_b, psd_a = _deviance(ctx.psd_before), _deviance(psd_after)
+    if psd_b is not None and psd_a is not None:
+        why += f" and the PSD part from {psd_b:.3g} to {psd_a:.3g}"
+    why += " with as many parameters."
+    imitation = _imitation(ctx, after, index)
+    rises = _parts_rise(ctx, after, psd_after)
+    held_by, held_reason = "", ""
+    if imitation is not None:
+        held_by, held_reason = "identifiability", f"not identifiable: {imitation}."
+    elif rises:
+        held_by, held_reason = "rise", "it raises a part of the error beyond its noise."
+    if held_reason:
+        why += " " + held_reason[0].upper() + held_reason[1:]
+    return Suggestion(
+        term=new, params=dict(tf.params), ci95=dict(tf.ci95), chi2_per_dof_before=before,
+        chi2_per_dof_after=after.chi2_per_dof, p_value=float(np.exp(logp)), log_p=logp,
+        significant=bool(logp < np.log(alpha) and (falls or psd_logp < 0.0)
+                         and not rises and imitation is None),
+        why=why, fit=after, apply={"model": spec.text(), "args": []}, action="replace",
+        label=label, held_by=held_by, held_reason=held_reason,
         error_after=_error_after(after, psd_after))
 
 
@@ -908,24 +996,27 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     findings.extend(cuts)
     psd_est, nperseg, psd_block, psd_before = psd_baseline
     candidates = _candidates(names, base, filt, temperature is not None, sensor_filter)
+    swaps = _swaps(base_spec, base, sensor_filter) if only is None else []
     if only is not None:
         candidates = [c for c in candidates if c in only]
     parts: dict[str, Any] = {"psd": psd_before, "time_domain": time_domain}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
-                   len(candidates) + len(cuts), sensor_filter, time_origin_s,
+                   len(candidates) + len(swaps) + len(cuts), sensor_filter, time_origin_s,
                    psd_est, nperseg, psd_before, job_map, profile_added=only is None)
     # the given model's hold-out halves are fitted beside the candidates' refits
     halves = holdout_halves(x, fs_hz, base_spec, base, starts) if holdout else None
     jobs: list[tuple[str, Any]] = [("term", c) for c in candidates]
+    jobs += [("swap", w) for w in swaps]
+    n_tried = len(jobs)
     if isinstance(halves, HoldoutHalves):
         jobs += [("half", 0), ("half", 1)]
     done = job_map(_first_job, (ctx, alpha, halves if isinstance(halves, HoldoutHalves)
                                 else None), jobs)
-    suggestions = _ranked(ctx, done[:len(candidates)], cuts, units, alpha)
+    suggestions = _ranked(ctx, done[:n_tried], cuts, units, alpha)
     if halves is None:
         parts["holdout"] = {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
     else:
-        before = halves.part(done[len(candidates):]) if isinstance(halves, HoldoutHalves) \
+        before = halves.part(done[n_tried:]) if isinstance(halves, HoldoutHalves) \
             else halves
         parts["holdout"] = _check_holdout(ctx, suggestions, before)
         if lookahead:
@@ -1090,7 +1181,7 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], before: dict[st
         s.error_after["holdout"] = after
         a = after.get("chi2_per_dof")
         # a removal claims nothing new: it only must not make the prediction worse
-        need_fall = lacking and s.action == "add"
+        need_fall = lacking and s.action in ("add", "replace")
         if a is None or not _rises(b, a, dof) and (a < b or not need_fall):
             break  # kept (a part that cannot be computed judges nothing)
         s.significant = False

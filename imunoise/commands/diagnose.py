@@ -111,7 +111,7 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
             lines.append(f"        {', '.join(pars)}")
         if s.significant:
             lines.append(f"        {s.why}")
-        elif s.p_value < diag.alpha and getattr(s, "held_by", ""):
+        elif s.p_value < diag.alpha and s.held_by:
             held.append(name)
             lines.append(f"        held back: {s.held_reason}")
     best = next((s for s in diag.suggestions if s.significant), None)

@@ -4,6 +4,7 @@ the conversions and plots, the docstrings' examples, and a lazy ``import imunois
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import doctest
 import io
 import json
@@ -118,8 +119,13 @@ def test_tables_and_labelled_arrays(recording):
     assert spectrum.to_xarray()["psd"].attrs["units"] == "(rad/s)^2/Hz"
     dx = imunoise.diagnose(rec["gyro_x"], "white")
     table = dx.to_pandas()
-    assert list(table["term"]) == [s.get("label") or s["term"] for s in dx.suggestions]
+    assert list(table["term"]) == [s["term"] for s in dx.suggestions]
     assert list(table["action"]) == [s["action"] for s in dx.suggestions]
+    # a pair of terms suggested together is one row named by both
+    first = dx.diagnosis.suggestions[0]
+    pair = dataclasses.replace(first, label=f"{first.term} and resonance")
+    dx.diagnosis.suggestions[0] = pair
+    assert dx.to_pandas()["term"][0] == f"{first.term} and resonance"
     assert set(table["action"]) <= {"add", "cut", "remove"}
 
 

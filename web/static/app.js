@@ -251,8 +251,10 @@ function drawDiagnosis(d) {
       `${k} not resolved (< ${fmt((s.ci95 || {})[k] ? s.ci95[k][1] : null)})` :
       `${k} = ${fmt(v)}`).join(", ");
     const model = s.apply && s.apply.model ? s.apply.model : "";
-    // the action: add a term, cut the record, or remove a term the record does not resolve
-    const verb = s.action === "remove" ? "Remove" : s.action === "cut" ? "Cut at" : "Add";
+    // the action: add a term, cut the record, remove a term the record does not resolve,
+    // or replace the model's filter by another kind
+    const verb = s.action === "remove" ? "Remove" : s.action === "cut" ? "Cut at" :
+      s.action === "replace" ? "Replace" : "Add";
     return `<li><button class="add-term" data-term="${s.term}" data-model="${model}">${verb} ${s.label || s.term}</button>
       <span class="${s.significant ? "sig" : ""}">${s.significant ? "significant" : "not significant"}</span>:
       χ²/dof after ${fmt(s.chi2_per_dof_after)}${s.p_value !== null && s.p_value !== undefined ? `, p = ${fmt(s.p_value, 2)}` : ""} (${ps})<span class="why">${s.why}</span></li>`;
