@@ -82,8 +82,8 @@ class _AvarModel:
     costs one full evaluation per parameter; here the model is split into groups that add
     (each additive term alone, and the output filter together with the noise terms it
     filters), and a parameter moves only its own group. An amplitude scales its term's Allan
-    variance by its square, so its column is exact (``2 avar_term``); every other column is a
-    forward difference of its group alone.
+    variance by its square, so its column is exact (``2 avar_term``; behind a filter, twice
+    the term's filtered part); every other column is a forward difference of its group alone.
     """
 
     def __init__(self, layout: _Layout, tau: np.ndarray, fs: float) -> None:
@@ -98,37 +98,51 @@ class _AvarModel:
             [[i] for i in live if i not in through]
         group_of = {i: g for g, members in enumerate(self.groups) for i in members}
         self.col_group = [group_of[i] for i, _ in layout.keys]
-        self.col_amplitude = [len(self.groups[group_of[i]]) == 1 and terms[i].kind != "filter"
-                              and k == terms[i].amplitude for i, k in layout.keys]
-        self._last: tuple[bytes, list[np.ndarray]] | None = None
+        self.col_amplitude = [terms[i].kind != "filter" and k == terms[i].amplitude
+                              for i, k in layout.keys]
+        # the filter group's noise terms, in the order the filter takes them
+        self._filtered = sorted(i for i in through if i not in filters)
+        self._last: tuple[bytes, list[np.ndarray], dict[int, np.ndarray]] | None = None
 
-    def _group(self, g: int, params: list[dict[str, float]]) -> np.ndarray:
+    def _group(self, g: int, params: list[dict[str, float]],
+               filtered: dict[int, np.ndarray] | None = None) -> np.ndarray:
+        """Allan variance of group ``g``; for the filter's group, each noise term's filtered
+        part is put in ``filtered`` (by term index) when given."""
         names = self.layout.names
-        return model_avar([(names[i], params[i]) for i in self.groups[g]], self.tau, self.fs,
-                          checked=False)
+        members = self.groups[g]
+        if filtered is None or len(members) == 1 or not self._filtered:
+            return model_avar([(names[i], params[i]) for i in members], self.tau, self.fs,
+                              checked=False)
+        f = next(i for i in members if i not in self._filtered)
+        noise = [(get_term(names[i]), params[i]) for i in self._filtered]
+        total, parts = get_term(names[f]).filtered_parts(noise, self.tau, self.fs, params[f])
+        filtered.update(zip(self._filtered, parts, strict=True))
+        return total
 
-    def _parts(self, theta: np.ndarray) -> list[np.ndarray]:
+    def _parts(self, theta: np.ndarray) -> tuple[list[np.ndarray], dict[int, np.ndarray]]:
         key = theta.tobytes()
         if self._last is not None and self._last[0] == key:
-            return self._last[1]
+            return self._last[1], self._last[2]
         params = _unpack(self.layout, theta)
-        parts = [self._group(g, params) for g in range(len(self.groups))]
-        self._last = (key, parts)
-        return parts
+        filtered: dict[int, np.ndarray] = {}
+        parts = [self._group(g, params, filtered) for g in range(len(self.groups))]
+        self._last = (key, parts, filtered)
+        return parts, filtered
 
     def value(self, theta: np.ndarray) -> np.ndarray:
         """Allan variance at ``theta``."""
-        parts = self._parts(theta)
+        parts = self._parts(theta)[0]
         return np.sum(parts, axis=0) if parts else np.zeros_like(self.tau)
 
     def derivative(self, theta: np.ndarray) -> np.ndarray:
         """``d avar / d theta_k`` (units^2 per log unit), one column per free parameter."""
-        parts = self._parts(theta)
+        parts, filtered = self._parts(theta)
         params = _unpack(self.layout, theta)
         out = np.empty((self.tau.size, theta.size))
         for k, (g, amp) in enumerate(zip(self.col_group, self.col_amplitude, strict=True)):
             if amp:
-                out[:, k] = 2.0 * parts[g]
+                i = self.layout.keys[k][0]
+                out[:, k] = 2.0 * (filtered[i] if i in filtered else parts[g])
                 continue
             h = _FD_STEP * max(1.0, abs(float(theta[k])))
             if theta[k] + h > self.layout.hi[k]:

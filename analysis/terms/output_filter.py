@@ -191,24 +191,35 @@ class OutputFilter(Term):
 
     def filtered_avar(self, noise: list[tuple[Term, dict[str, float]]], tau: np.ndarray,
                       fs_hz: float, params: dict[str, float]) -> np.ndarray:
+        return self.filtered_parts(noise, tau, fs_hz, params)[0]
+
+    def filtered_parts(self, noise: list[tuple[Term, dict[str, float]]], tau: np.ndarray,
+                       fs_hz: float, params: dict[str, float]
+                       ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The filtered Allan variance of the ``noise`` terms (units^2) and each term's part
+        of it, in the order given. A part scales with the square of its term's amplitude
+        (a fit's derivative by that amplitude is twice the part)."""
         tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
         m = tau * fs_hz
         out = np.zeros_like(tau)
-        own: list[tuple[Term, dict[str, float], np.ndarray]] = []
-        for term, p in noise:
+        parts: dict[int, np.ndarray] = {}
+        own: list[tuple[int, Term, dict[str, float], np.ndarray]] = []
+        for n, (term, p) in enumerate(noise):
             r_in = term.autocovariance(fs_hz, p)
             if r_in is not None:
-                out += self._short_memory_avar(term, p, r_in, m, fs_hz, params)
+                parts[n] = self._short_memory_avar(term, p, r_in, m, fs_hz, params)
+                out += parts[n]
             else:
-                own.append((term, p, term.avar_fast(tau, fs_hz, p)))
-        total = out + sum((a for _, _, a in own), np.zeros_like(tau))
-        for term, p, a in own:
+                own.append((n, term, p, term.avar_fast(tau, fs_hz, p)))
+        total = out + sum((a for _, _, _, a in own), np.zeros_like(tau))
+        for n, term, p, a in own:
             # 0 <= |G|^2 <= 1, so the correction is smaller than the term's own Allan variance:
             # where that is below 1e-4 of the model's, it is left out
             matters = a > _NEGLIGIBLE * total
             corr = self._correction(term, p, np.where(matters, m, np.inf), fs_hz, params)
-            out += a + corr
-        return out
+            parts[n] = a + corr
+            out += parts[n]
+        return out, [parts[n] for n in range(len(noise))]
 
     def filtered_autocovariance(self, r_in: np.ndarray, fs_hz: float,
                                 params: dict[str, float]) -> np.ndarray:

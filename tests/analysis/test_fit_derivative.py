@@ -65,3 +65,24 @@ def test_an_amplitudes_column_is_twice_its_terms_allan_variance():
     k = layout.keys.index((3, "sigma"))
     own = model_avar([model[3]], TAU, FS)
     assert np.allclose(d[:, k], 2.0 * own, rtol=1e-12, atol=0)
+
+
+def test_behind_a_filter_an_amplitudes_column_is_twice_its_filtered_part():
+    model = MODELS["filtered"]
+    names = [n for n, _ in model]
+    layout = _layout(names, FS, 3e4, {})
+    theta = np.array([math.log(model[i][1][k]) for i, k in layout.keys])
+    d = _AvarModel(layout, TAU, FS).derivative(theta)
+    white_alone = model_avar([model[0], model[3]], TAU, FS)  # white behind the window
+    assert np.allclose(d[:, layout.keys.index((0, "N"))], 2.0 * white_alone, rtol=1e-12,
+                       atol=0)
+    # the parts are the filtered Allan variance split by term: they add up to it exactly
+    from imunoise.analysis.terms import get_term
+
+    noise = [(get_term(n), p) for n, p in model if get_term(n).role == "noise"
+             and get_term(n).kind != "filter"]
+    ma = get_term("moving_average")
+    total, parts = ma.filtered_parts(noise, TAU, FS, model[3][1])
+    assert len(parts) == len(noise) == 4
+    assert np.array_equal(total, ma.filtered_avar(noise, TAU, FS, model[3][1]))
+    assert np.allclose(np.sum(parts, axis=0), total, rtol=1e-14, atol=0)
