@@ -56,26 +56,23 @@ def test_the_derivative_is_the_whole_models_central_difference(case):
             np.max(am.value(theta))), (names[i], name)
 
 
-def test_an_amplitudes_column_is_twice_its_terms_allan_variance():
-    model = MODELS["additive"]
-    names = [n for n, _ in model]
-    layout = _layout(names, FS, 3e4, {})
+def _column(case: str, term: int, param: str) -> np.ndarray:
+    """The fit's derivative column of ``param`` of term ``term`` in model ``case``."""
+    model = MODELS[case]
+    layout = _layout([n for n, _ in model], FS, 3e4, {})
     theta = np.array([math.log(model[i][1][k]) for i, k in layout.keys])
-    d = _AvarModel(layout, TAU, FS).derivative(theta)
-    k = layout.keys.index((3, "sigma"))
-    own = model_avar([model[3]], TAU, FS)
-    assert np.allclose(d[:, k], 2.0 * own, rtol=1e-12, atol=0)
+    return _AvarModel(layout, TAU, FS).derivative(theta)[:, layout.keys.index((term, param))]
+
+
+def test_an_amplitudes_column_is_twice_its_terms_allan_variance():
+    own = model_avar([MODELS["additive"][3]], TAU, FS)
+    assert np.allclose(_column("additive", 3, "sigma"), 2.0 * own, rtol=1e-12, atol=0)
 
 
 def test_behind_a_filter_an_amplitudes_column_is_twice_its_filtered_part():
     model = MODELS["filtered"]
-    names = [n for n, _ in model]
-    layout = _layout(names, FS, 3e4, {})
-    theta = np.array([math.log(model[i][1][k]) for i, k in layout.keys])
-    d = _AvarModel(layout, TAU, FS).derivative(theta)
     white_alone = model_avar([model[0], model[3]], TAU, FS)  # white behind the window
-    assert np.allclose(d[:, layout.keys.index((0, "N"))], 2.0 * white_alone, rtol=1e-12,
-                       atol=0)
+    assert np.allclose(_column("filtered", 0, "N"), 2.0 * white_alone, rtol=1e-12, atol=0)
     # the parts are the filtered Allan variance split by term: they add up to it exactly
     from imunoise.analysis.terms import get_term
 
