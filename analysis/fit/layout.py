@@ -183,7 +183,9 @@ class _LogResidual:
         d = self.model.derivative(th)
         if self.free is not None:
             d = d[:, self.free]
-        d = np.where((mod > 1e-300)[:, None], d / np.maximum(mod, 1e-300)[:, None], 0.0)
+        # where a wild start makes the model's Allan variance vanish or go negative (a huge
+        # flicker level behind a filter) the column is zero, and nothing is divided there
+        d = np.divide(d, mod[:, None], out=np.zeros_like(d), where=(mod > 1e-300)[:, None])
         return -(self.whiten @ d)
 
 

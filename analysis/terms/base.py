@@ -271,6 +271,12 @@ class Term:
         """Allan variance (units^2) of the ``noise`` terms seen through this filter."""
         raise NotImplementedError
 
+    def filtered_parts(self, noise: list[tuple[Term, dict[str, float]]], tau: np.ndarray,
+                       fs_hz: float, params: dict[str, float]
+                       ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """:meth:`filtered_avar` and each noise term's part of it, in the order given."""
+        raise NotImplementedError
+
     # --- covariance of the Allan estimates (see imunoise.analysis.misfit)
     # -------------------------------
     def line(self, params: dict[str, float]) -> tuple[float, float]:
