@@ -42,6 +42,7 @@ from imunoise.core.series import (
 )
 from imunoise.core.timing import Timing, analyse_stamps
 from imunoise.daq.errors import ReadError, quoted
+from imunoise.daq.readers.csv_numbers import parse_numbers
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
@@ -152,8 +153,15 @@ def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarra
     return values[keep], starts.astype(np.int64), n_bad
 
 
-def _load(text: bytes, usecols: list[int], delim: str, path: Path) -> np.ndarray:
-    """Parse the rows after the header line of ``text`` (the whole file)."""
+def _load(text: bytes, usecols: list[int], delim: str, n_fields: int, path: Path
+          ) -> np.ndarray:
+    """Parse the rows after the header line of ``text`` (the whole file; ``n_fields`` fields
+    per row): the compiled parser where it converts every field exactly, else np.loadtxt."""
+    end = text.find(b"\n")
+    fast = parse_numbers(text[end + 1:], n_fields, usecols, delim) if end >= 0 else None
+    if fast is not None:
+        return fast
+
     def attempt(buf: bytes) -> np.ndarray:
         return np.loadtxt(io.BytesIO(buf), delimiter=delim, usecols=usecols, dtype=np.float64,
                           ndmin=2, comments=None, encoding="utf-8", skiprows=1)
@@ -309,7 +317,7 @@ def read_csv(path: str | Path, rate_hz: float | None = None) -> Record:
         raise ReadError(f"{path}: no data rows after the header")
 
     wanted = ([TIME_COLUMN] if has_t else []) + channels + ([TEMPERATURE_KEY] if has_temp else [])
-    table = _load(data, [names.index(c) for c in wanted], delim, path)
+    table = _load(data, [names.index(c) for c in wanted], delim, len(names), path)
     cols = dict(zip(wanted, np.ascontiguousarray(table.T), strict=True))
 
     facts: dict = {}

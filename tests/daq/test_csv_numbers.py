@@ -1,0 +1,103 @@
+"""The CSV reader's compiled number parser: the same doubles as np.loadtxt, or it gives up."""
+
+import io
+
+import numpy as np
+import pytest
+
+from imunoise.daq.readers import ReadError, csv_numbers
+from imunoise.daq.readers.csv_file import read_csv
+from imunoise.daq.readers.csv_numbers import MIN_BYTES, parse_numbers
+
+pytestmark = pytest.mark.skipif(csv_numbers.njit is None, reason="numba is not importable")
+
+FORMATS = ["{:.10g}", "{:.15g}", "{:.6e}", "{:+.8f}", " {:.3f} ", "{:.4E}", "{:.0f}"]
+
+
+def _body(rows: int, seed: int = 0) -> tuple[bytes, np.ndarray]:
+    """Rows of five fields in assorted notations (one empty field in each 97th row) and what
+    np.loadtxt reads from them, empty fields as NaN."""
+    rng = np.random.default_rng(seed)
+    # within the fast path's range: 15 significant digits and 10^-6 give 10^-20
+    values = rng.choice([-1.0, 1.0], (rows, 5)) * rng.uniform(1.0, 10.0, (rows, 5)) \
+        * 10.0 ** rng.integers(-6, 7, (rows, 5))
+    lines = []
+    for i, row in enumerate(values):
+        fields = [FORMATS[(i + k) % len(FORMATS)].format(v) for k, v in enumerate(row)]
+        if i % 97 == 3:
+            fields[2] = ""
+        lines.append(",".join(fields))
+    body = ("\n".join(lines) + "\n").encode()
+    ref = np.loadtxt(io.BytesIO(body.replace(b",,", b",nan,")), delimiter=",",
+                     dtype=np.float64, ndmin=2, comments=None)
+    return body, ref
+
+
+def test_same_doubles_as_loadtxt_bit_for_bit():
+    body, ref = _body(30_000)
+    assert len(body) > MIN_BYTES
+    out = parse_numbers(body, 5, [0, 1, 2, 3, 4], ",")
+    assert out is not None, "the fast path gave up on plain numbers"
+    assert out.shape == ref.shape
+    assert np.array_equal(out.view(np.int64), ref.view(np.int64))  # -0.0 and NaN included
+    assert np.isnan(out[3, 2]) and np.isnan(ref[3, 2])
+
+
+def test_columns_asked_for_in_their_order_and_text_elsewhere_skipped():
+    body, ref = _body(30_000, seed=1)
+    lines = body.decode().splitlines()
+    tagged = ("\n".join(f"{line},ok\r" for line in lines) + "\n").encode()  # CRLF too
+    out = parse_numbers(tagged, 6, [4, 0], ",")
+    assert out is not None
+    assert np.array_equal(out, ref[:, [4, 0]], equal_nan=True)
+
+
+@pytest.mark.parametrize("field", ["nan", "inf", "0.12345678901234567", "1e23", "3e-30",
+                                   "1.5x", ".", "-", "  ", "1e", "1e+", "--1", "1,2"])
+def test_gives_up_where_it_cannot_be_exact(field):
+    body, _ = _body(30_000, seed=2)
+    lines = body.decode().splitlines()
+    parts = lines[1234].split(",")
+    parts[1] = field
+    lines[1234] = ",".join(parts)
+    assert parse_numbers(("\n".join(lines) + "\n").encode(), 5, [0, 1, 2, 3, 4], ",") is None
+
+
+def test_gives_up_on_blank_lines_short_rows_and_small_bodies():
+    body, _ = _body(30_000, seed=3)
+    assert parse_numbers(body.replace(b"\n", b"\n\n", 1), 5, [0, 1], ",") is None
+    assert parse_numbers(body + b"1,2,3\n", 5, [0, 1], ",") is None
+    assert parse_numbers(body, 5, [0, 1], " ") is None
+    small, _ = _body(50, seed=3)
+    assert parse_numbers(small, 5, [0, 1], ",") is None
+
+
+def _record_file(tmp_path, rows: int, bad_line: int | None = None):
+    rng = np.random.default_rng(7)
+    t = np.arange(rows) / 100.0
+    g = rng.normal(0.0, 0.01, (rows, 3))
+    text = ["t,gyro_x,gyro_y,gyro_z,note"]
+    for i in range(rows):
+        x = "oops" if i == bad_line else f"{g[i, 0]:.10g}"
+        text.append(f"{t[i]:.10g},{x},{g[i, 1]:.10g},{g[i, 2]:.10g},still")
+    p = tmp_path / "big.csv"
+    p.write_text("\n".join(text) + "\n")
+    return p
+
+
+def test_reader_gives_the_same_record_with_and_without_the_fast_path(tmp_path, monkeypatch):
+    p = _record_file(tmp_path, 40_000)
+    assert p.stat().st_size > MIN_BYTES
+    fast = read_csv(p)
+    monkeypatch.setattr(csv_numbers, "MIN_BYTES", 1 << 62)
+    slow = read_csv(p)
+    for name in ("gyro_x", "gyro_y", "gyro_z"):
+        assert np.array_equal(fast.channels[name].values, slow.channels[name].values)
+        assert fast.channels[name].fs_hz == slow.channels[name].fs_hz == 100.0
+    assert fast.metadata == slow.metadata and fast.warnings == slow.warnings
+
+
+def test_reader_still_names_the_bad_line_of_a_big_file(tmp_path):
+    p = _record_file(tmp_path, 40_000, bad_line=30_000)
+    with pytest.raises(ReadError, match=r"line 30002, column 2: 'oops' is not a number"):
+        read_csv(p)
