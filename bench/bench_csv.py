@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imunoise.daq.readers import csv_numbers
+from imunoise.daq.readers import csv_file
 from imunoise.daq.readers.csv_file import read_csv
 
 ROWS = 1_000_000
@@ -41,14 +41,14 @@ def main() -> None:
         t0 = time.perf_counter()
         rec = read_csv(path)
         t_ours = time.perf_counter() - t0
-        fast_limit = csv_numbers.MIN_BYTES
-        csv_numbers.MIN_BYTES = 1 << 62  # every body to np.loadtxt
+        fast_limit = csv_file.COMPILED_PARSE_MIN_BYTES
+        csv_file.COMPILED_PARSE_MIN_BYTES = 1 << 62  # every body to np.loadtxt
         try:
             t0 = time.perf_counter()
             slow = read_csv(path)
             t_loadtxt = time.perf_counter() - t0
         finally:
-            csv_numbers.MIN_BYTES = fast_limit
+            csv_file.COMPILED_PARSE_MIN_BYTES = fast_limit
         t0 = time.perf_counter()
         ref = _stdlib(path)
         t_ref = time.perf_counter() - t0

@@ -42,7 +42,6 @@ from imunoise.core.series import (
 )
 from imunoise.core.timing import Timing, analyse_stamps
 from imunoise.daq.errors import ReadError, quoted
-from imunoise.daq.readers.csv_numbers import parse_numbers
 
 TIME_COLUMN = "t"
 CHANNEL_COLUMNS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
@@ -56,6 +55,9 @@ SENSOR_YAML_KEYS = ("rate_hz", "gyroscope_noise_density", "gyroscope_random_walk
                     "accelerometer_noise_density", "accelerometer_random_walk")
 _UNITS_SUFFIX = re.compile(r"\s*\[[^\]]*\]\s*$")
 _DELIMITERS = (",", ";", "\t")
+COMPILED_PARSE_MIN_BYTES = 1 << 20
+"""Smallest body read by the compiled parser (:mod:`imunoise.daq.readers.csv_numbers`): below
+it, loading numba and the parser costs more than np.loadtxt."""
 # Inferred rates outside this range usually mean a time column in ms, us or ns.
 _PLAUSIBLE_RATE_HZ = (0.5, 1e5)
 _ROW_ERROR = re.compile(r"at row (\d+)")
@@ -158,9 +160,12 @@ def _load(text: bytes, usecols: list[int], delim: str, n_fields: int, path: Path
     """Parse the rows after the header line of ``text`` (the whole file; ``n_fields`` fields
     per row): the compiled parser where it converts every field exactly, else np.loadtxt."""
     end = text.find(b"\n")
-    fast = parse_numbers(text[end + 1:], n_fields, usecols, delim) if end >= 0 else None
-    if fast is not None:
-        return fast
+    if end >= 0 and len(text) - end > COMPILED_PARSE_MIN_BYTES:
+        from imunoise.daq.readers.csv_numbers import parse_numbers  # imports numba
+
+        fast = parse_numbers(text[end + 1:], n_fields, usecols, delim)
+        if fast is not None:
+            return fast
 
     def attempt(buf: bytes) -> np.ndarray:
         return np.loadtxt(io.BytesIO(buf), delimiter=delim, usecols=usecols, dtype=np.float64,

@@ -14,6 +14,10 @@ It converts only what it can convert exactly and gives up otherwise, leaving the
   (``nan``, ``inf``) make it give up;
 - every row has as many fields as the header, a blank line makes it give up.
 
+The reader uses it for bodies of at least
+:data:`imunoise.daq.readers.csv_file.COMPILED_PARSE_MIN_BYTES`; below that, importing numba
+and loading the machine code cost more than they save.
+
 Columns not asked for are skipped unread, as ``loadtxt(usecols=...)`` skips them.
 """
 
@@ -35,9 +39,6 @@ def _numba_jit() -> Any:
 
 
 njit = _numba_jit()
-
-MIN_BYTES = 1 << 20
-"""Bodies smaller than this go to ``np.loadtxt``: loading the compiled parser costs more."""
 
 _DELIMITERS = (",", ";", "\t")
 _MAX_DIGITS = 17
@@ -203,8 +204,8 @@ def parse_numbers(body: bytes, n_fields: int, usecols: list[int], delim: str
                   ) -> np.ndarray | None:
     """The columns ``usecols`` of the CSV rows in ``body`` (no header; ``n_fields`` fields per
     row) as a float64 array of shape (rows, len(usecols)), or None when the fast path does not
-    apply (a small body, no numba, or a field it does not convert exactly)."""
-    if _compiled is None or len(body) < MIN_BYTES or delim not in _DELIMITERS:
+    apply (no numba, or a field it does not convert exactly)."""
+    if _compiled is None or delim not in _DELIMITERS:
         return None
     if not usecols or max(usecols) >= n_fields or len(set(usecols)) != len(usecols):
         return None

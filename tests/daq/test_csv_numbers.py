@@ -1,13 +1,15 @@
 """The CSV reader's compiled number parser: the same doubles as np.loadtxt, or it gives up."""
 
 import io
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from imunoise.daq.readers import ReadError, csv_numbers
-from imunoise.daq.readers.csv_file import read_csv
-from imunoise.daq.readers.csv_numbers import MIN_BYTES, parse_numbers
+from imunoise.daq.readers.csv_file import COMPILED_PARSE_MIN_BYTES, read_csv
+from imunoise.daq.readers.csv_numbers import parse_numbers
 
 pytestmark = pytest.mark.skipif(csv_numbers.njit is None, reason="numba is not importable")
 
@@ -35,7 +37,6 @@ def _body(rows: int, seed: int = 0) -> tuple[bytes, np.ndarray]:
 
 def test_same_doubles_as_loadtxt_bit_for_bit():
     body, ref = _body(30_000)
-    assert len(body) > MIN_BYTES
     out = parse_numbers(body, 5, [0, 1, 2, 3, 4], ",")
     assert out is not None, "the fast path gave up on plain numbers"
     assert out.shape == ref.shape
@@ -63,13 +64,11 @@ def test_gives_up_where_it_cannot_be_exact(field):
     assert parse_numbers(("\n".join(lines) + "\n").encode(), 5, [0, 1, 2, 3, 4], ",") is None
 
 
-def test_gives_up_on_blank_lines_short_rows_and_small_bodies():
+def test_gives_up_on_blank_lines_short_rows_and_other_delimiters():
     body, _ = _body(30_000, seed=3)
     assert parse_numbers(body.replace(b"\n", b"\n\n", 1), 5, [0, 1], ",") is None
     assert parse_numbers(body + b"1,2,3\n", 5, [0, 1], ",") is None
     assert parse_numbers(body, 5, [0, 1], " ") is None
-    small, _ = _body(50, seed=3)
-    assert parse_numbers(small, 5, [0, 1], ",") is None
 
 
 def _record_file(tmp_path, rows: int, bad_line: int | None = None):
@@ -87,14 +86,25 @@ def _record_file(tmp_path, rows: int, bad_line: int | None = None):
 
 def test_reader_gives_the_same_record_with_and_without_the_fast_path(tmp_path, monkeypatch):
     p = _record_file(tmp_path, 40_000)
-    assert p.stat().st_size > MIN_BYTES
+    assert p.stat().st_size > COMPILED_PARSE_MIN_BYTES
+    body = p.read_bytes().split(b"\n", 1)[1]
+    assert csv_numbers.parse_numbers(body, 5, [0, 1, 2, 3], ",") is not None  # the fast path
     fast = read_csv(p)
-    monkeypatch.setattr(csv_numbers, "MIN_BYTES", 1 << 62)
+    monkeypatch.setattr(csv_numbers, "_compiled", None)
     slow = read_csv(p)
     for name in ("gyro_x", "gyro_y", "gyro_z"):
         assert np.array_equal(fast.channels[name].values, slow.channels[name].values)
         assert fast.channels[name].fs_hz == slow.channels[name].fs_hz == 100.0
     assert fast.metadata == slow.metadata and fast.warnings == slow.warnings
+
+
+def test_small_files_do_not_load_the_compiled_parser(tmp_path):
+    code = ("import sys; from imunoise.daq.readers.csv_file import read_csv; "
+            f"read_csv({str(_record_file(tmp_path, 200))!r}); "
+            "print('imunoise.daq.readers.csv_numbers' in sys.modules, 'numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split() == ["False", "False"]
 
 
 def test_reader_still_names_the_bad_line_of_a_big_file(tmp_path):
