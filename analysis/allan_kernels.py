@@ -275,8 +275,12 @@ def diff_products(v: np.ndarray) -> tuple[float, float, float]:
 
 
 def groups(ms: np.ndarray, stops: np.ndarray) -> list[np.ndarray]:
-    """Indices of ``ms`` (with terms) in sweeps of at most ``GROUP_MAX`` nearby m each (the
-    largest m of a sweep exceeds its smallest by at most ``_CHUNK``)."""
+    """Indices of ``ms`` (with terms) in sweeps of at most ``GROUP_MAX`` m each, in increasing
+    m. Up to ``_CHUNK`` the largest m of a sweep exceeds its smallest by at most ``_CHUNK``: all
+    three phase windows of its m then overlap in the cache. Beyond, the windows of different m
+    never overlap, but the first is common to every m of a sweep: sharing it instead of
+    reading it once per m took the 38 m above ``_CHUNK`` of a 1e7-sample curve from 290 ms to
+    175 ms. The sums do not depend on the grouping."""
     order = np.argsort(ms, kind="stable")
     order = order[stops[order] > 0]
     out: list[np.ndarray] = []
@@ -285,7 +289,7 @@ def groups(ms: np.ndarray, stops: np.ndarray) -> list[np.ndarray]:
         if (
             k == order.size
             or k - first >= GROUP_MAX
-            or ms[order[k]] - ms[order[first]] > _CHUNK
+            or (ms[order[first]] <= _CHUNK and ms[order[k]] - ms[order[first]] > _CHUNK)
         ):
             out.append(order[first:k])
             first = k

@@ -190,3 +190,28 @@ def test_noise_identification_is_the_same_with_and_without_the_kernels(restore_s
         assert np.array_equal(on.alpha, off.alpha)
         assert np.array_equal(on.edf, off.edf)
         np.testing.assert_allclose(on.dev, off.dev, rtol=1e-13)
+
+
+def test_sweeps_group_nearby_m_and_share_the_first_window_beyond_a_chunk():
+    ms = np.unique(np.round(np.logspace(0, np.log10(2.5e6), 110)).astype(np.int64))
+    stops = 10_000_000 - 2 * ms
+    stops[5] = 0  # an m without terms is in no sweep
+    found = allan_kernels.groups(ms, stops)
+    flat = np.concatenate(found)
+    assert sorted(flat.tolist()) == [j for j in range(ms.size) if j != 5]
+    assert np.all(np.diff(ms[flat]) > 0)
+    chunk = allan_kernels._CHUNK
+    for g in found:
+        assert 1 <= g.size <= allan_kernels.GROUP_MAX
+        if ms[g[0]] <= chunk:
+            assert ms[g[-1]] - ms[g[0]] <= chunk
+    assert any(g.size > 1 and ms[g[0]] > chunk for g in found)
+
+
+def test_sums_do_not_depend_on_the_grouping():
+    u = np.cumsum(np.random.default_rng(4).standard_normal(300_000))
+    ms = np.array([1, 3, 40, 900, 17_000, 20_000, 33_000, 70_000], dtype=np.int64)
+    stops = u.size - 2 * ms
+    together = allan_kernels.oadev_sums(u, ms, stops)
+    alone = [allan_kernels.oadev_sums(u, ms[j:j + 1], stops[j:j + 1])[0] for j in range(ms.size)]
+    assert together.tolist() == alone
