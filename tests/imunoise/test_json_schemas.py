@@ -152,3 +152,24 @@ def test_the_schemas_accept_the_parts_being_added(documents):
     analyze = copy.deepcopy(documents["analyze"][0])
     analyze["coherence"] = {"pairs": []}
     validator("analyze").validate(analyze)
+
+
+def test_a_filter_replacement_follows_the_schema(tmp_path):
+    """A real diagnose document whose first suggestion replaces the model's filter (action
+    "replace", with its label) validates, and an action outside the contract's does not."""
+    from imunoise.analysis.noise_stream import simulate
+
+    fs, n = 50.0, 360_000  # 2 h: a Bartlett window given to the model as a low-pass
+    x = simulate([("white", {"N": 3e-4}), ("bias_instability", {"B": 5e-5}),
+                  ("random_walk", {"K": 2e-6}), ("bartlett", {"taps": 3.0})], n, fs, rng=2)
+    path = tmp_path / "bartlett.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) / fs, x]), delimiter=",",
+               header="t,gyro_x", comments="", fmt="%.10g")
+    doc = _cli(["diagnose", str(path), "--channel", "gyro_x", "--model",
+                "white,bias_instability,random_walk,lowpass"])
+    top = doc["suggestions"][0]
+    assert (top["action"], top["label"], top["significant"]) == \
+        ("replace", "lowpass by bartlett", True)
+    validator("diagnose").validate(doc)
+    assert not validator("diagnose").is_valid(_broken(doc, ["suggestions", 0, "action"],
+                                                      "swap"))
