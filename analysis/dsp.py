@@ -67,6 +67,17 @@ def detrend_linear(x: np.ndarray, axis: int = -1) -> np.ndarray:
     return np.moveaxis(centred - slope[..., None] * t, -1, axis)
 
 
+def periodogram_sum(x: np.ndarray, window: np.ndarray, step: int, nseg: int) -> np.ndarray:
+    """Sum of ``|rfft(window * (s - mean(s)))|^2`` over the first ``nseg`` segments ``s`` of
+    ``x`` of the window's length, ``step`` samples apart (units^2 per bin, unnormalised): the
+    Welch step both :func:`welch_density` and the PSD cascade
+    (:mod:`imunoise.analysis.psd`) accumulate."""
+    segs = np.lib.stride_tricks.sliding_window_view(x, len(window))[::step][:nseg]
+    segs = segs - segs.mean(axis=1, keepdims=True)
+    spec = np.fft.rfft(segs * window, axis=1)
+    return np.sum(spec.real**2 + spec.imag**2, axis=0)
+
+
 def welch_density(x: np.ndarray, fs_hz: float, window: np.ndarray | int,
                   step: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One-sided Welch PSD of ``x`` (units^2/Hz) at its frequencies (Hz): segments of the
@@ -84,11 +95,8 @@ def welch_density(x: np.ndarray, fs_hz: float, window: np.ndarray | int,
     per = max(1, WELCH_CHUNK // L)
     for first in range(0, nseg, per):
         k = min(per, nseg - first)
-        segs = np.lib.stride_tricks.sliding_window_view(
-            x[first * step:first * step + (k - 1) * step + L], L)[::step]
-        segs = segs - segs.mean(axis=1, keepdims=True)
-        spec = np.fft.rfft(segs * w, axis=1)
-        total += np.sum(spec.real**2 + spec.imag**2, axis=0)
+        total += periodogram_sum(x[first * step:first * step + (k - 1) * step + L], w, step,
+                                 k)
     p = total / nseg / (fs_hz * float(np.sum(w * w)))
     p[1:-1 if L % 2 == 0 else None] *= 2.0
     return np.fft.rfftfreq(L, 1.0 / fs_hz), p

@@ -47,7 +47,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from imunoise.analysis.distributions import chi2
-from imunoise.analysis.dsp import fir_response, hann, lowpass_fir, welch_density
+from imunoise.analysis.dsp import (
+    fir_response,
+    hann,
+    lowpass_fir,
+    periodogram_sum,
+    welch_density,
+)
 from imunoise.core.series import SAMPLE_LIMIT
 
 _FIR_TAPS = lowpass_fir(47, 0.3, beta=10.0)
@@ -255,10 +261,7 @@ class _Level:
             self.pending = buf.copy()
             return
         nseg = 1 + (len(buf) - L) // step
-        segs = np.lib.stride_tricks.sliding_window_view(buf, L)[::step][:nseg]
-        segs = segs - segs.mean(axis=1, keepdims=True)
-        spec = np.fft.rfft(segs * self.window, axis=1)
-        self.pgram_sum += np.sum(spec.real**2 + spec.imag**2, axis=0)
+        self.pgram_sum += periodogram_sum(buf, self.window, step, nseg)
         r = self.run_segments + np.arange(nseg)
         lags = np.minimum(r, len(self.rho2_cum) - 1)
         self.dof_denominator += float(np.sum(1.0 + 2.0 * self.rho2_cum[lags]))
