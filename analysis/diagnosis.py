@@ -354,22 +354,29 @@ def _psd_rises(ctx: _Context, after: FitResult) -> bool:
                   (part or {}).get("bins", 0) / PSD_BIN_CORRELATION)
 
 
+def _fit_model(ctx: _Context, spec: ModelSpec, profile_terms: set[int] | None = None
+               ) -> FitResult | None:
+    """``spec`` fitted to the channel exactly as ``imunoise fit --model`` fits it (None where
+    it cannot be fitted); ``profile_terms``: the terms whose intervals are profiled (None:
+    every term's)."""
+    needs = any(get_term(n).needs_record == "temperature" for n in spec.names)
+    try:
+        return fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
+                          temperature=ctx.temp_at if needs else None, memo=ctx.memo,
+                          intervals="jacobian", profile_terms=profile_terms)[0]
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
 def _fit_appended(ctx: _Context, term: str, pinned: dict[str, float]
                   ) -> tuple[FitResult | None, ModelSpec]:
     spec = ModelSpec(ctx.spec.entries + (Entry(term, pinned),))
-    needs = any(get_term(n).needs_record == "temperature" for n in spec.names)
-    try:
-        # the suggestion reports the appended term's intervals; the white level's tells
-        # whether the term took its place (_imitation)
-        reported = {i for i, n in enumerate(spec.names) if n == "white"}
-        if ctx.profile_added:
-            reported.add(len(ctx.spec))
-        after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
-                              temperature=ctx.temp_at if needs else None, memo=ctx.memo,
-                              intervals="jacobian", profile_terms=reported)
-    except (ValueError, np.linalg.LinAlgError):
-        after = None
-    return after, spec
+    # the suggestion reports the appended term's intervals; the white level's tells whether
+    # the term took its place (_imitation)
+    reported = {i for i, n in enumerate(spec.names) if n == "white"}
+    if ctx.profile_added:
+        reported.add(len(ctx.spec))
+    return _fit_model(ctx, spec, reported), spec
 
 
 def _spectrum_pin(ctx: _Context, after: FitResult, own_model: bool = True) -> Any:
@@ -475,6 +482,24 @@ def _imitation(ctx: _Context, after: FitResult | None, index: int | None = None
     return None
 
 
+def _combined_logp(ctx: _Context, sources: list[float]) -> float:
+    """Log p-value of a suggestion from its sources' (log p-values): the smallest,
+    Bonferroni-corrected over the sources and over the candidates (0: no evidence)."""
+    if not sources:
+        return 0.0
+    return float(min(0.0, min(sources) + np.log(len(sources)) + np.log(ctx.n_candidates)))
+
+
+def _held_back(imitation: str | None, rises: bool) -> tuple[str, str]:
+    """``(held_by, held_reason)`` of a refit that would lower the error but may not be
+    applied: its solution is not identifiable, or it raises a part of the error."""
+    if imitation is not None:
+        return "identifiability", f"not identifiable: {imitation}."
+    if rises:
+        return "rise", "it raises a part of the error beyond its noise."
+    return "", ""
+
+
 def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     """Refit with ``term`` and weigh the fall of the error with the evidence."""
     base, before = ctx.base, ctx.base.chi2_per_dof
@@ -501,9 +526,7 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         # A sinusoid big enough to bend the Allan curve is a line in the spectrum; with no
         # line where the refit put it, the Allan improvement is some other bump.
         sources = [_logp(ev.p_value)]
-    # Bonferroni over the sources and over the candidates, in log form.
-    logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(ctx.n_candidates)) \
-        if sources else 0.0
+    logp = _combined_logp(ctx, sources)
     params: dict[str, float] = {}
     ci: dict[str, tuple[float, float]] = {}
     chi_after = float("nan")
@@ -520,13 +543,10 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     why = _why(term, rng, before, chi_after, supporting)
     imitation = _imitation(ctx, after)
     rises = after is not None and _parts_rise(ctx, after, psd_after)
-    held_by, held_reason = "", ""
+    held_by, held_reason = _held_back(imitation, rises)
     if imitation is not None:
-        held_by, held_reason = "identifiability", f"not identifiable: {imitation}."
         why += f" Not identifiable: {imitation}."
     if rises:
-        held_by = held_by or "rise"
-        held_reason = held_reason or "it raises a part of the error beyond its noise."
         why += " It raises a part of the error beyond its noise."
     error_after = {} if after is None else _error_after(after, psd_after)
     if pinned and get_term(term).kind == "filter":
@@ -646,12 +666,7 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
     spec = ModelSpec(entries[:index] + entries[index + 1:])
     before = ctx.base.chi2_per_dof
     k = len(get_term(entry.name).params) - len(entry.fixed)
-    try:
-        after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
-                              temperature=ctx.temp_at if "temperature" in spec.names else None,
-                              memo=ctx.memo, intervals="jacobian")
-    except (ValueError, np.linalg.LinAlgError):
-        after = None
+    after = _fit_model(ctx, spec)
     tf = ctx.base.terms[index]
     amp = get_term(entry.name).amplitude
     bound = tf.ci95.get(amp, (float("nan"),) * 2)[1]
@@ -722,13 +737,8 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     spec = ModelSpec(entries[:index] + (Entry(new, {}),) + entries[index + 1:])
     before = ctx.base.chi2_per_dof
     label = f"{old} by {new}"
-    try:
-        reported = {i for i, n in enumerate(spec.names) if n == "white"} | {index}
-        after, _ = fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
-                              temperature=ctx.temp_at if "temperature" in spec.names else None,
-                              memo=ctx.memo, intervals="jacobian", profile_terms=reported)
-    except (ValueError, np.linalg.LinAlgError):
-        after = None
+    after = _fit_model(ctx, spec, {i for i, n in enumerate(spec.names) if n == "white"}
+                       | {index})
     why = f"The shortest taus may follow a {new} filter better than the model's {old}."
     if after is None:
         return Suggestion(term=new, params={}, ci95={}, chi2_per_dof_before=before,
@@ -743,8 +753,7 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     psd_logp = _psd_logp(ctx, psd_after, 1)
     if psd_logp < 0.0:
         sources.append(psd_logp)
-    logp = min(0.0, min(sources) + np.log(len(sources)) + np.log(ctx.n_candidates)) \
-        if sources else 0.0
+    logp = _combined_logp(ctx, sources)
     tf = after.terms[index]
     why = (f"Replacing {old} by a {new} filter brings chi2/dof from {before:.3g} to "
            f"{after.chi2_per_dof:.3g}")
@@ -754,11 +763,7 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     why += " with as many parameters."
     imitation = _imitation(ctx, after, index)
     rises = _parts_rise(ctx, after, psd_after)
-    held_by, held_reason = "", ""
-    if imitation is not None:
-        held_by, held_reason = "identifiability", f"not identifiable: {imitation}."
-    elif rises:
-        held_by, held_reason = "rise", "it raises a part of the error beyond its noise."
+    held_by, held_reason = _held_back(imitation, rises)
     if held_reason:
         why += " " + held_reason[0].upper() + held_reason[1:]
     return Suggestion(
