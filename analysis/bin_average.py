@@ -42,18 +42,20 @@ def sin4_table(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray) ->
     return out
 
 
-_TABLES: OrderedDict[tuple[bytes, bytes, bytes], np.ndarray] = OrderedDict()
+_TABLES: OrderedDict[tuple, np.ndarray] = OrderedDict()
 _TABLES_SIZE = 16
 _TABLES_LOCK = threading.Lock()
 
 
-def sin4_table_shared(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray
-                      ) -> np.ndarray:
+def sin4_table_shared(m: np.ndarray, um: np.ndarray, ua: np.ndarray, ub: np.ndarray,
+                      bins_key: tuple | None = None) -> np.ndarray:
     """:func:`sin4_table`, remembered by the values of ``m``, ``ua`` and ``ub`` (``um`` is
     their mid-point): a fit that moves a filter's parameters rebuilds the same frequency grid
-    again and again. The table returned is read-only."""
-    key = (np.ascontiguousarray(m, dtype=np.float64).tobytes(),
-           np.ascontiguousarray(ua).tobytes(), np.ascontiguousarray(ub).tobytes())
+    again and again. ``bins_key`` names the bins where the caller has a name for them (their
+    bytes are then not hashed on every call). The table returned is read-only."""
+    m_key = np.ascontiguousarray(m, dtype=np.float64).tobytes()
+    key = (m_key, "bins", bins_key) if bins_key is not None else \
+        (m_key, np.ascontiguousarray(ua).tobytes(), np.ascontiguousarray(ub).tobytes())
     with _TABLES_LOCK:
         hit = _TABLES.get(key)
         if hit is not None:

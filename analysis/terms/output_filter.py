@@ -73,19 +73,22 @@ def avar_from_autocovariance(r: np.ndarray, m: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _bins(u_lo: float, n_lin: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bins ``(ua, ub, um)`` in ``u = f/fs`` from ``u_lo`` to 1/2: 60 log-spaced per decade
-    joined with ``n_lin`` linear ones (read-only; a fit moving a filter's parameters asks for
-    the same bins again and again)."""
+def _bins(u_lo: float, n_lin: int) -> tuple[np.ndarray, ...]:
+    """Bins ``(ua, ub, um, width, sin2)`` in ``u = f/fs`` from ``u_lo`` to 1/2: 60 log-spaced
+    per decade joined with ``n_lin`` linear ones, with their widths and ``sin^2(pi um)``
+    (read-only; a fit moving a filter's parameters asks for the same bins again and
+    again)."""
     decades = math.log10(0.5 / u_lo)
     log_edges = np.geomspace(u_lo, 0.5, int(decades * 60) + 2)
     lin = np.linspace(0.0, 0.5, n_lin + 1)
     edges = np.unique(np.concatenate((log_edges, lin[lin > u_lo])))
     ua, ub = edges[:-1], edges[1:]
     um = 0.5 * (ua + ub)
-    for a in (ua, ub, um):
+    width = ub - ua
+    sin2 = np.sin(np.pi * um) ** 2
+    for a in (ua, ub, um, width, sin2):
         a.setflags(write=False)
-    return ua, ub, um
+    return ua, ub, um, width, sin2
 
 
 def _symmetric(r: np.ndarray) -> np.ndarray:
@@ -258,32 +261,34 @@ class OutputFilter(Term):
                tuple(sorted(params.items())), m[near].tobytes())
 
         def make() -> np.ndarray:
-            ua, ub, um, gain = self._grid(fs_hz, params, float(m[near].max()))
-            width = ub - ua
+            bins_key, (ua, ub, um, width, sin2), excess = self._grid(
+                fs_hz, params, float(m[near].max()))
             s = term.psd(um * fs_hz, fs_hz, **{**shape, term.amplitude: 1.0})
-            smooth = 0.5 * fs_hz * s * (gain - 1.0) * 4.0 / np.sin(np.pi * um) ** 2 * width
+            smooth = 0.5 * fs_hz * s * excess * 4.0 / sin2 * width
             mm = m[near][:, None]
-            return np.sum(sin4_table_shared(mm, um, ua, ub) * smooth, axis=1) / (m[near] ** 2)
+            return np.sum(sin4_table_shared(mm, um, ua, ub, bins_key) * smooth,
+                          axis=1) / (m[near] ** 2)
 
         out[near] = self._remember(key, make) * float(p[term.amplitude]) ** 2
         return out
 
     def _grid(self, fs_hz: float, params: dict[str, float], m_max: float
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+              ) -> tuple[tuple[float, int], tuple[np.ndarray, ...], np.ndarray]:
         """Bins in ``u = f/fs`` (log-spaced from well below ``1/m_max``, linear and fine enough
-        for the response's ripple near Nyquist) and ``|G|^2`` at their mid-points."""
+        for the response's ripple near Nyquist): the key that names them, :func:`_bins`, and
+        ``|G|^2 - 1`` at their mid-points."""
         # the grid is shared by every m_max of one tenth of an octave, and is a function of
         # that tenth alone: which m_max asked first must not change the result
         octave = math.ceil(10.0 * math.log2(max(m_max, 1.0))) / 10.0
 
-        def make() -> tuple[np.ndarray, ...]:
+        def make() -> tuple[tuple[float, int], tuple[np.ndarray, ...], np.ndarray]:
             length = max(self.length(fs_hz, params), 1.0)
             u_lo = 1e-3 / 2.0 ** octave
             # a response with ripple (a moving average's sidelobes, period fs/L) needs a
             # few dozen points per lobe; a smooth one only the log grid and a coarse cover
             n_lin = int(min(max(32.0 * length, 512.0), 8192.0)) if self.ripple else 256
-            ua, ub, um = _bins(u_lo, n_lin)
-            return ua, ub, um, self.response(um * fs_hz, fs_hz, params)
+            bins = _bins(u_lo, n_lin)
+            return (u_lo, n_lin), bins, self.response(bins[2] * fs_hz, fs_hz, params) - 1.0
         return self._remember(("grid", fs_hz, tuple(sorted(params.items())), octave), make)
 
     def simulator(self, params, fs_hz, rng, **options):
