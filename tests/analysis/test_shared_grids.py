@@ -44,7 +44,8 @@ def test_kept_grid_cannot_be_changed_by_a_caller():
 
 def test_shared_sin4_table_is_the_table_and_keyed_by_values():
     bin_average._TABLES.clear()
-    ua, ub, um = _bins(1e-3 / 2**14, 512)
+    ua, ub, um, width, sin2 = _bins(1e-3 / 2**14, 512)
+    assert np.array_equal(width, ub - ua) and np.array_equal(sin2, np.sin(np.pi * um) ** 2)
     m = np.array([[1.0], [2.0], [64.0], [4096.0]])
     got = sin4_table_shared(m, um, ua, ub)
     assert np.array_equal(got, sin4_table(m, um, ua, ub))
@@ -52,6 +53,10 @@ def test_shared_sin4_table_is_the_table_and_keyed_by_values():
     assert not got.flags.writeable
     other = sin4_table_shared(m * 2.0, um, ua, ub)
     assert other is not got and len(bin_average._TABLES) == 2
+    # bins named by a key: found by the key and m, the same table as by their values
+    named = sin4_table_shared(m, um, ua, ub, (1e-3 / 2**14, 512))
+    assert np.array_equal(named, got) and len(bin_average._TABLES) == 3
+    assert sin4_table_shared(m.copy(), um, ua, ub, (1e-3 / 2**14, 512)) is named
 
 
 def test_filtered_model_is_the_same_whatever_was_evaluated_before():
