@@ -279,7 +279,7 @@ def _running_sum_split(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Prefix sums U (U[0] = 0, N + 1 points) of ``u`` as a float64 pair ``hi + lo``, summed in
     double-double by the compiled kernel (else in long double): differences of U over m points
     then keep full float64 precision even when U itself is large."""
-    if allan_kernels.enabled("mdev"):
+    if allan_kernels.enabled("mdev", u.size):
         # the same sums carried in double-double: as exact, without the slow long double
         return allan_kernels.running_sum_split(u, float(u.mean()))
     uu = np.empty(u.size + 1, dtype=np.longdouble)
@@ -330,7 +330,7 @@ def segment_sums(
         e = -int(np.floor(np.log2(peak)))
         sums, counts = segment_sums(np.ldexp(u, e), ms, kind, workers)
         return np.ldexp(sums, -2 * e), counts
-    compiled = allan_kernels.enabled(kind)
+    compiled = allan_kernels.enabled(kind, n)
     if kind == "mdev":
         hi, lo = _running_sum_split(u)
         counts = np.maximum(n - 3 * ms + 1, 0).astype(np.int64)
@@ -652,7 +652,7 @@ class _MdevAt:
             hi, lo = _running_sum_split(np.ldexp(u, e) if e else u)
             self.split = (hi, lo, e)
         hi, lo, e = self.split
-        kernel = allan_kernels.mdev_sum if allan_kernels.enabled("mdev") else _mdev_sum
+        kernel = allan_kernels.mdev_sum if allan_kernels.enabled("mdev", n) else _mdev_sum
         total = np.array([kernel(hi, lo, int(m))])
         return (np.ldexp(total, -2 * e) if e else total), np.array([count], dtype=np.int64)
 

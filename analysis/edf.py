@@ -408,7 +408,7 @@ def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
     noise identification on long records.
     """
     n = v.size - 1
-    if allan_kernels.enabled("noise_id"):
+    if allan_kernels.enabled("noise_id", v.size):
         zz, p, s1 = allan_kernels.diff_products(v)  # one pass, also over a strided view
     else:
         zz, p = _diff_products(v)

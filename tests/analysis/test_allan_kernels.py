@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imunoise.analysis import allan_kernels
+from imunoise.analysis import allan_compiled, allan_kernels
 from imunoise.analysis.allan import allan
 from imunoise.analysis.streaming_allan import StreamingAllan
 
@@ -123,6 +123,48 @@ def test_environment_variable_selects_numpy():
     assert out.stdout.strip() == "False"
 
 
+def test_short_records_take_the_numpy_path_without_importing_numba():
+    # the automatic switch: a command on a short record never pays for loading the kernels
+    env = {k: v for k, v in os.environ.items() if k != "IMUNOISE_ALLAN_KERNEL"}
+    code = (
+        "import sys, numpy as np\n"
+        "from imunoise.analysis.allan import allan\n"
+        "from imunoise.analysis import allan_kernels as k\n"
+        "y = np.random.default_rng(1).standard_normal(50_000)\n"
+        "for kind in ('oadev', 'ohdev', 'mdev'):\n"
+        "    allan(y, 100.0, kind)\n"
+        "print(k._state['switch'], 'numba' in sys.modules, 'llvmlite' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.split() == ["auto", "False", "False"]
+
+
+def test_the_automatic_switch_goes_by_length(monkeypatch):
+    monkeypatch.setitem(allan_kernels._state, "switch", "auto")
+    monkeypatch.setattr(allan_kernels, "COMPILED_MIN_POINTS", 4096)
+    assert not allan_kernels.enabled("oadev", 4095)
+    assert allan_kernels.enabled("oadev", 4096)
+    assert allan_kernels.enabled("noise_id")  # no length: the streaming estimator's calls
+    allan_kernels.set_enabled(False)
+    assert not allan_kernels.enabled("oadev", 10**8)
+    allan_kernels.set_enabled(True)
+    assert allan_kernels.enabled("mdev", 10)
+    with pytest.raises(ValueError, match="True, False or 'auto'"):
+        allan_kernels.set_enabled("sometimes")
+
+
+def test_environment_variable_forces_the_kernels():
+    env = dict(os.environ, IMUNOISE_ALLAN_KERNEL="numba")
+    code = "from analysis import allan_kernels as k; "\
+        "print(k._state['switch'], k.enabled('oadev', 5))"
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.split() == ["True", "True"]
+
+
 def test_running_sum_split_carries_the_exact_prefix_sum():
     # hi + lo against exact rational sums: within about 2^-100 of the sum, far beyond float64
     from fractions import Fraction
@@ -141,7 +183,7 @@ def test_running_sum_split_carries_the_exact_prefix_sum():
             assert float(hi[k + 1]) == float(exact)  # hi is the sum rounded once
 
 
-def test_mdev_of_a_random_walk_is_exact_where_long_double_was_not():
+def test_mdev_of_a_random_walk_is_exact_where_long_double_was_not(restore_switch):
     # at m = 1 the third difference of the prefix sum is the second difference of the phase:
     # the double-double sums give it to 1e-15; the long double ones were 3e-11 off here
     import math
@@ -200,9 +242,9 @@ def test_sweeps_group_nearby_m_and_share_the_first_window_beyond_a_chunk():
     flat = np.concatenate(found)
     assert sorted(flat.tolist()) == [j for j in range(ms.size) if j != 5]
     assert np.all(np.diff(ms[flat]) > 0)
-    chunk = allan_kernels._CHUNK
+    chunk = allan_compiled._CHUNK
     for g in found:
-        assert 1 <= g.size <= allan_kernels.GROUP_MAX
+        assert 1 <= g.size <= allan_compiled.GROUP_MAX
         if ms[g[0]] <= chunk:
             assert ms[g[-1]] - ms[g[0]] <= chunk
     assert any(g.size > 1 and ms[g[0]] > chunk for g in found)
