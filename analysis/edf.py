@@ -400,15 +400,19 @@ def _diff_products(v: np.ndarray) -> tuple[float, float]:
     return zz, p
 
 
-def lag1_acf_detrended_from_phase(v: np.ndarray) -> float:
+def lag1_acf_detrended_from_phase(v: np.ndarray, points: int | None = None) -> float:
     """Lag-1 autocorrelation of ``z = diff(v)`` after removing its least-squares line.
 
     Equal to ``lag1_acf(_detrend(diff(v), 1))`` but computed from five reductions (sums,
     dot products) instead of building the detrended series: it is the inner loop of the
-    noise identification on long records.
+    noise identification on long records. ``points``: the length of the phase ``v`` was
+    decimated from (default ``v.size``), which decides whether the compiled kernel runs
+    (``allan_kernels.enabled``).
     """
     n = v.size - 1
-    if allan_kernels.enabled("noise_id", v.size):
+    # the kernel switch goes by the phase ``v`` was decimated from (``points``), so that one
+    # record's taus all take the same path
+    if allan_kernels.enabled("noise_id", v.size if points is None else points):
         zz, p, s1 = allan_kernels.diff_products(v)  # one pass, also over a strided view
     else:
         zz, p = _diff_products(v)
@@ -467,7 +471,7 @@ def noise_id_lag1_phase(
         if data_type == "freq":
             v = u[::mi]
             if v.size - 1 >= LAG1_MIN_POINTS:
-                r1 = lag1_acf_detrended_from_phase(v)
+                r1 = lag1_acf_detrended_from_phase(v, u.size)
                 rho = r1 / (1.0 + r1) if r1 != -1.0 else -0.5
                 if rho < 0.25 or dmax == 0:
                     res = (int(-round(2.0 * rho)), -2.0 * rho)
