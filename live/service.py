@@ -89,6 +89,10 @@ class LiveService:
         self._acq_done = threading.Event()
         self._abandon = False  # stopped while acquiring: running fits are abandoned
         self._threads: list[threading.Thread] = []
+        # held while the threads start: a stop that arrives meanwhile (from a sink or a
+        # signal) waits for both to exist, so that it joins the acquisition; reentrant for
+        # a signal handler that runs on the starting thread
+        self._life = threading.RLock()
         self._lock = threading.Lock()
         self.samples_received = 0
         self.blocks_received = 0
@@ -107,11 +111,12 @@ class LiveService:
     def start(self) -> LiveService:
         """Start the acquisition and analysis threads."""
         self.started_at = time.time()
-        for target, name in ((self._acquire, "imunoise-acquisition"),
-                             (self._analyse, "imunoise-analysis")):
-            t = threading.Thread(target=target, name=name, daemon=True)
-            t.start()
-            self._threads.append(t)
+        with self._life:
+            for target, name in ((self._acquire, "imunoise-acquisition"),
+                                 (self._analyse, "imunoise-analysis")):
+                t = threading.Thread(target=target, name=name, daemon=True)
+                t.start()
+                self._threads.append(t)
         return self
 
     def stop_acquisition(self) -> None:
@@ -138,13 +143,15 @@ class LiveService:
         self._abandon = self._abandon or not self._acq_done.is_set()
         self._stop.set()
         self._stop_source()
+        with self._life:
+            threads = list(self._threads)
         # the acquisition thread first: every block it took reaches the sinks
-        for t in self._threads[:1]:
+        for t in threads[:1]:
             t.join(timeout)
         closer = getattr(self.analyzers, "close", None)
         if self._abandon and callable(closer):
             closer()  # a fit running in the worker process is abandoned, not awaited
-        for t in self._threads[1:]:
+        for t in threads[1:]:
             t.join(timeout)
         if not self._abandon and callable(closer):
             closer()

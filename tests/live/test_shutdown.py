@@ -228,3 +228,31 @@ def test_a_stop_in_the_middle_of_a_batch_still_records_every_sample_read() -> No
     assert not sink.stopper.is_alive() and sink.closed
     # the batch's other two blocks and the last read reach the file: 4 blocks of 10
     assert sink.samples == source.stats.samples == 40
+
+
+def test_a_stop_while_the_threads_start_still_waits_for_the_acquisition(monkeypatch) -> None:
+    # the starting thread is descheduled right after the acquisition starts: the stop that
+    # the first block triggers must still join the acquisition, not find no thread to join
+    start = threading.Thread.start
+
+    def slow_start(thread: threading.Thread) -> None:
+        start(thread)
+        if thread.name == "imunoise-acquisition":
+            time.sleep(0.3)
+
+    class _SlowAfterTheFirstSink(_StopOnFirstBlockSink):
+        def write(self, block) -> None:
+            if self.stopper is not None:
+                time.sleep(0.2)  # a stop returning early finds these blocks not written yet
+            super().write(block)
+
+    monkeypatch.setattr(threading.Thread, "start", slow_start)
+    source = _BatchedSource()
+    sink = _SlowAfterTheFirstSink()
+    svc = LiveService(source, _GatedAnalysis(), sinks=[sink])
+    sink.svc = svc
+    svc.start()
+    assert sink.stopper is not None  # the stop arrived while start() was under way
+    sink.stopper.join(30)
+    assert not sink.stopper.is_alive() and sink.closed
+    assert sink.samples == source.stats.samples == 40
