@@ -30,6 +30,7 @@ from imunoise.live.kernel_workers import (
     KernelWorkerKeeper,
     WorkerLedger,
     is_unbound_worker,
+    process_name,
     process_start,
     processes,
     worker_name,
@@ -39,8 +40,16 @@ from tests.live_helpers import free_port, wait_until
 REPO = Path(__file__).resolve().parents[2]
 
 
+def _started(child: subprocess.Popen, name: str) -> subprocess.Popen:
+    """``child`` once ``nice`` has handed over to the program: before that the process is
+    named ``nice``, and a worker recorded under that name is not given back (its name no
+    longer matches at the stop)."""
+    assert wait_until(lambda: process_name(child.pid) == name[:15]), f"{name} never started"
+    return child
+
+
 def _sleeper(nice: int = 0) -> subprocess.Popen:
-    return subprocess.Popen(["nice", "-n", str(nice), "sleep", "60"])
+    return _started(subprocess.Popen(["nice", "-n", str(nice), "sleep", "60"]), "sleep")
 
 
 def _only(*children: subprocess.Popen):
@@ -114,7 +123,7 @@ def _named_sleeper(tmp_path: Path, name: str, nice: int = 0) -> subprocess.Popen
     program = tmp_path / name
     if not program.exists():
         shutil.copy(shutil.which("sleep") or "/bin/sleep", program)
-    return subprocess.Popen(["nice", "-n", str(nice), str(program), "60"])
+    return _started(subprocess.Popen(["nice", "-n", str(nice), str(program), "60"]), name)
 
 
 def _can_raise(child: subprocess.Popen) -> bool:
