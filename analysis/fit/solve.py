@@ -34,6 +34,7 @@ from imunoise.analysis.terms import (
     get_term,
     parse_model,
 )
+from imunoise.analysis.terms.output_filter import OutputFilter
 
 _LOSS = "soft_l1"
 
@@ -237,7 +238,10 @@ def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
     sub_params = _unpack(sub_prob.layout, sub_point.theta)
     params = sub_params[:last] + [dict(cold[last])] + sub_params[last:]
     term = get_term(prob.names[last])
-    params[last] = {**params[last], term.amplitude: 1e-300}
+    if isinstance(term, OutputFilter):  # a filter's "zero" is no filtering, not amplitude 0
+        params[last] = {**params[last], **term.identity_params(prob.fs)}
+    else:
+        params[last] = {**params[last], term.amplitude: 1e-300}
     at_zero = _theta_of(prob, params)
     exact = _Point(at_zero, sub_point.used.copy(), _chi2(prob, at_zero))
     return [at_zero] + _residual_starts(prob, params, last, line), exact

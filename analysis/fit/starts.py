@@ -172,8 +172,9 @@ def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
     solver stays in that valley)."""
     names = prob.names
     term = get_term(names[last])
-    if term.linear or term.role == "regressor" or term.kind == "filter" or \
-            not term.shape_params:
+    if isinstance(term, OutputFilter):
+        return _filter_starts(prob, params, last, keep)
+    if term.linear or term.role == "regressor" or not term.shape_params:
         return []
     held = {k: v for (i, k), v in prob.layout.fixed.items() if i == last}
     if len(held) >= len(term.shape_params):
@@ -204,5 +205,50 @@ def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
             amp = get_term(names[j]).amplitude
             trial[j][amp] = math.sqrt(max(float(c), 1e-6 * trial[j][amp] ** 2, 1e-300))
         trial[last] = {**trial[last], **cand, term.amplitude: math.sqrt(float(coef[-1]))}
+        out.append(_theta_of(prob, trial))
+    return out
+
+
+def _filter_starts(prob: _Problem, params: list[dict[str, float]], last: int,
+                   keep: int = 2) -> list[np.ndarray]:
+    """Starts for an output filter appended to a solved smaller model: each candidate of
+    its grid (``OutputFilter.start_grid``) is scored by one weighted NNLS solve of every noise
+    amplitude, each noise term's curve taken through the other filters and the candidate; the
+    ``keep`` best start from that solve. A filter acts on every noise term at once, so the
+    amplitudes move with it: a model that misses elsewhere has a chi2 with several valleys
+    in the filter's parameter, and a single start ends in any of them."""
+    names = prob.names
+    term = get_term(names[last])
+    assert isinstance(term, OutputFilter)
+    held = {k: v for (i, k), v in prob.layout.fixed.items() if i == last}
+    grid = term.start_grid(prob.fs)
+    if not grid or held:
+        return []
+    others = [(n, p) for j, (n, p) in enumerate(zip(names, params, strict=True))
+              if j != last and get_term(n).kind == "filter"]
+    owners = [j for j, n in enumerate(names) if j != last and
+              get_term(n).role != "regressor" and get_term(n).kind != "filter"]
+    if not owners:
+        return []
+    w = np.sqrt(prob.nu0 / 2.0)
+    scored: list[tuple[float, dict[str, float], np.ndarray]] = []
+    for cand in grid:
+        filters = others + [(names[last], cand)]
+        cols = []
+        for j in owners:
+            owner = get_term(names[j])
+            unit = {**params[j], owner.amplitude: 1.0}
+            cols.append(model_avar([(names[j], unit)] + filters, prob.tau, prob.fs,
+                                   checked=False))
+        coef, rnorm = _nnls_weighted(np.stack(cols, axis=1), prob.avar, w)
+        scored.append((rnorm, cand, coef))
+    scored.sort(key=lambda x: x[0])
+    out = []
+    for _, cand, coef in scored[:keep]:
+        trial = [dict(p) for p in params]
+        for j, c in zip(owners, coef, strict=True):
+            amp = get_term(names[j]).amplitude
+            trial[j][amp] = math.sqrt(max(float(c), 1e-6 * trial[j][amp] ** 2, 1e-300))
+        trial[last] = {**trial[last], **cand}
         out.append(_theta_of(prob, trial))
     return out

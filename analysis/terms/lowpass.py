@@ -50,6 +50,16 @@ class Lowpass(OutputFilter):
     def start_params(self, fs_hz):
         return {"fc": 0.3 * fs_hz}
 
+    def identity_params(self, fs_hz):
+        # the upper bound: a pole at Nyquist passes the band almost unchanged
+        return {"fc": 0.5 * fs_hz}
+
+    def start_grid(self, fs_hz):
+        # a cutoff from fs/200 to 0.45 fs, four per octave: the chi2 of a model that misses
+        # elsewhere has several valleys in fc, and the solve from one start ends in whichever
+        # the last bits of the Allan sums favour
+        return [{"fc": float(fc)} for fc in np.geomspace(fs_hz / 200.0, 0.45 * fs_hz, 27)]
+
     def coefficients(self, fs_hz, params):
         a = _pole(fs_hz, float(params["fc"]))
         return np.array([1.0 - a]), np.array([1.0, -a])

@@ -153,6 +153,17 @@ class OutputFilter(Term):
         """Starting parameters of a fit: a mild filter (a real sensor's is short)."""
         return dict(self.small_default)
 
+    def identity_params(self, fs_hz: float) -> dict[str, float]:
+        """The parameters nearest to no filter at all: where a fit that appends this filter
+        to a solved model starts (default: the parameter's lower bound, one tap)."""
+        return {self.amplitude: self.param(self.amplitude).lo}
+
+    def start_grid(self, fs_hz: float) -> list[dict[str, float]]:
+        """Candidate parameters scored on a solved smaller model's residual when this filter
+        is appended to it (see :func:`imunoise.analysis.fit.starts._residual_starts`); empty
+        when the solve from :meth:`identity_params` finds the filter by itself."""
+        return []
+
     def coefficients(self, fs_hz: float, params: dict[str, float]
                      ) -> tuple[np.ndarray, np.ndarray]:
         """``(b, a)`` of the filter as a difference equation (default: the FIR ``g``)."""

@@ -7,8 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from imunoise.analysis.allan import oadev
 from imunoise.analysis.diagnosis import diagnose
 from imunoise.analysis.fit import fit_series
+from imunoise.analysis.fit.layout import _unpack
+from imunoise.analysis.fit.problem import _problem
+from imunoise.analysis.fit.solve import _nested_starts
+from imunoise.analysis.fit.starts import _cold_starts
 from imunoise.analysis.noise_stream import NoiseStream
 from imunoise.analysis.terms import TermError, get_term, model_avar, parse_model
 from imunoise.analysis.terms.output_filter import avar_from_autocovariance
@@ -97,6 +102,29 @@ def test_fit_recovers_a_four_tap_moving_average() -> None:
     n_lo, n_hi = with_filter.terms[0].ci95["N"]
     assert n_lo <= 1e-3 <= n_hi
     assert with_filter.chi2_per_dof < 2.0 < 10.0 < without.chi2_per_dof
+
+
+def test_an_appended_lowpass_starts_from_no_filter_and_near_the_true_cutoff() -> None:
+    # the smaller model's solution with the pole at Nyquist (a pole at fs/1000 would stand
+    # for "no filter" as amplitude 0 does for a noise term, and it filters everything), then
+    # the cutoffs of the grid whose amplitude solve follows the curve best
+    x = NoiseStream([("white", {"N": 1e-3}), ("random_walk", {"K": 1e-5}),
+                     ("lowpass", {"fc": 5.0})], FS, seed=8).take(1 << 19)
+    curve = oadev(x, FS, m="octave")
+    spec = parse_model("white,random_walk,lowpass")
+    prob = _problem(curve, spec, None, 0.10, 200)
+    memo: dict = {}
+    starts, exact = _nested_starts(prob, curve, spec, None, memo, _cold_starts(prob, None)[0])
+    fcs = [_unpack(prob.layout, theta)[2]["fc"] for theta in starts]
+    assert len(fcs) == 3 and fcs[0] == pytest.approx(0.5 * FS, rel=1e-6)
+    # four grid points per octave: the best is within a quarter octave of the truth
+    assert abs(np.log2(fcs[1] / 5.0)) <= 0.25, fcs
+    # so the unsolved start is the smaller model's fit, not a far worse one
+    (_, smaller), = [v for k, v in memo.items() if k[1] == "white,random_walk"]
+    assert exact is not None and exact.chi2 < 1.2 * smaller.chi2, (exact.chi2, smaller.chi2)
+    fitted, _ = fit_series(x, FS, spec)
+    lo, hi = fitted.terms[2].ci95["fc"]
+    assert lo <= 5.0 <= hi, fitted.terms[2]
 
 
 def test_diagnosis_names_the_filter_of_a_filtered_record() -> None:
