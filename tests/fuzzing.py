@@ -587,6 +587,9 @@ class Outcome:
     stderr: str
     seconds: float
     warnings: list[str]
+    cpu_seconds: float = 0.0
+    """Processor time of this process while the command ran: unlike the wall time, not
+    stretched by other work sharing the machine."""
 
     def problems(self) -> list[str]:
         """What is wrong with this outcome (empty when the exit was clean)."""
@@ -619,7 +622,7 @@ def run_cli(argv: list[str]) -> Outcome:
     from imunoise.cli import main
 
     out, err = io.StringIO(), io.StringIO()
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     with warnings.catch_warnings(record=True) as caught, \
             contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         warnings.simplefilter("always")
@@ -631,7 +634,8 @@ def run_cli(argv: list[str]) -> Outcome:
             err.write(traceback.format_exc())
             code = 1
     return Outcome(argv[0], code, out.getvalue(), err.getvalue(), time.perf_counter() - start,
-                   [f"{w.category.__name__}: {w.message}" for w in caught])
+                   [f"{w.category.__name__}: {w.message}" for w in caught],
+                   time.process_time() - cpu_start)
 
 
 def check_repaired(path: Path) -> str | None:

@@ -13,7 +13,6 @@ import json
 import mmap
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -320,9 +319,10 @@ PER_FORMAT = 20  # 12 formats: 240 mutants
 
 def test_mutants_of_every_format_exit_cleanly(tmp_path):
     """Seeded mutants of every seed: each command exits 0 with strict JSON or 2 with one
-    short line, with no Python warning, in bounded time; every MCAP file repair accepts
-    reads in the official reader with CRC validation and in rosbags."""
-    start = time.perf_counter()
+    short line, with no Python warning, in bounded processor time (a mutant that sends a
+    reader round a loop, or after a size it claims, shows there; the wall time also shows
+    what else the machine runs); every MCAP file repair accepts reads in the official reader
+    with CRC validation and in rosbags."""
     problems: list[str] = []
     counts: dict[str, int] = {}
     for case in fz.iter_cases(tmp_path, PER_FORMAT, seed=20261128):
@@ -330,8 +330,8 @@ def test_mutants_of_every_format_exit_cleanly(tmp_path):
         for argv in fz.commands_for(case, tmp_path):
             out = fz.run_cli(argv)
             found = out.problems()
-            if out.seconds > 10:
-                found.append(f"took {out.seconds:.1f} s")
+            if out.cpu_seconds > 10:
+                found.append(f"took {out.cpu_seconds:.1f} s of processor time")
             if argv[0] == "repair" and out.code == 0:
                 bad = fz.check_repaired(Path(argv[-1]))
                 if bad:
@@ -339,7 +339,6 @@ def test_mutants_of_every_format_exit_cleanly(tmp_path):
             problems += [f"{case.fmt} [{case.mutation}] {argv[0]}: {p}" for p in found]
     assert set(counts) == set(fz.FORMATS) and min(counts.values()) == PER_FORMAT
     assert problems == [], "\n".join(problems[:10])
-    assert time.perf_counter() - start < 90  # about 45 s here at a load of 9 on 2 cores
 
 
 # ---- the real exit path --------------------------------------------------------------------
