@@ -169,7 +169,8 @@ def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
     At zero amplitude a log-parameter has no gradient, and the cold starts place the term's
     shape before the other terms are solved (a Markov term then takes a resonance's bump at
     the shortest taus, or a random walk keeps what the Markov term should take, and the
-    solver stays in that valley)."""
+    solver stays in that valley). An output filter has its own grid
+    (:func:`_filter_starts`)."""
     names = prob.names
     term = get_term(names[last])
     if isinstance(term, OutputFilter):

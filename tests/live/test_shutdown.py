@@ -231,25 +231,32 @@ def test_a_stop_in_the_middle_of_a_batch_still_records_every_sample_read() -> No
 
 
 def test_a_stop_while_the_threads_start_still_waits_for_the_acquisition(monkeypatch) -> None:
-    # the starting thread is descheduled right after the acquisition starts: the stop that
-    # the first block triggers must still join the acquisition, not find no thread to join
+    # the starting thread is descheduled right after the acquisition starts, until the first
+    # block has set off the stop: that stop must still join the acquisition, not find no
+    # thread to join
     start = threading.Thread.start
+    stop_sent = threading.Event()
 
     def slow_start(thread: threading.Thread) -> None:
         start(thread)
         if thread.name == "imunoise-acquisition":
-            time.sleep(0.3)
+            assert stop_sent.wait(30), "the first block never arrived"
+            time.sleep(0.1)  # the stop runs meanwhile
 
     class _SlowAfterTheFirstSink(_StopOnFirstBlockSink):
         def write(self, block) -> None:
             if self.stopper is not None:
                 time.sleep(0.2)  # a stop returning early finds these blocks not written yet
+            else:
+                stop_sent.set()  # the stop starts in this call
             super().write(block)
 
     monkeypatch.setattr(threading.Thread, "start", slow_start)
     source = _BatchedSource()
     sink = _SlowAfterTheFirstSink()
-    svc = LiveService(source, _GatedAnalysis(), sinks=[sink])
+    analysis = _GatedAnalysis()
+    analysis.gate.set()
+    svc = LiveService(source, analysis, sinks=[sink])
     sink.svc = svc
     svc.start()
     assert sink.stopper is not None  # the stop arrived while start() was under way
