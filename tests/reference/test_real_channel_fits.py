@@ -207,6 +207,24 @@ def test_adis16405_gyro_z_resonance_is_held_at_the_spectrum_peak(shared_data: Pa
     assert top.error_after["psd"]["deviance_per_bin"] < before / 3
 
 
+def test_adis16405_accel_z_resonance_the_allan_curve_makes_a_line_is_held_at_the_peak(
+        shared_data: Path) -> None:
+    # run 1 accel_z with its Bartlett filter and 0.57 Hz line: the Allan refit puts the new
+    # resonance at 10.5 Hz with Q 1644 (a line; PSD part 6.5 per bin, Allan chi2/dof 5.33),
+    # raising no part, while the spectrum shows a peak of Q 11.8 that the term follows
+    # exactly. Held there the PSD part falls by half and the Allan part does not rise
+    d = np.load(shared_data / "adis16405" / "run1.npz")
+    x = d["accel_counts"][:, 2] * float(d["accel_scale_g"]) * 9.80665
+    diag = diagnose(x, float(d["fs_hz"]), DEFAULT + ",bartlett,sinusoid", holdout=False,
+                    transients=False)
+    top = diag.suggestions[0]
+    assert top.term == "resonance" and top.significant, top.why
+    held = parse_model(top.apply["model"]).entries[-1].fixed
+    assert held["f0"] == pytest.approx(10.16, abs=0.05) and 10 < held["Q"] < 14, held
+    assert top.error_after["psd"]["deviance_per_bin"] < 4.0
+    assert top.chi2_per_dof_after < 5.33
+
+
 def test_adis16405_gyro_z_resonance_that_took_the_white_noise_is_held_at_the_peak(
         shared_data: Path) -> None:
     # run 5: the Allan refit of a resonance leaves the white level unresolved (a broad bump,
