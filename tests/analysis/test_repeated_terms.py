@@ -91,9 +91,9 @@ def test_a_resonance_is_resolved_only_when_its_q_interval_clears_the_no_peak_lim
 def _suggestion(term: str, chi2: float, significant: bool, args: list[str] | None = None,
                 ci95: dict | None = None) -> Suggestion:
     return Suggestion(term=term, params={}, ci95=ci95 or {}, chi2_per_dof_before=10.0,
-                      chi2_per_dof_after=chi2 / 10.0, p_value=0.001 if significant else 0.5,
+                      chi2_per_dof_after=chi2 / 100.0, p_value=0.001 if significant else 0.5,
                       log_p=-7.0 if significant else -0.7, significant=significant, why="",
-                      fit=SimpleNamespace(misfit=SimpleNamespace(chi2=chi2)),
+                      fit=SimpleNamespace(misfit=SimpleNamespace(chi2=chi2, dof=10.0)),
                       apply={"model": "white," + term, "args": args or []})
 
 

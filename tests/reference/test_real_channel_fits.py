@@ -293,6 +293,26 @@ def test_adis16405_accel_x_line_behind_a_lowpass_is_fitted(shared_data: Path) ->
     assert 0.005 < line.params["A"] < 0.015 and line.ci95["A"][0] > 0.0
 
 
+def test_a_drop_within_a_misfit_models_own_scatter_is_not_significant(shared_data: Path
+                                                                      ) -> None:
+    # run 2 accel_x with white, B, K, a Markov term and a low-pass misses by chi2/dof 1236:
+    # quantization takes chi2 from 14836 to 13653 (its chi2/dof rising to 1241) and the PSD
+    # part from 197 to 192 per bin, p = 1e-97 as chi-square(1) drops. Scaled by the refit's
+    # own misfit beyond a right model's range they are p 0.14 and 0.07: not significant,
+    # while the bench line that halves the error stays so
+    d = np.load(shared_data / "adis16405" / "run2.npz")
+    fs = float(d["fs_hz"])
+    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    diag = diagnose(x, fs, DEFAULT + ",gauss_markov,lowpass", holdout=False,
+                    transients=False)
+    assert diag.fit.chi2_per_dof > 1000
+    quant = next(s for s in diag.suggestions if s.term == "quantization")
+    assert quant.fit is not None and quant.fit.misfit.chi2 < 0.95 * diag.fit.misfit.chi2
+    assert not quant.significant and quant.p_value > 0.2, quant.p_value
+    line = next(s for s in diag.suggestions if s.term == "sinusoid")
+    assert line.significant and line.chi2_per_dof_after < diag.fit.chi2_per_dof / 2
+
+
 def test_two_terms_that_describe_the_record_only_together_are_suggested_as_a_pair(
         shared_data: Path) -> None:
     """ADIS16405 run 2 accel_x where the loop stalled (Allan chi2/dof 1240, hold-out 409): a
