@@ -176,7 +176,7 @@ def _dispersion(per_dof: float | None, dof: float) -> float:
     model's misfit per degree of freedom ``per_dof`` over ``dof`` degrees of freedom, divided
     by the most a right model shows (1 + :data:`NOISE_SD` of its standard deviations,
     ``sqrt(2/dof)``), where that exceeds 1; else 1. The misfit of a right model is itself
-    noisy (a chi2/dof of 1.5 over 14 degrees of freedom is 1.4 of its standard deviations
+    noisy (a chi2/dof of 1.5 over 14 degrees of freedom is 1.3 of its standard deviations
     above 1): only misfit beyond that range scales the test."""
     if per_dof is None or not np.isfinite(per_dof):
         return 1.0
@@ -501,8 +501,9 @@ def _psd_after(ctx: _Context, after: FitResult | None) -> dict[str, Any] | None:
 
 def _psd_logp(ctx: _Context, part: dict[str, Any] | None, k: int) -> float:
     """Log p-value of the fall of the PSD deviance with ``k`` added parameters (0 when it
-    does not fall), the fall divided by the larger model's deviance per bin where that
-    exceeds 1 (as :func:`_lr_logp` does the Allan chi2's)."""
+    does not fall), the fall divided by the larger model's dispersion
+    (:func:`_dispersion` of its deviance per bin, as :func:`_lr_logp` does the Allan
+    chi2's)."""
     b, a = _deviance(ctx.psd_before), _deviance(part)
     if not _lowers(b, a, part["bins"] / PSD_BIN_CORRELATION if part else 1.0):
         return 0.0

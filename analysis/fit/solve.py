@@ -48,7 +48,6 @@ _F_SCALE = 3.0
 _CHI2_TIE = 0.05  # chi2 differences below this are the solver's tolerance
 
 
-
 def _solve(layout: _Layout, theta0: np.ndarray, y: np.ndarray, tau: np.ndarray,
            m: np.ndarray, n_terms: np.ndarray, fs: float, max_nfev: int) -> np.ndarray:
     """GLS on ln(avar): whitening from the model at the current point, solved, refreshed once.
