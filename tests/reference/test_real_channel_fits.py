@@ -223,6 +223,9 @@ def test_adis16405_accel_z_resonance_the_allan_curve_makes_a_line_is_held_at_the
     assert held["f0"] == pytest.approx(10.16, abs=0.05) and 10 < held["Q"] < 14, held
     assert top.error_after["psd"]["deviance_per_bin"] < 4.0
     assert top.chi2_per_dof_after < 5.33
+    # the apply model, refitted as `imunoise fit --model` fits it, reports what was stated
+    res, _ = fit_series(x, float(d["fs_hz"]), top.apply["model"])
+    assert res.chi2_per_dof == pytest.approx(top.chi2_per_dof_after, rel=1e-9)
 
 
 def test_adis16405_gyro_z_resonance_that_took_the_white_noise_is_held_at_the_peak(
