@@ -283,11 +283,14 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
     best = _trim(prob, whole.theta)
     # the smaller model's solution itself when every solve does worse: adding a term never
     # raises chi2 (by more than the solver's tolerance). Setting the shortest taus aside costs
-    # chi2 (the parameters then rest on the taus the model can follow); when the new term's
-    # solution on the whole curve has less than half the smaller model's chi2, the term
-    # explains most of the misfit and that solution is kept instead
+    # chi2 (the parameters then rest on the taus the model can follow); the new term's
+    # solution on the whole curve is kept instead when it has less than half the smaller
+    # model's chi2 (the term explains most of the misfit), or when the smaller model itself
+    # rests on every tau: then both stand on the same taus and the lower chi2 is the better
+    # description (a line behind a low-pass whose solution trims the filter's taus)
     if exact is not None and exact.chi2 < best.chi2 - _CHI2_TIE:
-        best = whole if whole.chi2 < _WHOLE_WINS * exact.chi2 else exact
+        same_taus = bool(np.all(exact.used)) and whole.chi2 < exact.chi2 - _CHI2_TIE
+        best = whole if same_taus or whole.chi2 < _WHOLE_WINS * exact.chi2 else exact
     assert best is not None
     return best
 
