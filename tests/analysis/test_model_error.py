@@ -188,3 +188,19 @@ def test_flicker_that_trades_places_with_the_random_walk_is_not_a_change():
     assert b.terms[1].ci95["B"][0] == 0.0 < a.terms[1].ci95["B"][0]
     assert [c["param"] for c in _changed(a, b)] == ["bias_instability.B"]
     assert setup.part(done)["changed"] == []
+
+
+def test_a_half_fit_is_searched_again_only_when_it_misses_beyond_the_wholes_misfit() -> None:
+    from types import SimpleNamespace
+
+    from imunoise.analysis.model_error import _start_misled
+
+    def fit(per_dof: float, dof: int = 12) -> SimpleNamespace:
+        return SimpleNamespace(chi2_per_dof=per_dof, misfit=SimpleNamespace(dof=dof))
+
+    # a misfit model: a half costs no more per degree of freedom than the whole
+    assert _start_misled(fit(6554.0), fit(233.0))
+    assert not _start_misled(fit(138.0), fit(233.0))
+    # a right model (chi2/dof about 1): 1 + 3 sqrt(2/12) = 2.22 is the limit
+    assert not _start_misled(fit(2.2), fit(0.8))
+    assert _start_misled(fit(2.3), fit(0.8))
