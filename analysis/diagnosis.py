@@ -1134,9 +1134,7 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
     A greedy round judges one term at a time. Where the model fails, a term with strong
     evidence can lower the Allan and PSD parts and still predict the other half worse,
     because the terms already in the model take other roles in each half until a second
-    missing term is there too (ADIS16405 run 2 accel_x: a sinusoid at the 0.57 Hz bench
-    line brings the Allan part 1240 -> 631 and the hold-out part 409 -> 1030; with the
-    10 Hz resonance as well the parts are 40, 11 and 20). So, when the given model fails
+    missing term is there too. So, when the given model fails
     and no suggestion is significant, the strongest term held back by the hold-out part is
     applied tentatively and the next round tried on it, with the candidates this round found
     strong evidence for (a resonance that takes the line's place alone moves to another
