@@ -494,9 +494,14 @@ def _deviance(part: dict[str, Any] | None) -> float | None:
 
 
 def _psd_after(ctx: _Context, after: FitResult | None) -> dict[str, Any] | None:
+    """The PSD part of a refit, computed once per model (a resonance held at its peak is
+    judged by it and then reported with it)."""
     if ctx.psd_est is None or after is None:
         return None
-    return psd_parts(after.params, ctx.psd_est, ctx.fs_hz, ctx.nperseg)[1]
+    key = ("psd part", tuple((n, tuple(sorted(p.items()))) for n, p in after.params))
+    if key not in ctx.memo:
+        ctx.memo[key] = psd_parts(after.params, ctx.psd_est, ctx.fs_hz, ctx.nperseg)[1]
+    return dict(ctx.memo[key])
 
 
 def _psd_logp(ctx: _Context, part: dict[str, Any] | None, k: int) -> float:
