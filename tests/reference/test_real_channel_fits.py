@@ -428,3 +428,28 @@ def test_a_half_fit_the_whole_records_solution_misleads_is_searched_again(shared
         assert fit.terms[3].params["taps"] > 1.1  # the filter kept
     part = setup.part(done)["chi2_per_dof"]
     assert part < 100.0, part
+
+
+def test_a_filter_swap_holds_a_free_resonance_at_its_spectral_peak(shared_data: Path
+                                                                   ) -> None:
+    # run 5 accel_x with white, B, K, a Bartlett filter, the 0.47 Hz line and a free
+    # resonance (Allan chi2/dof 5.2, PSD part 79; the resonance at 10.3 Hz, Q 8). With a
+    # moving average in the Bartlett's place the refit moves the resonance off the spectrum's
+    # peak; held there (8.67 Hz, Q 23) the PSD part falls to 5.3, while the Allan part rises
+    # to 11.6, so the swap is reported and not significant
+    d = np.load(shared_data / "adis16405" / "run5.npz")
+    fs = float(d["fs_hz"])
+    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    diag = diagnose(x, fs, DEFAULT + ",bartlett,sinusoid:f=0.46827523419293277,resonance",
+                    holdout=False, transients=False)
+    swap = next(s for s in diag.suggestions if s.label == "bartlett by moving_average")
+    model = parse_model(swap.apply["model"])
+    held = model.entries[-1]
+    assert held.name == "resonance" and set(held.fixed) == {"f0", "Q"}
+    assert 8.5 < held.fixed["f0"] < 8.9 and 15.0 < held.fixed["Q"] < 30.0
+    psd_before = diag.error_parts["psd"]["deviance_per_bin"]
+    assert psd_before > 50.0
+    assert swap.error_after["psd"]["deviance_per_bin"] < psd_before / 10
+    assert swap.chi2_per_dof_after > diag.fit.chi2_per_dof and not swap.significant
+    res, _ = fit_series(x, fs, swap.apply["model"])
+    assert res.chi2_per_dof == pytest.approx(swap.chi2_per_dof_after, rel=1e-9)
