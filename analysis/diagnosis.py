@@ -1139,12 +1139,12 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
     A greedy round judges one term at a time. Where the model fails, a term with strong
     evidence can lower the Allan and PSD parts and still predict the other half worse,
     because the terms already in the model take other roles in each half until a second
-    missing term is there too. So, when the given model fails
-    and no suggestion is significant, the strongest term held back by the hold-out part is
-    applied tentatively and the next round tried on it, with the candidates this round found
-    strong evidence for (a resonance that takes the line's place alone moves to another
-    peak once the line is modelled; terms without evidence here are not tried, which keeps
-    the lookahead to a few refits). The pair is suggested when, against the given model, its
+    missing term is there too. So, when the given model fails and no suggestion is
+    significant, the strongest term held back by the hold-out part is applied tentatively
+    and the next round tried on it, with the candidates this round found strong evidence for
+    (a resonance that takes the line's place alone moves to another peak once the line is
+    modelled; terms without evidence here are not tried, which keeps the lookahead to a few
+    refits). The pair is suggested when, against the given model, its
     chi2 drop passes the likelihood-ratio test with both terms' parameters (Bonferroni over
     the pairs tried), its chi2/dof falls, no part rises beyond its noise, and its hold-out
     part does not rise and, where the given model does not predict the other half, falls: the
