@@ -36,12 +36,14 @@ from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.model_error import (
+    NOISE_SD,
     HoldoutHalves,
     fit_half,
     holdout_halves,
     holdout_part,
     measured_psd,
     psd_parts,
+    right_model_limit,
     time_domain_part,
 )
 from imunoise.analysis.spectral_pins import PINNED, pin_resonances
@@ -174,13 +176,13 @@ def _z_range(before: FitResult, after: FitResult) -> tuple[float, float] | None:
 def _dispersion(per_dof: float | None, dof: float) -> float:
     """The scale a likelihood-ratio drop is divided by (:func:`_lr_logp`): the larger
     model's misfit per degree of freedom ``per_dof`` over ``dof`` degrees of freedom, divided
-    by the most a right model shows (1 + :data:`NOISE_SD` of its standard deviations,
-    ``sqrt(2/dof)``), where that exceeds 1; else 1. The misfit of a right model is itself
+    by the most a right model shows (:func:`right_model_limit`), where that exceeds 1; else
+    1. The misfit of a right model is itself
     noisy (a chi2/dof of 1.5 over 14 degrees of freedom is 1.3 of its standard deviations
     above 1): only misfit beyond that range scales the test."""
     if per_dof is None or not np.isfinite(per_dof):
         return 1.0
-    return max(1.0, float(per_dof) / (1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))))
+    return max(1.0, float(per_dof) / right_model_limit(dof))
 
 
 def _lr_logp(before: FitResult, after: FitResult, k: int) -> float:
@@ -202,11 +204,6 @@ PSD_BIN_CORRELATION = 2.0
 """The fall of the PSD deviance summed over the points is divided by this before its
 chi-square test: neighbouring log-frequency points share Hann bins and are not independent
 (conservative; their dof already allow for the merge)."""
-NOISE_SD = 3.0
-"""A part "rises beyond its noise" when it grows by more than this many of its standard
-deviations: a part ``c`` per degree of freedom is a non-central chi-square over ``dof`` with
-non-centrality ``dof (c - 1)``, standard deviation ``sqrt((4 c - 2)/dof)`` (``sqrt(2/dof)``
-for a right model)."""
 HOLDOUT_CHECKS = 3
 """Significant suggestions whose hold-out part is computed (best first) before giving up:
 each costs two fits on the halves."""
@@ -1144,11 +1141,11 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
     and the next round tried on it, with the candidates this round found strong evidence for
     (a resonance that takes the line's place alone moves to another peak once the line is
     modelled; terms without evidence here are not tried, which keeps the lookahead to a few
-    refits). The pair is suggested when, against the given model, its
-    chi2 drop passes the likelihood-ratio test with both terms' parameters (Bonferroni over
-    the pairs tried), its chi2/dof falls, no part rises beyond its noise, and its hold-out
-    part does not rise and, where the given model does not predict the other half, falls: the
-    rules a single term meets. ``apply.model`` adds both.
+    refits). The pair is suggested when, against the given model, its chi2 drop passes the
+    likelihood-ratio test with both terms' parameters (Bonferroni over the pairs tried), its
+    chi2/dof falls, no part rises beyond its noise, and its hold-out part does not rise and,
+    where the given model does not predict the other half, falls: the rules a single term
+    meets. ``apply.model`` adds both.
     """
     b = holdout_before.get("chi2_per_dof")
     if b is None or any(s.significant for s in suggestions) or not ctx.base.failures:
@@ -1166,7 +1163,7 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
     before = ctx.base.chi2_per_dof
     tried = ctx.n_candidates * max(len(then.suggestions), 1)
     dof = float(ctx.base.misfit.dof)
-    lacking = b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))
+    lacking = b > right_model_limit(dof)
     found = None
     for second in [s for s in then.suggestions if s.significant and s.action == "add"
                    and s.fit is not None][:HOLDOUT_CHECKS]:
@@ -1259,7 +1256,7 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], before: dict[st
     apply."""
     b = before.get("chi2_per_dof")
     dof = float(ctx.base.misfit.dof)
-    lacking = b is not None and b > 1.0 + NOISE_SD * float(np.sqrt(2.0 / max(dof, 1.0)))
+    lacking = b is not None and b > right_model_limit(dof)
     checked = 0
     for s in suggestions:
         if not s.significant or s.fit is None or s.apply.get("args"):

@@ -51,6 +51,18 @@ _Z95 = 1.959963984540054
 HOLDOUT_ALPHA = 0.05
 """Family level over the parameters compared between the halves."""
 
+NOISE_SD = 3.0
+"""A part "rises beyond its noise" when it grows by more than this many of its standard
+deviations: a part ``c`` per degree of freedom is a non-central chi-square over ``dof`` with
+non-centrality ``dof (c - 1)``, standard deviation ``sqrt((4 c - 2)/dof)`` (``sqrt(2/dof)``
+for a right model)."""
+
+
+def right_model_limit(dof: float) -> float:
+    """The largest part per degree of freedom a right model shows over ``dof`` degrees of
+    freedom: 1 plus :data:`NOISE_SD` of its standard deviations ``sqrt(2/dof)``."""
+    return 1.0 + NOISE_SD * math.sqrt(2.0 / max(float(dof), 1.0))
+
 TIME_DOMAIN_TEST = ("bias step or warm-up: largest standardised contrast of block means "
                     "under the fitted model (max |z|), Monte Carlo p over every split and "
                     "time constant")
@@ -202,9 +214,8 @@ def _start_misled(half: Any, whole: Any) -> bool:
     run 5 accel_x with white, B, K, a Bartlett filter, a Markov term at zero and the 0.47 Hz
     line reaches chi2/dof 6554 on each half from the whole record's solution (the filter
     traded for the Markov term), 115 and 138 from the full starting-value search."""
-    dof = max(float(half.misfit.dof), 1.0)
-    return float(half.chi2_per_dof) > max(float(whole.chi2_per_dof), 1.0) * (
-        1.0 + 3.0 * math.sqrt(2.0 / dof))
+    return float(half.chi2_per_dof) > max(float(whole.chi2_per_dof), 1.0) \
+        * right_model_limit(half.misfit.dof)
 
 
 Recheck = Callable[[int, int, str, float], float | None]
