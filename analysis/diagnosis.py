@@ -1174,7 +1174,7 @@ def _pair(ctx: _Context, suggestions: list[Suggestion], holdout_before: dict[str
                 and not _parts_rise(ctx, after, psd_after)):
             continue
         holdout = holdout_part(ctx.x, ctx.fs_hz, second.apply["model"], after, ctx.starts,
-                               job_map=ctx.job_map)
+                               job_map=ctx.job_map, by_curves=False)
         ho = holdout.get("chi2_per_dof")
         if ho is not None and not _rises(b, ho, dof) and (ho < b or not lacking):
             found = second, after, psd_after, logp, holdout, float(ho)
@@ -1267,7 +1267,7 @@ def _check_holdout(ctx: _Context, suggestions: list[Suggestion], before: dict[st
             break
         checked += 1
         after = holdout_part(ctx.x, ctx.fs_hz, s.apply["model"], s.fit, ctx.starts,
-                             job_map=ctx.job_map)
+                             job_map=ctx.job_map, by_curves=False)
         s.error_after["holdout"] = after
         a = after.get("chi2_per_dof")
         # a removal claims nothing new: it only must not make the prediction worse

@@ -33,7 +33,7 @@ import functools
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -411,14 +411,18 @@ class HoldoutHalves:
     spec: Any
     fixed: dict | None
     fitted: Any
+    memo: dict = field(default_factory=dict)
+    """The halves' Allan curves, computed once for the refits of :meth:`part`."""
 
     def shared(self) -> tuple[Any, ...]:
         """The context of :func:`fit_half`."""
         return (self.halves, self.fs_hz, self.spec, self.fixed, self.fitted)
 
-    def part(self, done: Sequence[Any]) -> dict[str, Any]:
+    def part(self, done: Sequence[Any], by_curves: bool = True) -> dict[str, Any]:
         """``error.holdout`` from both halves' :func:`fit_half` results: each half's model
-        predicting the other half, and the parameters that changed."""
+        predicting the other half, and the parameters that changed (``by_curves``: also
+        those each half's curve refuses at the other's value, :func:`_profile_changed`,
+        about two refits of a half per parameter where the halves miss each other)."""
         from imunoise.analysis.fit import fit_series
 
         failed = next((d for d in done if isinstance(d, Exception)), None)
@@ -431,12 +435,14 @@ class HoldoutHalves:
                 given = [(t.term, dict(t.params)) for t in other.terms]
                 chis.append(fit_series(h, self.fs_hz, given, segment_starts=starts,
                                        fixed=dict(enumerate(p for _, p in given)),
-                                       intervals="jacobian")[0].chi2_per_dof)
+                                       intervals="jacobian", memo=self.memo
+                                       )[0].chi2_per_dof)
         except _HALF_ERRORS as exc:
             return _unfitted(exc)
         recheck = functools.partial(self._held_rise, fits)
         changed = _changed(fits[0], fits[1], _shapes_of(done), recheck)
-        if float(np.mean(chis)) > right_model_limit(min(f.misfit.dof for f in fits)):
+        if by_curves and float(np.mean(chis)) > right_model_limit(
+                min(f.misfit.dof for f in fits)):
             changed += _profile_changed(fits[0], fits[1], changed, recheck)
         return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
                 "halves": [float(c) for c in chis], "changed": changed}
@@ -450,8 +456,10 @@ class HoldoutHalves:
         fixed.setdefault(index, {})[param] = float(value)
         h, starts = self.halves[half]
         try:
+            # only chi2 is wanted: no profile intervals
             held = fit_series(h, self.fs_hz, self.spec, segment_starts=starts, fixed=fixed,
-                              start=fits[half], intervals="jacobian")[0]
+                              start=fits[half], intervals="jacobian", memo=self.memo,
+                              profile_terms=())[0]
         except _HALF_ERRORS:
             return None
         return max(0.0, float(held.misfit.chi2 - fits[half].misfit.chi2))
@@ -492,18 +500,19 @@ def holdout_halves(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
 
 def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
                  segment_starts: np.ndarray | None = None,
-                 fixed: dict | None = None, job_map: JobMap = serial_map) -> dict[str, Any]:
+                 fixed: dict | None = None, job_map: JobMap = serial_map,
+                 by_curves: bool = True) -> dict[str, Any]:
     """``error.holdout``: the model fitted on each half predicting the other half.
 
     ``model`` is the specification the user gave (held parameters stay held), ``fitted`` the
     whole record's :class:`imunoise.analysis.fit.FitResult` (the halves' fits start there).
     ``job_map`` runs the two halves' fits (:mod:`imunoise.analysis.jobs`; the same result
-    whichever runs them).
+    whichever runs them); ``by_curves``: see :meth:`HoldoutHalves.part`.
     """
     setup = holdout_halves(values, fs_hz, model, fitted, segment_starts, fixed)
     if isinstance(setup, dict):
         return setup
-    return setup.part(job_map(fit_half, setup.shared(), [0, 1]))
+    return setup.part(job_map(fit_half, setup.shared(), [0, 1]), by_curves)
 
 
 def _shapes_of(done: Sequence[tuple[Any, dict[int, Any] | None]]) -> list[dict[int, Any]]:
