@@ -1108,7 +1108,8 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     if halves is None:
         parts["holdout"] = {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
     else:
-        before = halves.part(done[n_tried:]) if isinstance(halves, HoldoutHalves) \
+        before = halves.part(done[n_tried:], job_map=ctx.job_map) \
+            if isinstance(halves, HoldoutHalves) \
             else halves
         parts["holdout"] = _check_holdout(ctx, suggestions, before)
         if lookahead:

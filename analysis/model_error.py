@@ -222,6 +222,9 @@ Recheck = Callable[[int, int, str, float], float | None]
 """``(half, term index, parameter, value) -> rise of that half's chi2`` when the parameter is
 held at the value and the rest refitted (None when the refit fails)."""
 
+Rechecks = Callable[[Sequence[tuple[int, int, str, float]]], list[float | None]]
+""":data:`Recheck` of each ``(half, term index, parameter, value)``, in that order."""
+
 
 def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {}),
              recheck: Recheck | None = None) -> list[dict[str, Any]]:
@@ -355,7 +358,7 @@ def _jointly_changed(fit_a: Any, fit_b: Any, named: set[str], crit: float
 
 
 def _profile_changed(fit_a: Any, fit_b: Any, named: Sequence[dict[str, Any]],
-                     recheck: Recheck) -> list[dict[str, Any]]:
+                     rises: Rechecks) -> list[dict[str, Any]]:
     """Parameters whose change shows in the curves themselves, where the intervals do not
     show it: called only when the halves do not predict each other (the hold-out part
     beyond its noise).
@@ -370,7 +373,8 @@ def _profile_changed(fit_a: Any, fit_b: Any, named: Sequence[dict[str, Any]],
     "profile"``) beyond the Bonferroni level over the parameters compared. ADIS16405 run 3
     accel_z warms up in its first hour: the random walk is 5.9e-4 on the first half, 1.6e-4
     on the second, and held there the first half's chi2 rises by 99 (z 3.2 against 3.0);
-    its intervals alone give z 2.6."""
+    its intervals alone give z 2.6. As the combination is below either rise, half b is
+    refitted only for the parameters whose ``R_a`` exceeds the level."""
     done = {str(c["param"]) for c in named}
     compared = []
     names = [t.term for t in fit_a.terms]
@@ -384,16 +388,22 @@ def _profile_changed(fit_a: Any, fit_b: Any, named: Sequence[dict[str, Any]],
     if not compared:
         return []
     crit = float(norm.isf(HOLDOUT_ALPHA / (2.0 * len(compared))))
+    todo = [c for c in compared if c[0] not in done]
+
+    def scaled(rise: float | None, fit: Any) -> float:
+        # 0 for a half that does not mind the other's value (or cannot be refitted)
+        return rise / max(1.0, float(fit.chi2_per_dof)) if rise is not None and rise > 0.0 \
+            else 0.0
+
+    first = [scaled(r, fit_a) for r in rises([(0, i, k, b) for _, i, _, k, _, b in todo])]
+    beyond = [(c, r) for c, r in zip(todo, first, strict=True) if r > crit * crit]
+    second = [scaled(r, fit_b)
+              for r in rises([(1, j, k, a) for (_, _, j, k, a, _), _ in beyond])]
     out: list[dict[str, Any]] = []
-    for name, i, j, k, a, b in compared:
-        if name in done:
+    for ((name, _, _, _, a, b), r_a), r_b in zip(beyond, second, strict=True):
+        if r_b <= 0.0:
             continue
-        rises = [recheck(0, i, k, b), recheck(1, j, k, a)]
-        scaled = [r / max(1.0, float(f.chi2_per_dof)) if r is not None and r > 0.0 else 0.0
-                  for r, f in zip(rises, (fit_a, fit_b), strict=True)]
-        if min(scaled) <= 0.0:
-            continue  # a half that does not mind the other's value (or cannot be refitted)
-        z = math.sqrt(1.0 / (1.0 / scaled[0] + 1.0 / scaled[1]))
+        z = math.sqrt(1.0 / (1.0 / r_a + 1.0 / r_b))
         if z > crit:
             out.append({"param": name, "values": [a, b], "z": z, "source": "allan",
                         "test": "profile"})
@@ -418,11 +428,13 @@ class HoldoutHalves:
         """The context of :func:`fit_half`."""
         return (self.halves, self.fs_hz, self.spec, self.fixed, self.fitted)
 
-    def part(self, done: Sequence[Any], by_curves: bool = True) -> dict[str, Any]:
+    def part(self, done: Sequence[Any], by_curves: bool = True,
+             job_map: JobMap = serial_map) -> dict[str, Any]:
         """``error.holdout`` from both halves' :func:`fit_half` results: each half's model
         predicting the other half, and the parameters that changed (``by_curves``: also
         those each half's curve refuses at the other's value, :func:`_profile_changed`,
-        about two refits of a half per parameter where the halves miss each other)."""
+        up to two refits of a half per parameter where the halves miss each other, run by
+        ``job_map``)."""
         from imunoise.analysis.fit import fit_series
 
         failed = next((d for d in done if isinstance(d, Exception)), None)
@@ -443,7 +455,10 @@ class HoldoutHalves:
         changed = _changed(fits[0], fits[1], _shapes_of(done), recheck)
         if by_curves and float(np.mean(chis)) > right_model_limit(
                 min(f.misfit.dof for f in fits)):
-            changed += _profile_changed(fits[0], fits[1], changed, recheck)
+            def rises(items: Sequence[tuple[int, int, str, float]]) -> list[float | None]:
+                return job_map(_held_rise_job, (self, fits), items) if items else []
+
+            changed += _profile_changed(fits[0], fits[1], changed, rises)
         return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
                 "halves": [float(c) for c in chis], "changed": changed}
 
@@ -463,6 +478,13 @@ class HoldoutHalves:
         except _HALF_ERRORS:
             return None
         return max(0.0, float(held.misfit.chi2 - fits[half].misfit.chi2))
+
+
+def _held_rise_job(shared: tuple[HoldoutHalves, Sequence[Any]],
+                   item: tuple[int, int, str, float]) -> float | None:
+    """:meth:`HoldoutHalves._held_rise` as a job of a job map."""
+    setup, fits = shared
+    return setup._held_rise(fits, *item)
 
 
 _HALF_ERRORS = (ValueError, ArithmeticError, np.linalg.LinAlgError)
@@ -512,7 +534,7 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     setup = holdout_halves(values, fs_hz, model, fitted, segment_starts, fixed)
     if isinstance(setup, dict):
         return setup
-    return setup.part(job_map(fit_half, setup.shared(), [0, 1]), by_curves)
+    return setup.part(job_map(fit_half, setup.shared(), [0, 1]), by_curves, job_map)
 
 
 def _shapes_of(done: Sequence[tuple[Any, dict[int, Any] | None]]) -> list[dict[int, Any]]:

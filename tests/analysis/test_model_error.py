@@ -215,24 +215,31 @@ def test_the_profile_change_combines_both_halves_rises_scaled_by_their_misfit() 
                                chi2_per_dof=per_dof)
 
     rises = {(0, "N"): 0.5, (1, "N"): 0.5, (0, "K"): 99.0, (1, "K"): 32.0}
-    def recheck(half: int, index: int, param: str, value: float) -> float:
-        return rises[(half, param)]
+    asked: list[tuple] = []
+
+    def refit(items):
+        asked.extend(items)
+        return [rises[(half, param)] for half, _, param, _ in items]
 
     # white.N has one value on both halves (held): not compared; K alone is, so the level is
     # norm.isf(0.05 / 2) = 1.96. Half b's rise 32 counts as 32 / 2.85
     a, b = fit(5.9e-4, 0.9), fit(1.6e-4, 2.85)
-    out = _profile_changed(a, b, [], recheck)
+    out = _profile_changed(a, b, [], refit)
     assert [c["param"] for c in out] == ["random_walk.K"] and out[0]["test"] == "profile"
     assert out[0]["z"] == pytest.approx((1.0 / (1.0 / 99.0 + 2.85 / 32.0)) ** 0.5)
     assert out[0]["values"] == [5.9e-4, 1.6e-4]
+    # each half held at the other's value
+    assert asked == [(0, 1, "K", 1.6e-4), (1, 1, "K", 5.9e-4)]
     # a parameter already named is not named twice; a half whose curve does not mind the
     # other's value (no rise) names nothing
-    assert _profile_changed(a, b, [{"param": "random_walk.K"}], recheck) == []
+    assert _profile_changed(a, b, [{"param": "random_walk.K"}], refit) == []
     rises[(1, "K")] = 0.0
-    assert _profile_changed(a, b, [], recheck) == []
-    # below the level: rises of 2 and 2 combine to 1 (z 1.0)
-    rises[(0, "K")], rises[(1, "K")] = 2.0, 2.0 * 2.85
-    assert _profile_changed(a, b, [], recheck) == []
+    assert _profile_changed(a, b, [], refit) == []
+    # the combination is below either rise: with half a's rise below the level (1.96^2),
+    # half b is not refitted
+    rises[(0, "K")], rises[(1, "K")] = 3.8, 1e6
+    asked.clear()
+    assert _profile_changed(a, b, [], refit) == [] and [h for h, *_ in asked] == [0]
 
 
 def test_a_model_that_misses_a_stationary_record_names_no_change_by_the_curves() -> None:
