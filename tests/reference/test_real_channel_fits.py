@@ -289,7 +289,7 @@ def test_adis16405_a_random_walk_of_the_warm_up_half_is_named_by_its_curve(share
     # z 2.6 against the Bonferroni level 3.0. Held at the second half's value, the first
     # half's chi2 rises by 99: each half's curve refuses the other's value (profile z 3.2).
     # Left free, each half's model predicts the other within 3
-    from imunoise.analysis.model_error import holdout_part
+    from imunoise.analysis.model_error import holdout_part, parts_line
 
     d = np.load(shared_data / "adis16405" / "run3.npz")
     x = d["accel_counts"][:, 2] * float(d["accel_scale_g"]) * 9.80665
@@ -304,6 +304,9 @@ def test_adis16405_a_random_walk_of_the_warm_up_half_is_named_by_its_curve(share
     assert walk["test"] == "profile" and walk["z"] > 3.1
     a, b = walk["values"]
     assert a == pytest.approx(5.9e-4, rel=0.05) and b == pytest.approx(1.6e-4, rel=0.1)
+    assert ("random_walk.K changed between the first and second half: 0.0005866 -> 0.0001572"
+            " (z = 3.2, each half's curve held at the other's value)"
+            ) in parts_line(1.0, {"holdout": ho})
     # nothing else is named by the curves: white, B, the filter, the line and the Markov term
     # are the same on both halves
     assert [c for c in ho["changed"] if c.get("test") == "profile"] == [walk]
