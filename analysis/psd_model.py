@@ -59,13 +59,29 @@ def _level_of(method: str) -> int:
 
 def _hann_kernel(u: np.ndarray, L: int) -> np.ndarray:
     """``|W(u)|^2 / sum(w^2)`` of the periodic L-point Hann window at ``u`` cycles/sample;
-    its integral over one period is 1."""
-    n = np.arange(L)
-    w = hann(L)
+    its integral over one period is 1.
+
+    The window is ``1/2 - cos(2 pi n/L)/2``, so its transform is three Dirichlet kernels,
+    ``W(u) = D(u)/2 - D(u - 1/L)/4 - D(u + 1/L)/4`` with ``D(v) = sum_n exp(-2 pi i v n)``
+    in closed form: O(1) per point where the direct sum costs O(L) (4 ms a call at
+    L = 4096, a tenth of a diagnosis's model spectra). Points within 1e-6 of a whole
+    number of cycles, where the closed form divides by nearly zero, are summed directly."""
     u = np.atleast_1d(np.asarray(u, dtype=np.float64))
-    # direct DTFT (few points: lines and ramps only)
-    ph = np.exp(-2j * np.pi * np.outer(u, n))
-    return np.abs(ph @ w) ** 2 / float(np.sum(w**2))
+    w = hann(L)
+    if L < 2:
+        return np.abs(np.exp(-2j * np.pi * np.outer(u, np.arange(L))) @ w) ** 2 \
+            / float(np.sum(w**2))
+
+    def dirichlet(v: np.ndarray) -> np.ndarray:
+        den = 1.0 - np.exp(-2j * np.pi * v)
+        near = np.abs(np.sin(np.pi * v)) < 1e-6
+        out = (1.0 - np.exp(-2j * np.pi * v * L)) / np.where(near, 1.0, den)
+        if np.any(near):
+            out[near] = np.exp(-2j * np.pi * np.outer(v[near], np.arange(L))).sum(axis=1)
+        return out
+
+    transform = 0.5 * dirichlet(u) - 0.25 * (dirichlet(u - 1.0 / L) + dirichlet(u + 1.0 / L))
+    return np.abs(transform) ** 2 / float(np.sum(w**2))
 
 
 def _noise_and_rest(model: Model) -> tuple[list, list, list]:

@@ -111,3 +111,22 @@ def test_layout_mismatch_is_refused():
     est = log_psd(simulate([("white", {"N": 1e-3})], 1 << 16, FS, rng=1), FS)
     with pytest.raises(ValueError, match="bin layout"):
         expected_log_psd([("white", {"N": 1e-3})], est, FS, nperseg=128)
+
+
+def test_the_hann_kernel_in_closed_form_is_the_windows_transform() -> None:
+    # against the direct sum over the window's samples, at whole cycles (where the closed
+    # form divides by nearly zero), at the main lobe's edges and between
+    from imunoise.analysis.dsp import hann
+    from imunoise.analysis.psd_model import _hann_kernel
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 256, 4096):
+        u = np.concatenate([rng.uniform(-0.6, 0.6, 100),
+                            [0.0, 1.0, -2.0, 1.0 / n, -1.0 / n, 2.0 / n, 0.5, 1e-9]])
+        w = hann(n)
+        direct = np.abs(np.exp(-2j * np.pi * np.outer(u, np.arange(n))) @ w) ** 2 \
+            / np.sum(w**2)
+        assert np.allclose(_hann_kernel(u, n), direct, rtol=1e-8, atol=1e-11 * direct.max())
+    # its integral over one period is 1
+    u = np.linspace(-0.5, 0.5, 200001)
+    assert np.trapezoid(_hann_kernel(u, 64), u) == pytest.approx(1.0, rel=1e-6)
