@@ -151,13 +151,14 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
     memo = {} if memo is None else memo
     _hold(memo, curve)
     folded = _folded(parsed, prob)
-    key = _memo_key(curve, folded, line)
-    hit = memo.get(key) if start is None else None
+    # no key for a model with starting values: its solution depends on them
+    key = _memo_key(curve, folded, line) if start is None else None
+    hit = memo.get(key) if key is not None else None
     if hit is not None:
         point = hit[1]
     else:
         point = _best_point(prob, curve, folded, start, line, memo)
-        if start is None:
+        if key is not None:
             memo[key] = (prob, point)
     return _result(prob, point, intervals, temperature, job_map, profile_terms)
 

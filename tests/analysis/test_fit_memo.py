@@ -74,6 +74,20 @@ def test_the_memo_still_serves_the_same_curve(white):
     assert second.terms[0].params == first.terms[0].params
 
 
+def test_models_with_starting_values_share_a_memo_without_taking_each_others_fit(white):
+    # a model given as (term, params) pairs starts from those values: it has no memo key.
+    # Such fits once all stored their solution under the key None, so the second fit with a
+    # memo returned the first one's (another curve's, even another model's)
+    curves = [_curve(oadev(white, FS, m="octave", ci=0.95), scale) for scale in (1.0, 3.0)]
+    given = [("white", {"N": 0.1}), ("random_walk", {"K": 1e-4})]
+    alone = [fit_allan(c, given, intervals="jacobian").terms[0].params["N"] for c in curves]
+    memo: dict = {}
+    shared = [fit_allan(c, given, memo=memo, intervals="jacobian").terms[0].params["N"]
+              for c in curves]
+    assert shared == pytest.approx(alone, rel=1e-12)
+    assert alone[1] == pytest.approx(3.0 * alone[0], rel=1e-6)
+
+
 def test_profile_terms_leave_the_other_terms_weak_parameters_without_an_interval():
     # white noise alone: the random walk's amplitude is not determined (a profile gives
     # [0, upper]); a candidate refit that reports only the white term's interval skips it
