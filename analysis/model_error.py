@@ -434,21 +434,15 @@ class HoldoutHalves:
         predicting the other half, and the parameters that changed (``by_curves``: also
         those each half's curve refuses at the other's value, :func:`_profile_changed`,
         up to two refits of a half per parameter where the halves miss each other, run by
-        ``job_map``)."""
-        from imunoise.analysis.fit import fit_series
-
+        ``job_map``). Where parameters changed, ``changes_free`` is the prediction with
+        them fitted on the half predicted: what is left of the part once the findings are
+        taken as findings."""
         failed = next((d for d in done if isinstance(d, Exception)), None)
         if failed is not None:
             return _unfitted(failed)
+        fits = [fit for fit, _ in done]
         try:
-            fits = [fit for fit, _ in done]
-            chis = []
-            for (h, starts), other in zip(self.halves, fits[::-1], strict=True):
-                given = [(t.term, dict(t.params)) for t in other.terms]
-                chis.append(fit_series(h, self.fs_hz, given, segment_starts=starts,
-                                       fixed=dict(enumerate(p for _, p in given)),
-                                       intervals="jacobian", memo=self.memo
-                                       )[0].chi2_per_dof)
+            chis = self._predictions(fits, set())
         except _HALF_ERRORS as exc:
             return _unfitted(exc)
         recheck = functools.partial(self._held_rise, fits)
@@ -459,8 +453,34 @@ class HoldoutHalves:
                 return job_map(_held_rise_job, (self, fits), items) if items else []
 
             changed += _profile_changed(fits[0], fits[1], changed, rises)
-        return {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
-                "halves": [float(c) for c in chis], "changed": changed}
+        out = {"chi2_per_dof": float(np.mean(chis)), "parts": 2,
+               "halves": [float(c) for c in chis], "changed": changed}
+        names = sorted({str(c["param"]) for c in changed})
+        if names:
+            try:
+                loose = self._predictions(fits, set(names))
+            except _HALF_ERRORS:
+                return out
+            out["changes_free"] = {"chi2_per_dof": float(np.mean(loose)),
+                                   "halves": [float(c) for c in loose], "params": names}
+        return out
+
+    def _predictions(self, fits: Sequence[Any], free: set[str]) -> list[float]:
+        """Chi2/dof of each half predicted by the other half's model, every parameter held
+        but those labelled in ``free`` (fitted on the half predicted)."""
+        from imunoise.analysis.fit import fit_series
+
+        chis = []
+        for (h, starts), other in zip(self.halves, fits[::-1], strict=True):
+            given = [(t.term, dict(t.params)) for t in other.terms]
+            names = labels([n for n, _ in given])
+            held: dict[str | int, dict[str, float]] = {
+                i: {k: v for k, v in p.items() if f"{label}.{k}" not in free}
+                for i, ((_, p), label) in enumerate(zip(given, names, strict=True))}
+            chis.append(fit_series(h, self.fs_hz, given, segment_starts=starts, fixed=held,
+                                   intervals="jacobian", memo=self.memo, profile_terms=()
+                                   )[0].chi2_per_dof)
+        return chis
 
     def _held_rise(self, fits: Sequence[Any], half: int, index: int, param: str,
                    value: float) -> float | None:
@@ -625,6 +645,8 @@ def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
     if psd.get("outside_95") is not None:
         out += f" ({100.0 * psd['outside_95']:.0f} % of {psd.get('bins')} bins outside 95 %)"
     out += f" | hold-out chi2/dof {num(ho.get('chi2_per_dof'))}"
+    if (ho.get("changes_free") or {}).get("chi2_per_dof") is not None:
+        out += f" ({num(ho['changes_free']['chi2_per_dof'])} with the changes below fitted)"
     out += f" | time domain max|z| {num(td.get('statistic'))} (p {num(td.get('p'))})"
     lines = [out]
     for c in ho.get("changed") or []:

@@ -16,6 +16,7 @@ from imunoise.analysis.model_error import (
     holdout_halves,
     holdout_part,
     parts_line,
+    right_model_limit,
     time_domain_part,
 )
 from imunoise.analysis.noise_stream import simulate
@@ -256,3 +257,28 @@ def test_a_model_that_misses_a_stationary_record_names_no_change_by_the_curves()
         ho = holdout_part(x, FS, spec, fit)
         assert ho["chi2_per_dof"] > 10.0
         assert not [c for c in ho["changed"] if c.get("test") == "profile"], ho["changed"]
+
+
+def test_a_named_change_left_free_lets_the_halves_predict_each_other() -> None:
+    # the white level is 5 % higher in the second half: held at the other half's level, each
+    # half's model misses the shortest taus; with white.N fitted on the half predicted (a
+    # finding, not a failure of the model) the prediction is that of a right model
+    spec = "white,random_walk"
+    x = np.concatenate([simulate([("white", {"N": 1e-3 * f}), ("random_walk", {"K": 1e-5})],
+                                 N // 2, FS, rng=s) for f, s in ((1.0, 81), (1.05, 82))])
+    fit = fit_series(x, FS, spec)[0]
+    ho = holdout_part(x, FS, spec, fit)
+    assert "white.N" in {c["param"] for c in ho["changed"]}
+    assert ho["chi2_per_dof"] > 10.0
+    free = ho["changes_free"]
+    assert free["params"] == sorted(c["param"] for c in ho["changed"])
+    assert free["chi2_per_dof"] < right_model_limit(15)
+    assert f"({free['chi2_per_dof']:.3g} with the changes below fitted)" \
+        in parts_line(1.0, {"holdout": ho})
+
+
+def test_no_change_named_no_changes_free_part() -> None:
+    x = simulate(MODEL, N, FS, rng=91)
+    fit = fit_series(x, FS, SPEC)[0]
+    ho = holdout_part(x, FS, SPEC, fit)
+    assert ho["changed"] == [] and "changes_free" not in ho
