@@ -19,7 +19,10 @@ the model describes the sensor (CONTRACT.md ``error.psd``, ``error.holdout``,
   scale (:func:`_vanished_z`); one that reaches zero on both is not compared. Parameters
   whose change shows only jointly (a white level and a filter's taps, estimated from the
   same points) are then named one at a time by :func:`_jointly_changed` (``"test":
-  "joint"``).
+  "joint"``), and, where the halves do not predict each other, those each half's curve
+  refuses at the other half's value by :func:`_profile_changed` (``"test": "profile"``).
+  ``changes_free`` is the prediction with the named parameters fitted on the half
+  predicted.
 - Time domain: the step and warm-up test of :func:`imunoise.analysis.evidence.transients`
   under the fitted model; its statistic (largest standardised contrast of block means) and
   Monte Carlo p-value over every split and time constant.

@@ -63,9 +63,9 @@ def _hann_kernel(u: np.ndarray, L: int) -> np.ndarray:
 
     The window is ``1/2 - cos(2 pi n/L)/2``, so its transform is three Dirichlet kernels,
     ``W(u) = D(u)/2 - D(u - 1/L)/4 - D(u + 1/L)/4`` with ``D(v) = sum_n exp(-2 pi i v n)``
-    in closed form: O(1) per point where the direct sum costs O(L) (4 ms a call at
-    L = 4096, a tenth of a diagnosis's model spectra). Points within 1e-6 of a whole
-    number of cycles, where the closed form divides by nearly zero, are summed directly."""
+    in closed form: O(1) per point where the direct sum costs O(L) (at L = 4096, 0.6 s of
+    a 12.7 s diagnosis of a channel with a line). Points within 1e-6 of a whole number of
+    cycles, where the closed form divides by nearly zero, are summed directly."""
     u = np.atleast_1d(np.asarray(u, dtype=np.float64))
     w = hann(L)
     if L < 2:
