@@ -249,6 +249,22 @@ def test_adis16405_gyro_z_resonance_that_took_the_white_noise_is_held_at_the_pea
     assert top.error_after["holdout"]["chi2_per_dof"] < parts["holdout"]["chi2_per_dof"] / 2
 
 
+def _other_half_predictions(x: np.ndarray, fs: float, model: str, free: set[str]
+                            ) -> list[float]:
+    """Chi2/dof of each half predicted by the model fitted on the other half (by ``fit``, from
+    every start), every parameter held but those labelled in ``free`` (no repeated terms)."""
+    mid = x.size // 2
+    halves = (x[:mid], x[mid:])
+    chis = []
+    for k in (0, 1):
+        other = fit_series(halves[1 - k], fs, model)[0]
+        given = [(t.term, dict(t.params)) for t in other.terms]
+        held = {i: {q: v for q, v in p.items() if f"{n}.{q}" not in free}
+                for i, (n, p) in enumerate(given)}
+        chis.append(fit_series(halves[k], fs, given, fixed=held)[0].chi2_per_dof)
+    return chis
+
+
 def test_adis16405_white_level_that_changed_between_the_halves_is_named(shared_data: Path
                                                                        ) -> None:
     # run 5 gyro_x, the loop's closed model: the halves' white levels differ by 0.4 %
@@ -269,15 +285,7 @@ def test_adis16405_white_level_that_changed_between_the_halves_is_named(shared_d
     assert named["white.N"]["test"] == "joint" and named["white.N"]["z"] > 2.9
     a, b = named["white.N"]["values"]
     assert b / a - 1 == pytest.approx(0.0043, abs=0.0005)
-    mid = x.size // 2
-    halves = (x[:mid], x[mid:])
-    chis = []
-    for k in (0, 1):
-        other = fit_series(halves[1 - k], fs, model)[0]
-        given = [(t.term, dict(t.params)) for t in other.terms]
-        held = {i: {q: v for q, v in p.items() if (n, q) != ("white", "N")}
-                for i, (n, p) in enumerate(given)}
-        chis.append(fit_series(halves[k], fs, given, fixed=held)[0].chi2_per_dof)
+    chis = _other_half_predictions(x, fs, model, {"white.N"})
     assert np.mean(chis) < 3.0, chis
 
 
@@ -310,16 +318,8 @@ def test_adis16405_a_random_walk_of_the_warm_up_half_is_named_by_its_curve(share
     # nothing else is named by the curves: white, B, the filter, the line and the Markov term
     # are the same on both halves
     assert [c for c in ho["changed"] if c.get("test") == "profile"] == [walk]
-    mid = x.size // 2
-    halves = (x[:mid], x[mid:])
-    chis = []
-    for k in (0, 1):
-        other = fit_series(halves[1 - k], fs, model)[0]
-        given = [(t.term, dict(t.params)) for t in other.terms]
-        # every named change left free, as a user told of them would
-        held = {i: {q: v for q, v in p.items() if f"{n}.{q}" not in named}
-                for i, (n, p) in enumerate(given)}
-        chis.append(fit_series(halves[k], fs, given, fixed=held)[0].chi2_per_dof)
+    # every named change left free, as a user told of them would
+    chis = _other_half_predictions(x, fs, model, set(named))
     assert np.mean(chis) < 3.0, chis
 
 
