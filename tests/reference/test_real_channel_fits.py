@@ -294,8 +294,9 @@ def test_adis16405_a_random_walk_of_the_warm_up_half_is_named_by_its_curve(share
     # run 3 accel_z warms up in its first hour. With the loop's final model the random walk
     # is 5.9e-4 on the first half and 1.6e-4 on the second; each interval is wide in log
     # scale (the second half's widened by its chi2/dof 2.8), so the intervals alone give
-    # z 2.6 against the Bonferroni level 3.0. Held at the second half's value, the first
-    # half's chi2 rises by 99: each half's curve refuses the other's value (profile z 3.2).
+    # z 2.6 against their Bonferroni level 2.81. Held at the second half's value, the first
+    # half's chi2 rises by 99: each half's curve refuses the other's value (profile z 3.2
+    # against 2.73).
     # Left free, each half's model predicts the other within 3
     from imunoise.analysis.model_error import holdout_part, parts_line
 
