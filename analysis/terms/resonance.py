@@ -116,10 +116,16 @@ class Resonance(Term):
                                            lambda: resonance_avar_shape(tau * fs, fs, f0, Q))
 
     def _psd(self, f: np.ndarray, fs: float, sigma: float, f0: float, Q: float) -> np.ndarray:
-        _, phi1, phi2 = _poles(fs, f0, Q)
-        w = 2.0 * np.pi * f / fs
-        z1, z2 = np.exp(-1j * w), np.exp(-2j * w)
-        den = np.abs(1.0 - phi1 * z1 - phi2 * z2) ** 2
+        p, phi1, phi2 = _poles(fs, f0, Q)
+        # |1 - phi1 z^-1 - phi2 z^-2|^2 on the unit circle as |1 - p z^-1|^2 |1 - p* z^-1|^2,
+        # each (1 - r)^2 + 4 r sin^2((w -+ w0)/2): real arithmetic without the cancellation
+        # of a sharp peak (a fit through an output filter asks for this on a fine grid tens
+        # of thousands of times)
+        r, half_w0 = abs(p), math.pi * f0 / fs
+        half_w = np.pi * f / fs
+        floor = (1.0 - r) ** 2
+        den = (floor + 4.0 * r * np.sin(half_w - half_w0) ** 2) \
+            * (floor + 4.0 * r * np.sin(half_w + half_w0) ** 2)
         return 2.0 * sigma * sigma * _innovation_var(phi1, phi2) / (fs * den)
 
     def start_shapes(self, fs_hz, duration_s, line):
