@@ -24,11 +24,6 @@ def boxcar(taps: float) -> np.ndarray:
     return g / taps
 
 
-_CLOSED_FORM_TAPS = 64.0
-"""Above this many taps a non-integer filter's response is taken in closed form: the sum over
-the taps costs (bins x taps) sines and cosines, a second per evaluation near ``MAX_TAPS``."""
-
-
 def _fractional_response(u: np.ndarray, taps: float) -> np.ndarray:
     """``|G|^2`` at ``u = f/fs`` of :func:`boxcar` weights for a non-integer ``taps``: W whole
     taps and a last one of weight ``frac``. With the Dirichlet kernel
@@ -69,10 +64,10 @@ class MovingAverage(OutputFilter):
     def response(self, f, fs_hz, params):
         taps = float(params["taps"])
         if abs(taps - round(taps)) > 1e-12:
-            if taps > _CLOSED_FORM_TAPS:
-                return _fractional_response(np.atleast_1d(np.asarray(f, dtype=np.float64))
-                                            / fs_hz, taps)
-            return super().response(f, fs_hz, params)
+            # in closed form, not summed over the taps: (bins x taps) sines and cosines cost
+            # a second per evaluation near MAX_TAPS and twice the closed form's time at 2
+            return _fractional_response(np.atleast_1d(np.asarray(f, dtype=np.float64))
+                                        / fs_hz, taps)
         u = np.atleast_1d(np.asarray(f, dtype=np.float64)) / fs_hz
         with np.errstate(invalid="ignore", divide="ignore"):
             out = (np.sin(np.pi * u * taps) / (taps * np.sin(np.pi * u))) ** 2

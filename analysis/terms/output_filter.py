@@ -219,9 +219,8 @@ class OutputFilter(Term):
         parts: dict[int, np.ndarray] = {}
         own: list[tuple[int, Term, dict[str, float], np.ndarray]] = []
         for n, (term, p) in enumerate(noise):
-            r_in = term.autocovariance(fs_hz, p)
-            if r_in is not None:
-                parts[n] = self._short_memory_avar(term, p, r_in, m, fs_hz, params)
+            if term.autocovariance(fs_hz, p) is not None:
+                parts[n] = self._short_memory_avar(term, p, m, fs_hz, params)
                 out += parts[n]
             else:
                 own.append((n, term, p, term.avar_fast(tau, fs_hz, p)))
@@ -243,19 +242,24 @@ class OutputFilter(Term):
                            self._autocorrelation(fs_hz, params))
         return full[len(full) // 2:]
 
-    def _short_memory_avar(self, term: Term, p: dict[str, float], r_in: np.ndarray,
-                           m: np.ndarray, fs_hz: float, params: dict[str, float]
-                           ) -> np.ndarray:
-        """Filtered Allan variance of a term whose autocovariance ``r_in`` ends after a few
-        lags (white noise, quantization), remembered for these exact parameters: a fit's
-        finite-difference step on another term asks for it again unchanged."""
+    def _short_memory_avar(self, term: Term, p: dict[str, float], m: np.ndarray,
+                           fs_hz: float, params: dict[str, float]) -> np.ndarray:
+        """Filtered Allan variance of a term whose autocovariance ends after a few lags
+        (white noise, quantization). Computed at unit amplitude (the autocovariance scales
+        with its square) and remembered for the other parameters: a fit's step on the
+        amplitude, or on another term, finds it."""
+        shape = {k: v for k, v in p.items() if k != term.amplitude}
+
         def make() -> np.ndarray:
+            r_in = term.autocovariance(fs_hz, {**shape, term.amplitude: 1.0})
+            assert r_in is not None  # filtered_parts sends only such terms
             avar = avar_from_autocovariance(self.filtered_autocovariance(r_in, fs_hz, params),
                                             m)
             avar.setflags(write=False)
             return avar
-        return self._remember(("short", term.name, fs_hz, tuple(sorted(p.items())),
+        unit = self._remember(("short", term.name, fs_hz, tuple(sorted(shape.items())),
                                tuple(sorted(params.items())), m.tobytes()), make)
+        return unit * float(p[term.amplitude]) ** 2
 
     def _correction(self, term: Term, p: dict[str, float], m: np.ndarray, fs_hz: float,
                     params: dict[str, float]) -> np.ndarray:
@@ -277,8 +281,7 @@ class OutputFilter(Term):
             s = term.psd(um * fs_hz, fs_hz, **{**shape, term.amplitude: 1.0})
             smooth = 0.5 * fs_hz * s * excess * 4.0 / sin2 * width
             mm = m[near][:, None]
-            return np.sum(sin4_table_shared(mm, um, ua, ub, bins_key) * smooth,
-                          axis=1) / (m[near] ** 2)
+            return (sin4_table_shared(mm, um, ua, ub, bins_key) @ smooth) / (m[near] ** 2)
 
         out[near] = self._remember(key, make) * float(p[term.amplitude]) ** 2
         return out

@@ -159,10 +159,10 @@ def test_a_filter_the_device_states_is_offered_with_its_parameters_held() -> Non
     assert "device configuration states this filter" in s.why
 
 
-@pytest.mark.parametrize("taps", [64.3, 100.5, 333.25, 1023.999])
-def test_long_fractional_moving_average_response_equals_the_sum_over_its_taps(taps) -> None:
-    # above 64 taps the response is taken in closed form; against the sum over the taps in
-    # long double it holds to 1e-12 of its peak value (1) and 1e-9 where it is above 1e-6
+@pytest.mark.parametrize("taps", [1.07, 2.5, 10.3, 64.3, 100.5, 333.25, 1023.999])
+def test_fractional_moving_average_response_equals_the_sum_over_its_taps(taps) -> None:
+    # a non-integer filter's response is taken in closed form; against the sum over the taps
+    # in long double it holds to 1e-12 of its peak value (1) and 1e-9 where it is above 1e-6
     from imunoise.analysis.terms.output_filter import OutputFilter
 
     term = get_term("moving_average")
@@ -179,3 +179,19 @@ def test_long_fractional_moving_average_response_equals_the_sum_over_its_taps(ta
     # and the float64 sum it replaces agrees with both to the same bound
     generic = OutputFilter.response(term, u * FS, FS, {"taps": taps})
     np.testing.assert_allclose(got[big], generic[big], rtol=1e-9)
+
+
+@pytest.mark.parametrize(("name", "shape"), [("white", {}), ("quantization", {})])
+def test_a_short_memory_terms_filtered_part_scales_with_its_amplitude_squared(name, shape):
+    # the part is computed once at unit amplitude and scaled: a fit moving only the
+    # amplitude reuses it, and it must equal the part computed at that amplitude
+    term, filt = get_term(name), get_term("bartlett")
+    tau = np.array([0.01, 0.02, 0.05, 0.1, 1.0, 10.0])
+    amp = term.amplitude
+    _, (one,) = filt.filtered_parts([(term, {**shape, amp: 1.0})], tau, FS, {"taps": 2.3})
+    _, (three,) = filt.filtered_parts([(term, {**shape, amp: 3.0})], tau, FS, {"taps": 2.3})
+    np.testing.assert_allclose(three, 9.0 * one, rtol=1e-14)
+    r_in = term.autocovariance(FS, {**shape, amp: 3.0})
+    direct = avar_from_autocovariance(filt.filtered_autocovariance(r_in, FS, {"taps": 2.3}),
+                                      tau * FS)
+    np.testing.assert_allclose(three, direct, rtol=1e-13)
