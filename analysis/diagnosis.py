@@ -70,8 +70,12 @@ class Suggestion:
     Attributes:
         term: the term added to the model.
         params: its parameters in the refitted model (SI units).
-        ci95: their 95 % intervals (linearised in log-parameter space: every candidate is
-            refitted, so the refits stay quick).
+        ci95: their 95 % intervals: linearised in log-parameter space where the refit
+            determines the parameter well, by profile likelihood where it does not (an
+            amplitude near zero, a log-scale standard error above 0.5); every candidate is
+            refitted, so only the added term and the white level are profiled (the white
+            level alone in the lookahead's second round), and a weakly determined parameter
+            of another term has none (``nan``).
         chi2_per_dof_before: misfit of the given model.
         chi2_per_dof_after: misfit with the term added (``nan`` when the refit failed).
         p_value: probability of evidence this strong were the term absent, Bonferroni-corrected
