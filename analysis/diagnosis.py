@@ -22,6 +22,7 @@ not noise terms to add, but they are why a model can look wrong.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -924,6 +925,7 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
     findings.append(evidence.noise_level_windows(
         segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
         units=units))
+    findings.extend(_resonance_drifts(segments, fs_hz, base, alpha))
     filt = _sensor_filter(base, alpha)
     if filt is not None:
         findings.append(filt)
@@ -943,6 +945,23 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
             t_rate, x, temperature[0], temperature[1], alpha=alpha, units=units)
     findings.extend(by_term.values())
     return findings, by_term, filt
+
+
+def _resonance_drifts(segments: list[np.ndarray], fs_hz: float, base: FitResult, alpha: float
+                      ) -> list[Finding]:
+    """Whether each resonance of the fitted model keeps its frequency through the record
+    (:func:`imunoise.analysis.evidence.resonance_drift`), the p-values Bonferroni-corrected
+    over the model's resonances."""
+    model = base.params
+    at = [i for i, (n, p) in enumerate(model) if n == "resonance" and 0 < p["f0"] < fs_hz / 2]
+    out = []
+    for i in at:
+        rest_psd = functools.partial(model_psd, [t for k, t in enumerate(model) if k != i],
+                                     fs_hz=fs_hz, continuous_only=True)
+        out.append(evidence.resonance_drift(segments, fs_hz, model[i][1]["f0"],
+                                            model[i][1]["Q"], alpha=alpha, rest_psd=rest_psd,
+                                            tests=len(at)))
+    return out
 
 
 def _candidates(names: list[str], base: FitResult, filt: Finding | None, has_temperature: bool,
