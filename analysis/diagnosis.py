@@ -34,6 +34,7 @@ from imunoise.analysis import distributions as dist
 from imunoise.analysis import evidence
 from imunoise.analysis.default_model import DEFAULT_MODEL
 from imunoise.analysis.evidence.finding import Finding, family_p
+from imunoise.analysis.evidence.resonance_drift import MIN_Q as DRIFT_MIN_Q
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.model_error import (
@@ -951,9 +952,11 @@ def _resonance_drifts(segments: list[np.ndarray], fs_hz: float, base: FitResult,
                       ) -> list[Finding]:
     """Whether each resonance of the fitted model keeps its frequency through the record
     (:func:`imunoise.analysis.evidence.resonance_drift`), the p-values Bonferroni-corrected
-    over the model's resonances."""
+    over the model's resonances. A resonance without a peak (Q below
+    :data:`~imunoise.analysis.evidence.resonance_drift.MIN_Q`, a hump) is not tested."""
     model = base.params
-    at = [i for i, (n, p) in enumerate(model) if n == "resonance" and 0 < p["f0"] < fs_hz / 2]
+    at = [i for i, (n, p) in enumerate(model) if n == "resonance" and 0 < p["f0"] < fs_hz / 2
+          and p["Q"] >= DRIFT_MIN_Q]
     out = []
     for i in at:
         rest_psd = functools.partial(model_psd, [t for k, t in enumerate(model) if k != i],

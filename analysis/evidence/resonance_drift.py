@@ -37,6 +37,10 @@ from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.evidence.lines import welch_bins
 
 MIN_BLOCKS = 8
+MIN_Q = 2.0
+"""Smallest quality factor tested: below it the term's spectrum has no peak to place (none at
+all below 1/sqrt(2)), only a hump as wide as its frequency, and its band would take in the
+spectrum's other features."""
 """Fewest blocks whose centroids are compared; with fewer the permutation test has no power."""
 
 _MIN_SEGMENTS = 8  # Welch segments per block: a centroid's noise stays well below the peak width
@@ -120,6 +124,10 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
     while nperseg > 256 and total // (_MIN_SEGMENTS * nperseg) < MIN_BLOCKS:
         nperseg //= 2
     n_blocks = min(int(n_blocks), total // (_MIN_SEGMENTS * nperseg))
+    if q < MIN_Q:
+        return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
+                       why=f"Whether {name} keeps its frequency is not tested: with Q = "
+                           f"{q:.2g} it has no peak to place.")
     if not (0.0 < f0 < 0.5 * fs) or n_blocks < MIN_BLOCKS:
         return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
                        why=f"Whether {name} keeps its frequency is not tested: the record is "

@@ -92,6 +92,9 @@ def test_blocks_never_cross_a_gap_and_a_short_record_is_not_tested() -> None:
     assert "not tested" in short.why and "too short" in short.why
     beyond = resonance_drift([x], FS, 60.0, PEAK["Q"], _rest_psd)
     assert not beyond.significant and "not tested" in beyond.why
+    # a hump (Q below 2) has no peak to place: its band would take in the whole spectrum
+    hump = resonance_drift([x], FS, 10.0, 0.5, _rest_psd)
+    assert not hump.significant and "no peak" in hump.why
 
 
 def test_the_diagnosis_names_a_swept_resonance_of_its_model() -> None:
