@@ -915,18 +915,20 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
 
 def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np.ndarray],
               t_rate: np.ndarray, base: FitResult, names: list[str],
-              temperature: tuple[np.ndarray, np.ndarray] | None, alpha: float, units: str
+              temperature: tuple[np.ndarray, np.ndarray] | None, alpha: float, units: str,
+              time_origin_s: float = 0.0
               ) -> tuple[list[Finding], dict[str, Finding], Finding | None]:
     """What the record shows beside the Allan curve: ``(findings, the findings that support
     a term keyed by it, the sensor-filter finding or None)``. Each test runs at the family
-    level; the per-candidate Bonferroni comes in :func:`_suggest`."""
+    level; the per-candidate Bonferroni comes in :func:`_suggest`. ``time_origin_s``: the
+    first sample's time on the scale of ``--split`` (see :func:`diagnose`)."""
     findings: list[Finding] = []
     findings.append(evidence.outliers(segments, fs_hz, alpha=alpha, units=units))
     findings.append(evidence.gaps(starts, x.size, fs_hz))
     findings.append(evidence.noise_level_windows(
         segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
         units=units))
-    findings.extend(_resonance_drifts(segments, fs_hz, base, alpha))
+    findings.extend(_resonance_drifts(segments, fs_hz, base, alpha, time_origin_s))
     filt = _sensor_filter(base, alpha)
     if filt is not None:
         findings.append(filt)
@@ -948,8 +950,8 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
     return findings, by_term, filt
 
 
-def _resonance_drifts(segments: list[np.ndarray], fs_hz: float, base: FitResult, alpha: float
-                      ) -> list[Finding]:
+def _resonance_drifts(segments: list[np.ndarray], fs_hz: float, base: FitResult, alpha: float,
+                      time_origin_s: float) -> list[Finding]:
     """Whether each resonance of the fitted model keeps its frequency through the record
     (:func:`imunoise.analysis.evidence.resonance_drift`), the p-values Bonferroni-corrected
     over the model's resonances. A resonance without a peak (Q below
@@ -963,7 +965,7 @@ def _resonance_drifts(segments: list[np.ndarray], fs_hz: float, base: FitResult,
                                      fs_hz=fs_hz, continuous_only=True)
         out.append(evidence.resonance_drift(segments, fs_hz, model[i][1]["f0"],
                                             model[i][1]["Q"], alpha=alpha, rest_psd=rest_psd,
-                                            tests=len(at)))
+                                            tests=len(at), t0_s=time_origin_s))
     return out
 
 
@@ -1254,7 +1256,7 @@ def _base_test(t: _BaseTests, which: str) -> Any:
     findings, :func:`_psd_baseline`, the time-domain part)``."""
     if which == "evidence":
         return _evidence(t.x, t.fs_hz, t.starts, t.segments, t.t_rate, t.base, t.names,
-                         t.temperature, t.alpha, t.units)
+                         t.temperature, t.alpha, t.units, t.time_origin_s)
     cuts: list[Finding] = []
     if t.transients and "temperature" not in t.names:
         bounds = np.append(t.starts, t.x.size)

@@ -89,7 +89,7 @@ def permutation_p(values: np.ndarray, n_permutations: int = 9999, seed: int = 0)
 def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, q: float,
                     rest_psd: Callable[[np.ndarray], np.ndarray] | None = None,
                     n_blocks: int = 20, alpha: float = 0.05, n_permutations: int = 9999,
-                    seed: int = 0, tests: int = 1) -> Finding:
+                    seed: int = 0, tests: int = 1, t0_s: float = 0.0) -> Finding:
     """Test whether the resonance near ``f0_hz`` (quality factor ``q``) keeps its frequency.
 
     Args:
@@ -105,14 +105,17 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
         n_permutations, seed: the permutation test's orderings and its generator's seed.
         tests: how many resonances are tested at once: the p-value is multiplied by it
             (Bonferroni).
+        t0_s: time of the first sample on the scale cuts are given on (``--split``), s.
 
     Returns:
         Finding of kind ``"resonance_drift"`` (no model term: the remedy is a cut of the record
         or a model of what tunes the resonance). ``params``: ``f0_first_hz``, ``f0_last_hz``
         (mean centroid of the first and of the last quarter of the blocks), ``f0_min_hz``,
         ``f0_max_hz``, ``wander_hz`` (RMS beyond the noise) and ``noise_hz``; ``details``:
-        every block's ``t_s`` (centre, seconds from the first sample, gaps not counted) and
-        ``f0_hz`` (NaN where the peak did not stand above the rest).
+        every block's ``t_s`` (centre: ``t0_s`` plus its sample count over the rate, gaps not
+        counted) and ``f0_hz`` (NaN where the peak did not stand above the rest), and where the
+        centroids' largest change falls: ``split_t_s`` (the start of the block that best cuts
+        them into two levels, least squares), ``f0_before_hz``, ``f0_after_hz``.
     """
     fs = float(fs_hz)
     f0, q = float(f0_hz), max(float(q), 0.5)
@@ -149,7 +152,7 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
         if excess.sum() > 0:
             centroids[b] = float(np.sum(f * excess) / np.sum(excess))
     block_s = total / n_blocks / fs
-    t_s = (np.arange(n_blocks) + 0.5) * block_s
+    t_s = float(t0_s) + (np.arange(n_blocks) + 0.5) * block_s
     ok = np.isfinite(centroids)
     details = {"t_s": t_s.tolist(), "f0_hz": centroids.tolist(), "block_s": block_s,
                "nperseg": nperseg}
@@ -167,6 +170,13 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
     name = f"the resonance near {float(np.median(c)):.3g} Hz"
     quarter = max(len(c) // 4, 1)
     first, last = float(c[:quarter].mean()), float(c[-quarter:].mean())
+    # the cut into two levels that leaves the least scatter: where a user would split
+    cost = [float(np.sum((c[:k] - c[:k].mean()) ** 2) + np.sum((c[k:] - c[k:].mean()) ** 2))
+            for k in range(2, len(c) - 1)]
+    k = 2 + int(np.argmin(cost))
+    split = float(t0_s) + int(np.flatnonzero(ok)[k]) * block_s
+    details.update(split_t_s=split, f0_before_hz=float(c[:k].mean()),
+                   f0_after_hz=float(c[k:].mean()))
     params = {"f0_first_hz": first, "f0_last_hz": last, "f0_min_hz": float(c.min()),
               "f0_max_hz": float(c.max()), "wander_hz": wander, "noise_hz": noise}
     rng = {"f_hz": [float(c.min()), float(c.max())], "t_s": [0.0, float(n_blocks * block_s)]}
@@ -178,10 +188,12 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
         finding.why = (f"The frequency of {name} moves through the record: {first:.3g} Hz in "
                        f"its first quarter, {last:.3g} Hz in its last, between {c.min():.3g} "
                        f"and {c.max():.3g} Hz, wandering by {wander:.2g} Hz RMS beyond the "
-                       f"blocks' own noise ({noise:.2g} Hz) {how}. One resonance of fixed "
-                       "frequency cannot follow it, in the spectrum or from one half of the "
-                       "record to the other: fit the parts apart (--split) or model what "
-                       "tunes it (temperature).")
+                       f"blocks' own noise ({noise:.2g} Hz) {how}; its largest change falls "
+                       f"near t = {split:.0f} s ({c[:k].mean():.3g} Hz before, "
+                       f"{c[k:].mean():.3g} Hz after). One resonance of fixed frequency cannot "
+                       "follow it, in the spectrum or from one half of the record to the "
+                       f"other: fit the parts apart (--split {split:.0f}) or model what tunes "
+                       "it (temperature).")
     else:
         finding.why = f"{name[0].upper()}{name[1:]} keeps its frequency {how}."
     return finding

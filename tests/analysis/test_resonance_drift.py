@@ -70,13 +70,30 @@ def test_a_swept_resonance_is_named_with_where_it_went() -> None:
         assert f.significant and f.p_value < 1e-3, (seed, f.p_value)
         assert f.kind == "resonance_drift" and f.term is None
         # the first and last quarters hold 20.4 and 19.6 Hz on average; a centroid over a band
-        # centred on the fitted f0 is pulled toward it by the tails it cuts (by 10-20 % here)
+        # centred on the fitted f0 is pulled toward it by the tails it cuts (by 15-25 % here)
         moved = f.params["f0_first_hz"] - f.params["f0_last_hz"]
         assert 0.6 < moved < 0.85, (seed, f.params)
         assert f.params["wander_hz"] > 2 * f.params["noise_hz"]
         assert len(f.details["f0_hz"]) == 20 and f.details["block_s"] == pytest.approx(
             N / 20 / FS)
         assert "moves through the record" in f.why and "--split" in f.why
+
+
+def test_a_resonance_that_jumps_is_cut_where_it_jumped() -> None:
+    # 20.5 Hz over the first quarter of the record, 19.5 Hz after; times from t0_s = 100 s
+    x = np.concatenate([simulate(REST + [("resonance", {**PEAK, "f0": 20.5})], N // 4, FS, 7),
+                        simulate(REST + [("resonance", {**PEAK, "f0": 19.5})], 3 * N // 4,
+                                 FS, 8)])
+    f = resonance_drift([x], FS, 20.0, PEAK["Q"], _rest_psd, t0_s=100.0)
+    assert f.significant
+    block = f.details["block_s"]
+    assert f.details["split_t_s"] == pytest.approx(100.0 + N / 4 / FS, abs=block)
+    assert f.details["t_s"][0] == pytest.approx(100.0 + block / 2)
+    # each level's centroid, pulled toward the band's centre (20 Hz) by the tails the band
+    # cuts: 0.5 Hz off centre reads as 0.35-0.45 Hz
+    assert 0.65 < (f.details["f0_before_hz"] - 20.0) / 0.5 < 0.9, f.details
+    assert 0.65 < (20.0 - f.details["f0_after_hz"]) / 0.5 < 0.9, f.details
+    assert f"--split {f.details['split_t_s']:.0f}" in f.why
 
 
 def test_blocks_never_cross_a_gap_and_a_short_record_is_not_tested() -> None:
