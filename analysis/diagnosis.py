@@ -137,8 +137,9 @@ class Suggestion:
                 "params": {k: num(v) for k, v in self.params.items()},
                 "ci95": {k: [num(a), num(b)] for k, (a, b) in self.ci95.items()},
                 # amplitudes whose interval reaches zero: no estimate, only an upper bound
-                "unresolved": [k for k in self.params if term is not None
-                               and not term.resolved(k, self.ci95.get(k))],
+                "unresolved": [k for k in self.params if (
+                    not term.resolved(k, self.ci95.get(k)) if term is not None
+                    else k == _CUT_SIZE.get(self.term) and _holds_zero(self.ci95.get(k)))],
                 "chi2_per_dof_before": num(self.chi2_per_dof_before),
                 "chi2_per_dof_after": num(self.chi2_per_dof_after),
                 "significant": bool(self.significant), "p_value": num(self.p_value),
@@ -162,6 +163,15 @@ class Diagnosis:
     """The ``psd`` block of the given model (measured PSD, ``model_psd``, ``z``)."""
     error_parts: dict[str, Any] = field(default_factory=dict)
     """The given model's ``psd``, ``holdout`` and ``time_domain`` parts of the error."""
+
+
+_CUT_SIZE = {"bias_step": "size", "warmup": "amplitude"}
+"""The signed size of each cut's transient: no measurement when its interval holds zero."""
+
+
+def _holds_zero(ci: tuple[float, float] | None) -> bool:
+    return ci is not None and bool(np.isfinite(ci[0]) and np.isfinite(ci[1])
+                                   and ci[0] <= 0.0 <= ci[1])
 
 
 def _times(n: int, fs_hz: float, t0_s: float) -> np.ndarray:

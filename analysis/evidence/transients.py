@@ -189,14 +189,26 @@ def _profile(chol: np.ndarray, ybar: np.ndarray, shapes: np.ndarray) -> tuple[
     return amp, var, best - gain, best
 
 
-def _amplitude_interval(amp: np.ndarray, var: np.ndarray, lr: np.ndarray) -> tuple[float, float]:
-    """Profile interval of the amplitude over the nonlinear parameter's grid."""
+def _amplitude_sets(amp: np.ndarray, var: np.ndarray, lr: np.ndarray
+                    ) -> tuple[tuple[float, float], tuple[float, float] | None]:
+    """The amplitude's 95 % profile interval over the nonlinear parameter's grid, and, where
+    the profile set has pieces of both signs with zero in none, the hull of the pieces of the
+    sign opposite to the best amplitude's (else None). A knock (the bias leaves and comes
+    back) fits as a step up at its start and as a step down at its end: the hull of both
+    would reach across zero although no size near zero fits."""
     ok = (lr <= _LR95_REGULAR) & np.isfinite(var)
     half = np.sqrt((_LR95_REGULAR - lr[ok]) * var[ok])
-    return float(np.min(amp[ok] - half)), float(np.max(amp[ok] + half))
+    lo, hi = amp[ok] - half, amp[ok] + half
+    if not np.any((lo <= 0.0) & (hi >= 0.0)):
+        best = float(amp[int(np.argmin(lr))])
+        same = (lo > 0.0) if best > 0.0 else (hi < 0.0)
+        if not np.all(same):
+            return ((float(np.min(lo[same])), float(np.max(hi[same]))),
+                    (float(np.min(lo[~same])), float(np.max(hi[~same]))))
+    return (float(np.min(lo)), float(np.max(hi))), None
 
 
-def _step_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tuple]:
+def _step_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, Any]:
     """Step time (blocks from the segment start) and size, with 95 % intervals."""
     n = ybar.size
     t = np.arange(_STEP_GRID_PER_BLOCK, (n - 1) * _STEP_GRID_PER_BLOCK + 1) / _STEP_GRID_PER_BLOCK
@@ -206,9 +218,10 @@ def _step_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tupl
     inside = t[lr <= _LR95_REGULAR]
     # the true time lies between grid points: one grid step more on each side
     step = 1.0 / _STEP_GRID_PER_BLOCK
+    size_ci, other = _amplitude_sets(amp, var, lr)
     return {"t": float(t[best]), "size": float(amp[best]), "gain": gain,
             "t_ci": (max(float(inside.min()) - step, 0.0), min(float(inside.max()) + step, n)),
-            "size_ci": _amplitude_interval(amp, var, lr)}
+            "size_ci": size_ci, "size_ci_other": other}
 
 
 _LR95_CHANGE_POINT = 7.35
@@ -302,7 +315,7 @@ def _warmup_estimate(chol: np.ndarray, ybar: np.ndarray) -> dict[str, float | tu
     inside = tc[lr <= _LR95_REGULAR]
     return {"tau": float(tc[best]), "amplitude": float(amp[best]), "gain": gain,
             "tau_ci": (float(inside.min()), float(inside.max())),
-            "amplitude_ci": _amplitude_interval(amp, var, lr)}
+            "amplitude_ci": _amplitude_sets(amp, var, lr)[0]}
 
 
 def _family(n: int, t_blocks: np.ndarray) -> tuple[np.ndarray, list[tuple[str, float]]]:
@@ -350,11 +363,14 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
         time and size (``params``: ``t_s`` (s from the record start) and ``size`` (units) for
         a step, ``tau_s`` (s) and ``amplitude`` (units, at the segment start) for a warm-up),
         their 95 % intervals in ``details`` (``t_s_ci95``, ``size_ci95``; ``tau_s_ci95``,
-        ``amplitude_ci95``) and a Monte Carlo p-value, both tests sharing one search (the
-        p-value covers every split and time constant). The shape whose profiled fit lowers
-        ``-2 log L`` more (``details["gain"]``) names the transient and may take the p-value
-        of the largest contrast of both families; the other finding then carries
-        ``details["better_explained_by"]`` (the better finding's kind).
+        ``amplitude_ci95``; ``unresolved`` names the size or amplitude whose interval holds
+        zero: no measurement, and the sentence says so; ``size_ci95_other``, where a step of
+        the opposite sign fits as well, a knock's return, its interval, else None) and a
+        Monte Carlo p-value, both tests
+        sharing one search (the p-value covers every split and time constant). The shape
+        whose profiled fit lowers ``-2 log L`` more (``details["gain"]``) names the transient
+        and may take the p-value of the largest contrast of both families; the other finding
+        then carries ``details["better_explained_by"]`` (the better finding's kind).
     """
     x = max(segments, key=len) if segments else np.zeros(0)
     b = max(len(x) // BLOCKS, MIN_BLOCK_SAMPLES)
@@ -416,15 +432,41 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
                 t_ci = [t0_s + refined[1] / fs_hz, t0_s + refined[2] / fs_hz]
             size_ci = list(est["size_ci"])
             params = {"t_s": t_s, "size": size}
-            why = (f"The bias steps by {size:.3g} {units} at t = {t_s:.6g} s "
-                   f"(95 % intervals {t_ci[0]:.6g} .. {t_ci[1]:.6g} s, size {size_ci[0]:.3g} "
-                   f".. {size_ci[1]:.3g}), more than the fitted noise model's random wander "
-                   f"allows (|z| = {zmax:.1f}): a knock or a change of state. Analyse the two "
-                   f"sides as separate segments.")
+            if _holds_zero(size_ci):
+                # the contrasts found a departure there, but a lasting step of any size
+                # near zero explains the block means as well: no size to report
+                why = (f"The bias departs from the fitted noise model's random wander at "
+                       f"t = {t_s:.6g} s (95 % interval {t_ci[0]:.6g} .. {t_ci[1]:.6g} s, "
+                       f"|z| = {zmax:.1f}), but the size of a lasting step there is not "
+                       f"resolved (its 95 % interval {size_ci[0]:.3g} .. {size_ci[1]:.3g} "
+                       f"{units} holds zero): a knock or a short disturbance rather than a "
+                       f"change of state. Analyse the two sides as separate segments.")
+            elif est.get("size_ci_other") is not None:
+                o_lo, o_hi = est["size_ci_other"]
+                b_lo, b_hi = block_t["t_s_block_ci95"]
+                why = (f"The bias steps by {size:.3g} {units} at t = {t_s:.6g} s "
+                       f"(95 % intervals {t_ci[0]:.6g} .. {t_ci[1]:.6g} s, size "
+                       f"{size_ci[0]:.3g} .. {size_ci[1]:.3g}), more than the fitted noise "
+                       f"model's random wander allows (|z| = {zmax:.1f}); a step of the "
+                       f"opposite sign ({o_lo:.3g} .. {o_hi:.3g}) fits the block means as "
+                       f"well between {b_lo:.6g} and {b_hi:.6g} s: the bias leaves and comes "
+                       f"back, a knock rather than a change of state. Analyse the two sides "
+                       f"as separate segments.")
+            else:
+                why = (f"The bias steps by {size:.3g} {units} at t = {t_s:.6g} s "
+                       f"(95 % intervals {t_ci[0]:.6g} .. {t_ci[1]:.6g} s, size "
+                       f"{size_ci[0]:.3g} .. {size_ci[1]:.3g}), more than the fitted noise "
+                       f"model's random wander allows (|z| = {zmax:.1f}): a knock or a change "
+                       f"of state. Analyse the two sides as separate segments.")
             out.append(Finding("bias_step", None, zmax, "max |z|", p, alpha, params,
                                {"t_s": t_ci}, why if p < alpha else
                                f"No bias step beyond the model's wander (largest |z| = "
                                f"{zmax:.1f}).", {"size_ci95": size_ci, "t_s_ci95": t_ci,
+                                                  "unresolved": ["size"] if _holds_zero(
+                                                      size_ci) else [],
+                                                  "size_ci95_other": (
+                                                      None if est.get("size_ci_other") is None
+                                                      else list(est["size_ci_other"])),
                                                   "block_s": blk, **block_t}))
         else:
             if chol is not None:
@@ -440,17 +482,23 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
             params = {"tau_s": tau_s, "amplitude": amplitude}
             # five time constants, in whole samples (the remedy's --skip counts samples)
             skip = round(min(5.0 * tau_s, 0.5 * n * blk) * fs_hz) / fs_hz
-            why = (f"The bias settles after the start: an exponential of {amplitude:.3g} "
-                   f"{units} (95 % interval {amp_ci[0]:.3g} .. {amp_ci[1]:.3g}) with a time "
-                   f"constant of {tau_s:.3g} s ({tau_ci[0]:.3g} .. {tau_ci[1]:.3g} s), beyond "
-                   f"the fitted noise model's wander (|z| = {zmax:.1f}): a warm-up. Skip the "
-                   f"first {skip:.0f} s.")
+            size_text = (f"an exponential whose amplitude is not resolved (95 % interval "
+                         f"{amp_ci[0]:.3g} .. {amp_ci[1]:.3g} {units} holds zero)"
+                         if _holds_zero(amp_ci) else
+                         f"an exponential of {amplitude:.3g} {units} (95 % interval "
+                         f"{amp_ci[0]:.3g} .. {amp_ci[1]:.3g})")
+            why = (f"The bias settles after the start: {size_text} with a time constant of "
+                   f"{tau_s:.3g} s ({tau_ci[0]:.3g} .. {tau_ci[1]:.3g} s), beyond the fitted "
+                   f"noise model's wander (|z| = {zmax:.1f}): a warm-up. Skip the first "
+                   f"{skip:.0f} s.")
             out.append(Finding("warmup", None, zmax, "max |z|", p, alpha, params,
                                {"t_s": [t0_s, t0_s + skip]}, why if p < alpha else
                                f"No warm-up transient beyond the model's wander (largest |z| "
                                f"= {zmax:.1f}).", {"skip_s": skip, "block_s": blk,
                                                    "tau_s_ci95": tau_ci,
-                                                   "amplitude_ci95": amp_ci}))
+                                                   "amplitude_ci95": amp_ci,
+                                                   "unresolved": ["amplitude"] if _holds_zero(
+                                                       amp_ci) else []}))
     step_f, warm_f = out
     if better is not None:
         step_f.details["gain"] = ests["step"]["gain"]
@@ -462,6 +510,12 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
             loser.why += (f" But {shape} explains the block means better (-2 log L lower by "
                           f"{winner.details['gain'] - loser.details['gain']:.1f}).")
     return step_f, warm_f
+
+
+def _holds_zero(ci: Sequence[float]) -> bool:
+    """Whether a signed size's 95 % interval reaches or crosses zero (no measurement then)."""
+    lo, hi = float(ci[0]), float(ci[1])
+    return bool(np.isfinite(lo) and np.isfinite(hi) and lo <= 0.0 <= hi)
 
 
 def _max_z_p(z: np.ndarray, draws: np.ndarray, sel: np.ndarray) -> float:

@@ -8,7 +8,7 @@ import pytest
 from scipy import stats
 
 from imunoise.analysis.diagnosis import diagnose
-from imunoise.analysis.evidence.transients import _variogram, transients
+from imunoise.analysis.evidence.transients import _amplitude_sets, _variogram, transients
 from imunoise.analysis.fit import fit_series
 from imunoise.analysis.noise_stream import NoiseStream, simulate
 from imunoise.analysis.terms import model_avar
@@ -75,6 +75,39 @@ def test_a_knock_is_named_with_its_time_and_split_away() -> None:
     assert again.chi2_per_dof == pytest.approx(s.chi2_per_dof_after, rel=1e-6)
     k_before, k_after = d.fit.terms[1].params["K"], again.terms[1].params["K"]
     assert abs(np.log(k_after / 2e-6)) < abs(np.log(k_before / 2e-6))
+
+
+def test_a_knock_that_comes_back_fits_a_step_either_way_and_is_said_to() -> None:
+    # a one-block excursion: a step up at its start and a step down at its end fit the block
+    # means alike; the hull of both sizes would reach across zero, yet no size near zero fits
+    fs, n = 50.0, 360_000
+    model = [("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4}),
+             ("random_walk", {"K": 2e-5})]
+    x = simulate(model, n, fs, 4002)
+    b = n // 120
+    x[60 * b: 61 * b] += 4e-3
+    step, _ = transients([x], fs, model)
+    assert step.significant
+    lo, hi = step.details["size_ci95"]
+    o_lo, o_hi = step.details["size_ci95_other"]
+    assert lo <= step.params["size"] <= hi and (hi < 0.0 < o_lo or o_hi < 0.0 < lo)
+    assert step.details["unresolved"] == []
+    # the knock's edges, 60 blocks (3600 s) and 61 blocks in, bound the time interval
+    t_lo, t_hi = step.details["t_s_block_ci95"]
+    assert t_lo <= 60 * b / fs + 1.0 and t_hi >= 61 * b / fs - 1.0
+    assert "comes back, a knock" in step.why and "opposite sign" in step.why
+
+
+def test_a_size_interval_with_zero_in_it_is_no_measurement() -> None:
+    amp = np.array([-1.0, 0.1, 1.0])
+    var = np.full(3, 0.01)
+    # every grid point inside the 95 % set; the sizes of both signs join across zero
+    both, other = _amplitude_sets(amp, np.full(3, 1.0), np.zeros(3))
+    assert both[0] < 0.0 < both[1] and other is None
+    # the middle point left out: two pieces of opposite sign, zero in neither
+    main, other = _amplitude_sets(amp, var, np.array([1.0, 99.0, 0.0]))
+    assert main == pytest.approx((1.0 - np.sqrt(0.0384146), 1.0 + np.sqrt(0.0384146)), rel=1e-4)
+    assert other is not None and other[1] < 0.0
 
 
 def test_a_warm_up_is_named_and_skipping_it_frees_the_random_walk() -> None:

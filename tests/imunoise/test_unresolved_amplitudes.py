@@ -49,6 +49,10 @@ def test_a_suggestion_names_its_unresolved_amplitudes_in_json() -> None:
                      chi2_per_dof_before=1.0, chi2_per_dof_after=0.9, p_value=0.01,
                      log_p=-4.6, significant=True, why="")
     assert cut.to_dict()["unresolved"] == []
+    # a cut's signed size is no measurement when its interval holds zero
+    for ci, want in (((-1e-3, 3e-3), ["size"]), ((1e-4, 2e-3), []), ((-2e-3, -1e-4), [])):
+        cut.ci95 = {"size": ci}
+        assert cut.to_dict()["unresolved"] == want, ci
 
 
 def test_fit_json_names_the_amplitudes_the_text_calls_not_resolved(tmp_path) -> None:
