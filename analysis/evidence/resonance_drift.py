@@ -118,23 +118,27 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
         them into two levels, least squares), ``f0_before_hz``, ``f0_after_hz``.
     """
     fs = float(fs_hz)
-    f0, q = float(f0_hz), max(float(q), 0.5)
+    f0, q = float(f0_hz), float(q)
     total = int(sum(len(s) for s in segments))
     name = f"the resonance near {f0:.3g} Hz"
+    def untested(reason: str) -> Finding:
+        return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
+                       why=f"Whether {name} keeps its frequency is not tested: {reason}.")
+
+    if not (math.isfinite(f0) and math.isfinite(q)):
+        return untested("its frequency or quality factor is not a number")
+    if q < MIN_Q:
+        return untested(f"with Q = {q:.2g} it has no peak to place")
+    if not 0.0 < f0 < 0.5 * fs:
+        return untested(f"it lies outside the sampled band (0 .. {0.5 * fs:.3g} Hz)")
     half_width = f0 / (2.0 * q)
-    nperseg = 1 << max(8, math.ceil(math.log2(4.0 * fs / max(half_width, 1e-9))))
+    nperseg = 1 << max(8, math.ceil(math.log2(4.0 * fs / half_width)))
     # a coarser spectrum still places a peak a few bins wide: coarsen before giving up blocks
     while nperseg > 256 and total // (_MIN_SEGMENTS * nperseg) < MIN_BLOCKS:
         nperseg //= 2
     n_blocks = min(int(n_blocks), total // (_MIN_SEGMENTS * nperseg))
-    if q < MIN_Q:
-        return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
-                       why=f"Whether {name} keeps its frequency is not tested: with Q = "
-                           f"{q:.2g} it has no peak to place.")
-    if not (0.0 < f0 < 0.5 * fs) or n_blocks < MIN_BLOCKS:
-        return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
-                       why=f"Whether {name} keeps its frequency is not tested: the record is "
-                           f"too short for {MIN_BLOCKS} blocks that resolve it.")
+    if n_blocks < MIN_BLOCKS:
+        return untested(f"the record is too short for {MIN_BLOCKS} blocks that resolve it")
     df = fs / nperseg
     reach = max(4.0 * half_width, 4.0 * df)
     centroids = np.full(n_blocks, np.nan)
@@ -185,12 +189,14 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
     finding = Finding("resonance_drift", None, ratio, "von Neumann ratio", p_value, alpha,
                       params, rng, details=details)
     if finding.significant:
-        finding.why = (f"The frequency of {name} moves through the record: {first:.3g} Hz in "
-                       f"its first quarter, {last:.3g} Hz in its last, between {c.min():.3g} "
-                       f"and {c.max():.3g} Hz, wandering by {wander:.2g} Hz RMS beyond the "
-                       f"blocks' own noise ({noise:.2g} Hz) {how}; its largest change falls "
-                       f"near t = {split:.0f} s ({c[:k].mean():.3g} Hz before, "
-                       f"{c[k:].mean():.3g} Hz after). One resonance of fixed frequency cannot "
+        # frequencies to the digit the blocks' noise resolves, so that a small move shows
+        d = min(max(1 - math.floor(math.log10(max(noise, 1e-6))), 1), 4)
+        finding.why = (f"The frequency of {name} moves through the record: {first:.{d}f} Hz "
+                       f"in its first quarter, {last:.{d}f} Hz in its last, between "
+                       f"{c.min():.{d}f} and {c.max():.{d}f} Hz, wandering by {wander:.2g} Hz "
+                       f"RMS beyond the blocks' own noise ({noise:.2g} Hz) {how}; its largest "
+                       f"change falls near t = {split:.0f} s ({c[:k].mean():.{d}f} Hz before, "
+                       f"{c[k:].mean():.{d}f} Hz after). One resonance of fixed frequency cannot "
                        "follow it, in the spectrum or from one half of the record to the "
                        f"other: fit the parts apart (--split {split:.0f}) or model what tunes "
                        "it (temperature).")

@@ -108,7 +108,12 @@ def test_blocks_never_cross_a_gap_and_a_short_record_is_not_tested() -> None:
     assert not short.significant and short.p_value == 1.0
     assert "not tested" in short.why and "too short" in short.why
     beyond = resonance_drift([x], FS, 60.0, PEAK["Q"], _rest_psd)
-    assert not beyond.significant and "not tested" in beyond.why
+    assert not beyond.significant and "outside the sampled band (0 .. 50 Hz)" in beyond.why
+    for f0, q in ((float("nan"), 15.0), (20.0, float("inf"))):
+        bad = resonance_drift([x], FS, f0, q, _rest_psd)
+        assert not bad.significant and "not a number" in bad.why
+    assert "no peak" in resonance_drift([x], FS, 20.0, 0.0, _rest_psd).why
+    assert "not tested" in resonance_drift([], FS, 20.0, 15.0, _rest_psd).why
     # a hump (Q below 2) has no peak to place: its band would take in the whole spectrum
     hump = resonance_drift([x], FS, 10.0, 0.5, _rest_psd)
     assert not hump.significant and "no peak" in hump.why
