@@ -35,6 +35,7 @@ from imunoise.analysis import evidence
 from imunoise.analysis.default_model import DEFAULT_MODEL
 from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.evidence.resonance_drift import MIN_Q as DRIFT_MIN_Q
+from imunoise.analysis.evidence.transients import holds_zero
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.model_error import (
@@ -139,7 +140,7 @@ class Suggestion:
                 # amplitudes whose interval reaches zero: no estimate, only an upper bound
                 "unresolved": [k for k in self.params if (
                     not term.resolved(k, self.ci95.get(k)) if term is not None
-                    else k == _CUT_SIZE.get(self.term) and _holds_zero(self.ci95.get(k)))],
+                    else k == _CUT_SIZE.get(self.term) and holds_zero(self.ci95.get(k)))],
                 "chi2_per_dof_before": num(self.chi2_per_dof_before),
                 "chi2_per_dof_after": num(self.chi2_per_dof_after),
                 "significant": bool(self.significant), "p_value": num(self.p_value),
@@ -167,11 +168,6 @@ class Diagnosis:
 
 _CUT_SIZE = {"bias_step": "size", "warmup": "amplitude"}
 """The signed size of each cut's transient: no measurement when its interval holds zero."""
-
-
-def _holds_zero(ci: tuple[float, float] | None) -> bool:
-    return ci is not None and bool(np.isfinite(ci[0]) and np.isfinite(ci[1])
-                                   and ci[0] <= 0.0 <= ci[1])
 
 
 def _times(n: int, fs_hz: float, t0_s: float) -> np.ndarray:

@@ -366,11 +366,11 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
         ``amplitude_ci95``; ``unresolved`` names the size or amplitude whose interval holds
         zero: no measurement, and the sentence says so; ``size_ci95_other``, where a step of
         the opposite sign fits as well, a knock's return, its interval, else None) and a
-        Monte Carlo p-value, both tests
-        sharing one search (the p-value covers every split and time constant). The shape
-        whose profiled fit lowers ``-2 log L`` more (``details["gain"]``) names the transient
-        and may take the p-value of the largest contrast of both families; the other finding
-        then carries ``details["better_explained_by"]`` (the better finding's kind).
+        Monte Carlo p-value, both tests sharing one search (the p-value covers every split
+        and time constant). The shape whose profiled fit lowers ``-2 log L`` more
+        (``details["gain"]``) names the transient and may take the p-value of the largest
+        contrast of both families; the other finding then carries
+        ``details["better_explained_by"]`` (the better finding's kind).
     """
     x = max(segments, key=len) if segments else np.zeros(0)
     b = max(len(x) // BLOCKS, MIN_BLOCK_SAMPLES)
@@ -432,7 +432,7 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
                 t_ci = [t0_s + refined[1] / fs_hz, t0_s + refined[2] / fs_hz]
             size_ci = list(est["size_ci"])
             params = {"t_s": t_s, "size": size}
-            if _holds_zero(size_ci):
+            if holds_zero(size_ci):
                 # the contrasts found a departure there, but a lasting step of any size
                 # near zero explains the block means as well: no size to report
                 why = (f"The bias departs from the fitted noise model's random wander at "
@@ -462,7 +462,7 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
                                {"t_s": t_ci}, why if p < alpha else
                                f"No bias step beyond the model's wander (largest |z| = "
                                f"{zmax:.1f}).", {"size_ci95": size_ci, "t_s_ci95": t_ci,
-                                                  "unresolved": ["size"] if _holds_zero(
+                                                  "unresolved": ["size"] if holds_zero(
                                                       size_ci) else [],
                                                   "size_ci95_other": (
                                                       None if est.get("size_ci_other") is None
@@ -484,7 +484,7 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
             skip = round(min(5.0 * tau_s, 0.5 * n * blk) * fs_hz) / fs_hz
             size_text = (f"an exponential whose amplitude is not resolved (95 % interval "
                          f"{amp_ci[0]:.3g} .. {amp_ci[1]:.3g} {units} holds zero)"
-                         if _holds_zero(amp_ci) else
+                         if holds_zero(amp_ci) else
                          f"an exponential of {amplitude:.3g} {units} (95 % interval "
                          f"{amp_ci[0]:.3g} .. {amp_ci[1]:.3g})")
             why = (f"The bias settles after the start: {size_text} with a time constant of "
@@ -497,7 +497,7 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
                                f"= {zmax:.1f}).", {"skip_s": skip, "block_s": blk,
                                                    "tau_s_ci95": tau_ci,
                                                    "amplitude_ci95": amp_ci,
-                                                   "unresolved": ["amplitude"] if _holds_zero(
+                                                   "unresolved": ["amplitude"] if holds_zero(
                                                        amp_ci) else []}))
     step_f, warm_f = out
     if better is not None:
@@ -512,8 +512,11 @@ def transients(segments: Sequence[np.ndarray], fs_hz: float,
     return step_f, warm_f
 
 
-def _holds_zero(ci: Sequence[float]) -> bool:
-    """Whether a signed size's 95 % interval reaches or crosses zero (no measurement then)."""
+def holds_zero(ci: Sequence[float] | None) -> bool:
+    """Whether a signed size's 95 % interval reaches or crosses zero (no measurement then);
+    False for no interval or one with an undefined end."""
+    if ci is None:
+        return False
     lo, hi = float(ci[0]), float(ci[1])
     return bool(np.isfinite(lo) and np.isfinite(hi) and lo <= 0.0 <= hi)
 
