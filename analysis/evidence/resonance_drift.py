@@ -37,11 +37,12 @@ from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.evidence.lines import welch_bins
 
 MIN_BLOCKS = 8
+"""Fewest blocks whose centroids are compared; with fewer the permutation test has no power."""
+
 MIN_Q = 2.0
 """Smallest quality factor tested: below it the term's spectrum has no peak to place (none at
 all below 1/sqrt(2)), only a hump as wide as its frequency, and its band would take in the
 spectrum's other features."""
-"""Fewest blocks whose centroids are compared; with fewer the permutation test has no power."""
 
 _MIN_SEGMENTS = 8  # Welch segments per block: a centroid's noise stays well below the peak width
 
@@ -121,6 +122,7 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
     f0, q = float(f0_hz), float(q)
     total = int(sum(len(s) for s in segments))
     name = f"the resonance near {f0:.3g} Hz"
+
     def untested(reason: str) -> Finding:
         return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
                        why=f"Whether {name} keeps its frequency is not tested: {reason}.")
