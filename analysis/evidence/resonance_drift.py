@@ -88,9 +88,9 @@ def permutation_p(values: np.ndarray, n_permutations: int = 9999, seed: int = 0)
 
 
 def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, q: float,
-                    rest_psd: Callable[[np.ndarray], np.ndarray] | None = None,
-                    n_blocks: int = 20, alpha: float = 0.05, n_permutations: int = 9999,
-                    seed: int = 0, tests: int = 1, t0_s: float = 0.0) -> Finding:
+                    rest_psd: Callable[[np.ndarray], np.ndarray], n_blocks: int = 20,
+                    alpha: float = 0.05, n_permutations: int = 9999, seed: int = 0,
+                    tests: int = 1, t0_s: float = 0.0) -> Finding:
     """Test whether the resonance near ``f0_hz`` (quality factor ``q``) keeps its frequency.
 
     Args:
@@ -98,8 +98,7 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
         fs_hz: sampling rate, Hz.
         f0_hz, q: the fitted resonance's centre frequency (Hz) and quality factor.
         rest_psd: one-sided PSD (units^2/Hz) of the rest of the model at given frequencies
-            (Hz), taken away before the centroid; None takes the lower of the band's edge
-            levels as a flat rest.
+            (Hz), taken away before the centroid.
         n_blocks: blocks along the record (fewer when the record is too short for the
             resolution the peak needs, down to :data:`MIN_BLOCKS`).
         alpha: significance level.
@@ -123,9 +122,10 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
     total = int(sum(len(s) for s in segments))
     name = f"the resonance near {f0:.3g} Hz"
 
-    def untested(reason: str) -> Finding:
+    def untested(reason: str, details: dict | None = None) -> Finding:
         return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
-                       why=f"Whether {name} keeps its frequency is not tested: {reason}.")
+                       why=f"Whether {name} keeps its frequency is not tested: {reason}.",
+                       details=details or {})
 
     if not (math.isfinite(f0) and math.isfinite(q)):
         return untested("its frequency or quality factor is not a number")
@@ -152,9 +152,7 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
         if np.count_nonzero(band) < 4:
             continue
         f, p = wb.f_hz[band], wb.psd[band]
-        rest = (np.asarray(rest_psd(f), dtype=np.float64) if rest_psd is not None
-                else np.full(f.size, min(p[:2].mean(), p[-2:].mean())))
-        excess = np.maximum(p - rest, 0.0)
+        excess = np.maximum(p - np.asarray(rest_psd(f), dtype=np.float64), 0.0)
         if excess.sum() > 0:
             centroids[b] = float(np.sum(f * excess) / np.sum(excess))
     block_s = total / n_blocks / fs
@@ -163,11 +161,8 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
     details = {"t_s": t_s.tolist(), "f0_hz": centroids.tolist(), "block_s": block_s,
                "nperseg": nperseg}
     if ok.sum() < MIN_BLOCKS:
-        return Finding("resonance_drift", None, 2.0, "von Neumann ratio", 1.0, alpha,
-                       details=details,
-                       why=f"Whether {name} keeps its frequency is not tested: its peak stands "
-                           f"above the rest of the model in {int(ok.sum())} of {n_blocks} "
-                           "blocks only.")
+        return untested(f"its peak stands above the rest of the model in {int(ok.sum())} of "
+                        f"{n_blocks} blocks only", details)
     c = centroids[ok]
     ratio = von_neumann_ratio(c)
     p_value = min(permutation_p(c, n_permutations, seed) * max(int(tests), 1), 1.0)
@@ -185,7 +180,8 @@ def resonance_drift(segments: Sequence[np.ndarray], fs_hz: float, f0_hz: float, 
                    f0_after_hz=float(c[k:].mean()))
     params = {"f0_first_hz": first, "f0_last_hz": last, "f0_min_hz": float(c.min()),
               "f0_max_hz": float(c.max()), "wander_hz": wander, "noise_hz": noise}
-    rng = {"f_hz": [float(c.min()), float(c.max())], "t_s": [0.0, float(n_blocks * block_s)]}
+    rng = {"f_hz": [float(c.min()), float(c.max())],
+           "t_s": [float(t0_s), float(t0_s) + n_blocks * block_s]}
     how = (f"(peak centroids of {n_blocks} blocks of {block_s:.3g} s; von Neumann ratio "
            f"{ratio:.2f} against about 2, p = {p_value:.2g})")
     finding = Finding("resonance_drift", None, ratio, "von Neumann ratio", p_value, alpha,

@@ -89,6 +89,7 @@ def test_a_resonance_that_jumps_is_cut_where_it_jumped() -> None:
     block = f.details["block_s"]
     assert f.details["split_t_s"] == pytest.approx(100.0 + N / 4 / FS, abs=block)
     assert f.details["t_s"][0] == pytest.approx(100.0 + block / 2)
+    assert f.range["t_s"] == pytest.approx([100.0, 100.0 + 20 * block])
     # each level's centroid, pulled toward the band's centre (20 Hz) by the tails the band
     # cuts: 0.5 Hz off centre reads as 0.35-0.45 Hz
     assert 0.65 < (f.details["f0_before_hz"] - 20.0) / 0.5 < 0.9, f.details
