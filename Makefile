@@ -3,8 +3,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+PACKAGES := core analysis daq live fleet web imunoise
 
-.PHONY: run test lint bench clean
+.PHONY: run test lint bench clean bytecode
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -12,13 +13,20 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test,fleet,plot,notebook]'
 	touch $(STAMP)
 
-run: $(STAMP)
+# Every command is a new process that imports the package from this tree (an editable
+# install). Where the environment sets PYTHONDONTWRITEBYTECODE, Python compiles each of its
+# modules from source on every start, about 0.13 s a command here; the bytecode written
+# below is read instead (and is ignored for any file edited since).
+bytecode: $(STAMP)
+	$(BIN)/python -m compileall -q $(PACKAGES)
+
+run: bytecode
 	$(BIN)/imunoise serve --device sim:adis16350 --out data
 
 # Two passes: the tests that do not depend on the host keeping time, two at a time (one per
 # core of a small machine); then the `realtime` ones (live acquisition, serving, lost-sample
 # counts) alone, so that nothing else competes with them. Together they are the whole suite.
-test: $(STAMP)
+test: bytecode
 	$(BIN)/ruff check .
 	$(BIN)/python -m tests.typecheck
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not realtime"
