@@ -19,6 +19,7 @@ from imunoise.analysis.terms import (
     get_term,
     model_avar,
 )
+from imunoise.analysis.terms.output_filter import FilteredNoise, OutputFilter
 
 
 @dataclass
@@ -83,7 +84,10 @@ class _AvarModel:
     (each additive term alone, and the output filter together with the noise terms it
     filters), and a parameter moves only its own group. An amplitude scales its term's Allan
     variance by its square, so its column is exact (``2 avar_term``; behind a filter, twice
-    the term's filtered part); every other column is a forward difference of its group alone.
+    the term's filtered part); every other column is a forward difference of its group alone,
+    and for the shape of a noise term behind the filter (a resonance's f0, a Markov time) of
+    that term's filtered part alone, the other terms' parts taken as they were (the same
+    numbers as the group's, computed for one term instead of all).
     """
 
     def __init__(self, layout: _Layout, tau: np.ndarray, fs: float) -> None:
@@ -102,32 +106,43 @@ class _AvarModel:
                               for i, k in layout.keys]
         # the filter group's noise terms, in the order the filter takes them
         self._filtered = sorted(i for i in through if i not in filters)
-        self._last: tuple[bytes, list[np.ndarray], dict[int, np.ndarray]] | None = None
+        self._filter = filters[0] if filters else -1
+        self._last: tuple[bytes, list[np.ndarray], FilteredNoise | None] | None = None
 
-    def _group(self, g: int, params: list[dict[str, float]],
-               filtered: dict[int, np.ndarray] | None = None) -> np.ndarray:
-        """Allan variance of group ``g``; for the filter's group, each noise term's filtered
-        part is put in ``filtered`` (by term index) when given."""
+    def _group(self, g: int, params: list[dict[str, float]]) -> np.ndarray:
+        """Allan variance of group ``g``."""
         names = self.layout.names
-        members = self.groups[g]
-        if filtered is None or len(members) == 1 or not self._filtered:
-            return model_avar([(names[i], params[i]) for i in members], self.tau, self.fs,
-                              checked=False)
-        f = next(i for i in members if i not in self._filtered)
-        noise = [(get_term(names[i]), params[i]) for i in self._filtered]
-        total, parts = get_term(names[f]).filtered_parts(noise, self.tau, self.fs, params[f])
-        filtered.update(zip(self._filtered, parts, strict=True))
-        return total
+        return model_avar([(names[i], params[i]) for i in self.groups[g]], self.tau, self.fs,
+                          checked=False)
 
-    def _parts(self, theta: np.ndarray) -> tuple[list[np.ndarray], dict[int, np.ndarray]]:
+    def _filtered_noise(self, params: list[dict[str, float]],
+                        like: FilteredNoise | None = None, moved: int | None = None
+                        ) -> FilteredNoise:
+        """The filter group's Allan variance, term by term (see
+        :meth:`OutputFilter.filtered_noise`; ``moved`` is a term's index in the layout)."""
+        names = self.layout.names
+        noise = [(get_term(names[i]), params[i]) for i in self._filtered]
+        filt = get_term(names[self._filter])
+        assert isinstance(filt, OutputFilter)  # every term of kind "filter" is one
+        return filt.filtered_noise(
+            noise, self.tau, self.fs, params[self._filter], like=like,
+            moved=None if moved is None else self._filtered.index(moved))
+
+    def _parts(self, theta: np.ndarray) -> tuple[list[np.ndarray], FilteredNoise | None]:
         key = theta.tobytes()
         if self._last is not None and self._last[0] == key:
             return self._last[1], self._last[2]
         params = _unpack(self.layout, theta)
-        filtered: dict[int, np.ndarray] = {}
-        parts = [self._group(g, params, filtered) for g in range(len(self.groups))]
-        self._last = (key, parts, filtered)
-        return parts, filtered
+        found = None
+        parts = []
+        for g in range(len(self.groups)):
+            if self._filtered and self._filter in self.groups[g]:
+                found = self._filtered_noise(params)
+                parts.append(found.total)
+            else:
+                parts.append(self._group(g, params))
+        self._last = (key, parts, found)
+        return parts, found
 
     def value(self, theta: np.ndarray) -> np.ndarray:
         """Allan variance at ``theta``."""
@@ -136,21 +151,25 @@ class _AvarModel:
 
     def derivative(self, theta: np.ndarray) -> np.ndarray:
         """``d avar / d theta_k`` (units^2 per log unit), one column per free parameter."""
-        parts, filtered = self._parts(theta)
+        parts, found = self._parts(theta)
         params = _unpack(self.layout, theta)
         out = np.empty((self.tau.size, theta.size))
         for k, (g, amp) in enumerate(zip(self.col_group, self.col_amplitude, strict=True)):
+            i, name = self.layout.keys[k]
+            # a noise term behind the filter: its filtered part, the others left where they were
+            behind = found if found is not None and i in self._filtered else None
             if amp:
-                i = self.layout.keys[k][0]
-                out[:, k] = 2.0 * (filtered[i] if i in filtered else parts[g])
+                out[:, k] = 2.0 * (parts[g] if behind is None
+                                   else behind.parts[self._filtered.index(i)])
                 continue
             h = _FD_STEP * max(1.0, abs(float(theta[k])))
             if theta[k] + h > self.layout.hi[k]:
                 h = -h  # a parameter at its upper bound is differenced from below
-            i, name = self.layout.keys[k]
             moved = list(params)
             moved[i] = {**params[i], name: math.exp(float(theta[k]) + h)}
-            out[:, k] = (self._group(g, moved) - parts[g]) / h
+            step = self._group(g, moved) if behind is None \
+                else self._filtered_noise(moved, like=behind, moved=i).total
+            out[:, k] = (step - parts[g]) / h
         return out
 
 

@@ -31,6 +31,7 @@ import functools
 import math
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -89,6 +90,22 @@ def _bins(u_lo: float, n_lin: int) -> tuple[np.ndarray, ...]:
     for a in (ua, ub, um, width, sin2):
         a.setflags(write=False)
     return ua, ub, um, width, sin2
+
+
+@dataclass(frozen=True)
+class FilteredNoise:
+    """The Allan variance (units^2) of noise terms seen through an output filter, term by
+    term (see :meth:`OutputFilter.filtered_noise`)."""
+
+    total: np.ndarray
+    parts: list[np.ndarray]
+    """Each term's part of ``total``, in the order the terms were given."""
+    unfiltered: list[np.ndarray | None]
+    """A long-memory term's own Allan variance, before the filter's correction; None for a
+    term filtered in the time domain (white noise, quantization)."""
+    matters: list[np.ndarray | None]
+    """Where a long-memory term's correction is computed (its own Allan variance is at
+    least 1e-4 of the model's); None for the others."""
 
 
 def _symmetric(r: np.ndarray) -> np.ndarray:
@@ -205,7 +222,7 @@ class OutputFilter(Term):
 
     def filtered_avar(self, noise: list[tuple[Term, dict[str, float]]], tau: np.ndarray,
                       fs_hz: float, params: dict[str, float]) -> np.ndarray:
-        return self.filtered_parts(noise, tau, fs_hz, params)[0]
+        return self.filtered_noise(noise, tau, fs_hz, params).total
 
     def filtered_parts(self, noise: list[tuple[Term, dict[str, float]]], tau: np.ndarray,
                        fs_hz: float, params: dict[str, float]
@@ -213,26 +230,55 @@ class OutputFilter(Term):
         """The filtered Allan variance of the ``noise`` terms (units^2) and each term's part
         of it, in the order given. A part scales with the square of its term's amplitude
         (a fit's derivative by that amplitude is twice the part)."""
+        found = self.filtered_noise(noise, tau, fs_hz, params)
+        return found.total, found.parts
+
+    def filtered_noise(self, noise: list[tuple[Term, dict[str, float]]], tau: np.ndarray,
+                       fs_hz: float, params: dict[str, float], *,
+                       like: FilteredNoise | None = None, moved: int | None = None
+                       ) -> FilteredNoise:
+        """:meth:`filtered_parts` with what it was computed from.
+
+        ``like`` is the result for the same terms, ``tau`` and filter where only the term at
+        position ``moved`` had other parameters (a fit's difference step on that term's shape):
+        the other terms are taken from it, and a term's correction is computed again only
+        where the new total moves the threshold below which it is left out. The result is
+        the one computed from nothing, to the last bit; a fit's derivative by one term's
+        shape then costs that term's correction instead of every term's."""
         tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
         m = tau * fs_hz
         out = np.zeros_like(tau)
-        parts: dict[int, np.ndarray] = {}
-        own: list[tuple[int, Term, dict[str, float], np.ndarray]] = []
+        parts: list[np.ndarray] = [out] * len(noise)
+        own: list[np.ndarray | None] = [None] * len(noise)
         for n, (term, p) in enumerate(noise):
-            if term.autocovariance(fs_hz, p) is not None:
+            if like is not None and n != moved:
+                own[n] = like.unfiltered[n]
+                if own[n] is None:
+                    parts[n] = like.parts[n]
+                    out += parts[n]
+            elif term.autocovariance(fs_hz, p) is not None:
                 parts[n] = self._short_memory_avar(term, p, m, fs_hz, params)
                 out += parts[n]
             else:
-                own.append((n, term, p, term.avar_fast(tau, fs_hz, p)))
-        total = out + sum((a for _, _, _, a in own), np.zeros_like(tau))
-        for n, term, p, a in own:
+                own[n] = term.avar_fast(tau, fs_hz, p)
+        total = out + sum((a for a in own if a is not None), np.zeros_like(tau))
+        matters: list[np.ndarray | None] = [None] * len(noise)
+        for n, (term, p) in enumerate(noise):
+            a = own[n]
+            if a is None:
+                continue
             # 0 <= |G|^2 <= 1, so the correction is smaller than the term's own Allan variance:
             # where that is below 1e-4 of the model's, it is left out
-            matters = a > _NEGLIGIBLE * total
-            corr = self._correction(term, p, np.where(matters, m, np.inf), fs_hz, params)
-            parts[n] = a + corr
+            mask = a > _NEGLIGIBLE * total
+            matters[n] = mask
+            kept = like if like is not None and n != moved else None
+            if kept is not None and np.array_equal(mask, kept.matters[n]):  # type: ignore[arg-type]
+                parts[n] = kept.parts[n]
+            else:
+                parts[n] = a + self._correction(term, p, np.where(mask, m, np.inf), fs_hz,
+                                                params)
             out += parts[n]
-        return out, [parts[n] for n in range(len(noise))]
+        return FilteredNoise(out, parts, own, matters)
 
     def filtered_autocovariance(self, r_in: np.ndarray, fs_hz: float,
                                 params: dict[str, float]) -> np.ndarray:

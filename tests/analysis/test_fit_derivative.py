@@ -83,3 +83,30 @@ def test_behind_a_filter_an_amplitudes_column_is_twice_its_filtered_part():
     assert len(parts) == len(noise) == 4
     assert np.array_equal(total, ma.filtered_avar(noise, TAU, FS, model[3][1]))
     assert np.allclose(np.sum(parts, axis=0), total, rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("step", [1.5e-8, 0.5, 8.0])
+def test_a_filtered_term_moved_alone_is_the_whole_filtered_sum_to_the_bit(step):
+    """The derivative's shortcut: one term behind the filter moved, the others taken from the
+    result before the move. A large move shifts the total enough that another term's
+    correction is left out at other tau, which the shortcut must notice."""
+    from imunoise.analysis.terms import get_term
+
+    model = MODELS["filtered"]
+    noise = [(get_term(n), dict(p)) for n, p in model if get_term(n).role == "noise"
+             and get_term(n).kind != "filter"]
+    ma = get_term("moving_average")
+    taps = model[3][1]
+    before = ma.filtered_noise(noise, TAU, FS, taps)
+    at = [i for i, (t, _) in enumerate(noise) if t.name == "resonance"][0]
+    for name in ("f0", "sigma"):
+        moved = list(noise)
+        moved[at] = (noise[at][0], {**noise[at][1], name: noise[at][1][name] * (1 + step)})
+        fresh = ma.filtered_noise(moved, TAU, FS, taps)
+        short = ma.filtered_noise(moved, TAU, FS, taps, like=before, moved=at)
+        assert np.array_equal(short.total, fresh.total)
+        assert all(np.array_equal(a, b) for a, b in zip(short.parts, fresh.parts, strict=True))
+        if name == "sigma" and step == 8.0:
+            # the resonance (81 times the power) now hides part of the random walk
+            kept = [i for i, (t, _) in enumerate(noise) if t.name == "random_walk"][0]
+            assert not np.array_equal(fresh.matters[kept], before.matters[kept])
