@@ -114,7 +114,13 @@ def _profile_interval(resid: _LogResidual, theta: np.ndarray, idx: int, layout: 
                                      max_nfev=40)
         return 2.0 * float(sol.cost) - base, sol.x
 
-    step = max(2.0 * _Z95 * sd, 0.05) if np.isfinite(sd) and sd > 0 else 1.0
+    # the first step is four Jacobian standard deviations, at most one log unit: where the
+    # Jacobian says a parameter is barely determined (a resonance's Q, sd 20 log units) a
+    # longer step lands at its bound, where the rise is in the millions, and halving from
+    # there to _PROFILE_WIDTH costs a dozen refits; doubling from one log unit finds the end
+    # in fewer (ADIS16405 run 4 accel_x's diagnosis: 470 refits for 35 intervals, 571 with
+    # the step uncapped; the intervals of the determined parameters are the same)
+    step = min(max(2.0 * _Z95 * sd, 0.05), 1.0) if np.isfinite(sd) and sd > 0 else 1.0
     return profile_bounds(excess, float(theta[idx]), float(layout.lo[idx]),
                           float(layout.hi[idx]), step, _CHI2_95_1DOF, theta[others],
                           bisections=5, width=_PROFILE_WIDTH)
