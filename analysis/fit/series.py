@@ -5,7 +5,7 @@ temperature regression, then :func:`imunoise.analysis.fit.fit_allan`.
 from __future__ import annotations
 
 import math
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from typing import Any
 
 import numpy as np
@@ -16,19 +16,26 @@ from imunoise.analysis.fit.result import FitResult, ModelLike, TermFit
 from imunoise.analysis.fit.solve import _hold, fit_allan
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.terms import (
+    ModelSpec,
     TermError,
     get_term,
     parse_model,
 )
 
+_EXCLUDE_BINS = 8
+"""Half-width (Welch bins) around a held line's frequency where :func:`find_line` looks for no
+other line: the Hann main lobe (2 bins), the held value's own resolution and a slow wander."""
 
-def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0
-              ) -> tuple[float, float] | None:
+
+def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0,
+              exclude_hz: Sequence[float] = ()) -> tuple[float, float] | None:
     """Frequency (Hz) and amplitude (units) of the strongest spectral line, or None.
 
     Welch spectrum (Hann, up to 2^15 samples per segment); the line is the bin standing
     furthest above the running median of its neighbourhood (by at least ``min_snr``); its
-    power is the excess summed over the main lobe (``A = sqrt(2 P)``)."""
+    power is the excess summed over the main lobe (``A = sqrt(2 P)``). Lines within
+    ``_EXCLUDE_BINS`` bins of a frequency in ``exclude_hz`` (Hz; lines the model already
+    holds) are passed over."""
     x = np.asarray(values, dtype=np.float64)
     if x.size < 64:
         return None
@@ -40,11 +47,14 @@ def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0
     ratio = p / floor
     ratio[:4] = 0.0  # the lowest bins carry drift, not lines
     ratio[-4:] = 0.0  # nor does the edge at the Nyquist frequency
+    df = f[1] - f[0]
+    for f_x in exclude_hz:
+        k_x = int(round(float(f_x) / df))
+        ratio[max(k_x - _EXCLUDE_BINS, 0):max(k_x + _EXCLUDE_BINS + 1, 0)] = 0.0
     k = int(np.argmax(ratio))
     if ratio[k] < min_snr:
         return None
     lo, hi = max(k - 3, 0), min(k + 4, p.size)
-    df = f[1] - f[0]
     power = float(np.sum(p[lo:hi] - floor[lo:hi]) * df)
     weights = p[lo:hi] - floor[lo:hi]
     f_line = float(np.sum(f[lo:hi] * weights) / np.sum(weights))
@@ -87,14 +97,28 @@ def regress_temperature(rate: np.ndarray, temperature: np.ndarray, blocks: int =
     return term, y - coef * tc
 
 
-def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | None = None
-                ) -> tuple[float, float] | None:
-    """The strongest spectral line of the longest gap-free segment (:func:`find_line`): the
-    start of a line term in :func:`fit_series`."""
+def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | None = None,
+                exclude_hz: Sequence[float] = ()) -> tuple[float, float] | None:
+    """The strongest spectral line of the longest gap-free segment (:func:`find_line`),
+    passing over those at ``exclude_hz``: the start of a line term in :func:`fit_series`."""
     x = np.asarray(values, dtype=np.float64)
     bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
     k = int(np.argmax(np.diff(bounds)))
-    return find_line(x[bounds[k]:bounds[k + 1]], fs_hz)
+    return find_line(x[bounds[k]:bounds[k + 1]], fs_hz, exclude_hz=exclude_hz)
+
+
+def _held_line_frequencies(spec: ModelSpec, fixed: dict[str | int, dict[str, float]] | None
+                           ) -> tuple[float, ...]:
+    """Frequencies (Hz) at which the model holds a line term, given in the model text or in
+    ``fixed`` (by index or by term name)."""
+    names = spec.names
+    held = {i: dict(p) for i, p in spec.fixed.items()}
+    for key, params in (fixed or {}).items():
+        i = key if isinstance(key, int) else names.index(key) if key in names else -1
+        if 0 <= i < len(names):
+            held.setdefault(i, {}).update(params)
+    return tuple(sorted(float(p["f"]) for i, p in held.items()
+                        if get_term(names[i]).role == "line" and "f" in p))
 
 
 def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
@@ -151,9 +175,13 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
     curve = memo[key]
     line = None
     if any(get_term(n).role == "line" for n in names):
-        line_key = ("line", id(values), regressed)
+        # A line the model holds at a stated frequency is no start for another line term:
+        # two sinusoids started on one line trade its amplitude, and the solve ends with one
+        # of them at zero and the next line unmodelled.
+        held = _held_line_frequencies(spec, fixed)
+        line_key = ("line", id(values), regressed, held)
         if line_key not in memo:
-            memo[line_key] = series_line(x, fs_hz, segment_starts)
+            memo[line_key] = series_line(x, fs_hz, segment_starts, exclude_hz=held)
         line = memo[line_key]
     result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
                        memo=memo, intervals=intervals, job_map=job_map,

@@ -133,6 +133,29 @@ def test_failure_threshold_controls_the_family_rate():
     assert p_any == pytest.approx(0.10, rel=1e-6)
 
 
+@pytest.mark.parametrize("held", ["text", "keyword"])
+def test_a_second_line_starts_away_from_the_line_the_model_holds(held):
+    # ADIS16405 run 5 accel_z, first half: a line held at the whole night's 0.468 Hz and a free
+    # second sinusoid. Started on the strongest line, the free term took the held one's
+    # amplitude (held A -> 1e-20, chi2/dof 5.4) and the weaker line stayed unmodelled.
+    truth = [("white", {"N": 5e-3}), ("sinusoid", {"A": 6.8e-3, "f": 0.467}),
+             ("sinusoid", {"A": 3.3e-3, "f": 1.45})]
+    x = NoiseStream(truth, FS, 0).take(1 << 19)
+    assert find_line(x, FS)[0] == pytest.approx(0.467, abs=0.005)
+    assert find_line(x, FS, exclude_hz=[0.4683])[0] == pytest.approx(1.45, abs=0.005)
+    if held == "text":
+        result, _ = fit_series(x, FS, "white,sinusoid:f=0.4683,sinusoid", intervals="none")
+    else:
+        result, _ = fit_series(x, FS, ["white", "sinusoid", "sinusoid"],
+                               fixed={1: {"f": 0.4683}}, intervals="none")
+    kept, added = result.terms[1].params, result.terms[2].params
+    assert kept["A"] == pytest.approx(6.8e-3, rel=0.1)
+    # the Allan curve places a line within its bump's width: a factor of 1.5 either way
+    assert 1.45 / 1.5 < added["f"] < 1.45 * 1.5
+    assert added["A"] == pytest.approx(3.3e-3, rel=0.25)
+    assert result.misfit.chi2_per_dof < 1.5
+
+
 def test_find_line_and_temperature_regression():
     x = NoiseStream([("white", {"N": 1e-3}), ("sinusoid", {"A": 3e-3, "f": 7.25})], FS,
                     8).take(1 << 17)
