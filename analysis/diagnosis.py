@@ -939,14 +939,17 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
     if filt is not None:
         findings.append(filt)
     by_term: dict[str, Finding] = {}
-    if "sinusoid" not in names:
-        try:
-            # the fitted model's own shape (a filter's notches) is no line
-            by_term["sinusoid"] = evidence.spectral_lines(
-                segments, fs_hz, alpha=alpha, units=units,
-                model_psd=lambda f: model_psd(base.params, f, fs_hz, continuous_only=True))
-        except ValueError:
-            pass
+    held_lines = [float(p["f"]) for n, p in base.params
+                  if get_term(n).role == "line" and "f" in p]
+    try:
+        # the fitted model's own shape (a filter's notches) is no line, nor is a line it
+        # already holds: a further sinusoid needs a further line
+        by_term["sinusoid"] = evidence.spectral_lines(
+            segments, fs_hz, alpha=alpha, units=units,
+            model_psd=lambda f: model_psd(base.params, f, fs_hz, continuous_only=True),
+            exclude_hz=held_lines)
+    except ValueError:
+        pass
     if "rate_ramp" not in names:
         by_term["rate_ramp"] = evidence.drift(t_rate, x, alpha=alpha, units=units)
     if temperature is not None and "temperature" not in names:

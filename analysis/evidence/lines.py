@@ -18,7 +18,7 @@ searched: there the model, not a line, explains the shape.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +35,9 @@ _MIN_SEGMENTS = 16
 # Powers in adjacent Hann bins correlate by |2/3|^2 (next-but-one: |1/6|^2), so a fit to
 # neighbouring bins is noisier than one to independent bins by 1 + 2 (4/9 + 1/36).
 _HANN_NEIGHBOUR_INFLATION = 1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0)
+EXCLUDE_HALF_WIDTH = 4
+"""Bins on either side of a line the model holds that a search for a further line leaves out:
+the Hann main lobe (2 bins) and the held frequency's own resolution."""
 MODEL_SHAPE_TOLERANCE = 1.25
 """Largest ratio (either way) between the model's PSD and its own local continuum at a bin that
 is still searched; 1.25 is well below the smallest line the test resolves at its dof."""
@@ -152,7 +155,8 @@ def _model_shape_ok(model_psd: Callable[[np.ndarray], np.ndarray], wb: WelchBins
 def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
                    units: str = "rad/s", nperseg: int | None = None,
                    max_lines: int = 10,
-                   model_psd: Callable[[np.ndarray], np.ndarray] | None = None) -> Finding:
+                   model_psd: Callable[[np.ndarray], np.ndarray] | None = None,
+                   exclude_hz: Sequence[float] = ()) -> Finding:
     """Search the spectrum for narrow lines.
 
     Args:
@@ -166,6 +170,9 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
             frequency (Hz); bins where its shape is one the continuum cannot follow (a
             filter's notch) are left out of the search and reported in
             ``details["bins_skipped"]``.
+        exclude_hz: frequencies (Hz) of lines the model already holds; bins within
+            :data:`EXCLUDE_HALF_WIDTH` bins (or 1 % of the frequency, if wider) of them are
+            not searched, so the finding is about a further line.
 
     Returns:
         A :class:`Finding` of kind ``"spectral_line"`` whose params are the strongest line's
@@ -182,6 +189,13 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
     if model_psd is not None and idx.size:
         keep = _model_shape_ok(model_psd, wb, logf, idx)
         skipped = int(idx.size - np.count_nonzero(keep))
+        cont, d2, idx = cont[keep], d2[keep], idx[keep]
+    if len(exclude_hz) and idx.size:
+        f_idx = wb.f_hz[idx]
+        keep = np.ones(idx.size, dtype=bool)
+        for f_x in exclude_hz:
+            half = max(EXCLUDE_HALF_WIDTH * wb.df_hz, 0.01 * float(f_x))
+            keep &= np.abs(f_idx - float(f_x)) > half
         cont, d2, idx = cont[keep], d2[keep], idx[keep]
     if idx.size == 0:
         return Finding("spectral_line", "sinusoid", 0.0, "F", 1.0, alpha,

@@ -83,6 +83,25 @@ def test_mains_line_and_harmonic_are_labelled():
     assert labels[150] == "harmonic 3 of 50 Hz mains"
 
 
+def test_a_line_the_model_holds_is_passed_over_for_the_next():
+    rng = np.random.default_rng(11)
+    n = 60000
+    t = np.arange(n) / FS
+    x = colored_noise(rng, n) + 6e-4 * np.sin(2 * np.pi * 7.31 * t) \
+        + 3e-4 * np.sin(2 * np.pi * 2.2 * t + 1.0)
+    assert abs(spectral_lines([x], FS).params["f"] - 7.31) < 0.05
+    further = spectral_lines([x], FS, exclude_hz=[7.3])
+    assert further.significant and abs(further.params["f"] - 2.2) < 0.05
+    assert all(abs(line["f_hz"] - 7.31) > 0.1 for line in further.details["lines"])
+    assert not spectral_lines([x], FS, exclude_hz=[7.3, 2.21]).significant
+
+
+def test_passing_over_held_lines_adds_no_false_alarm():
+    # the bins left out shrink the family, so the corrected p-values stay honest
+    assert false_alarms(lambda rng: spectral_lines([colored_noise(rng, 30000)], FS,
+                                                   exclude_hz=[3.0, 11.0])) <= MAX_FALSE
+
+
 def test_no_line_in_noise_in_95_percent_of_seeds():
     assert false_alarms(lambda rng: spectral_lines([colored_noise(rng, 30000)], FS)) <= MAX_FALSE
 
