@@ -110,15 +110,18 @@ def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | N
 def _held_line_frequencies(spec: ModelSpec, fixed: dict[str | int, dict[str, float]] | None
                            ) -> tuple[float, ...]:
     """Frequencies (Hz) at which the model holds a line term, given in the model text or in
-    ``fixed`` (by index or by term name)."""
+    ``fixed`` (by index or by term name); none when no line term has a free frequency (the
+    spectrum's line then only starts the held lines' amplitudes)."""
     names = spec.names
     held = {i: dict(p) for i, p in spec.fixed.items()}
     for key, params in (fixed or {}).items():
         i = key if isinstance(key, int) else names.index(key) if key in names else -1
         if 0 <= i < len(names):
             held.setdefault(i, {}).update(params)
-    return tuple(sorted(float(p["f"]) for i, p in held.items()
-                        if get_term(names[i]).role == "line" and "f" in p))
+    lines = [i for i, n in enumerate(names) if get_term(n).role == "line"]
+    if all("f" in held.get(i, {}) for i in lines):
+        return ()
+    return tuple(sorted(float(held[i]["f"]) for i in lines if "f" in held.get(i, {})))
 
 
 def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,

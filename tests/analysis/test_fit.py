@@ -156,6 +156,19 @@ def test_a_second_line_starts_away_from_the_line_the_model_holds(held):
     assert result.misfit.chi2_per_dof < 1.5
 
 
+def test_held_lines_are_passed_over_only_for_a_line_term_with_a_free_frequency():
+    from imunoise.analysis.fit.series import _held_line_frequencies
+
+    def held(model, fixed=None):
+        return _held_line_frequencies(parse_model(model), fixed)
+    # every line held: the spectrum's strongest line starts their amplitudes, as before
+    assert held("white,sinusoid:f=0.5") == ()
+    assert held("white,sinusoid:f=0.5,sinusoid") == (0.5,)
+    assert held(["white", "sinusoid", "sinusoid"], {1: {"f": 0.5}}) == (0.5,)
+    assert held(["white", "sinusoid", "sinusoid"], {"sinusoid": {"f": 0.5}}) == (0.5,)
+    assert held("white,sinusoid") == ()
+
+
 def test_find_line_and_temperature_regression():
     x = NoiseStream([("white", {"N": 1e-3}), ("sinusoid", {"A": 3e-3, "f": 7.25})], FS,
                     8).take(1 << 17)
