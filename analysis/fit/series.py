@@ -12,6 +12,7 @@ import numpy as np
 from scipy import ndimage
 
 from imunoise.analysis.dsp import welch_density
+from imunoise.analysis.fit.layout import _fixed_keys
 from imunoise.analysis.fit.result import FitResult, ModelLike, TermFit
 from imunoise.analysis.fit.solve import _hold, fit_allan
 from imunoise.analysis.jobs import JobMap, serial_map
@@ -107,21 +108,18 @@ def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | N
     return find_line(x[bounds[k]:bounds[k + 1]], fs_hz, exclude_hz=exclude_hz)
 
 
-def _held_line_frequencies(spec: ModelSpec, fixed: dict[str | int, dict[str, float]] | None
-                           ) -> tuple[float, ...]:
+def _held_line_frequencies(spec: ModelSpec, fixed: dict[str | int, dict[str, float]] | None,
+                           fs_hz: float) -> tuple[float, ...]:
     """Frequencies (Hz) at which the model holds a line term, given in the model text or in
-    ``fixed`` (by index or by term name); none when no line term has a free frequency (the
-    spectrum's line then only starts the held lines' amplitudes)."""
-    names = spec.names
-    held = {i: dict(p) for i, p in spec.fixed.items()}
-    for key, params in (fixed or {}).items():
-        i = key if isinstance(key, int) else names.index(key) if key in names else -1
-        if 0 <= i < len(names):
-            held.setdefault(i, {}).update(params)
-    lines = [i for i, n in enumerate(names) if get_term(n).role == "line"]
-    if all("f" in held.get(i, {}) for i in lines):
+    ``fixed`` (by index or by term name, resolved as the fit resolves them); none when no line
+    term has a free frequency (the spectrum's line then only starts the held lines'
+    amplitudes)."""
+    given: dict[str | int, dict[str, float]] = {i: p for i, p in spec.fixed.items()}
+    held = _fixed_keys(spec.names, {**given, **(fixed or {})}, fs_hz)
+    lines = [i for i, n in enumerate(spec.names) if get_term(n).role == "line"]
+    if all((i, "f") in held for i in lines):
         return ()
-    return tuple(sorted(float(held[i]["f"]) for i in lines if "f" in held.get(i, {})))
+    return tuple(sorted(held[(i, "f")] for i in lines if (i, "f") in held))
 
 
 def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
@@ -181,7 +179,7 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
         # A line the model holds at a stated frequency is no start for another line term:
         # two sinusoids started on one line trade its amplitude, and the solve ends with one
         # of them at zero and the next line unmodelled.
-        held = _held_line_frequencies(spec, fixed)
+        held = _held_line_frequencies(spec, fixed, fs_hz)
         line_key = ("line", id(values), regressed, held)
         if line_key not in memo:
             memo[line_key] = series_line(x, fs_hz, segment_starts, exclude_hz=held)

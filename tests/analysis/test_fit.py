@@ -160,13 +160,16 @@ def test_held_lines_are_passed_over_only_for_a_line_term_with_a_free_frequency()
     from imunoise.analysis.fit.series import _held_line_frequencies
 
     def held(model, fixed=None):
-        return _held_line_frequencies(parse_model(model), fixed)
+        return _held_line_frequencies(parse_model(model), fixed, FS)
     # every line held: the spectrum's strongest line starts their amplitudes, as before
     assert held("white,sinusoid:f=0.5") == ()
     assert held("white,sinusoid:f=0.5,sinusoid") == (0.5,)
     assert held(["white", "sinusoid", "sinusoid"], {1: {"f": 0.5}}) == (0.5,)
     assert held(["white", "sinusoid", "sinusoid"], {"sinusoid": {"f": 0.5}}) == (0.5,)
     assert held("white,sinusoid") == ()
+    # keys are resolved as the fit resolves them: a term not in the model is refused
+    with pytest.raises(TermError, match="not in the model"):
+        held("white,sinusoid", {"resonance": {"f0": 2.0}})
 
 
 def test_find_line_and_temperature_regression():
