@@ -7,7 +7,12 @@ from types import SimpleNamespace
 
 import pytest
 
-from imunoise.analysis.diagnosis import Suggestion, _simplest_first, diagnose
+from imunoise.analysis.diagnosis import (
+    Suggestion,
+    _first_filter_of_a_tie,
+    _simplest_first,
+    diagnose,
+)
 from imunoise.analysis.fit import fit_series
 from imunoise.analysis.noise_stream import NoiseStream, simulate
 from imunoise.analysis.terms import get_term
@@ -116,6 +121,27 @@ def test_the_order_rules_act_on_the_first_significant_suggestion() -> None:
                  _suggestion("resonance", 15.0, True, ci95=unresolved),
                  _suggestion("gauss_markov", 21.0, True)]
     assert _simplest_first(list(cut_first), 0.05) == cut_first
+
+
+def test_filters_that_fit_alike_give_the_first_filter_in_term_order() -> None:
+    """Three output filters with one parameter each: the first in term order (moving_average)
+    goes first unless the top one fits significantly better (chi2 drop over 10 dof at a
+    chi2/dof of 1: 2 is p = 0.16, 10 is p = 0.0016)."""
+    def order(*chi2s: tuple[str, float, bool]) -> list[str]:
+        out = _first_filter_of_a_tie([_suggestion(t, c, sig) for t, c, sig in chi2s], 0.05)
+        return [s.term for s in out]
+    assert order(("lowpass", 100.0, True), ("bartlett", 101.0, True),
+                 ("moving_average", 102.0, True)) == ["moving_average", "lowpass", "bartlett"]
+    assert order(("lowpass", 100.0, True), ("bartlett", 101.0, True),
+                 ("moving_average", 110.0, True)) == ["bartlett", "lowpass", "moving_average"]
+    # not significant, or not a filter on top: the order stands
+    assert order(("lowpass", 100.0, True), ("moving_average", 100.5, False)) == [
+        "lowpass", "moving_average"]
+    assert order(("sinusoid", 100.0, True), ("moving_average", 100.5, True)) == [
+        "sinusoid", "moving_average"]
+    tied = _first_filter_of_a_tie([_suggestion("lowpass", 100.0, True),
+                                   _suggestion("moving_average", 102.0, True)], 0.05)
+    assert "comes before lowpass" in tied[0].why and "p = 0.16" in tied[0].why
 
 
 def _line_diagnosis(second_amplitude: float, seed: int = 5):
