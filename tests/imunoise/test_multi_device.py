@@ -66,8 +66,11 @@ def _check_file(path: str, seconds: float) -> None:
         assert timing[topic]["missing_samples"] <= 0.02 * n, (topic, timing[topic])
     assert set(r.metadata["devices"].split(",")) == {"adis16350", "razor"}
     gyro, accel = _sway_coherence(path)
-    # the bench's sway is seen by both: coherence near 1 (strong line, 0.2 Hz bins)
-    assert gyro > 0.9 and accel > 0.8, (gyro, accel)
+    # the bench's sway is seen by both: coherence near 1 (strong line, 0.2 Hz bins); accel
+    # 0.865-0.910 in seven `serve` runs, five of them beside two or three busy processes, and
+    # 0.668 once, not reproduced. The timing facts go with a failure: a device's clock
+    # drifting against the other's, or samples lost without a gap in the stamps, show there.
+    assert gyro > 0.9 and accel > 0.8, (gyro, accel, timing)
 
 
 def test_record_two_simulated_sensors_on_one_bench(tmp_path, capsys):
