@@ -873,6 +873,22 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
         error_after=_error_after(after, psd_after))
 
 
+def _significant_additions(suggestions: list[Suggestion]) -> list[Suggestion]:
+    """The significant suggestions that add a term (no cut, removal or swap), in order."""
+    return [s for s in suggestions if s.significant and s.fit is not None
+            and s.action == "add" and not s.apply.get("args")]
+
+
+def _further_drop(top: Suggestion, other: Suggestion, k: int) -> tuple[float, float]:
+    """``(drop, p)``: how much lower ``top``'s refit chi2 lies than ``other``'s and the
+    p-value of that drop for ``k`` parameters more, the drop scaled by ``top``'s dispersion
+    (:func:`_dispersion`); p is 1 where ``top`` lies no lower."""
+    assert top.fit is not None and other.fit is not None  # from _significant_additions
+    drop = other.fit.misfit.chi2 - top.fit.misfit.chi2
+    scaled = drop / _dispersion(top.chi2_per_dof_after, top.fit.misfit.dof)
+    return drop, float(dist.chi2.sf(scaled, k)) if drop > 0 else 1.0
+
+
 def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggestion]:
     """Put a simpler significant term first when the top significant term explains the curve
     no better.
@@ -892,8 +908,7 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     def k_of(s: Suggestion) -> int:
         return len(get_term(s.term).params)
 
-    terms = [s for s in suggestions if s.significant and s.fit is not None
-             and s.action == "add" and not s.apply.get("args")]
+    terms = _significant_additions(suggestions)
     # the first significant suggestion is the one to apply; a cut there keeps its place
     first = next((s for s in suggestions if s.significant), None)
     if not terms or first is not terms[0]:
@@ -902,9 +917,7 @@ def _simplest_first(suggestions: list[Suggestion], alpha: float) -> list[Suggest
     top_term = get_term(top.term)
     unresolved = top_term.unresolved(top.params, top.ci95)
     for simpler in sorted((s for s in terms[1:] if k_of(s) < k_of(top)), key=k_of):
-        drop = simpler.fit.misfit.chi2 - top.fit.misfit.chi2
-        scaled = drop / _dispersion(top.chi2_per_dof_after, top.fit.misfit.dof)
-        p = float(dist.chi2.sf(scaled, k_of(top) - k_of(simpler))) if drop > 0 else 1.0
+        drop, p = _further_drop(top, simpler, k_of(top) - k_of(simpler))
         if unresolved is not None and simpler.term == top_term.reduces_to:
             simpler.why += (f" It comes before {top.term}, whose fit lowers chi2 by "
                             f"{max(drop, 0.0):.3g} more with {k_of(top) - k_of(simpler)} "
@@ -923,27 +936,24 @@ def _first_filter_of_a_tie(suggestions: list[Suggestion], alpha: float) -> list[
     """Put the first output filter in :data:`TERMS` order first when the top significant
     suggestion is another filter with as many parameters that explains the curve no better.
 
-    A moving average of 1.2 taps, a Bartlett window of 1.1 and a single pole near a third of
+    A moving average of 1.2 taps, a Bartlett window of 1.1 and a single pole near a quarter of
     the rate bend the shortest taus alike; which one a record's last bits favour changed from
     run to run of one ADIS16405 accelerometer, so that six nights of one part gave three term
     sets for one filter. Where the data do not tell them apart (the top filter's chi2 lies
     less than the test's drop below the other's, scaled and judged with one degree of freedom
     as in :func:`_simplest_first`), the same one is named on every record.
     """
+    terms = _significant_additions(suggestions)
     first = next((s for s in suggestions if s.significant), None)
-    if first is None or first.fit is None or first.action != "add" \
-            or get_term(first.term).kind != "filter" or first.apply.get("args"):
+    if not terms or first is not terms[0] or get_term(first.term).kind != "filter":
         return suggestions
     order = list(TERMS)
     k_top = len(get_term(first.term).params)
-    ties = [s for s in suggestions if s.significant and s.fit is not None
-            and s.action == "add" and not s.apply.get("args")
-            and get_term(s.term).kind == "filter" and len(get_term(s.term).params) == k_top
+    ties = [s for s in terms[1:] if get_term(s.term).kind == "filter"
+            and len(get_term(s.term).params) == k_top
             and order.index(s.term) < order.index(first.term)]
     for other in sorted(ties, key=lambda s: order.index(s.term)):
-        drop = other.fit.misfit.chi2 - first.fit.misfit.chi2
-        scaled = drop / _dispersion(first.chi2_per_dof_after, first.fit.misfit.dof)
-        p = float(dist.chi2.sf(scaled, 1)) if drop > 0 else 1.0
+        drop, p = _further_drop(first, other, 1)
         if p < alpha:
             continue
         other.why += (f" It comes before {first.term}, an output filter that explains the "
