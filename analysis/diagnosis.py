@@ -1158,6 +1158,7 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
                              temperature=temp_at if "temperature" in names else None,
                              memo=memo, job_map=job_map,
                              intervals="profile" if only is None else "jacobian")
+    base = base.in_canonical_order()  # labels of repeated terms as every fit gives them
     segments = [s for s in (x[a:b] for a, b in zip(starts, np.append(starts[1:], x.size),
                                                    strict=True)) if s.size]
 

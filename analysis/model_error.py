@@ -210,6 +210,7 @@ def _fit_half(shared: tuple[Any, ...], k: int) -> tuple[Any, dict[int, Any] | No
                           intervals="jacobian")[0]
         if cold.misfit.chi2 < fit.misfit.chi2:
             fit = cold
+    fit = fit.in_canonical_order()
     try:
         pins = pin_resonances(h, fs_hz, fit.params, set(), starts)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):

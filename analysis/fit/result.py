@@ -5,7 +5,7 @@ to the measured Allan curve.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -88,6 +88,43 @@ class FitResult:
         """The model as ``[(term, params)]``, usable as a starting point of a refit."""
         return [(t.term, dict(t.params)) for t in self.terms]
 
+    def in_canonical_order(self) -> FitResult:
+        """This fit with interchangeable repeated terms ordered by their first shape
+        parameter, ascending (a resonance's f0, a line's f, a Markov term's T).
+
+        Two entries of a repeatable term that hold the same parameters at the same values
+        (``resonance,resonance``) describe the same model whichever solution the solver put
+        in which entry, and different fits of one model can put them either way round: on
+        ADIS16405 run 1 gyro_z the whole record's fit puts its 10.4 Hz resonance first, a
+        half's fit its 19.5 Hz one. Ordered, a label (``resonance#2``, the higher one) names
+        the same component on every fit of the model, as the hold-out part's changed
+        parameters and a model written back from the JSON need. Nothing else changes: the
+        model, its misfit and intervals are the same."""
+        free = set(self.free_params)
+        groups: dict[tuple[Any, ...], list[int]] = {}
+        for i, t in enumerate(self.terms):
+            if get_term(t.term).repeatable:
+                held = tuple(sorted((k, v) for k, v in t.params.items() if (i, k) not in free))
+                groups.setdefault((t.term, held), []).append(i)
+        order = list(range(len(self.terms)))
+        for at in groups.values():
+            shape = next(p.name for p in get_term(self.terms[at[0]].term).params if p.is_scale)
+            for slot, i in zip(at, sorted(at, key=lambda i: self.terms[i].params[shape]),
+                               strict=True):
+                order[slot] = i
+        if order == sorted(order):
+            return self
+        moved = {old: new for new, old in enumerate(order)}
+        return replace(self, terms=[self.terms[i] for i in order],
+                       term_avar=[self.term_avar[i] for i in order],
+                       free_params=[(moved[i], k) for i, k in self.free_params])
+
+    @property
+    def labels(self) -> list[str]:
+        """Each term's label in model order: its name, ``name#K`` for the K-th of a repeated
+        term (the grammar of :mod:`imunoise.analysis.terms.spec`)."""
+        return labels([t.term for t in self.terms])
+
     @property
     def ci95(self) -> list[dict[str, tuple[float, float]]]:
         return [t.ci95 for t in self.terms]
@@ -115,8 +152,7 @@ class FitResult:
         """Per-term Allan variance at ``tau_s`` keyed ``term`` (``term#2`` for repeats)."""
         tau = np.atleast_1d(np.asarray(tau_s, dtype=np.float64))
         return {key: _term_avar(t.term, t.params, tau, self.fs_hz)
-                for key, t in zip(labels([t.term for t in self.terms]), self.terms,
-                                  strict=True)}
+                for key, t in zip(self.labels, self.terms, strict=True)}
 
     def allan_dict(self, ci_low: np.ndarray | None = None, ci_high: np.ndarray | None = None
                    ) -> dict[str, list[float]]:

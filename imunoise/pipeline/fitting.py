@@ -74,9 +74,11 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     series = record.series(key)
     temperature = temperature_at(record, key) if "temperature" in names else None
     with fit_errors(key):
-        return fit_series(series.values, series.fs_hz, names,
-                          segment_starts=series.segment_starts, temperature=temperature,
-                          fixed=fixed, ci=CI95, job_map=cpu_job_map())
+        result, curve = fit_series(series.values, series.fs_hz, names,
+                                   segment_starts=series.segment_starts,
+                                   temperature=temperature, fixed=fixed, ci=CI95,
+                                   job_map=cpu_job_map())
+    return result.in_canonical_order(), curve
 
 
 def fit_error_parts(record: Record, key: str, model_text: str, result: Any

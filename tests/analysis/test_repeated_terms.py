@@ -170,3 +170,29 @@ def test_no_second_line_is_offered_where_the_spectrum_has_none() -> None:
     found = next(f for f in d.findings if f.kind == "spectral_line")
     assert not found.significant  # the held 7.31 Hz line is passed over
     assert not any(s.significant for s in d.suggestions if s.term == "sinusoid")
+
+
+def test_interchangeable_repeated_terms_are_put_in_shape_order() -> None:
+    x = simulate([("white", {"N": 1e-3}), ("gauss_markov", {"sigma": 3e-4, "T": 2.0}),
+                  ("gauss_markov", {"sigma": 2e-4, "T": 300.0})], 1 << 20, FS, rng=2)
+    # a start with the long correlation time first: the solver keeps that order
+    start = [("white", {"N": 1e-3}), ("gauss_markov", {"sigma": 2e-4, "T": 300.0}),
+             ("gauss_markov", {"sigma": 3e-4, "T": 2.0})]
+    fit, _ = fit_series(x, FS, "white,gauss_markov,gauss_markov", start=start,
+                        intervals="jacobian")
+    assert fit.terms[1].params["T"] > 100.0 > 10.0 > fit.terms[2].params["T"]
+    ordered = fit.in_canonical_order()
+    assert [t.params["T"] for t in ordered.terms[1:]] == [fit.terms[2].params["T"],
+                                                          fit.terms[1].params["T"]]
+    assert ordered.labels == ["white", "gauss_markov", "gauss_markov#2"]
+    assert ordered.chi2_per_dof == fit.chi2_per_dof
+    assert ordered.terms[1].ci95 == fit.terms[2].ci95  # each term keeps its intervals
+    # the covariance rows follow their parameters
+    rows = {k: n for n, k in enumerate(ordered.free_params)}
+    before = {k: n for n, k in enumerate(fit.free_params)}
+    assert rows[(1, "T")] == before[(2, "T")] and rows[(2, "sigma")] == before[(1, "sigma")]
+    assert list(ordered.term_avar[1]) == list(fit.term_avar[2])
+    # entries that hold different values are the user's own order, never swapped
+    held, _ = fit_series(x, FS, "white,gauss_markov:T=300,gauss_markov:T=2",
+                         intervals="jacobian")
+    assert held.in_canonical_order() is held
