@@ -37,7 +37,7 @@ from imunoise.analysis.diagnosis import diagnose
 from imunoise.analysis.fit import FitResult, find_line, fit_allan
 from imunoise.analysis.psd import StreamingPsd
 from imunoise.analysis.streaming_allan import StreamingAllan
-from imunoise.analysis.terms import get_term, parse_model, term_names
+from imunoise.analysis.terms import get_term, labels, parse_model, term_name, term_names
 from imunoise.core.series import channel_units
 from imunoise.core.units import CI95
 
@@ -443,12 +443,16 @@ class ChannelState:
         return self._model + [term]
 
     def without_term(self, term: str) -> list[str]:
-        """The model with ``term`` (an entry or every entry of that name) removed."""
-        check_terms([term])
+        """The model with ``term`` removed: an entry as written, every entry of that name, or
+        one occurrence by its label (``resonance#2``, as the ``/coefficients`` rows name it)."""
+        check_terms([term_name(term)])
         model = self._model
-        if term not in model and term not in _names(model):
+        names = _names(model)
+        marks = labels(names)
+        if term not in model and term not in names and term not in marks:
             raise ValueError(f"term {term!r} is not in the model; model: {', '.join(model)}")
-        return [t for t, n in zip(model, _names(model), strict=True) if t != term and n != term]
+        return [t for t, n, k in zip(model, names, marks, strict=True)
+                if t != term and n != term and k != term]
 
     def plan_model_change(self, terms: Sequence[str]) -> ModelChange:
         """The refit a change to ``terms`` needs. Raises ``ValueError`` for an unknown term or

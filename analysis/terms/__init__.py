@@ -23,7 +23,14 @@ from imunoise.analysis.terms.registry import (
     term_names,
     validate_params,
 )
-from imunoise.analysis.terms.spec import Entry, ModelSpec, labels, parse_model, parse_terms
+from imunoise.analysis.terms.spec import (
+    Entry,
+    ModelSpec,
+    labels,
+    parse_model,
+    parse_terms,
+    term_name,
+)
 
 _discover()
 
@@ -33,4 +40,4 @@ TERM_NAMES: tuple[str, ...] = term_names()
 __all__ = ["BIAS_INSTABILITY_FACTOR", "Entry", "ModelSpec", "Param", "TERMS", "TERM_NAMES",
            "Term", "TermError", "TermSimulator", "ar1_avar_shape", "get_term", "labels",
            "model_avar", "model_psd", "param_unit", "parse_model", "parse_terms", "register",
-           "term_names", "validate_params"]
+           "term_name", "term_names", "validate_params"]

@@ -85,6 +85,12 @@ def labels(names: Sequence[str]) -> list[str]:
     return out
 
 
+def term_name(label: str) -> str:
+    """The term name of a label or a specification entry (``gauss_markov#2:T=5`` ->
+    ``gauss_markov``)."""
+    return label.split(":")[0].partition("#")[0].strip()
+
+
 def _valid() -> str:
     return ", ".join(TERMS)
 

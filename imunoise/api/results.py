@@ -322,11 +322,8 @@ class FitReport:
     @property
     def params(self) -> dict[str, dict[str, float]]:
         """Fitted parameters by term label (``gauss_markov#2`` for a second one), SI units."""
-        from imunoise.analysis.terms import labels
-
         return {label: dict(t.params) for label, t in
-                zip(labels([t.term for t in self.result.terms]), self.result.terms,
-                    strict=True)}
+                zip(self.result.labels, self.result.terms, strict=True)}
 
     @property
     def chi2_per_dof(self) -> float:
@@ -354,17 +351,18 @@ class FitReport:
         return documents.dumps(self.document())
 
     def to_pandas(self) -> Any:
-        """One row per parameter: ``term``, ``param``, ``value``, ``ci95_low``, ``ci95_high``,
-        ``unit``, ``resolved`` (``notebook`` extra)."""
+        """One row per parameter: ``term`` (its label, ``name#K`` for a repeated term),
+        ``param``, ``value``, ``ci95_low``, ``ci95_high``, ``unit``, ``resolved``
+        (``notebook`` extra)."""
         from imunoise.analysis.terms import get_term, param_unit
 
         pd = _pandas()
         rows = []
-        for t in self.result.terms:
+        for label, t in zip(self.result.labels, self.result.terms, strict=True):
             term = get_term(t.term)
             for p in term.params:
                 lo, hi = t.ci95[p.name]
-                rows.append({"term": t.term, "param": p.name, "value": t.params[p.name],
+                rows.append({"term": label, "param": p.name, "value": t.params[p.name],
                              "ci95_low": lo, "ci95_high": hi,
                              "unit": param_unit(p, self.units or "rad/s"),
                              "resolved": term.resolved(p.name, (lo, hi))})

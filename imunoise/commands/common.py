@@ -75,16 +75,16 @@ def model_lines(result: FitResult | Any, units: str) -> list[str]:
     from imunoise.analysis.terms import get_term, param_unit
 
     lines = ["  model (95 % intervals)"]
-    for t in result.terms:
+    for label, t in zip(result.labels, result.terms, strict=True):
         for p in get_term(t.term).params:
             v = t.params[p.name]
             lo, hi = t.ci95[p.name]
             unit = param_unit(p, units)
             if not get_term(t.term).resolved(p.name, (lo, hi)):  # an interval reaching zero
-                lines.append(f"    {t.term:17s} {p.name:5s} = not resolved (95 % upper bound "
+                lines.append(f"    {label:17s} {p.name:5s} = not resolved (95 % upper bound "
                              f"{hi:.4g}) {unit}")
                 continue
-            lines.append(f"    {t.term:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] {unit}")
+            lines.append(f"    {label:17s} {p.name:5s} = {v:11.4g}  [{lo:.4g}, {hi:.4g}] {unit}")
     lines.append(f"  error: chi2/dof = {result.chi2_per_dof:.3g}   max |z| = "
                  f"{result.max_abs_z:.2f}   (flag |z| > {result.misfit.threshold:.2f})")
     return lines

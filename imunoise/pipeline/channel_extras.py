@@ -25,12 +25,14 @@ import numpy as np
 
 from imunoise.analysis.default_model import DEFAULT_MODEL
 from imunoise.analysis.discrete import DiscreteModel, discretize, simulate
+from imunoise.analysis.terms import term_name
 
 MAX_CHECK_SAMPLES = 1 << 23  # 8.4 M samples: 67 MB per array, about two seconds to simulate
 
 
 def _model_tuples(doc: Mapping) -> list[tuple[str, dict[str, float]]]:
-    return [(str(t["term"]), {k: float(v) for k, v in (t.get("params") or {}).items()})
+    # a document's ``term`` is a label (``resonance#2`` for a second resonance)
+    return [(term_name(str(t["term"])), {k: float(v) for k, v in (t.get("params") or {}).items()})
             for t in doc.get("model") or []]
 
 

@@ -73,12 +73,14 @@ def error_json(fit: FitResult | None) -> dict[str, float | None]:
 def model_json(fit: FitResult) -> list[dict[str, Any]]:
     """The JSON ``model`` entries of a fit (parameters in the channel's SI units), each
     with ``unresolved``: the amplitudes whose 95 % interval reaches zero (no estimate, only an
-    upper bound)."""
-    return [{"term": t.term, "params": {k: number(v) for k, v in t.params.items()},
+    upper bound). ``term`` is the term's label: its name, ``name#K`` for the K-th of a
+    repeated term, as the hold-out part's ``changed`` entries name its parameters and as a
+    model specification may write it."""
+    return [{"term": label, "params": {k: number(v) for k, v in t.params.items()},
              "ci95": {k: [number(a), number(b)] for k, (a, b) in t.ci95.items()},
              "unresolved": [k for k in t.params
                             if not get_term(t.term).resolved(k, t.ci95.get(k))]}
-            for t in fit.terms]
+            for label, t in zip(fit.labels, fit.terms, strict=True)]
 
 
 def z_on_curve(fit: FitResult, curve: AllanLike) -> np.ndarray:

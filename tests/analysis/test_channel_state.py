@@ -73,3 +73,25 @@ def test_the_analysis_package_keeps_no_clock_thread_or_process_of_the_live_runti
                     (node.value.id, node.attr) in banned_calls:
                 found.append(f"{rel}: {node.value.id}.{node.attr}")
     assert not found, found
+
+
+def test_one_occurrence_of_a_repeated_term_is_removed_by_its_label() -> None:
+    s = ChannelState("gyro_x", FS, model=["white", "gauss_markov:T=5", "gauss_markov:T=50",
+                                          "random_walk"])
+    model = s.model  # in the live service's term order
+
+    def but(*gone: str) -> list[str]:
+        return [t for t in model if t not in gone]
+
+    # the label the /coefficients rows carry removes that entry alone
+    assert s.without_term("gauss_markov#2") == but("gauss_markov:T=50")
+    assert s.without_term("gauss_markov") == but("gauss_markov:T=5", "gauss_markov:T=50")
+    assert s.without_term("gauss_markov:T=50") == but("gauss_markov:T=50")
+    for absent, message in (("gauss_markov#3", "not in the model"),
+                            ("resonance", "not in the model"), ("markov#2", "unknown term")):
+        try:
+            s.without_term(absent)
+        except ValueError as exc:
+            assert message in str(exc), exc
+        else:
+            raise AssertionError(f"{absent} was removed")

@@ -57,6 +57,24 @@ def test_a_fully_given_model_is_evaluated_as_it_stands(csv):
     assert "psd deviance/bin" in text and "hold-out" in text
 
 
+def test_a_repeated_term_is_labelled_as_its_changes_are_named(csv):
+    """``model[].term`` is the label (``gauss_markov#2``), as ``error.holdout.changed``
+    names parameters; written back as a fully given model it reproduces the fit."""
+    model = "white,gauss_markov:T=0.5,gauss_markov:T=20,random_walk"
+    doc = json.loads(_run("fit", str(csv), "--channel", "gyro_x", "--model", model, "--json"))
+    assert [m["term"] for m in doc["model"]] == ["white", "gauss_markov", "gauss_markov#2",
+                                                 "random_walk"]
+    given = ",".join(m["term"] + "".join(f":{k}={v:.15g}" for k, v in m["params"].items())
+                     for m in doc["model"])
+    again = json.loads(_run("fit", str(csv), "--channel", "gyro_x", "--model", given,
+                            "--json"))
+    assert [m["term"] for m in again["model"]] == [m["term"] for m in doc["model"]]
+    # the same model curve (the chi2/dof differs by the degrees of freedom: nothing fitted)
+    assert again["allan"]["model_adev"] == pytest.approx(doc["allan"]["model_adev"], rel=1e-9)
+    text = _run("fit", str(csv), "--channel", "gyro_x", "--model", model)
+    assert "gauss_markov#2" in text
+
+
 def test_diagnose_json_carries_the_parts_and_each_suggestions_error_after(csv):
     doc = json.loads(_run("diagnose", str(csv), "--channel", "gyro_x", "--model",
                           "white,random_walk", "--json"))

@@ -14,7 +14,6 @@ import numpy as np
 
 from imunoise.analysis.channel_state import ChannelSnapshot, ModelChangeResult
 from imunoise.analysis.fit import FitResult
-from imunoise.analysis.terms import labels
 from imunoise.analysis.terms import model_psd as terms_model_psd
 from imunoise.core.units import param_units
 from imunoise.live.channel import LiveChannel
@@ -48,8 +47,7 @@ def _plans(fit: FitResult, targets: str, fs_hz: float) -> dict:
     if hit is not None:
         return hit[1]
     spec = [(t.term, dict(t.params)) for t in fit.terms]
-    resolved = [(lab, p) for t, lab in zip(fit.terms, labels([t.term for t in fit.terms]),
-                                           strict=True)
+    resolved = [(lab, p) for t, lab in zip(fit.terms, fit.labels, strict=True)
                 for p in t.params if t.ci95.get(p, (0.0, 0.0))[0] > 0]
     try:
         wanted = [tg for tg in parse_targets(targets, spec) if (tg.label, tg.param) in resolved]
@@ -70,8 +68,8 @@ def _add_time_to_target(out: dict[str, Any], fit: FitResult, targets: str,
     not resolved yet or the target is out of reach)."""
     plans = _plans(fit, targets, fs_hz)
     recorded = out["duration_s"]
-    for entry, label in zip(out["model"], labels([e["term"] for e in out["model"]]),
-                            strict=True):
+    for entry in out["model"]:
+        label = entry["term"]  # name#K for a repeated term
         entry["target"], entry["time_to_target_s"] = {}, {}
         for k in entry["params"]:
             p = plans.get((label, k))
