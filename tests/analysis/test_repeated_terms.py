@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from imunoise.analysis.diagnosis import (
@@ -196,3 +197,26 @@ def test_interchangeable_repeated_terms_are_put_in_shape_order() -> None:
     held, _ = fit_series(x, FS, "white,gauss_markov:T=300,gauss_markov:T=2",
                          intervals="jacobian")
     assert held.in_canonical_order() is held
+
+
+def test_a_change_of_a_repeated_term_is_named_by_the_label_of_its_entry() -> None:
+    """The second half's slow Markov term is three times the first half's: the hold-out
+    part names ``gauss_markov#2.sigma``, and ``gauss_markov#2`` is the slow term in the
+    model as fitted and as reported, whichever way round each fit solved the pair."""
+    from imunoise.analysis.model_error import holdout_part
+
+    fast = ("gauss_markov", {"sigma": 3e-4, "T": 0.5})
+    halves = [simulate([("white", {"N": 1e-3}), fast,
+                        ("gauss_markov", {"sigma": s, "T": 50.0})], 1 << 19, FS, rng=k)
+              for k, s in ((5, 1e-4), (6, 3e-4))]
+    x = np.concatenate(halves)
+    model = "white,gauss_markov,gauss_markov"
+    fit = fit_series(x, FS, model)[0].in_canonical_order()
+    assert fit.labels == ["white", "gauss_markov", "gauss_markov#2"]
+    assert fit.terms[1].params["T"] < 5.0 < 20.0 < fit.terms[2].params["T"]
+    part = holdout_part(x, FS, model, fit)
+    named = {c["param"]: c["values"] for c in part["changed"]}
+    assert "gauss_markov#2.sigma" in named, part["changed"]
+    first, second = named["gauss_markov#2.sigma"]
+    assert 1.5 < second / first < 6.0  # three times, within the halves' spread
+    assert not any(p.startswith("gauss_markov.") for p in named)  # the fast one held still
