@@ -155,7 +155,7 @@ def fit(data: AllanResult | Channel, model: str = DEFAULT_MODEL) -> FitReport:
 
     names, fixed = parse_model(model)
     with fit_errors(data.channel.key if data.channel else "curve"):
-        result = fit_allan(data.curve, names, fixed=fixed or None)
+        result = fit_allan(data.curve, names, fixed=fixed or None).in_canonical_order()
     return FitReport(result, data.curve, data.units, data.channel, model)
 
 
