@@ -118,11 +118,12 @@ def _names(model: Iterable[str]) -> list[str]:
 def _job_fit(curve: AllanCurve, model: list[str], start: Any, line_samples: np.ndarray | None,
              intervals: str) -> FitResult:
     """``fit_allan`` cold (``start`` None, a sinusoid starting from the strongest line of
-    ``line_samples``) or warm."""
+    ``line_samples``) or warm; repeated terms in shape order, as ``imunoise fit`` lists
+    them (:meth:`FitResult.in_canonical_order`)."""
     line = find_line(line_samples, curve.fs_hz) if line_samples is not None else None
     if start is None:
-        return fit_allan(curve, model, line=line, intervals=intervals)
-    return fit_allan(curve, model, start=start, intervals=intervals)
+        return fit_allan(curve, model, line=line, intervals=intervals).in_canonical_order()
+    return fit_allan(curve, model, start=start, intervals=intervals).in_canonical_order()
 
 
 def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
@@ -130,9 +131,10 @@ def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
                        line_samples: np.ndarray | None) -> FitResult:
     """A changed model: the cold start of ``imunoise fit`` and a warm start from the previous
     model's parameters (``start``; a new term from ``hints`` or the spectral line); the one
-    with the smaller misfit wins (a nested model must not fit worse)."""
+    with the smaller misfit wins (a nested model must not fit worse); repeated terms in shape
+    order."""
     line = find_line(line_samples, curve.fs_hz) if line_samples is not None else None
-    best = fit_allan(curve, model, line=line, intervals=QUICK_INTERVALS)
+    best = fit_allan(curve, model, line=line, intervals=QUICK_INTERVALS).in_canonical_order()
     if start is None:
         return best
     start = list(start)
@@ -148,7 +150,7 @@ def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
         warm = fit_allan(curve, model, start=start, line=line, intervals=QUICK_INTERVALS)
     except (ValueError, np.linalg.LinAlgError):
         return best
-    return warm if warm.misfit.chi2 < best.misfit.chi2 else best
+    return warm.in_canonical_order() if warm.misfit.chi2 < best.misfit.chi2 else best
 
 
 def _job_diagnose(values: np.ndarray, fs_hz: float, model: list[str], starts: np.ndarray,

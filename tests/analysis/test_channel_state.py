@@ -95,3 +95,18 @@ def test_one_occurrence_of_a_repeated_term_is_removed_by_its_label() -> None:
             assert message in str(exc), exc
         else:
             raise AssertionError(f"{absent} was removed")
+
+
+def test_the_live_fits_list_repeated_terms_in_shape_order() -> None:
+    from imunoise.analysis.allan import oadev
+    from imunoise.analysis.channel_state import _job_fit, _job_fit_new_model
+
+    rng = np.random.default_rng(42)  # the solver puts a 12 s Markov term in the first entry
+    n = 120_000
+    x = rng.normal(0.0, 0.01, n) + np.cumsum(rng.normal(0.0, 2e-5, n))
+    curve = oadev(x, FS, m="octave")
+    model = ["white", "gauss_markov", "gauss_markov", "random_walk"]
+    for fit in (_job_fit(curve, model, None, None, "jacobian"),
+                _job_fit_new_model(curve, model, None, {}, None)):
+        assert fit.labels == ["white", "gauss_markov", "gauss_markov#2", "random_walk"]
+        assert fit.terms[1].params["T"] < 1.0 < 5.0 < fit.terms[2].params["T"]
