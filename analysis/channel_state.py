@@ -121,9 +121,9 @@ def _job_fit(curve: AllanCurve, model: list[str], start: Any, line_samples: np.n
     ``line_samples``) or warm; repeated terms in shape order, as ``imunoise fit`` lists
     them (:meth:`FitResult.in_canonical_order`)."""
     line = find_line(line_samples, curve.fs_hz) if line_samples is not None else None
-    if start is None:
-        return fit_allan(curve, model, line=line, intervals=intervals).in_canonical_order()
-    return fit_allan(curve, model, start=start, intervals=intervals).in_canonical_order()
+    fit = (fit_allan(curve, model, line=line, intervals=intervals) if start is None
+           else fit_allan(curve, model, start=start, intervals=intervals))
+    return fit.in_canonical_order()
 
 
 def _job_fit_new_model(curve: AllanCurve, model: list[str], start: Any,
