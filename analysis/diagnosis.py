@@ -59,6 +59,7 @@ from imunoise.analysis.terms import (
     model_psd,
     parse_model,
 )
+from imunoise.analysis.terms.gauss_markov import MIN_T_SAMPLES
 from imunoise.core.series import ChannelSeries
 
 DEFAULT_ALPHA = 0.05
@@ -118,7 +119,8 @@ class Suggestion:
     replaced, ``"OLD by NEW"``; empty otherwise."""
     held_by: str = ""
     """What keeps a suggestion whose evidence passes the test from being significant:
-    ``"identifiability"``, ``"rise"`` (it raises a part beyond its noise) or ``"holdout"``;
+    ``"identifiability"``, ``"rise"`` (it raises a part beyond its noise, or does not lower
+    the Allan chi2/dof at all) or ``"holdout"``;
     empty otherwise (not serialised: ``why`` says it, and :attr:`held_reason`)."""
     held_reason: str = ""
     """That reason in words (the sentence ``why`` ends with)."""
@@ -405,7 +407,12 @@ def _held_at_peaks(ctx: _Context, spec: ModelSpec, fit: FitResult, which: set[in
     where the refit put f0 or Q outside the peak's 95 % interval, the held refit lowers the
     PSD part by more than its standard deviation, and it raises the Allan part by less than
     one of its own (a resonance held at a peak that the Allan curve contradicts, such as a
-    drifting one, stays as the Allan fit put it)."""
+    drifting one, stays as the Allan fit put it), or, where it raises the Allan part more,
+    when it still lowers the given model's Allan part beyond its noise and lowers the two
+    parts together further than the free refit does (:func:`_joint_change`): ADIS16405 run 3
+    accel_z with a moving average and its 0.54 Hz line takes a hump at 13.9 Hz (Q 0.5) from
+    the Allan curve, chi2/dof 15.3 -> 6.06 with the PSD part 4.50 -> 4.87, where the
+    spectrum's peak at 9.87 Hz (Q 6.4) gives 9.18 and 3.08: both parts fall."""
     held = {(i, k) for i, e in enumerate(spec.entries) for k in e.fixed}
     try:
         pins = pin_resonances(ctx.x, ctx.fs_hz, fit.params, held, ctx.starts, ctx.memo)
@@ -427,9 +434,24 @@ def _held_at_peaks(ctx: _Context, spec: ModelSpec, fit: FitResult, which: set[in
     if not _lowers(_deviance(part_free), _deviance(part_held),
                    (part_held or {}).get("bins", 0) / PSD_BIN_CORRELATION):
         return None
-    if again.chi2_per_dof > fit.chi2_per_dof + _part_sd(fit.chi2_per_dof, again.misfit.dof):
+    if again.chi2_per_dof > fit.chi2_per_dof + _part_sd(fit.chi2_per_dof, again.misfit.dof) \
+            and not (_lowers(ctx.base.chi2_per_dof, again.chi2_per_dof, again.misfit.dof)
+                     and _joint_change(ctx, again, part_held) < _joint_change(ctx, fit, part_free)):
         return None
     return again, spec_held, off
+
+
+def _joint_change(ctx: _Context, after: FitResult, psd_after: dict[str, Any] | None) -> float:
+    """The change of the Allan and the PSD part from the given model's fit to ``after``, each
+    in standard deviations of the given model's part (:func:`_part_sd`), summed: negative
+    when the two fall together. A part not computed counts as unchanged."""
+    change = (after.chi2_per_dof - ctx.base.chi2_per_dof) \
+        / _part_sd(ctx.base.chi2_per_dof, after.misfit.dof)
+    before_psd, after_psd = _deviance(ctx.psd_before), _deviance(psd_after)
+    if before_psd is not None and after_psd is not None:
+        dof = (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION
+        change += (after_psd - before_psd) / _part_sd(before_psd, dof)
+    return float(change)
 
 
 def _psd_rises(ctx: _Context, after: FitResult) -> bool:
@@ -551,10 +573,11 @@ def _imitation(ctx: _Context, after: FitResult | None, index: int | None = None
                ) -> str | None:
     """Why the refit's solution is not identifiable in the sampled band (one term doing
     another's part), or None: a resonance whose peak does not lie below the Nyquist
-    frequency (its centre plus half its bandwidth at or above it) is a rising spectrum, not a
-    resonance; a refit that leaves the white level unresolved where the given model resolved
-    it has traded the white noise to zero for the new term (at ``index``: by default the
-    term appended)."""
+    frequency (its centre plus half its bandwidth at or above it) is a rising spectrum, not
+    a resonance; a refit that leaves the white level unresolved where the given model
+    resolved it has traded the white noise to zero for the new term (at ``index``: by
+    default the term appended). A Markov term at its shortest time is judged with the
+    other candidates (:func:`_markov_beside_a_filter`)."""
     if after is None:
         return None
     added = after.terms[len(ctx.spec) if index is None else index]
@@ -570,6 +593,36 @@ def _imitation(ctx: _Context, after: FitResult | None, index: int | None = None
                 and not white.resolved("N", ta.ci95.get("N")):
             return "the refit trades the white-noise level to zero for it"
     return None
+
+
+def _markov_beside_a_filter(suggestions: list[Suggestion], fs_hz: float
+                            ) -> list[Suggestion]:
+    """Hold back a significant Markov term whose refit stops at the shortest correlation time
+    the fit allows (:data:`~imunoise.analysis.terms.gauss_markov.MIN_T_SAMPLES` sample
+    periods) when an output filter is significant too.
+
+    Such a term shows no correlation time of its own, only a spectrum falling towards the
+    Nyquist frequency: what an output filter describes. Taken in the filter's place it
+    leaves the model two ways to draw one fall, and the next term trades with it: on
+    ADIS16405 run 1 gyro_z a second resonance beside it sat at 15.8 Hz (Q 150) on one half
+    and at 8.2 Hz (Q 1.3) on the other, each half's model predicting the other at chi2/dof
+    58 and 9787. Where no filter is significant (the Galaxy S5's decimation filter falls
+    too close to its Nyquist frequency for one) the Markov term is the description the data
+    support and stands."""
+    if not any(s.significant and get_term(s.term).kind == "filter" for s in suggestions):
+        return suggestions
+    t_min = MIN_T_SAMPLES / fs_hz
+    for s in suggestions:
+        if s.term == "gauss_markov" and s.action == "add" and s.significant \
+                and float(s.params.get("T", np.inf)) <= t_min * (1.0 + 1e-3):
+            s.significant = False
+            s.held_by = "identifiability"
+            s.held_reason = (f"not identifiable: its correlation time is the shortest the fit "
+                             f"allows ({t_min:.3g} s, {MIN_T_SAMPLES:g} sample periods), a "
+                             f"spectrum falling towards the Nyquist frequency that the "
+                             f"significant output filter describes.")
+            s.why += " " + s.held_reason[0].upper() + s.held_reason[1:]
+    return suggestions
 
 
 def _combined_logp(ctx: _Context, sources: list[float]) -> float:
@@ -633,11 +686,22 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     why = _why(term, rng, before, chi_after, supporting)
     imitation = _imitation(ctx, after)
     rises = after is not None and _parts_rise(ctx, after, psd_after)
-    held_by, held_reason = _held_back(imitation, rises)
+    # Applied, a significant term must lower the Allan chi2/dof, not only the PSD part: a
+    # term the spectrum wants that leaves the Allan curve no better per degree of freedom
+    # (ADIS16405 run 4 gyro_z: a fourth resonance at 0.49 Hz, PSD part 23.5 -> 21.0, Allan
+    # 2.37 -> 2.43) would show the user an error that rose.
+    allan_up = after is not None and not rises and not falls \
+        and bool(np.isfinite(after.chi2_per_dof))
+    held_by, held_reason = _held_back(imitation, rises or allan_up)
     if imitation is not None:
         why += f" Not identifiable: {imitation}."
     if rises:
         why += " It raises a part of the error beyond its noise."
+    elif allan_up:
+        why += (f" It does not lower the Allan chi2/dof ({before:.3g} -> {chi_after:.3g}), "
+                f"so applying it would not lower the error the fit reports.")
+        if imitation is None:
+            held_reason = "it does not lower the Allan chi2/dof."
     error_after = {} if after is None else _error_after(after, psd_after)
     if pinned and get_term(term).kind == "filter":
         held = ", ".join(f"{k} = {v:g}" for k, v in pinned.items())
@@ -648,7 +712,7 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
         chi2_per_dof_after=chi_after, p_value=float(np.exp(logp)), log_p=logp,
         # significant only when applying it really lowers the error the fit reports
         significant=bool(logp < np.log(alpha) and (falls or psd_logp < 0.0)
-                         and not rises and imitation is None),
+                         and not rises and not allan_up and imitation is None),
         why=why,
         evidence=[f.kind for f in supporting if f.significant], fit=after,
         apply={"model": spec.text(), "args": []}, held_by=held_by, held_reason=held_reason,
@@ -860,14 +924,17 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     why += " with as many parameters."
     imitation = _imitation(ctx, after, index)
     rises = _parts_rise(ctx, after, psd_after)
-    held_by, held_reason = _held_back(imitation, rises)
+    allan_up = not rises and not falls and bool(np.isfinite(after.chi2_per_dof))
+    held_by, held_reason = _held_back(imitation, rises or allan_up)
+    if allan_up and imitation is None:
+        held_reason = "it does not lower the Allan chi2/dof."
     if held_reason:
         why += " " + held_reason[0].upper() + held_reason[1:]
     return Suggestion(
         term=new, params=dict(tf.params), ci95=dict(tf.ci95), chi2_per_dof_before=before,
         chi2_per_dof_after=after.chi2_per_dof, p_value=float(np.exp(logp)), log_p=logp,
         significant=bool(logp < np.log(alpha) and (falls or psd_logp < 0.0)
-                         and not rises and imitation is None),
+                         and not rises and not allan_up and imitation is None),
         why=why, fit=after, apply={"model": spec.text(), "args": []}, action="replace",
         label=label, held_by=held_by, held_reason=held_reason,
         error_after=_error_after(after, psd_after))
@@ -1058,7 +1125,7 @@ def _ranked(ctx: _Context, suggestions: list[Suggestion], cuts: list[Finding], u
             alpha: float) -> list[Suggestion]:
     """The candidates' suggestions (:func:`_suggest`) and the cuts of the record when no term
     is significant, strongest evidence first (:func:`_simplest_first`)."""
-    suggestions = list(suggestions)
+    suggestions = _markov_beside_a_filter(list(suggestions), ctx.fs_hz)
     if not any(s.significant for s in suggestions):
         # the step and warm-up tests take the fitted model as the sensor's noise: only once
         # no term is missing is that a fair null (a model without its random walk sees

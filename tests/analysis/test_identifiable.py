@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from imunoise.analysis.diagnosis import diagnose
 from imunoise.analysis.fit import fit_series
@@ -115,3 +116,25 @@ def test_of_two_unresolved_terms_the_one_the_data_need_least_goes_first():
     assert removals[0].p_value > removals[1].p_value
     assert d.suggestions[0] is removals[0] and removals[0].significant
     assert removals[0].apply["model"] == "white,bias_instability,random_walk,resonance"
+
+
+def test_a_markov_term_at_two_sample_periods_is_not_identifiable():
+    """A critically damped vibration (f0 8 Hz, Q 0.5) at 100 Hz: a Markov term fitted in its
+    place runs to the shortest time the fit allows, two sample periods (a spectrum falling
+    towards Nyquist, no correlation time of its own). Output filters are significant too,
+    so it is held back and the resonance is named; without the rule the Markov term came
+    first (log p -20.4 against -18.9)."""
+    model = [("white", {"N": 1e-3}), ("random_walk", {"K": 1e-5}),
+             ("resonance", {"sigma": 1e-3, "f0": 8.0, "Q": 0.5})]
+    x = simulate(model, 1 << 19, FS, rng=23)
+    d = diagnose(x, FS, "white,random_walk", holdout=False, transients=False)
+    markov = next(s for s in d.suggestions if s.term == "gauss_markov")
+    assert markov.params["T"] == pytest.approx(2.0 / FS, rel=1e-3)
+    assert not markov.significant and markov.held_by == "identifiability"
+    assert "shortest the fit allows (0.02 s, 2 sample periods)" in markov.why
+    assert any(s.significant and s.term in ("moving_average", "bartlett", "lowpass")
+               for s in d.suggestions)
+    top = next(s for s in d.suggestions if s.significant)
+    assert top.term == "resonance"
+    assert 5.0 < top.params["f0"] < 11.0
+
