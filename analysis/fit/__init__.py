@@ -9,7 +9,8 @@ on
    non-negative least-squares solve on the relative residuals, weighted by each estimate's
    degrees of freedom, gives them all at once. Each Gauss-Markov term adds a grid search over
    its correlation time T (the amplitude stays linear); a sinusoid starts from the strongest
-   spectral line when the caller supplies one (see :func:`find_line`), else from a grid in f.
+   spectral line when the caller supplies one (see :func:`find_line`), else from a grid in f;
+   several sinusoids start at as many lines (:func:`series_lines`).
 2. Generalised least squares on ``ln(avar)`` with parameters in log form (positivity): the
    residuals are whitened with the covariance of the log estimates across taus computed from
    the model itself (:func:`imunoise.analysis.misfit.avar_covariance`), corrected for the
@@ -28,7 +29,13 @@ series first (see :func:`fit_series`).
 from __future__ import annotations
 
 from imunoise.analysis.fit.result import CurveLike, FitResult, ModelLike, TermFit
-from imunoise.analysis.fit.series import find_line, fit_series, regress_temperature, series_line
+from imunoise.analysis.fit.series import (
+    find_line,
+    fit_series,
+    regress_temperature,
+    series_line,
+    series_lines,
+)
 from imunoise.analysis.fit.solve import fit_allan
 
 __all__ = [
@@ -40,5 +47,6 @@ __all__ = [
     "ModelLike",
     "regress_temperature",
     "series_line",
+    "series_lines",
     "TermFit",
 ]

@@ -28,15 +28,48 @@ _EXCLUDE_BINS = 8
 other line: the Hann main lobe (2 bins), the held value's own resolution and a slow wander."""
 
 
-def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0,
+_FURTHER_LINE_ALPHA = 0.01
+"""Chance that a record with no further line shows one anywhere in its spectrum
+(:func:`noise_bin_level`)."""
+
+_FURTHER_LINE_SEGMENTS = 16
+"""Fewest Welch segments in which :func:`series_lines` looks for a further line."""
+
+_FURTHER_LINE_MIN_SNR = 3.0
+"""Least height of a further line above its neighbourhood's median, whatever the average."""
+
+
+def noise_bin_level(n_samples: int, nper: int, n_bins: int,
+                    alpha: float = _FURTHER_LINE_ALPHA) -> float:
+    """Height above the neighbourhood's median that no bin of a line-free Welch spectrum
+    reaches with probability ``1 - alpha`` over its ``n_bins`` bins: each bin of an average of
+    K Hann segments overlapping by half is chi-square over its equivalent degrees of freedom
+    ``2 K / (1 + 2 rho^2)`` (``rho = 0.167``, the overlap correlation of the Hann window), and
+    the floor it is compared with is that distribution's median. A long record's average so
+    resolves a line a few times its floor that a single periodogram cannot tell from noise
+    (level 3.0 for 2^19 samples in segments of 2^15). Below ``_FURTHER_LINE_SEGMENTS``
+    segments the level is infinite: the floor, a median of 31 bins, is then itself too noisy
+    for the chi-square level to hold (over 2^15 samples, one segment, 5 of 20 line-free
+    records showed a bin above that level)."""
+    from imunoise.analysis.distributions import chi2
+
+    k = 1 + max(n_samples - nper, 0) // max(nper // 2, 1)
+    if k < _FURTHER_LINE_SEGMENTS:
+        return math.inf
+    edf = 2.0 * k / (1.0 + 2.0 * 0.167 ** 2)
+    level = float(chi2.isf(alpha / max(n_bins, 1), edf) / chi2.ppf(0.5, edf))
+    return max(_FURTHER_LINE_MIN_SNR, level)
+
+
+def find_line(values: np.ndarray, fs_hz: float, min_snr: float | None = 10.0,
               exclude_hz: Sequence[float] = ()) -> tuple[float, float] | None:
     """Frequency (Hz) and amplitude (units) of the strongest spectral line, or None.
 
     Welch spectrum (Hann, up to 2^15 samples per segment); the line is the bin standing
-    furthest above the running median of its neighbourhood (by at least ``min_snr``); its
-    power is the excess summed over the main lobe (``A = sqrt(2 P)``). Lines within
-    ``_EXCLUDE_BINS`` bins of a frequency in ``exclude_hz`` (Hz; lines the model already
-    holds) are passed over."""
+    furthest above the running median of its neighbourhood (by at least ``min_snr``, or with
+    ``None`` by :func:`noise_bin_level`); its power is the excess summed over the main lobe
+    (``A = sqrt(2 P)``). Lines within ``_EXCLUDE_BINS`` bins of a frequency in ``exclude_hz``
+    (Hz; lines the model already holds) are passed over."""
     x = np.asarray(values, dtype=np.float64)
     if x.size < 64:
         return None
@@ -44,6 +77,8 @@ def find_line(values: np.ndarray, fs_hz: float, min_snr: float = 10.0,
     f, p = welch_density(x - x.mean(), fs_hz, nper)
     if p.size < 16:
         return None
+    if min_snr is None:
+        min_snr = noise_bin_level(x.size, nper, p.size)
     floor = np.maximum(ndimage.median_filter(p, size=31, mode="nearest"), 1e-300)
     ratio = p / floor
     ratio[:4] = 0.0  # the lowest bins carry drift, not lines
@@ -102,10 +137,34 @@ def series_line(values: np.ndarray, fs_hz: float, segment_starts: np.ndarray | N
                 exclude_hz: Sequence[float] = ()) -> tuple[float, float] | None:
     """The strongest spectral line of the longest gap-free segment (:func:`find_line`),
     passing over those at ``exclude_hz``: the start of a line term in :func:`fit_series`."""
+    lines = series_lines(values, fs_hz, 1, segment_starts, exclude_hz)
+    return lines[0] if lines else None
+
+
+def series_lines(values: np.ndarray, fs_hz: float, count: int,
+                 segment_starts: np.ndarray | None = None, exclude_hz: Sequence[float] = ()
+                 ) -> tuple[tuple[float, float], ...]:
+    """Up to ``count`` spectral lines of the longest gap-free segment, strongest first, as
+    ``(f_hz, amplitude)``: the first by :func:`find_line`'s fixed level, each further one the
+    strongest line left once the earlier ones are passed over, at the level a bin of the
+    average reaches by chance (:func:`noise_bin_level`). The starts of a model's line terms,
+    one line each (:func:`imunoise.analysis.fit.fit_allan`): a model that asks for a second
+    line is looking for the spectrum's second line, which on an ADIS16405 accelerometer (the
+    bench's 0.56 Hz line's third harmonic at 1.69 Hz) stands 3-7 times its floor, where a
+    start on the first line leaves the two terms to share it."""
     x = np.asarray(values, dtype=np.float64)
     bounds = np.append(segment_starts if segment_starts is not None else [0], x.size)
     k = int(np.argmax(np.diff(bounds)))
-    return find_line(x[bounds[k]:bounds[k + 1]], fs_hz, exclude_hz=exclude_hz)
+    seg = x[bounds[k]:bounds[k + 1]]
+    found: list[tuple[float, float]] = []
+    while len(found) < count:
+        level = 10.0 if not found else None
+        line = find_line(seg, fs_hz, min_snr=level,
+                         exclude_hz=tuple(exclude_hz) + tuple(f for f, _ in found))
+        if line is None:
+            break
+        found.append(line)
+    return tuple(found)
 
 
 def _held_line_frequencies(spec: ModelSpec, fixed: dict[str | int, dict[str, float]] | None,
@@ -120,6 +179,15 @@ def _held_line_frequencies(spec: ModelSpec, fixed: dict[str | int, dict[str, flo
     if all((i, "f") in held for i in lines):
         return ()
     return tuple(sorted(held[(i, "f")] for i in lines if (i, "f") in held))
+
+
+def _free_line_count(spec: ModelSpec, fixed: dict[str | int, dict[str, float]] | None,
+                     fs_hz: float) -> int:
+    """How many of the model's line terms have a free frequency."""
+    given: dict[str | int, dict[str, float]] = {i: p for i, p in spec.fixed.items()}
+    held = _fixed_keys(spec.names, {**given, **(fixed or {})}, fs_hz)
+    return sum(1 for i, n in enumerate(spec.names)
+               if get_term(n).role == "line" and (i, "f") not in held)
 
 
 def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
@@ -180,9 +248,10 @@ def fit_series(values: np.ndarray, fs_hz: float, model: ModelLike, *,
         # two sinusoids started on one line trade its amplitude, and the solve ends with one
         # of them at zero and the next line unmodelled.
         held = _held_line_frequencies(spec, fixed, fs_hz)
-        line_key = ("line", id(values), regressed, held)
+        count = max(1, _free_line_count(spec, fixed, fs_hz))
+        line_key = ("line", id(values), regressed, held, count)
         if line_key not in memo:
-            memo[line_key] = series_line(x, fs_hz, segment_starts, exclude_hz=held)
+            memo[line_key] = series_lines(x, fs_hz, count, segment_starts, exclude_hz=held)
         line = memo[line_key]
     result = fit_allan(curve, spec, start=start, line=line, temperature=temp_term, fixed=fixed,
                        memo=memo, intervals=intervals, job_map=job_map,

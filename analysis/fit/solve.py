@@ -4,7 +4,7 @@ shortest taus aside, and :func:`fit_allan`.
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from typing import Any
 
 import numpy as np
@@ -25,7 +25,15 @@ from imunoise.analysis.fit.layout import (
 )
 from imunoise.analysis.fit.problem import _chi2, _Point, _Problem, _problem, _theta_of
 from imunoise.analysis.fit.result import CurveLike, FitResult, ModelLike, TermFit, _term_avar
-from imunoise.analysis.fit.starts import _cold_starts, _folded, _prefix, _residual_starts
+from imunoise.analysis.fit.starts import (
+    Line,
+    Lines,
+    _cold_starts,
+    _folded,
+    _prefix,
+    _residual_starts,
+    as_lines,
+)
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.misfit import failure_threshold, failures, misfit
 from imunoise.analysis.terms import (
@@ -87,7 +95,7 @@ def _neg2_loglik(layout: _Layout, theta: np.ndarray, y: np.ndarray, tau: np.ndar
 
 @one_blas_thread
 def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
-              line: tuple[float, float] | None = None, temperature: TermFit | None = None,
+              line: Line | Sequence[Line] | None = None, temperature: TermFit | None = None,
               fixed: dict[str | int, dict[str, float]] | None = None,
               family_rate: float = 0.10, max_nfev: int = 200,
               intervals: str = "profile", memo: dict | None = None,
@@ -104,7 +112,9 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
             parameters are starting values.
         start: a previous :class:`FitResult` or ``[(term, params)]`` to start from (a cheap
             refit: the starting-value search is skipped).
-        line: ``(f_hz, amplitude)`` of the strongest spectral line, the start of a sinusoid.
+        line: ``(f_hz, amplitude)`` of the strongest spectral line, the start of a sinusoid,
+            or several such lines, strongest first: the model's line terms with a free
+            frequency start one at each, in model order; other shaped terms start at the first.
         temperature: the fitted temperature coefficient (from :func:`regress_temperature`),
             carried into the result when the model holds ``temperature``.
         fixed: parameters held at known values, keyed by term name (its first occurrence)
@@ -152,12 +162,13 @@ def fit_allan(curve: CurveLike, model: ModelLike, *, start: Any = None,
     _hold(memo, curve)
     folded = _folded(parsed, prob)
     # no key for a model with starting values: its solution depends on them
-    key = _memo_key(curve, folded, line) if start is None else None
+    lines = as_lines(line)
+    key = _memo_key(curve, folded, lines) if start is None else None
     hit = memo.get(key) if key is not None else None
     if hit is not None:
         point = hit[1]
     else:
-        point = _best_point(prob, curve, folded, start, line, memo)
+        point = _best_point(prob, curve, folded, start, lines, memo)
         if key is not None:
             memo[key] = (prob, point)
     return _result(prob, point, intervals, temperature, job_map, profile_terms)
@@ -215,16 +226,15 @@ def _hold(memo: dict, obj: Any) -> None:
     memo.setdefault(("held", id(obj)), obj)
 
 
-def _memo_key(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None
-              ) -> tuple | None:
+def _memo_key(curve: CurveLike, spec: ModelSpec, lines: Lines) -> tuple | None:
     if any(e.start is not None for e in spec.entries):
         return None
     uses_line = any(get_term(n).role == "line" for n in spec.names)
-    return (id(curve), spec.text(), line if uses_line else None)
+    return (id(curve), spec.text(), lines if uses_line else None)
 
 
 def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
-                   line: tuple[float, float] | None, memo: dict, cold: list[dict[str, float]]
+                   lines: Lines, memo: dict, cold: list[dict[str, float]]
                    ) -> tuple[list[np.ndarray], _Point | None]:
     """The start from the solution of the model without its last term, with that term at zero
     (also returned unsolved: its chi2 is the smaller model's)."""
@@ -232,7 +242,7 @@ def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
     if pre is None:
         return [], None
     sub_spec, last = pre
-    sub = _memo_point(curve, sub_spec, line, prob, memo)
+    sub = _memo_point(curve, sub_spec, lines, prob, memo)
     if sub is None:
         return [], None
     sub_prob, sub_point = sub
@@ -245,32 +255,32 @@ def _nested_starts(prob: _Problem, curve: CurveLike, parsed: ModelSpec,
         params[last] = {**params[last], term.amplitude: 1e-300}
     at_zero = _theta_of(prob, params)
     exact = _Point(at_zero, sub_point.used.copy(), _chi2(prob, at_zero))
-    return [at_zero] + _residual_starts(prob, params, last, line), exact
+    return [at_zero] + _residual_starts(prob, params, last, lines), exact
 
 
-def _memo_point(curve: CurveLike, spec: ModelSpec, line: tuple[float, float] | None,
+def _memo_point(curve: CurveLike, spec: ModelSpec, lines: Lines,
                 prob: _Problem, memo: dict) -> tuple[_Problem, _Point] | None:
-    key = _memo_key(curve, spec, line)
+    key = _memo_key(curve, spec, lines)
     if key not in memo:
         try:
             sub_prob = _problem(curve, spec, None, prob.family_rate, prob.max_nfev)
-            memo[key] = (sub_prob, _best_point(sub_prob, curve, spec, None, line, memo))
+            memo[key] = (sub_prob, _best_point(sub_prob, curve, spec, None, lines, memo))
         except (ValueError, np.linalg.LinAlgError):
             memo[key] = None
     return memo[key]
 
 
 def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
-                line: tuple[float, float] | None, memo: dict) -> _Point:
+                lines: Lines, memo: dict) -> _Point:
     """The candidate with the smallest reported chi2 (the first of equals)."""
     if start is not None:
         start_params = start.params if isinstance(start, FitResult) else list(start)
         thetas = [_theta_of(prob, _match_start(prob.names, start_params))]
         exact = None
     else:
-        cold = _cold_starts(prob, line)
+        cold = _cold_starts(prob, lines)
         thetas = [_theta_of(prob, c) for c in cold]
-        nested, exact = _nested_starts(prob, curve, parsed, line, memo, cold[0])
+        nested, exact = _nested_starts(prob, curve, parsed, lines, memo, cold[0])
         thetas += nested
     distinct: list[np.ndarray] = []
     for theta0 in thetas:  # a start within 10 % of an earlier one adds nothing

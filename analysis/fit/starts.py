@@ -5,6 +5,8 @@ the starts taken from a smaller model's solution.
 from __future__ import annotations
 
 import math
+from collections.abc import Collection, Sequence
+from typing import Any
 
 import numpy as np
 from scipy import optimize
@@ -17,6 +19,35 @@ from imunoise.analysis.terms import (
     model_avar,
 )
 from imunoise.analysis.terms.output_filter import OutputFilter
+
+Line = tuple[float, float]
+"""A spectral line: frequency (Hz) and amplitude (the series' units)."""
+
+Lines = tuple[Line, ...]
+"""Spectral lines, strongest first."""
+
+
+def as_lines(line: Line | Sequence[Line] | None) -> Lines:
+    """One line or several (strongest first) as a tuple of lines."""
+    if line is None:
+        return ()
+    items: list[Any] = list(line)
+    if len(items) == 2 and all(np.ndim(v) == 0 for v in items):
+        return ((float(items[0]), float(items[1])),)
+    return tuple((float(f), float(a)) for f, a in items)
+
+
+def _line_of(names: Sequence[str], index: int, lines: Lines,
+             held: Collection[tuple[int, str]]) -> Line | None:
+    """The spectral line that starts term ``index``: the k-th line term with a free frequency
+    (in model order) starts at the k-th line, none where the spectrum shows fewer (its grid
+    then), so two line terms never start on one line and share it; any other shaped term (a
+    resonance's grid) at the strongest."""
+    if get_term(names[index]).role != "line":
+        return lines[0] if lines else None
+    rank = sum(1 for i in range(index)
+               if get_term(names[i]).role == "line" and (i, "f") not in held)
+    return lines[rank] if rank < len(lines) else None
 
 
 def _linear_shape(name: str, tau: np.ndarray, fs: float) -> np.ndarray:
@@ -34,7 +65,7 @@ def _nnls_weighted(design: np.ndarray, avar: np.ndarray, w: np.ndarray
 
 
 def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float,
-                  nu: np.ndarray, duration_s: float, line: tuple[float, float] | None,
+                  nu: np.ndarray, duration_s: float, lines: Lines,
                   fixed: dict[tuple[int, str], float] | None = None) -> list[dict[str, float]]:
     """Starting parameters: the linear terms' squared amplitudes by one weighted NNLS solve;
     each nonlinear term (in model order) by a grid search over its shape parameters
@@ -65,6 +96,7 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
         if term.linear or term.role == "regressor" or term.kind == "filter":
             continue
         held = {k: fixed[(i, k)] for k in term.shape_params if (i, k) in fixed}
+        line = _line_of(names, i, lines, fixed)
         candidates = [{**c, **held} for c in term.start_shapes(fs, duration_s, line)]
         if held and len(held) == len(term.shape_params):
             candidates = [held]
@@ -95,6 +127,7 @@ def _start_values(names: list[str], tau: np.ndarray, avar: np.ndarray, fs: float
         term = get_term(names[owner])
         amp = math.sqrt(c2)
         if not term.linear:
+            line = _line_of(names, owner, lines, fixed)
             amp = term.start_amplitude(amp if c > 0 else 0.0, line) or amp
         start[owner] = {term.amplitude: amp, **shapes.get(owner, {})}
     return start
@@ -122,8 +155,7 @@ def _bumped_starts(names: list[str], start: list[dict[str, float]], tau: np.ndar
     return out
 
 
-def _cold_starts(prob: _Problem, line: tuple[float, float] | None
-                 ) -> list[list[dict[str, float]]]:
+def _cold_starts(prob: _Problem, lines: Lines) -> list[list[dict[str, float]]]:
     """Starting points without a previous fit: the linear solve weighted by each estimate's
     degrees of freedom, the same with every tau weighted alike (it follows the long taus the
     first neglects) and each near-zero linear term raised."""
@@ -132,7 +164,7 @@ def _cold_starts(prob: _Problem, line: tuple[float, float] | None
         return [[dict(p or {}) for _, p in prob.spec]]
     out = []
     for nu in (prob.nu0, np.full_like(prob.nu0, 2.0)):
-        first = _start_values(names, prob.tau, prob.avar, prob.fs, nu, prob.duration, line,
+        first = _start_values(names, prob.tau, prob.avar, prob.fs, nu, prob.duration, lines,
                               lay.fixed)
         for i, (_, p) in enumerate(prob.spec):
             if p is not None:
@@ -160,7 +192,7 @@ def _prefix(parsed: ModelSpec, prob: _Problem) -> tuple[ModelSpec, int] | None:
 
 
 def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
-                     line: tuple[float, float] | None, keep: int = 2) -> list[np.ndarray]:
+                     lines: Lines, keep: int = 2) -> list[np.ndarray]:
     """Starts for a shaped term (a Markov time constant, a resonance, a line) added to a
     solved smaller model: each shape of its grid (``Term.start_shapes``) is scored by one
     weighted NNLS solve of every amplitude with the other terms' shapes at the smaller
@@ -192,6 +224,7 @@ def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
     cols = [column(names[j], params[j]) for j in owners]
     w = np.sqrt(prob.nu0 / 2.0)
     scored: list[tuple[float, dict[str, float], np.ndarray]] = []
+    line = _line_of(names, last, lines, prob.layout.fixed)
     for cand in term.start_shapes(prob.fs, prob.duration, line):
         cand = {**cand, **held}
         design = np.stack(cols + [column(names[last], cand)], axis=1)
