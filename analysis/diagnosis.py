@@ -23,7 +23,7 @@ not noise terms to add, but they are why a model can look wrong.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,7 +49,7 @@ from imunoise.analysis.model_error import (
     right_model_limit,
     time_domain_part,
 )
-from imunoise.analysis.spectral_pins import PINNED, pin_resonances
+from imunoise.analysis.spectral_pins import PINNED, pin_resonances, pinned_of
 from imunoise.analysis.terms import (
     TERMS,
     Entry,
@@ -371,7 +371,7 @@ def _refit(ctx: _Context, term: str
         # accel_x: 2029 against 1054 for a lowpass filter, a different first round)
         pin = _spectrum_pin(ctx, after, own_model=not imitates)
         if pin is not None:
-            shape = {k: pin.params[k] for k in PINNED}
+            shape = pinned_of(pin.params)
             again, spec_again = _fit_appended(ctx, term, shape)
             if again is not None and not _psd_rises(ctx, again) \
                     and not (imitates and _imitation(ctx, again) is not None):
@@ -381,7 +381,7 @@ def _refit(ctx: _Context, term: str
         if at_peaks is not None:
             after, spec, pins = at_peaks
             pin = pins[len(ctx.spec)]
-            pinned, pinned_ci = {k: pin.params[k] for k in PINNED}, dict(pin.ci95)
+            pinned, pinned_ci = pinned_of(pin.params), dict(pin.ci95)
     return after, spec, pinned, pinned_ci
 
 
@@ -419,13 +419,13 @@ def _held_at_peaks(ctx: _Context, spec: ModelSpec, fit: FitResult, which: set[in
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):
         return None
     off = {p.index: p for p in pins if p.index in which and any(
-        not p.ci95[k][0] <= fit.terms[p.index].params[k] <= p.ci95[k][1] for k in PINNED)}
+        not p.ci95[k][0] <= fit.terms[p.index].params[k] <= p.ci95[k][1] for k in p.ci95)}
     if not off:
         return None
     entries = list(spec.entries)
     for i, p in off.items():
         e = entries[i]
-        entries[i] = Entry(e.name, {**e.fixed, **{k: p.params[k] for k in PINNED}}, e.start)
+        entries[i] = Entry(e.name, {**e.fixed, **pinned_of(p.params)}, e.start)
     spec_held = ModelSpec(tuple(entries))
     again = _fit_model(ctx, spec_held, profile_terms)
     if again is None:
@@ -461,16 +461,17 @@ def _psd_rises(ctx: _Context, after: FitResult) -> bool:
                   (part or {}).get("bins", 0) / PSD_BIN_CORRELATION)
 
 
-def _fit_model(ctx: _Context, spec: ModelSpec, profile_terms: set[int] | None = None
-               ) -> FitResult | None:
+def _fit_model(ctx: _Context, spec: ModelSpec, profile_terms: set[int] | None = None,
+               start: list[tuple[str, dict[str, float]]] | None = None) -> FitResult | None:
     """``spec`` fitted to the channel exactly as ``imunoise fit --model`` fits it (None where
     it cannot be fitted); ``profile_terms``: the terms whose intervals are profiled (None:
-    every term's)."""
+    every term's); ``start``: the one starting point, ``[(term, params)]`` in model order
+    (None: the fit's own search)."""
     needs = any(get_term(n).needs_record == "temperature" for n in spec.names)
     try:
         return fit_series(ctx.x, ctx.fs_hz, spec, segment_starts=ctx.starts,
                           temperature=ctx.temp_at if needs else None, memo=ctx.memo,
-                          intervals="jacobian", profile_terms=profile_terms)[0]
+                          intervals="jacobian", profile_terms=profile_terms, start=start)[0]
     except (ValueError, np.linalg.LinAlgError):
         return None
 
@@ -860,16 +861,25 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
 
 
 def _swaps(spec: ModelSpec, base: FitResult,
-           sensor_filter: tuple[str, dict[str, float]] | None) -> list[tuple[int, str]]:
-    """``(index, other filter)`` for each other kind of output filter that may replace the
-    given model's, when the model fails: a filter the user held or the device's
-    configuration states stays."""
-    if not base.failures or sensor_filter is not None:
-        return []
-    filters = [n for n, t in TERMS.items() if t.kind == "filter"]
-    return [(i, other) for i, entry in enumerate(spec.entries)
-            if get_term(entry.name).kind == "filter" and not entry.fixed
-            for other in filters if other != entry.name]
+           sensor_filter: tuple[str, dict[str, float]] | None,
+           findings: Sequence[Finding] = ()) -> list[tuple[int, str]]:
+    """``(index, other term)`` for each term that may replace one of the given model's: each
+    other kind of output filter, when the model fails (a filter the user held or the
+    device's configuration states stays), and a wandering resonance for each resonance whose
+    peak the evidence finds moving (a significant ``resonance_drift`` finding)."""
+    out: list[tuple[int, str]] = []
+    if base.failures and sensor_filter is None:
+        filters = [n for n, t in TERMS.items() if t.kind == "filter"]
+        out += [(i, other) for i, entry in enumerate(spec.entries)
+                if get_term(entry.name).kind == "filter" and not entry.fixed
+                for other in filters if other != entry.name]
+    refinements = {t.replaces: n for n, t in TERMS.items() if t.replaces is not None}
+    for f in findings:
+        i = f.details.get("term_index")
+        if f.kind == "resonance_drift" and f.significant and isinstance(i, int) \
+                and i < len(spec.entries) and spec.entries[i].name in refinements:
+            out.append((i, refinements[spec.entries[i].name]))
+    return out
 
 
 def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
@@ -885,21 +895,54 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     judged as that of one parameter (Bonferroni over the candidates), beside the fall of the
     PSD part; it is significant under the rules an added term meets: the chi2/dof falls,
     no part rises beyond its noise, the white level stays resolved, and (checked with the
-    added terms) the hold-out part does not rise."""
+    added terms) the hold-out part does not rise.
+
+    A term that refines another (:attr:`~imunoise.analysis.terms.base.Term.replaces`: a
+    wandering resonance for a resonance whose peak moves) comes with the shape the spectrum
+    gives it (:mod:`imunoise.analysis.spectral_pins`: centre, width and wander held, the
+    power left to the Allan refit), as a suggested resonance is held at its peak; the Allan
+    curve alone barely tells a moving peak from a fixed one. It has one parameter more, and
+    its chi2 drop is judged as that of one parameter."""
     entries = ctx.spec.entries
     old = ctx.spec.labels[index]
-    spec = ModelSpec(entries[:index] + (Entry(new, {}),) + entries[index + 1:])
     before = ctx.base.chi2_per_dof
     label = f"{old} by {new}"
+    refines = get_term(new).replaces is not None
+    shape: dict[str, float] = {}
+    shape_ci: dict[str, _Interval] = {}
+    if refines:
+        pin = _refinement_pin(ctx, index, new)
+        if pin is None:
+            spec = ModelSpec(entries[:index] + (Entry(new, {}),) + entries[index + 1:])
+            return Suggestion(term=new, params={}, ci95={}, chi2_per_dof_before=before,
+                              chi2_per_dof_after=float("nan"), p_value=1.0, log_p=0.0,
+                              significant=False, why=f"The spectrum does not resolve a "
+                              f"wander of {old}'s peak.", apply={"model": spec.text(),
+                                                                 "args": []},
+                              action="replace", label=label)
+        shape, shape_ci = pinned_of(pin.params), dict(pin.ci95)
+    spec = ModelSpec(entries[:index] + (Entry(new, shape),) + entries[index + 1:])
     profiled = {i for i, n in enumerate(spec.names) if n == "white"} | {index}
-    after = _fit_model(ctx, spec, profiled)
+    # a refinement starts from the given model's solution, its term's power where the term
+    # it refines had it (from the smaller model the new term would start at zero, where its
+    # log-amplitude has no gradient)
+    start = None
+    if refines:
+        start = list(ctx.base.params)
+        start[index] = (new, {**start[index][1], **shape})
+    after = _fit_model(ctx, spec, profiled, start)
     if after is not None:
         # a different filter moves the background under a resonance: where the refit puts
         # one beside its spectral peak, it is held there as an appended one would be
         at_peaks = _held_at_peaks(ctx, spec, after, set(range(len(spec))), profiled)
         if at_peaks is not None:
             after, spec = at_peaks[0], at_peaks[1]
-    why = f"The shortest taus may follow a {new} filter better than the model's {old}."
+    if refines:
+        why = (f"The peak of {old} moves through the record; a {new} averages it over the "
+               f"centre frequencies it visits (spread {shape['spread']:.2g} Hz from the "
+               f"spectrum).")
+    else:
+        why = f"The shortest taus may follow a {new} filter better than the model's {old}."
     if after is None:
         return Suggestion(term=new, params={}, ci95={}, chi2_per_dof_before=before,
                           chi2_per_dof_after=float("nan"), p_value=1.0, log_p=0.0,
@@ -916,12 +959,14 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
         sources.append(psd_logp)
     logp = _combined_logp(ctx, sources)
     tf = after.terms[index]
-    why = (f"Replacing {old} by a {new} filter brings chi2/dof from {before:.3g} to "
-           f"{after.chi2_per_dof:.3g}")
+    # a filter's reason is the sentence itself; a refinement's what the evidence showed
+    why = (why + " " if refines else "") + (
+        f"Replacing {old} by a {new}{'' if refines else ' filter'} brings chi2/dof from "
+        f"{before:.3g} to {after.chi2_per_dof:.3g}")
     psd_b, psd_a = _deviance(ctx.psd_before), _deviance(psd_after)
     if psd_b is not None and psd_a is not None:
         why += f" and the PSD part from {psd_b:.3g} to {psd_a:.3g}"
-    why += " with as many parameters."
+    why += " with one parameter more." if refines else " with as many parameters."
     imitation = _imitation(ctx, after, index)
     rises = _parts_rise(ctx, after, psd_after)
     allan_up = not rises and not falls and bool(np.isfinite(after.chi2_per_dof))
@@ -931,7 +976,9 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     if held_reason:
         why += " " + held_reason[0].upper() + held_reason[1:]
     return Suggestion(
-        term=new, params=dict(tf.params), ci95=dict(tf.ci95), chi2_per_dof_before=before,
+        # a held shape's interval is the spectrum's, as a pinned suggestion's is
+        term=new, params=dict(tf.params), ci95={**tf.ci95, **shape_ci},
+        chi2_per_dof_before=before,
         chi2_per_dof_after=after.chi2_per_dof, p_value=float(np.exp(logp)), log_p=logp,
         significant=bool(logp < np.log(alpha) and (falls or psd_logp < 0.0)
                          and not rises and not allan_up and imitation is None),
@@ -1070,6 +1117,24 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
     return findings, by_term, filt
 
 
+def _refinement_pin(ctx: _Context, index: int, new: str) -> Any:
+    """The spectrum's shape of term ``new`` in the place of the given model's term ``index``
+    (the other terms as fitted, their peaks held), or None where the spectrum does not
+    resolve it (:func:`imunoise.analysis.spectral_pins.pin_resonances`)."""
+    model = list(ctx.base.params)
+    _, params = model[index]
+    start = {k: v for k, v in get_term(new).small_default.items() if k not in params}
+    if "spread" in start:  # a wander of half the peak's width to start from
+        start["spread"] = 0.5 * float(params["f0"]) / float(params["Q"])
+    model[index] = (new, {**params, **start})
+    held = {(i, k) for i in range(len(model)) if i != index for k in PINNED}
+    try:
+        pins = pin_resonances(ctx.x, ctx.fs_hz, model, held, ctx.starts, ctx.memo)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return None
+    return next((p for p in pins if p.index == index), None)
+
+
 def _resonance_drifts(segments: list[np.ndarray], fs_hz: float, base: FitResult, alpha: float,
                       time_origin_s: float) -> list[Finding]:
     """Whether each resonance of the fitted model keeps its frequency through the record
@@ -1083,20 +1148,23 @@ def _resonance_drifts(segments: list[np.ndarray], fs_hz: float, base: FitResult,
     for i in at:
         rest_psd = functools.partial(model_psd, [t for k, t in enumerate(model) if k != i],
                                      fs_hz=fs_hz, continuous_only=True)
-        out.append(evidence.resonance_drift(segments, fs_hz, model[i][1]["f0"],
-                                            model[i][1]["Q"], alpha=alpha, rest_psd=rest_psd,
-                                            tests=len(at), t0_s=time_origin_s))
+        found = evidence.resonance_drift(segments, fs_hz, model[i][1]["f0"], model[i][1]["Q"],
+                                         alpha=alpha, rest_psd=rest_psd, tests=len(at),
+                                         t0_s=time_origin_s)
+        found.details["term_index"] = i
+        out.append(found)
     return out
 
 
 def _candidates(names: list[str], base: FitResult, filt: Finding | None, has_temperature: bool,
                 sensor_filter: tuple[str, dict[str, float]] | None) -> list[str]:
     """The terms to try: every additive term not in the model (a repeatable one, such as a
-    second Markov time constant or a second resonance, even if it is), and the output
+    second Markov time constant or a second resonance, even if it is; a term that refines
+    another only in its place, :func:`_swaps`), and the output
     filters when the shortest taus show one (only the device's own when its configuration
     states it)."""
     candidates = [n for n, t in TERMS.items() if (n not in names or t.repeatable)
-                  and t.kind == "additive"
+                  and t.kind == "additive" and t.replaces is None
                   and (t.needs_record != "temperature" or has_temperature)]
     if not any(get_term(n).kind == "filter" for n in names):
         if sensor_filter is not None:
@@ -1237,7 +1305,7 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     findings.extend(cuts)
     psd_est, nperseg, psd_block, psd_before = psd_baseline
     candidates = _candidates(names, base, filt, temperature is not None, sensor_filter)
-    swaps = _swaps(base_spec, base, sensor_filter) if only is None else []
+    swaps = _swaps(base_spec, base, sensor_filter, findings) if only is None else []
     if only is not None:
         candidates = [c for c in candidates if c in only]
     parts: dict[str, Any] = {"psd": psd_before, "time_domain": time_domain}

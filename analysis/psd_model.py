@@ -108,11 +108,12 @@ def _periodic(f: np.ndarray, fs: float) -> np.ndarray:
 
 
 def _split_narrow(gaussian: list, df_grid: float) -> tuple[list, list]:
-    """Resonances narrower than four grid steps apart from the other Gaussian terms (the
-    filter, if any, stays with both)."""
+    """Resonances narrower than four grid steps (a wandering one with its wander) apart from
+    the other Gaussian terms (the filter, if any, stays with both)."""
     filt = [(n, p) for n, p in gaussian if get_term(n).kind == "filter"]
     narrow = [(n, p) for n, p in gaussian
-              if n == "resonance" and p["f0"] / p["Q"] < 4.0 * df_grid]
+              if n in ("resonance", "wandering_resonance")
+              and p["f0"] / p["Q"] + 2.0 * p.get("spread", 0.0) < 4.0 * df_grid]
     rest = [(n, p) for n, p in gaussian if not any(p is q for _, q in narrow)]
     return rest, [[(n, p)] + filt for n, p in narrow]
 

@@ -4,11 +4,13 @@ The Allan curve sees a resonance as a bump near tau = 1/(2 f0); moving f0 by the
 width changes it by a few per cent, so an Allan fit leaves f0 and Q loose (ADIS16405 gyro_z:
 f0 20.4 Hz [20.3, 20.7], Q 20 [12, 1e4]), while the spectrum shows the peak itself. For each
 resonance of a fitted model whose f0 and Q are not held, this fits the measured PSD near the
-peak by Whittle likelihood. Two callers use it: the hold-out part compares each half's peak
-(:func:`imunoise.analysis.model_error.holdout_part`), and the diagnosis holds a suggested
-resonance at the peak where the Allan refit put it elsewhere
-(:mod:`imunoise.analysis.diagnosis`). The fit itself stays an Allan fit: held at the peak of a
-drifting, asymmetric real peak, a resonance follows the Allan curve worse.
+peak by Whittle likelihood; a wandering resonance's ``spread`` (the standard deviation of its
+centre frequency) is fitted with them. Two callers use it: the hold-out part compares each
+half's peak (:func:`imunoise.analysis.model_error.holdout_part`), and the diagnosis holds a
+suggested resonance at the peak where the Allan refit put it elsewhere, and gives a wandering
+resonance offered in a resonance's place its shape (:mod:`imunoise.analysis.diagnosis`).
+The fit itself stays an Allan fit: held at the peak of a drifting, asymmetric real peak, a
+resonance follows the Allan curve worse.
 
 The spectrum: a Welch estimate on a fine linear grid (Hann, 50 % overlap, segment
 :func:`pin_nperseg`), its bins between f0/2 and min(2 f0, 0.49 fs) (f0 the Allan fit's). The
@@ -18,7 +20,8 @@ model there is
 
 with S_rest the fitted model's PSD without this resonance (the level ``c``, free, absorbs a
 background the Allan fit set a little off) and S_res the resonance's exact discrete-time PSD
-(through the model's output filter, if any). The four log-parameters minimise the Whittle
+(through the model's output filter, if any). The four log-parameters (five with a wander,
+its bounds a tenth of a bin and a quarter of the band) minimise the Whittle
 deviance ``sum nu (u - 1 - ln u)``, ``u = P/S``.
 
 Intervals: the inverse Gauss-Newton matrix of the deviance residuals (the Whittle Fisher
@@ -31,7 +34,8 @@ as the misfit says, not the width an ideal peak would allow.
 A pin is kept only where the spectrum resolves a peak: the fitted f0 inside the band (not at
 its edge), Q's interval above Q's lower bound (0.5, no peak), and the resonance lowering the
 band's deviance by more than the 0.1 % point of chi-square with 3 degrees of freedom, in units
-of the dispersion. Otherwise the Allan fit's values stand.
+of the dispersion, and for a wandering resonance the interval of ``spread`` above its lower
+bound (else the peak is one resonance's). Otherwise the Allan fit's values stand.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import optimize, special
@@ -47,8 +52,16 @@ from imunoise.analysis.psd import welch_psd
 from imunoise.analysis.terms import get_term
 from imunoise.analysis.terms.registry import model_psd
 
-PINNED = ("f0", "Q")
-"""The resonance parameters the spectrum pins."""
+PINNED = ("f0", "Q", "spread")
+"""The resonance parameters the spectrum pins (``spread`` only a wandering resonance's)."""
+
+PINNED_TERMS = ("resonance", "wandering_resonance")
+"""The terms whose peaks the spectrum pins."""
+
+
+def pinned_of(params: dict[str, float]) -> dict[str, float]:
+    """The pinned parameters among a resonance's ``params``."""
+    return {k: v for k, v in params.items() if k in PINNED}
 
 ENBW_BINS = 1.5
 """Equivalent noise bandwidth of the Hann window in bins: the factor neighbouring bins' shared
@@ -72,8 +85,9 @@ class Pin:
 
     Attributes:
         index: the term's index in the model.
-        params: ``sigma`` (units of the channel), ``f0`` (Hz), ``Q`` from the PSD fit.
-        ci95: 95 % intervals of ``f0`` and ``Q``.
+        params: ``sigma`` (units of the channel), ``f0`` (Hz), ``Q`` (and a wandering
+            resonance's ``spread``, Hz) from the PSD fit.
+        ci95: 95 % intervals of ``f0`` and ``Q`` (and ``spread``).
         band_hz: the band fitted, Hz.
         deviance_per_dof: the band's Whittle deviance per degree of freedom (about 1 when the
             peak has the term's shape).
@@ -117,13 +131,25 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
         return None
 
     q_lo = term.param("Q").lo
-    bounds_lo = np.array([math.log(1e-30), math.log(lo_hz), math.log(q_lo), math.log(0.2)])
-    bounds_hi = np.array([math.log(1e6), math.log(hi_hz), math.log(1e4), math.log(5.0)])
+    wanders = "spread" in term.param_names
+    df = float(fb[1] - fb[0])
+    # sigma, f0, Q, (spread: from a tenth of a bin to a quarter of the band), background level
+    bounds_lo = [math.log(1e-30), math.log(lo_hz), math.log(q_lo)] \
+        + ([math.log(0.1 * df)] if wanders else []) + [math.log(0.2)]
+    bounds_hi = [math.log(1e6), math.log(hi_hz), math.log(1e4)] \
+        + ([math.log(0.25 * (hi_hz - lo_hz))] if wanders else []) + [math.log(5.0)]
+    lo_b, hi_b = np.array(bounds_lo), np.array(bounds_hi)
+
+    def shape_of(theta: np.ndarray) -> dict[str, float]:
+        v = np.exp(theta)
+        out = {"sigma": float(v[0]), "f0": float(v[1]), "Q": float(v[2])}
+        if wanders:
+            out["spread"] = float(v[3])
+        return out
 
     def spectrum(theta: np.ndarray) -> np.ndarray:
-        sig, f0, q, c = np.exp(theta)
-        with_res = model_psd(rest + [(name, {"sigma": sig, "f0": f0, "Q": q})], fb, fs)
-        return c * s_rest + (with_res - s_rest)
+        with_res = model_psd(rest + [(name, shape_of(theta))], fb, fs)
+        return math.exp(float(theta[-1])) * s_rest + (with_res - s_rest)
 
     def resid(theta: np.ndarray) -> np.ndarray:
         return _deviance_residuals(pb, nub, spectrum(theta))
@@ -133,18 +159,13 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     f_peak = float(fb[int(np.argmax(ratio))])
     sig0 = max(float(params["sigma"]), 1e-12)
     starts = [(sig0, f0a, float(params["Q"])), (sig0, f_peak, 10.0)]
-    best = None
+    x0s = []
     for s0, f00, q0 in starts:
-        x0 = np.clip(np.log([s0, f00, max(q0, q_lo * 1.01), 1.0]), bounds_lo + 1e-9,
-                     bounds_hi - 1e-9)
-        try:
-            sol = optimize.least_squares(resid, x0, bounds=(bounds_lo, bounds_hi),
-                                         method="trf", x_scale=1.0, max_nfev=200)
-        except (ValueError, FloatingPointError):
-            continue
-        if best is None or sol.cost < best.cost:
-            best = sol
-    if best is None or not np.isfinite(best.cost):
+        q0 = max(q0, q_lo * 1.01)
+        spread0 = [float(params.get("spread", 0.5 * f00 / q0))] if wanders else []
+        x0s.append(np.clip(np.log([s0, f00, q0] + spread0 + [1.0]), lo_b + 1e-9, hi_b - 1e-9))
+    best = _least_deviance(resid, x0s, lo_b, hi_b)
+    if best is None:
         return None
     theta = best.x
     n_dof = max(len(fb) - theta.size, 1)
@@ -168,15 +189,46 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     if not np.all(np.isfinite(sd)):
         return None
+    ci = _resolved_intervals(theta, sd, lo_b, hi_b, wanders)
+    if ci is None:
+        return None
+    return Pin(index, shape_of(theta), ci, (float(fb[0]), float(fb[-1])), dev1 / n_dof)
+
+
+def _least_deviance(resid: Any, starts: list[np.ndarray], lo: np.ndarray, hi: np.ndarray
+                    ) -> Any:
+    """The bounded least-squares solution of ``resid`` with the least cost over ``starts``,
+    or None where none converges to a finite cost."""
+    best = None
+    for x0 in starts:
+        try:
+            sol = optimize.least_squares(resid, x0, bounds=(lo, hi), method="trf",
+                                         x_scale=1.0, max_nfev=200)
+        except (ValueError, FloatingPointError):
+            continue
+        if best is None or sol.cost < best.cost:
+            best = sol
+    return best if best is not None and np.isfinite(best.cost) else None
+
+
+def _resolved_intervals(theta: np.ndarray, sd: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                        wanders: bool) -> dict[str, tuple[float, float]] | None:
+    """95 % intervals of the pinned parameters from the log-parameters ``theta`` and their
+    standard deviations, or None where the spectrum does not resolve the peak: f0 at the
+    band's edge, Q's interval below :data:`MIN_Q`, or a wander whose interval reaches its
+    lower bound (the peak is then one resonance's)."""
     lf0, lq = theta[1], theta[2]
-    if (lf0 - bounds_lo[1] < _EDGE or bounds_hi[1] - lf0 < _EDGE
+    if (lf0 - lo[1] < _EDGE or hi[1] - lf0 < _EDGE
             or lq - _Z95 * sd[2] < math.log(MIN_Q)):
         return None
-    sig, f0, q, _ = (float(v) for v in np.exp(theta))
     ci = {"f0": (math.exp(lf0 - _Z95 * sd[1]), math.exp(lf0 + _Z95 * sd[1])),
-          "Q": (math.exp(lq - _Z95 * sd[2]), math.exp(min(lq + _Z95 * sd[2], bounds_hi[2])))}
-    return Pin(index, {"sigma": sig, "f0": f0, "Q": q}, ci, (float(fb[0]), float(fb[-1])),
-               dev1 / n_dof)
+          "Q": (math.exp(lq - _Z95 * sd[2]), math.exp(min(lq + _Z95 * sd[2], hi[2])))}
+    if wanders:
+        ls = theta[3]
+        if ls - _Z95 * sd[3] <= lo[3] + _EDGE:
+            return None
+        ci["spread"] = (math.exp(ls - _Z95 * sd[3]), math.exp(min(ls + _Z95 * sd[3], hi[3])))
+    return ci
 
 
 def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, dict]],
@@ -188,7 +240,7 @@ def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, 
     left out. ``memo`` (shared by fits of one series) keeps the Welch estimate."""
     noise = [(i, n, dict(p)) for i, (n, p) in enumerate(model)
              if get_term(n).role != "regressor"]
-    targets = [i for i, n, _ in noise if n == "resonance"
+    targets = [i for i, n, _ in noise if n in PINNED_TERMS
                and not any((i, k) in held for k in PINNED)]
     if not targets:
         return []

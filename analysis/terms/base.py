@@ -138,6 +138,9 @@ class Term:
         small_default: starting parameters of a term that is new to a warm-started fit.
         reduces_to: the simpler term this one resembles when the fit does not resolve its
             defining feature (see :meth:`unresolved`), or None.
+        replaces: the term this one refines, or None: the diagnosis offers it only in that
+            term's place, where the evidence shows what it adds (a wandering resonance for a
+            resonance whose peak moves through the record), never as a term of its own.
     """
 
     name: ClassVar[str]
@@ -158,6 +161,7 @@ class Term:
     explanation: ClassVar[str]
     small_default: ClassVar[dict[str, float]]
     reduces_to: ClassVar[str | None] = None
+    replaces: ClassVar[str | None] = None
 
     # --- vocabulary --------------------------------------------------------------------------
     @property

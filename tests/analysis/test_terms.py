@@ -19,8 +19,8 @@ GYRO_UNITS = {"N": "rad/s/sqrt(Hz)", "Q": "rad", "B": "rad/s", "K": "rad/s/sqrt(
 def test_registry_matches_contract_vocabulary_and_units():
     # the contract's vocabulary comes first, in its order; terms added since follow it
     assert TERM_NAMES[:len(CONTRACT)] == tuple(CONTRACT)
-    assert set(TERM_NAMES[len(CONTRACT):]) == {"resonance", "moving_average", "bartlett",
-                                                "lowpass"}
+    assert set(TERM_NAMES[len(CONTRACT):]) == {"resonance", "wandering_resonance",
+                                                "moving_average", "bartlett", "lowpass"}
     for name, params in CONTRACT.items():
         term = get_term(name)
         assert term.param_names == params
