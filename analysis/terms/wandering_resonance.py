@@ -13,7 +13,8 @@ the taus where the resonance shows (near ``1/(2 f0)``), each stretch of the reco
 resonance at its own f0, and the expected periodogram and Allan variance of the whole record
 are the average of the exact AR(2) ones over the f0 the record visited. The average is taken as
 a sum over a grid of f0 across six standard deviations either side, its points no further
-apart than a quarter of the peak's half-power width ``f0/Q`` (within 1e-3 of the integral);
+apart than a quarter of the peak's half-power width ``f0/Q`` (within 1e-3 of the integral; at
+most 241 points, a narrower peak taken four steps wide);
 points outside ``(0, fs/2)`` are left out and the weights of the others renormalised (a wander
 that reaches either end is not this term).
 
@@ -33,9 +34,6 @@ import numpy as np
 
 from imunoise.analysis.terms.base import Param, TermSimulator
 from imunoise.analysis.terms.resonance import (
-    TERM as RESONANCE,
-)
-from imunoise.analysis.terms.resonance import (
     Resonance,
     _innovation_var,
     _poles,
@@ -44,7 +42,8 @@ from imunoise.analysis.terms.resonance import (
 from imunoise.analysis.terms.shape_memo import ShapeMemo
 
 _SHAPES = ShapeMemo()
-_MAX_NODES = 2001
+_MAX_NODES = 241
+_BLOCK = 32
 _MIN_NODES = 17
 _REACH_SD = 6.0
 WANDER_S = 600.0
@@ -61,30 +60,56 @@ def _gaussian_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def centre_frequencies(fs: float, f0: float, q: float, spread: float
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """The centre frequencies (Hz) the average is taken over and their weights (summing to 1):
-    a grid over +-6 spread, its step no wider than a quarter of the peak's half-power width
-    f0/Q. (Gauss-Hermite nodes, fewer, miss a peak narrower than their spacing: with the
-    spread three times the width, 51 of them left ripples of 24 %.)"""
+                       ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The centre frequencies (Hz) the average is taken over, their weights (summing to 1) and
+    the quality factor each is taken with: a grid over +-6 spread, its step no wider than a
+    quarter of the peak's half-power width f0/Q (Gauss-Hermite nodes, fewer, miss a peak
+    narrower than their spacing: with the spread three times the width, 51 of them left
+    ripples of 24 %). At most ``_MAX_NODES`` points: a peak narrower than four of their steps
+    (a wander of more than ten times its width) is taken that wide, its Q lowered to
+    ``f0/(4 step)``; the wander's Gaussian then sets the shape and Q is not resolved."""
     width = max(f0, 1e-300) / q
     n = int(np.clip(math.ceil(2.0 * _REACH_SD * spread / (0.25 * width)) + 1, _MIN_NODES,
                     _MAX_NODES)) | 1
     x, w = _gaussian_grid(n)
+    step = 2.0 * _REACH_SD * spread / (n - 1)
+    q_used = min(q, max(f0, 1e-300) / (4.0 * step)) if step > 0 else q
     f = f0 + spread * x
     ok = (f > 0.0) & (f < 0.5 * fs)
     if not ok.any():
-        return np.array([f0]), np.array([1.0])
-    return f[ok], w[ok] / w[ok].sum()
+        return np.array([f0]), np.array([1.0]), q
+    return f[ok], w[ok] / w[ok].sum(), q_used
 
 
 def wandering_avar_shape(m: np.ndarray, fs: float, f0: float, q: float, spread: float
                          ) -> np.ndarray:
     """Allan variance of the unit-variance wandering resonance at averaging factors ``m``."""
-    freqs, weights = centre_frequencies(fs, f0, q, spread)
+    freqs, weights, q_used = centre_frequencies(fs, f0, q, spread)
     out = np.zeros(np.shape(m), dtype=np.float64)
     for fk, wk in zip(freqs, weights, strict=True):
-        out += wk * resonance_avar_shape(m, fs, float(fk), q)
+        out += wk * resonance_avar_shape(m, fs, float(fk), q_used)
     return out
+
+
+def wandering_psd(f: np.ndarray, fs: float, f0: float, q: float, spread: float
+                  ) -> np.ndarray:
+    """One-sided PSD of the unit-variance wandering resonance at ``f`` (Hz): the resonance's
+    exact AR(2) spectrum (:class:`~imunoise.analysis.terms.resonance.Resonance`) for every
+    centre frequency at once, in blocks of them (a fit asks for this thousands of times)."""
+    freqs, weights, q_used = centre_frequencies(fs, f0, q, spread)
+    half_w = np.pi * np.atleast_1d(np.asarray(f, dtype=np.float64)) / fs
+    out = np.zeros(half_w.shape)
+    for a in range(0, freqs.size, _BLOCK):
+        fk, wk = freqs[a:a + _BLOCK, None], weights[a:a + _BLOCK, None]
+        r = np.exp(-np.pi * fk / (q_used * fs))
+        half_w0 = np.pi * fk / fs
+        floor = (1.0 - r) ** 2
+        den = (floor + 4.0 * r * np.sin(half_w - half_w0) ** 2) \
+            * (floor + 4.0 * r * np.sin(half_w + half_w0) ** 2)
+        phi1, phi2 = 2.0 * r * np.cos(2.0 * half_w0), -r * r
+        innovation = (1.0 + phi2) * ((1.0 - phi2) ** 2 - phi1 * phi1) / (1.0 - phi2)
+        out += np.sum(wk * 2.0 * innovation / (fs * den), axis=0)
+    return out.reshape(np.shape(f))
 
 
 class _WanderingSim(TermSimulator):
@@ -174,11 +199,7 @@ class WanderingResonance(Resonance):
 
     def _psd(self, f: np.ndarray, fs: float, **params: Any) -> np.ndarray:  # type: ignore[override]
         sigma, f0, q, spread = (float(params[k]) for k in ("sigma", "f0", "Q", "spread"))
-        freqs, weights = centre_frequencies(fs, f0, q, spread)
-        out = np.zeros(np.shape(f), dtype=np.float64)
-        for fk, wk in zip(freqs, weights, strict=True):
-            out += wk * RESONANCE._psd(f, fs, sigma, float(fk), q)
-        return out
+        return sigma * sigma * wandering_psd(f, fs, f0, q, spread)
 
     def start_shapes(self, fs_hz, duration_s, line):
         # each resonance start with a wander of half its peak's width
