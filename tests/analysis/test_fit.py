@@ -350,3 +350,21 @@ def test_a_fitted_model_held_at_a_closed_bound_is_accepted():
     assert fit.terms[1].params["Q"] == 0.5 and math.isfinite(fit.chi2_per_dof)
     with pytest.raises(TermError, match=r"resonance.Q = 0.4 outside its physical range \[0.5"):
         fit_series(x, 100.0, "white,resonance:Q=0.4")
+
+
+def test_a_model_with_an_output_filter_rests_on_every_tau():
+    """The shortest taus are set aside only where the model has no filter to follow them: a
+    model with an output filter states what those taus should be, and a filter held at the
+    wrong length is a misfit the whole curve reports, not a reason to drop taus and let a
+    shape term follow the rest."""
+    from imunoise.analysis.noise_stream import simulate
+
+    fs = 100.0
+    y = simulate([("white", {"N": 1e-3}), ("moving_average", {"taps": 4.0})], 200_000, fs,
+                 rng=0)
+    bare, _ = fit_series(y, fs, "white,random_walk")
+    assert not bare.used[0]  # no filter: the filter's taus lie below every model
+    held, _ = fit_series(y, fs, "white,random_walk,moving_average:taps=2")
+    assert held.used.all() and held.misfit.z[0] < -failure_threshold(len(held.tau_s), 0.10)
+    free, _ = fit_series(y, fs, "white,random_walk,moving_average")
+    assert free.used.all() and free.terms[2].params["taps"] == pytest.approx(4.0, rel=0.05)
