@@ -10,22 +10,15 @@ from imunoise.analysis.diagnosis import diagnose
 from imunoise.analysis.fit import fit_series
 from imunoise.analysis.noise_stream import NoiseStream
 from imunoise.analysis.terms import TermError, get_term, parse_model
+from tests._term_spectra import assert_avar_integrates_the_psd
 
 FS = 100.0
 
 
 @pytest.mark.parametrize(("f0", "q"), [(20.0, 10.0), (2.0, 3.0), (0.5, 200.0)])
 def test_allan_variance_equals_the_integral_of_its_spectrum(f0: float, q: float) -> None:
-    term = get_term("resonance")
-    p = {"sigma": 1.0, "f0": f0, "Q": q}
     m = np.array([1, 2, 3, 5, 8, 13, 50, 200, 1000, 10_000], dtype=float)
-    u = np.linspace(0.0, 0.5, 2_000_001)[1:]
-    du = u[1] - u[0]
-    s = term.psd(u * FS, FS, **p)
-    assert np.sum(s) * du * FS == pytest.approx(1.0, rel=1e-4)  # unit variance
-    numeric = [0.5 * FS * du * np.sum(s * 4 * np.sin(np.pi * u * k) ** 4
-                                      / (k * k * np.sin(np.pi * u) ** 2)) for k in m]
-    np.testing.assert_allclose(term.avar(m / FS, FS, **p), numeric, rtol=1e-4)
+    assert_avar_integrates_the_psd("resonance", {"sigma": 1.0, "f0": f0, "Q": q}, m, FS)
 
 
 @pytest.mark.parametrize(("f0", "q"), [(20.0, 3.0), (10.5, 1.0e4), (0.13, 0.5), (49.0, 10.0)])

@@ -11,6 +11,7 @@ from imunoise.analysis.allan import oadev
 from imunoise.analysis.dsp import welch_density
 from imunoise.analysis.terms import get_term
 from imunoise.analysis.terms.wandering_resonance import centre_frequencies
+from tests._term_spectra import assert_avar_integrates_the_psd
 
 FS = 100.0
 P = {"sigma": 5e-3, "f0": 20.0, "Q": 27.0, "spread": 0.7}
@@ -21,16 +22,9 @@ P = {"sigma": 5e-3, "f0": 20.0, "Q": 27.0, "spread": 0.7}
                                                   (2.0, 5.0, 0.1), (0.5, 200.0, 1e-3)])
 def test_allan_variance_equals_the_integral_of_its_spectrum(f0: float, q: float,
                                                             spread: float) -> None:
-    term = get_term("wandering_resonance")
-    p = {"sigma": 1.0, "f0": f0, "Q": q, "spread": spread}
     m = np.array([1, 2, 3, 5, 8, 13, 50, 200, 1000], dtype=float)
-    u = np.linspace(0.0, 0.5, 2_000_001)[1:]
-    du = u[1] - u[0]
-    s = term.psd(u * FS, FS, **p)
-    assert np.sum(s) * du * FS == pytest.approx(1.0, rel=1e-4)  # unit variance
-    numeric = [0.5 * FS * du * np.sum(s * 4 * np.sin(np.pi * u * k) ** 4
-                                      / (k * k * np.sin(np.pi * u) ** 2)) for k in m]
-    np.testing.assert_allclose(term.avar(m / FS, FS, **p), numeric, rtol=1e-4)
+    assert_avar_integrates_the_psd("wandering_resonance",
+                                   {"sigma": 1.0, "f0": f0, "Q": q, "spread": spread}, m, FS)
 
 
 @pytest.mark.parametrize(("q", "spread"), [(27.0, 0.7), (27.0, 2.2), (100.0, 0.7),
