@@ -914,12 +914,8 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
         pin = _refinement_pin(ctx, index, new)
         if pin is None:
             spec = ModelSpec(entries[:index] + (Entry(new, {}),) + entries[index + 1:])
-            return Suggestion(term=new, params={}, ci95={}, chi2_per_dof_before=before,
-                              chi2_per_dof_after=float("nan"), p_value=1.0, log_p=0.0,
-                              significant=False, why=f"The spectrum does not resolve a "
-                              f"wander of {old}'s peak.", apply={"model": spec.text(),
-                                                                 "args": []},
-                              action="replace", label=label)
+            return _swap_not_offered(new, before, label, spec,
+                                     f"The spectrum does not resolve a wander of {old}'s peak.")
         shape, shape_ci = pinned_of(pin.params), dict(pin.ci95)
     spec = ModelSpec(entries[:index] + (Entry(new, shape),) + entries[index + 1:])
     profiled = {i for i, n in enumerate(spec.names) if n == "white"} | {index}
@@ -944,11 +940,8 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     else:
         why = f"The shortest taus may follow a {new} filter better than the model's {old}."
     if after is None:
-        return Suggestion(term=new, params={}, ci95={}, chi2_per_dof_before=before,
-                          chi2_per_dof_after=float("nan"), p_value=1.0, log_p=0.0,
-                          significant=False, why=why + " The model with it could not be "
-                          "fitted.", apply={"model": spec.text(), "args": []},
-                          action="replace", label=label)
+        return _swap_not_offered(new, before, label, spec,
+                                 why + " The model with it could not be fitted.")
     drop = float(ctx.base.misfit.chi2 - after.misfit.chi2)
     falls = bool(np.isfinite(after.chi2_per_dof) and after.chi2_per_dof < before)
     sources = [_chi2_logsf(drop / _dispersion(after.chi2_per_dof, after.misfit.dof), 1)] \
@@ -1115,6 +1108,15 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
             t_rate, x, temperature[0], temperature[1], alpha=alpha, units=units)
     findings.extend(by_term.values())
     return findings, by_term, filt
+
+
+def _swap_not_offered(new: str, before: float, label: str, spec: ModelSpec, why: str
+                      ) -> Suggestion:
+    """A swap that has no refit to judge it by: never significant, ``why`` says so."""
+    return Suggestion(term=new, params={}, ci95={}, chi2_per_dof_before=before,
+                      chi2_per_dof_after=float("nan"), p_value=1.0, log_p=0.0,
+                      significant=False, why=why, apply={"model": spec.text(), "args": []},
+                      action="replace", label=label)
 
 
 def _refinement_pin(ctx: _Context, index: int, new: str) -> Any:

@@ -14,6 +14,7 @@ the two apart by the width of the spectral peak.
 from __future__ import annotations
 
 import math
+from typing import TypeVar
 
 import numpy as np
 
@@ -31,9 +32,30 @@ def _poles(fs: float, f0: float, q: float) -> tuple[complex, float, float]:
     return complex(r * math.cos(w0), r * math.sin(w0)), 2.0 * r * math.cos(w0), -r * r
 
 
-def _innovation_var(phi1: float, phi2: float) -> float:
+_F = TypeVar("_F", float, np.ndarray)
+
+
+def _innovation_var(phi1: _F, phi2: _F) -> _F:
     """Variance of ``e_k`` giving the AR(2) process unit variance."""
     return (1.0 + phi2) * ((1.0 - phi2) ** 2 - phi1 * phi1) / (1.0 - phi2)
+
+
+def resonance_unit_psd(f: np.ndarray, fs: float, f0: float | np.ndarray, q: float
+                       ) -> np.ndarray:
+    """One-sided PSD (1/Hz) of the unit-variance resonance at ``f`` (Hz); ``f0`` (Hz) may be
+    an array broadcasting against ``f``, one spectrum per centre frequency."""
+    r = np.exp(-np.pi * np.asarray(f0, dtype=np.float64) / (q * fs))
+    half_w0 = np.pi * np.asarray(f0, dtype=np.float64) / fs
+    half_w = np.pi * np.asarray(f, dtype=np.float64) / fs
+    # |1 - phi1 z^-1 - phi2 z^-2|^2 on the unit circle as |1 - p z^-1|^2 |1 - p* z^-1|^2,
+    # each (1 - r)^2 + 4 r sin^2((w -+ w0)/2): real arithmetic without the cancellation
+    # of a sharp peak (a fit through an output filter asks for this on a fine grid tens
+    # of thousands of times)
+    floor = (1.0 - r) ** 2
+    den = (floor + 4.0 * r * np.sin(half_w - half_w0) ** 2) \
+        * (floor + 4.0 * r * np.sin(half_w + half_w0) ** 2)
+    innovation = _innovation_var(2.0 * r * np.cos(2.0 * half_w0), -r * r)
+    return 2.0 * innovation / (fs * den)
 
 
 def resonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float) -> np.ndarray:
@@ -116,17 +138,7 @@ class Resonance(Term):
                                            lambda: resonance_avar_shape(tau * fs, fs, f0, Q))
 
     def _psd(self, f: np.ndarray, fs: float, sigma: float, f0: float, Q: float) -> np.ndarray:
-        p, phi1, phi2 = _poles(fs, f0, Q)
-        # |1 - phi1 z^-1 - phi2 z^-2|^2 on the unit circle as |1 - p z^-1|^2 |1 - p* z^-1|^2,
-        # each (1 - r)^2 + 4 r sin^2((w -+ w0)/2): real arithmetic without the cancellation
-        # of a sharp peak (a fit through an output filter asks for this on a fine grid tens
-        # of thousands of times)
-        r, half_w0 = abs(p), math.pi * f0 / fs
-        half_w = np.pi * f / fs
-        floor = (1.0 - r) ** 2
-        den = (floor + 4.0 * r * np.sin(half_w - half_w0) ** 2) \
-            * (floor + 4.0 * r * np.sin(half_w + half_w0) ** 2)
-        return 2.0 * sigma * sigma * _innovation_var(phi1, phi2) / (fs * den)
+        return sigma * sigma * resonance_unit_psd(f, fs, f0, Q)
 
     def start_shapes(self, fs_hz, duration_s, line):
         f_lo = 40.0 / duration_s

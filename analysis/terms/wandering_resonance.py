@@ -38,6 +38,7 @@ from imunoise.analysis.terms.resonance import (
     _innovation_var,
     _poles,
     resonance_avar_shape,
+    resonance_unit_psd,
 )
 from imunoise.analysis.terms.shape_memo import ShapeMemo
 
@@ -94,21 +95,14 @@ def wandering_avar_shape(m: np.ndarray, fs: float, f0: float, q: float, spread: 
 def wandering_psd(f: np.ndarray, fs: float, f0: float, q: float, spread: float
                   ) -> np.ndarray:
     """One-sided PSD of the unit-variance wandering resonance at ``f`` (Hz): the resonance's
-    exact AR(2) spectrum (:class:`~imunoise.analysis.terms.resonance.Resonance`) for every
+    exact AR(2) spectrum (:func:`~imunoise.analysis.terms.resonance.resonance_unit_psd`) for every
     centre frequency at once, in blocks of them (a fit asks for this thousands of times)."""
     freqs, weights, q_used = centre_frequencies(fs, f0, q, spread)
-    half_w = np.pi * np.atleast_1d(np.asarray(f, dtype=np.float64)) / fs
-    out = np.zeros(half_w.shape)
+    at = np.atleast_1d(np.asarray(f, dtype=np.float64))
+    out = np.zeros(at.shape)
     for a in range(0, freqs.size, _BLOCK):
-        fk, wk = freqs[a:a + _BLOCK, None], weights[a:a + _BLOCK, None]
-        r = np.exp(-np.pi * fk / (q_used * fs))
-        half_w0 = np.pi * fk / fs
-        floor = (1.0 - r) ** 2
-        den = (floor + 4.0 * r * np.sin(half_w - half_w0) ** 2) \
-            * (floor + 4.0 * r * np.sin(half_w + half_w0) ** 2)
-        phi1, phi2 = 2.0 * r * np.cos(2.0 * half_w0), -r * r
-        innovation = (1.0 + phi2) * ((1.0 - phi2) ** 2 - phi1 * phi1) / (1.0 - phi2)
-        out += np.sum(wk * 2.0 * innovation / (fs * den), axis=0)
+        out += np.sum(weights[a:a + _BLOCK, None]
+                      * resonance_unit_psd(at, fs, freqs[a:a + _BLOCK, None], q_used), axis=0)
     return out.reshape(np.shape(f))
 
 
