@@ -48,7 +48,10 @@ def test_the_right_filter_stays_when_something_else_is_missing(filt: str) -> Non
     assert d.fit.failures  # the line is missing: the other filters are tried
     swaps = [s for s in d.suggestions if s.action == "replace"]
     assert len(swaps) == 2 and not any(s.significant for s in swaps)
-    assert d.suggestions[0].term == "sinusoid" and d.suggestions[0].significant
+    top = d.suggestions[0]
+    assert top.term == "sinusoid" and top.significant
+    # nor is another filter applied with the line
+    assert top.label == "" and top.apply["model"].split(",")[3] == filt
 
 
 def test_a_model_that_passes_is_offered_no_other_filter() -> None:
