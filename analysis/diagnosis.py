@@ -883,6 +883,11 @@ def _swaps(spec: ModelSpec, base: FitResult,
     return out
 
 
+def _replaced(spec: ModelSpec, index: int, entry: Entry) -> ModelSpec:
+    """``spec`` with its entry at ``index`` replaced by ``entry``."""
+    return ModelSpec(spec.entries[:index] + (entry,) + spec.entries[index + 1:])
+
+
 def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     """The given model's output filter (term ``index``) replaced by filter ``new`` and the
     model refitted, as ``imunoise fit --model apply.model`` fits it.
@@ -904,7 +909,6 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     power left to the Allan refit), as a suggested resonance is held at its peak; the Allan
     curve alone barely tells a moving peak from a fixed one. It has one parameter more, and
     its chi2 drop is judged as that of one parameter."""
-    entries = ctx.spec.entries
     old = ctx.spec.labels[index]
     before = ctx.base.chi2_per_dof
     label = f"{old} by {new}"
@@ -914,11 +918,11 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     if refines:
         pin = _refinement_pin(ctx, index, new)
         if pin is None:
-            spec = ModelSpec(entries[:index] + (Entry(new, {}),) + entries[index + 1:])
+            spec = _replaced(ctx.spec, index, Entry(new, {}))
             return _swap_not_offered(new, before, label, spec,
                                      f"The spectrum does not resolve a wander of {old}'s peak.")
         shape, shape_ci = pinned_of(pin.params), dict(pin.ci95)
-    spec = ModelSpec(entries[:index] + (Entry(new, shape),) + entries[index + 1:])
+    spec = _replaced(ctx.spec, index, Entry(new, shape))
     profiled = {i for i, n in enumerate(spec.names) if n == "white"} | {index}
     # a refinement starts from the given model's solution, its term's power where the term
     # it refines had it (from the smaller model the new term would start at zero, where its
@@ -992,7 +996,7 @@ def _filter_job(shared: tuple[_Context, ModelSpec], item: tuple[int, str]
     fitted (a job of :func:`_filter_rechosen`)."""
     ctx, spec = shared
     index, new = item
-    swapped = ModelSpec(spec.entries[:index] + (Entry(new, {}),) + spec.entries[index + 1:])
+    swapped = _replaced(spec, index, Entry(new, {}))
     return _fit_model(ctx, swapped, _fit_profiled(ctx, swapped))
 
 
@@ -1041,8 +1045,7 @@ def _filter_rechosen(ctx: _Context, suggestions: list[Suggestion], alpha: float
     after, (index, new) = min(done, key=lambda ft: ft[0].misfit.chi2)
     drop = float(top.fit.misfit.chi2 - after.misfit.chi2)
     scaled = drop / _dispersion(after.chi2_per_dof, after.misfit.dof)
-    logp = float(np.log(max(dist.chi2.sf(scaled, 1), 1e-300))) + float(np.log(len(trials))) \
-        if drop > 0 else 0.0
+    logp = _chi2_logsf(scaled, 1) + float(np.log(len(trials))) if drop > 0 else 0.0
     psd_after = _psd_after(ctx, after)
     psd_top = top.error_after.get("psd")
     if not (logp < np.log(alpha)
@@ -1051,14 +1054,13 @@ def _filter_rechosen(ctx: _Context, suggestions: list[Suggestion], alpha: float
             and not _parts_rise(ctx, after, psd_after)
             and not _rises(_deviance(psd_top), _deviance(psd_after),
                            (psd_after or {}).get("bins", 0) / PSD_BIN_CORRELATION)
-            and _imitation(ctx, after) is None and _imitation(ctx, after, index) is None):
+            and _imitation(ctx, after) is None):
         return suggestions
     old = ctx.spec.labels[index]
-    entries = spec.entries
-    combined_spec = ModelSpec(entries[:index] + (Entry(new, {}),) + entries[index + 1:])
+    combined_spec = _replaced(spec, index, Entry(new, {}))
     added = len(ctx.spec)
     tf = after.terms[added]
-    held = entries[added].fixed
+    held = spec.entries[added].fixed
     psd_b, psd_a = _deviance(psd_top), _deviance(psd_after)
     psd_txt = "" if psd_b is None or psd_a is None else \
         f" and the PSD part from {psd_b:.3g} to {psd_a:.3g}"
