@@ -73,7 +73,7 @@ def _motion_doc(motion, static: str) -> dict[str, Any]:
     return {"static": static, "moved": motion.moved, "still_s": motion.still_seconds(),
             "duration_s": motion.n_samples / motion.fs_hz, "summary": motion.describe(),
             "stretches": [{"start_s": st.start / motion.fs_hz, "stop_s": st.stop / motion.fs_hz,
-                           "moving": st.moving,
+                           "moving": st.moving, "shock": st.shock,
                            "peak_rate_rad_s": st.peak_rate if math.isfinite(st.peak_rate)
                            else None,
                            "peak_force_m_s2": st.peak_force if math.isfinite(st.peak_force)

@@ -1,5 +1,6 @@
-"""Motion detection: still records (with bias instability, random walk and knocks) never move;
-a robot that turns and drives is found where and as much as it moved."""
+"""Motion detection: still records (with bias instability, random walk and spikes) never move;
+a shock moves its window; a robot that turns and drives is found where and as much as it
+moved."""
 
 from __future__ import annotations
 
@@ -25,10 +26,10 @@ def still_record(seconds: float, seed: int, gyro_model=GYRO_MODEL, accel_model=A
 
 @pytest.mark.parametrize("seed", range(4))
 def test_a_still_half_hour_with_wandering_bias_never_moves(seed):
-    """Bias instability and a rate random walk ten times a good MEMS gyro's, and a single
-    knock: no window moves (0 false alarms in 4 x 1800 windows)."""
+    """Bias instability and a rate random walk ten times a good MEMS gyro's, and a spike on
+    every axis (a corrupt frame): no window moves (0 false alarms in 4 x 1800 windows)."""
     g, a = still_record(1800, seed)
-    g[100_000] += 0.15  # one knock: a spike, not motion
+    g[100_000] += 0.15  # one sample on six axes: an outlier, not motion
     a[100_000] += 2.0
     m = detect_motion(FS, g, a)
     assert not m.moved, m.describe()
@@ -65,6 +66,37 @@ def test_a_robot_that_turns_rests_tilted_and_drives_is_found():
         assert acc.motion() == m, size
 
 
+def _ring(n: int, start: int, amplitude: float) -> np.ndarray:
+    """A blow's ringing: a 25 Hz decaying oscillation of 0.3 s from ``start``."""
+    t = np.arange(30) / FS
+    out = np.zeros(n)
+    out[start:start + 30] = amplitude * np.exp(-t / 0.08) * np.sin(2 * np.pi * 25 * t)
+    return out
+
+
+def test_a_shock_moves_its_window_and_a_burst_on_one_axis_does_not():
+    """Half a g ringing on two accelerometer axes and the gyro's x for 0.3 s, 900.4 s into a
+    still record: the shock's window and its two neighbours are cut, the rest is still. The
+    same ringing on one axis only is an outlier burst, and nothing moves."""
+    g, a = still_record(1800, seed=5)
+    n, at = g.shape[0], 90_040
+    one = a.copy()
+    one[:, 2] += _ring(n, at, 5.0)
+    assert not detect_motion(FS, g, one).moved
+    a[:, 0] += _ring(n, at, 2.0)
+    a[:, 2] += _ring(n, at, 5.0)
+    g[:, 0] += _ring(n, at, 0.3)
+    m = detect_motion(FS, g, a)
+    assert [(s.start, s.stop, s.shock) for s in m.moving] == [(89_900, 90_200, True)]
+    assert m.still_seconds() == pytest.approx(1797, abs=0.01)
+    assert "(a shock)" in m.describe()
+    for size in (1, 333, g.shape[0]):  # fed in blocks: the same stretches
+        acc = MotionWindows(FS, 3, 3)
+        for i in range(0, n, size):
+            acc.update(list(g[i:i + size].T), list(a[i:i + size].T))
+        assert acc.motion() == m, size
+
+
 def test_a_record_that_never_rests_has_no_still_stretch():
     g, a = still_record(120, seed=2)
     rng = np.random.default_rng(1)
@@ -79,7 +111,15 @@ def test_real_still_recordings_do_not_move(shared_data):
         d = np.load(shared_data / "adis16405" / f"run{run}.npz")
         g = d["gyro_counts"] * float(d["gyro_scale_dps"]) * np.pi / 180
         a = d["accel_counts"] * float(d["accel_scale_g"]) * 9.80665
-        assert not detect_motion(100.0, g, a).moved, run  # run 4 holds a real knock
+        m = detect_motion(100.0, g, a)
+        if run != 4:
+            assert not m.moved, run
+            continue
+        # run 4 holds a real shock, 4046 s in: its window and the two beside it move
+        assert [(s.start, s.stop, s.shock) for s in m.moving] == [(404_500, 404_800, True)]
+        assert m.describe().endswith("4045.0-4048.0 s (a shock)")
+        # on one axis the same samples are an outlier burst, not a shock
+        assert not detect_motion(100.0, accel=a[:, 2]).moved
     d = np.load(shared_data / "galaxy_s5" / "galaxy_s5_static_10hz.npz")
     assert not detect_motion(10.0, d["gyro"], d["accel"]).moved
     d = np.load(shared_data / "mtig_outliers" / "gyro_x.npz")  # a hundred 10-sigma outliers
