@@ -79,7 +79,7 @@ class Stretch:
     """Largest window-to-window change of the mean specific force (m/s^2; nan without an
     accelerometer)."""
     shock: bool = False
-    """The stretch holds a shock (a short blow seen by several axes)."""
+    """The stretch moved by a shock alone (a short blow seen by several axes)."""
 
 
 @dataclass(frozen=True)
@@ -173,8 +173,9 @@ def _spread_and_centre(cols: list[np.ndarray], w: int) -> WindowStats:
 
 def _moving_windows(gyro: WindowStats | None, accel: WindowStats | None, w: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per window: moving flag, rate departure (rad/s), force change (m/s^2) and shock flag,
-    from each sensor's per-window statistics as :func:`_spread_and_centre` gives them."""
+    """Per window: moving flag, rate departure (rad/s), force change (m/s^2) and shock flag
+    (a window that moves by the shock rule alone), from each sensor's per-window statistics
+    as :func:`_spread_and_centre` gives them."""
     n_win = (gyro if gyro is not None else accel)[0].shape[0]  # type: ignore[index]  # one is given
     moving = np.zeros(n_win, bool)
     rate = np.full(n_win, np.nan)
@@ -184,14 +185,14 @@ def _moving_windows(gyro: WindowStats | None, accel: WindowStats | None, w: int
         if stats is not None:
             limit = max(SHOCK_SIGMAS * float(np.median(stats[0])), floor)
             struck += (stats[2] > limit).sum(axis=1)
-    shock = struck >= SHOCK_AXES
-    moving |= shock
+    shaken = struck >= SHOCK_AXES
     if gyro is not None:
         std, mean, _ = gyro
         quiet = float(np.median(std))
         moving |= ((std > SPREAD_FACTOR * quiet) & (std > GYRO_MOTION_SPREAD)) \
             | (std > GYRO_STD_FLOOR)
-        rest = mean[~moving] if np.any(~moving) else mean
+        still = ~(moving | shaken)
+        rest = mean[still] if np.any(still) else mean
         level = np.median(rest, axis=0)
         rate = np.abs(mean - level).max(axis=1)
         limit = max(MEAN_SIGMAS * quiet / np.sqrt(w), GYRO_MEAN_FLOOR)
@@ -208,7 +209,9 @@ def _moving_windows(gyro: WindowStats | None, accel: WindowStats | None, w: int
         jump = step > limit
         moving |= jump
         moving[:-1] |= jump[1:]  # the change happened across both windows
-    return moving, rate, force, shock
+    # handling throws samples far out too: a shock is a window that nothing else moves
+    shock = shaken & ~moving
+    return moving | shock, rate, force, shock
 
 
 def window_samples(fs_hz: float) -> int:
@@ -299,6 +302,7 @@ def _stretches(fs_hz: float, n: int, w: int, gyro: WindowStats | None,
     rate = np.append(rate, rate[-1])
     force = np.append(force, force[-1])
     shock = np.append(shock, False)
+    moving = np.append(moving, False)
     edges = np.flatnonzero(np.diff(flags.astype(np.int8))) + 1
     bounds = np.concatenate(([0], edges, [flags.size]))
     stretches = []
@@ -307,5 +311,7 @@ def _stretches(fs_hz: float, n: int, w: int, gyro: WindowStats | None,
         mv = bool(flags[a])
         peak_r = float(np.nanmax(rate[a:b])) if mv and np.isfinite(rate[a:b]).any() else np.nan
         peak_f = float(np.nanmax(force[a:b])) if mv and np.isfinite(force[a:b]).any() else np.nan
-        stretches.append(Stretch(start, stop, mv, peak_r, peak_f, bool(shock[a:b].any())))
+        # a stretch is a shock's when every window that moved did so by the shock rule
+        hit = bool(shock[a:b].any()) and not bool((moving[a:b] & ~shock[a:b]).any())
+        stretches.append(Stretch(start, stop, mv, peak_r, peak_f, hit))
     return Motion(fs_hz, n, tuple(stretches))

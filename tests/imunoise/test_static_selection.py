@@ -46,6 +46,7 @@ def test_a_record_that_moves_then_rests_is_analysed_on_its_still_part(tmp_path):
     assert motion["used"].startswith("2 still stretch(es)")
     moving = [s for s in motion["stretches"] if s["moving"]]
     assert len(moving) == 1 and moving[0]["start_s"] == pytest.approx(29, abs=1.5)
+    assert moving[0]["shock"] is False
     assert moving[0]["stop_s"] == pytest.approx(91, abs=1.5)
     ch = doc["channels"]["gyro_z"]
     assert ch["n_samples"] == pytest.approx(motion["still_s"] * FS)
@@ -76,3 +77,22 @@ def test_export_refuses_a_sensor_that_never_rested(tmp_path):
     text = out.read_text()
     assert "# recording: imu: the sensor moved" in text and "used: all" in text
     assert "# recording: csv: 100 Hz, 0 sample(s) missing" in text
+
+
+def test_a_shock_is_cut_and_marked_in_json(tmp_path):
+    # half a g ringing for 0.3 s on two accelerometer axes, 150.4 s into a still record
+    path = _imu_csv(tmp_path / "bench.csv", 300, moving=None)
+    data = np.loadtxt(path, delimiter=",", skiprows=1)
+    t = np.arange(30) / FS
+    ring = np.exp(-t / 0.08) * np.sin(2 * np.pi * 25 * t)
+    data[15_040:15_070, 4] += 2.0 * ring
+    data[15_040:15_070, 6] += 5.0 * ring
+    np.savetxt(path, data, delimiter=",", comments="", fmt="%.10g",
+               header="t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z")
+    out = _run("analyze", str(path), "--channel", "accel_z", "--json")
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    moving = [s for s in doc["motion"]["imu"]["stretches"] if s["moving"]]
+    assert [(s["start_s"], s["stop_s"], s["shock"]) for s in moving] == [(149.0, 152.0, True)]
+    assert doc["channels"]["accel_z"]["n_samples"] == 29_700
+    assert any("149.0-152.0 s (a shock)" in w for w in doc["warnings"])
