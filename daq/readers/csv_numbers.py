@@ -157,9 +157,10 @@ def _field(buf: np.ndarray, i: int, delim: int, pow10: np.ndarray) -> tuple[floa
 @_jit
 def _parse(buf: np.ndarray, n_fields: int, column_slot: np.ndarray, delim: int,
            out: np.ndarray) -> int:
-    """Parse the rows of ``buf`` into ``out`` (rows x used columns); field ``k`` of a row goes
-    to column ``column_slot[k]`` (-1: skipped). Returns the number of rows, or -1 when a field
-    or row is outside what this parser converts exactly."""
+    """Parse the rows of ``buf`` into ``out`` (used columns x rows: each column contiguous, as
+    the reader keeps them); field ``k`` of a row goes to column ``column_slot[k]`` (-1:
+    skipped). Returns the number of rows, or -1 when a field or row is outside what this
+    parser converts exactly."""
     pow10 = np.empty(_EXACT_POWER + 1)
     p = 1.0
     for k in range(_EXACT_POWER + 1):
@@ -169,7 +170,7 @@ def _parse(buf: np.ndarray, n_fields: int, column_slot: np.ndarray, delim: int,
     i = 0
     row = 0
     while i < n:
-        if row >= out.shape[0]:
+        if row >= out.shape[1]:
             return -1
         for field in range(n_fields):
             slot = column_slot[field]
@@ -180,7 +181,7 @@ def _parse(buf: np.ndarray, n_fields: int, column_slot: np.ndarray, delim: int,
                 value, i, ok = _field(buf, i, delim, pow10)
                 if not ok:
                     return -1
-                out[row, slot] = value
+                out[slot, row] = value
             last = field == n_fields - 1
             at_delim = i < n and buf[i] == delim
             if at_delim == last:  # too many fields, or too few
@@ -204,7 +205,8 @@ def parse_numbers(body: bytes, n_fields: int, usecols: list[int], delim: str
                   ) -> np.ndarray | None:
     """The columns ``usecols`` of the CSV rows in ``body`` (no header; ``n_fields`` fields per
     row) as a float64 array of shape (rows, len(usecols)), or None when the fast path does not
-    apply (no numba, or a field it does not convert exactly)."""
+    apply (no numba, or a field it does not convert exactly). The array is the transpose of a
+    C-ordered one: each column is contiguous, so taking the columns apart copies nothing."""
     if _compiled is None or delim not in _DELIMITERS:
         return None
     if not usecols or max(usecols) >= n_fields or len(set(usecols)) != len(usecols):
@@ -212,12 +214,13 @@ def parse_numbers(body: bytes, n_fields: int, usecols: list[int], delim: str
     slot = np.full(n_fields, -1, dtype=np.int64)
     slot[np.asarray(usecols, dtype=np.int64)] = np.arange(len(usecols))
     buf = np.frombuffer(body, dtype=np.uint8)
-    rows = body.count(b"\n") + 1
-    out = np.empty((rows, len(usecols)))
+    # a last line without its newline is a row too
+    rows = body.count(b"\n") + (0 if body.endswith(b"\n") else 1)
+    out = np.empty((len(usecols), rows))
     try:
         n = _compiled(buf, n_fields, slot, ord(delim), out)
     except Exception:  # noqa: BLE001 - a compile failure leaves the file to np.loadtxt
         return None
     if n <= 0:
         return None
-    return out[:n]
+    return (out if n == rows else out[:, :n].copy()).T
