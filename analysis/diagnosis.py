@@ -739,6 +739,20 @@ def _first_job(shared: tuple[_Context, float, HoldoutHalves | None], item: tuple
     return _suggest(ctx, what, alpha)
 
 
+def _second_job(shared: tuple[_Context, list[Suggestion], float, str,
+                              HoldoutHalves | dict[str, Any] | None, list[Any]],
+                step: str) -> Any:
+    """One job of the diagnosis's second map, once the candidates are ranked: the ranked
+    suggestions with the next spectral line joined to the top term (``"line"``,
+    :func:`_with_next_line`), or the given model's ``error.holdout`` from its halves' fits
+    (``"holdout"``, :meth:`HoldoutHalves.part`)."""
+    ctx, suggestions, alpha, units, halves, half_fits = shared
+    if step == "line":
+        return _with_next_line(ctx, suggestions, alpha, units)
+    assert isinstance(halves, HoldoutHalves)  # only asked for when set up
+    return halves.part(half_fits, job_map=ctx.job_map)
+
+
 def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Suggestion:
     """A warm-up or bias step as a suggestion: not a term but a cut of the record (its
     ``apply.args``), refitted exactly as ``imunoise fit --model M ARGS`` fits it."""
@@ -1509,13 +1523,18 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     suggestions = _ranked(ctx, done[:n_tried], cuts, units, alpha)
     if only is None:
         suggestions = _filter_rechosen(ctx, suggestions, alpha)
-        suggestions = _with_next_line(ctx, suggestions, alpha, units)
+    # the next line's refit and the given model's hold-out part need nothing of each other
+    steps = (["line"] if only is None else []) + \
+        (["holdout"] if isinstance(halves, HoldoutHalves) else [])
+    second = dict(zip(steps, job_map(
+        _second_job, (ctx, suggestions, alpha, units, halves, done[n_tried:]), steps),
+        strict=True))
+    suggestions = second.get("line", suggestions)
     if halves is None:
         parts["holdout"] = {"chi2_per_dof": None, "parts": 2, "reason": "not requested"}
     else:
-        before = halves.part(done[n_tried:], job_map=ctx.job_map) \
-            if isinstance(halves, HoldoutHalves) \
-            else halves
+        before = second.get("holdout", halves)
+        assert isinstance(before, dict)
         parts["holdout"] = _check_holdout(ctx, suggestions, before)
         if lookahead:
             def next_round(spec_text: str, names: frozenset[str]) -> Diagnosis:
