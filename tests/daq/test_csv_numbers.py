@@ -64,6 +64,18 @@ def test_gives_up_where_it_cannot_be_exact(field):
     assert parse_numbers(("\n".join(lines) + "\n").encode(), 5, [0, 1, 2, 3, 4], ",") is None
 
 
+def test_each_column_comes_contiguous_and_a_last_row_without_newline_counts():
+    body, ref = _body(30_000, seed=4)
+    out = parse_numbers(body, 5, [3, 1], ",")
+    assert out is not None
+    # the reader takes the columns apart without copying them
+    assert all(out[:, j].flags.c_contiguous for j in range(2))
+    assert np.shares_memory(np.ascontiguousarray(out.T), out)
+    cut = parse_numbers(body.rstrip(b"\n"), 5, [3, 1], ",")
+    assert cut is not None and cut.shape == (30_000, 2)
+    assert np.array_equal(cut, ref[:, [3, 1]], equal_nan=True)
+
+
 def test_gives_up_on_blank_lines_short_rows_and_other_delimiters():
     body, _ = _body(30_000, seed=3)
     assert parse_numbers(body.replace(b"\n", b"\n\n", 1), 5, [0, 1], ",") is None
