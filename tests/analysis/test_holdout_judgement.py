@@ -3,7 +3,7 @@ prediction and, where the part names changed parameters, the prediction with the
 
 from __future__ import annotations
 
-from imunoise.analysis.diagnosis import _holdout_worse
+from imunoise.analysis.diagnosis.holdout import _holdout_worse
 from imunoise.analysis.model_error import right_model_limit
 
 DOF = 15.0  # right_model_limit(15) = 2.10; a part of 1 has sd sqrt(2/15) = 0.37

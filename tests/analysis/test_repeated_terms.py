@@ -8,12 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from imunoise.analysis.diagnosis import (
-    Suggestion,
-    _first_filter_of_a_tie,
-    _simplest_first,
-    diagnose,
-)
+from imunoise.analysis.diagnosis import Suggestion, diagnose
+from imunoise.analysis.diagnosis.ranking import _first_filter_of_a_tie, _simplest_first
 from imunoise.analysis.fit import fit_series
 from imunoise.analysis.noise_stream import NoiseStream, simulate
 from imunoise.analysis.terms import get_term

@@ -448,9 +448,9 @@ def test_two_terms_that_describe_the_record_only_together_are_suggested_as_a_pai
     and of a resonance alone set to 1030 (every other number is the record's own). The pair
     is suggested first, the single term stays held back, and the pair's model refits to the
     chi2/dof it states."""
-    from imunoise.analysis import diagnosis as diagnosis_module
+    from imunoise.analysis.diagnosis import holdout as holdout_judging
 
-    real_holdout = diagnosis_module.holdout_part
+    real_holdout = holdout_judging.holdout_part
 
     def worse_for_the_line_alone(x: np.ndarray, fs_hz: float, model: str, *args, **kwargs):
         part = real_holdout(x, fs_hz, model, *args, **kwargs)
@@ -458,7 +458,7 @@ def test_two_terms_that_describe_the_record_only_together_are_suggested_as_a_pai
             part = {**part, "chi2_per_dof": 1030.0}
         return part
 
-    monkeypatch.setattr(diagnosis_module, "holdout_part", worse_for_the_line_alone)
+    monkeypatch.setattr(holdout_judging, "holdout_part", worse_for_the_line_alone)
     d = np.load(shared_data / "adis16405" / "run2.npz")
     fs = float(d["fs_hz"])
     x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
