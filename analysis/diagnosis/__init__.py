@@ -149,7 +149,8 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     parts: dict[str, Any] = {"psd": psd_before, "time_domain": time_domain}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
                    len(candidates) + len(swaps) + len(cuts), sensor_filter, time_origin_s,
-                   psd_est, nperseg, psd_before, job_map, profile_added=only is None)
+                   psd_est, nperseg, psd_before, job_map, profile_added=only is None,
+                   units=units)
     # the given model's hold-out halves are fitted beside the candidates' refits
     halves = holdout_halves(x, fs_hz, base_spec, base, starts) if holdout else None
     jobs: list[tuple[str, Any]] = [("term", c) for c in candidates]

@@ -56,6 +56,35 @@ def _why(term: str, rng: tuple[float, float] | None, before: float, after: float
     return " ".join(parts)
 
 
+def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
+                       ci: dict[str, _Interval], units: str) -> str:
+    """A sentence for a line whose Allan refit leaves no room for the amplitude the spectrum
+    measures (its 95 % interval ends below the spectrum's estimate), or nothing.
+
+    ADIS16405 run 3 accel_x at its final model: the spectrum shows a line at 0.443 Hz 4.7
+    times its floor, an amplitude of 1.38e-3 m/s^2; held at that frequency, the Allan refit
+    puts the amplitude at zero with a 95 % upper limit of 8.7e-4 m/s^2: near tau = 0.37/f the
+    Allan curve holds no more power than the terms already in the model give it. The chi2/dof
+    then rises by the lost degree of freedom alone (2.50 -> 2.78), which without this sentence
+    reads as a line that makes the model worse."""
+    amplitude = get_term(term).amplitude
+    if get_term(term).role != "line" or amplitude is None or not ev.significant \
+            or "f" not in params or params["f"] != ev.params.get("f"):
+        return ""  # only a line refitted where the spectrum found it (its frequency held)
+    measured, interval = ev.params.get(amplitude), ci.get(amplitude)
+    if measured is None or interval is None or not np.isfinite(interval[1]) \
+            or not float(interval[1]) < float(measured):
+        return ""
+    lo, hi = float(interval[0]), float(interval[1])
+    fitted = (f"at zero (95 % upper limit {hi:.3g} {units})" if lo <= 0.0 else
+              f"at {float(params[amplitude]):.3g} {units} (95 % {lo:.3g} .. {hi:.3g})")
+    return (f" The Allan refit leaves no room for the line the spectrum measures: it puts "
+            f"its amplitude {fitted}, below the spectrum's {float(measured):.3g} {units}: "
+            f"near tau = {0.37 / float(params['f']):.3g} s the Allan curve holds no more "
+            f"power than the model's other terms already give it. The Allan curve and the "
+            f"spectrum disagree about the model there.")
+
+
 def _markov_beside_a_filter(suggestions: list[Suggestion], fs_hz: float
                             ) -> list[Suggestion]:
     """Hold back a significant Markov term whose refit stops at the shortest correlation time
@@ -161,6 +190,8 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     elif allan_up:
         why += (f" It does not lower the Allan chi2/dof ({before:.3g} -> {chi_after:.3g}), "
                 f"so applying it would not lower the error the fit reports.")
+        if ev is not None and after is not None:
+            why += _line_disagreement(term, ev, params, ci, ctx.units)
         if imitation is None:
             held_reason = "it does not lower the Allan chi2/dof."
     error_after = {} if after is None else _error_after(after, psd_after)

@@ -67,6 +67,8 @@ class _Context:
     profile_added: bool = True
     """Whether a candidate's refit profiles the added term's weakly determined parameters
     (the white level's always are); the lookahead's round reports none of them."""
+    units: str = ""
+    """The samples' units, for the suggestions' text."""
 
 
 _Interval = tuple[float, float]
