@@ -3,6 +3,7 @@ remedies (cuts) of findings."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -62,7 +63,8 @@ def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
     measures (its 95 % interval ends below the spectrum's estimate), or nothing.
 
     ADIS16405 run 3 accel_x at its final model: the spectrum shows a line at 0.443 Hz 4.7
-    times its floor, an amplitude of 1.38e-3 m/s^2; held at that frequency, the Allan refit
+    times its floor (nu = 60: at least 1.0e-3 m/s^2 by the rule below), an amplitude of
+    1.38e-3 m/s^2; held at that frequency, the Allan refit
     puts the amplitude at zero with a 95 % upper limit of 8.7e-4 m/s^2: near tau = 0.37/f the
     Allan curve holds no more power than the terms already in the model give it. The chi2/dof
     then rises by the lost degree of freedom alone (2.50 -> 2.78), which without this sentence
@@ -72,8 +74,17 @@ def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
             or "f" not in params or params["f"] != ev.params.get("f"):
         return ""  # only a line refitted where the spectrum found it (its frequency held)
     measured, interval = ev.params.get(amplitude), ci.get(amplitude)
-    if measured is None or interval is None or not np.isfinite(interval[1]) \
-            or not float(interval[1]) < float(measured):
+    lines, nu = ev.details.get("lines") or [], ev.details.get("nu")
+    if measured is None or interval is None or not np.isfinite(interval[1]) or not lines \
+            or not nu or float(lines[0].get("ratio", 0.0)) <= 1.0:
+        return ""
+    # The spectrum's amplitude is noisy too: the peak bin's power over the floor, a chi-square
+    # of nu dof, is (ratio - 1) floors with a standard deviation of ratio sqrt(2/nu) floors.
+    # Only an Allan upper limit below the amplitude of that excess less two standard
+    # deviations is a disagreement.
+    ratio = float(lines[0]["ratio"])
+    kept = 1.0 - 2.0 * ratio * math.sqrt(2.0 / float(nu)) / (ratio - 1.0)
+    if kept <= 0.0 or not float(interval[1]) < float(measured) * math.sqrt(kept):
         return ""
     lo, hi = float(interval[0]), float(interval[1])
     fitted = (f"at zero (95 % upper limit {hi:.3g} {units})" if lo <= 0.0 else

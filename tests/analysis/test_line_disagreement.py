@@ -15,9 +15,11 @@ F_LINE = 0.44340159481259983
 A_SPECTRUM = 1.38e-3
 
 
-def _line(p_value: float = 1e-12) -> Finding:
+def _line(p_value: float = 1e-12, ratio: float = 4.68, nu: int = 60) -> Finding:
     return Finding("spectral_line", "sinusoid", 22.0, "F", p_value, 0.05,
-                   params={"A": A_SPECTRUM, "f": F_LINE})
+                   params={"A": A_SPECTRUM, "f": F_LINE},
+                   details={"nu": nu, "lines": [{"f_hz": F_LINE, "A": A_SPECTRUM,
+                                                  "ratio": ratio}]})
 
 
 def test_an_allan_interval_below_the_spectrum_amplitude_is_named_with_both_numbers():
@@ -39,6 +41,18 @@ def test_a_resolved_amplitude_below_the_spectrum_is_given_with_its_interval():
 def test_nothing_is_said_where_the_allan_interval_reaches_the_spectrum_amplitude():
     assert _line_disagreement("sinusoid", _line(), {"f": F_LINE, "A": 1e-3},
                               {"A": (0.0, 1.5e-3)}, "m/s^2") == ""
+
+
+def test_the_spectrum_amplitude_own_noise_is_allowed_for():
+    # ratio 4.68 over nu = 60: the excess is 3.68 floors with a standard deviation of 0.85,
+    # so the amplitude is at least 1.38e-3 sqrt(1 - 2 x 0.855 / 3.68) = 1.01e-3
+    assert _line_disagreement("sinusoid", _line(), {"f": F_LINE, "A": 1e-24},
+                              {"A": (0.0, 0.99e-3)}, "m/s^2") != ""
+    assert _line_disagreement("sinusoid", _line(), {"f": F_LINE, "A": 1e-24},
+                              {"A": (0.0, 1.03e-3)}, "m/s^2") == ""
+    # a line barely above its floor in a bin of few dof measures no amplitude to compare
+    assert _line_disagreement("sinusoid", _line(ratio=2.0, nu=16), {"f": F_LINE, "A": 1e-24},
+                              {"A": (0.0, 1e-5)}, "m/s^2") == ""
 
 
 def test_nothing_is_said_of_a_line_refitted_elsewhere_or_without_spectral_evidence():
