@@ -58,9 +58,10 @@ def _why(term: str, rng: tuple[float, float] | None, before: float, after: float
 
 
 def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
-                       ci: dict[str, _Interval], units: str) -> str:
-    """A sentence for a line whose Allan refit leaves no room for the amplitude the spectrum
-    measures (its 95 % interval ends below the spectrum's estimate), or nothing.
+                       ci: dict[str, _Interval], units: str) -> tuple[str, str]:
+    """``(sentence for why, clause for the held-back reason)`` for a line whose Allan refit
+    leaves no room for the amplitude the spectrum measures (its 95 % interval ends below the
+    spectrum's estimate), or two empty strings.
 
     ADIS16405 run 3 accel_x at its final model: the spectrum shows a line at 0.443 Hz 4.7
     times its floor (nu = 60: at least 1.0e-3 m/s^2 by the rule below), an amplitude of
@@ -72,12 +73,12 @@ def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
     amplitude = get_term(term).amplitude
     if get_term(term).role != "line" or amplitude is None or not ev.significant \
             or "f" not in params or params["f"] != ev.params.get("f"):
-        return ""  # only a line refitted where the spectrum found it (its frequency held)
+        return "", ""  # only a line refitted where the spectrum found it (its frequency held)
     measured, interval = ev.params.get(amplitude), ci.get(amplitude)
     lines, nu = ev.details.get("lines") or [], ev.details.get("nu")
     if measured is None or interval is None or not np.isfinite(interval[1]) or not lines \
             or not nu or float(lines[0].get("ratio", 0.0)) <= 1.0:
-        return ""
+        return "", ""
     # The spectrum's amplitude is noisy too: the peak bin's power over the floor, a chi-square
     # of nu dof, is (ratio - 1) floors with a standard deviation of ratio sqrt(2/nu) floors.
     # Only an Allan upper limit below the amplitude of that excess less two standard
@@ -85,15 +86,17 @@ def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
     ratio = float(lines[0]["ratio"])
     kept = 1.0 - 2.0 * ratio * math.sqrt(2.0 / float(nu)) / (ratio - 1.0)
     if kept <= 0.0 or not float(interval[1]) < float(measured) * math.sqrt(kept):
-        return ""
+        return "", ""
     lo, hi = float(interval[0]), float(interval[1])
     fitted = (f"at zero (95 % upper limit {hi:.3g} {units})" if lo <= 0.0 else
               f"at {float(params[amplitude]):.3g} {units} (95 % {lo:.3g} .. {hi:.3g})")
-    return (f" The Allan refit leaves no room for the line the spectrum measures: it puts "
-            f"its amplitude {fitted}, below the spectrum's {float(measured):.3g} {units}: "
-            f"near tau = {0.37 / float(params['f']):.3g} s the Allan curve holds no more "
-            f"power than the model's other terms already give it. The Allan curve and the "
-            f"spectrum disagree about the model there.")
+    sentence = (f" The Allan refit leaves no room for the line the spectrum measures: it puts "
+                f"its amplitude {fitted}, below the spectrum's {float(measured):.3g} {units}: "
+                f"near tau = {0.37 / float(params['f']):.3g} s the Allan curve holds no more "
+                f"power than the model's other terms already give it. The Allan curve and the "
+                f"spectrum disagree about the model there.")
+    return sentence, (f", whose refit leaves no room for the {float(measured):.3g} {units} "
+                      f"the spectrum measures")
 
 
 def _markov_beside_a_filter(suggestions: list[Suggestion], fs_hz: float
@@ -201,10 +204,11 @@ def _suggest(ctx: _Context, term: str, alpha: float) -> Suggestion:
     elif allan_up:
         why += (f" It does not lower the Allan chi2/dof ({before:.3g} -> {chi_after:.3g}), "
                 f"so applying it would not lower the error the fit reports.")
-        if ev is not None and after is not None:
-            why += _line_disagreement(term, ev, params, ci, ctx.units)
+        sentence, clause = _line_disagreement(term, ev, params, ci, ctx.units) \
+            if ev is not None and after is not None else ("", "")
+        why += sentence
         if imitation is None:
-            held_reason = "it does not lower the Allan chi2/dof."
+            held_reason = f"it does not lower the Allan chi2/dof{clause}."
     error_after = {} if after is None else _error_after(after, psd_after)
     if pinned and get_term(term).kind == "filter":
         held = ", ".join(f"{k} = {v:g}" for k, v in pinned.items())
