@@ -63,13 +63,13 @@ def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
     leaves no room for the amplitude the spectrum measures (its 95 % interval ends below the
     spectrum's estimate), or two empty strings.
 
-    ADIS16405 run 3 accel_x at its final model: the spectrum shows a line at 0.443 Hz 4.7
-    times its floor (nu = 60: at least 1.0e-3 m/s^2 by the rule below), an amplitude of
-    1.38e-3 m/s^2; held at that frequency, the Allan refit
-    puts the amplitude at zero with a 95 % upper limit of 8.7e-4 m/s^2: near tau = 0.37/f the
-    Allan curve holds no more power than the terms already in the model give it. The chi2/dof
-    then rises by the lost degree of freedom alone (2.50 -> 2.78), which without this sentence
-    reads as a line that makes the model worse."""
+    ADIS16405 run 3 accel_x at its final model: the spectrum shows a line at 0.443 Hz, 4.7
+    times its floor in bins of 60 dof, an amplitude of 1.38e-3 m/s^2 (at least 1.0e-3 by the
+    rule below). Held at that frequency, the Allan refit puts the amplitude at zero with a
+    95 % upper limit of 8.7e-4 m/s^2: near tau = 0.37/f the Allan curve holds no more power
+    than the terms already in the model give it. The chi2/dof then rises by the lost degree of
+    freedom alone (2.50 -> 2.78), which without this sentence reads as a line that makes the
+    model worse."""
     amplitude = get_term(term).amplitude
     if get_term(term).role != "line" or amplitude is None or not ev.significant \
             or "f" not in params or params["f"] != ev.params.get("f"):
@@ -91,7 +91,7 @@ def _line_disagreement(term: str, ev: Finding, params: dict[str, float],
     fitted = (f"at zero (95 % upper limit {hi:.3g} {units})" if lo <= 0.0 else
               f"at {float(params[amplitude]):.3g} {units} (95 % {lo:.3g} .. {hi:.3g})")
     sentence = (f" The Allan refit leaves no room for the line the spectrum measures: it puts "
-                f"its amplitude {fitted}, below the spectrum's {float(measured):.3g} {units}: "
+                f"its amplitude {fitted}, below the spectrum's {float(measured):.3g} {units}; "
                 f"near tau = {0.37 / float(params['f']):.3g} s the Allan curve holds no more "
                 f"power than the model's other terms already give it. The Allan curve and the "
                 f"spectrum disagree about the model there.")
