@@ -55,9 +55,9 @@ SENSOR_YAML_KEYS = ("rate_hz", "gyroscope_noise_density", "gyroscope_random_walk
                     "accelerometer_noise_density", "accelerometer_random_walk")
 _UNITS_SUFFIX = re.compile(r"\s*\[[^\]]*\]\s*$")
 _DELIMITERS = (",", ";", "\t")
-COMPILED_PARSE_MIN_BYTES = 1 << 20
-"""Smallest body read by the compiled parser (:mod:`imunoise.daq.readers.csv_numbers`): below
-it, loading numba and the parser costs more than np.loadtxt."""
+FAST_PARSE_MIN_BYTES = 1 << 20
+"""Smallest body read by the fast parser (:mod:`imunoise.daq.readers.csv_numbers`): below it,
+importing pyarrow costs more than np.loadtxt."""
 # Inferred rates outside this range usually mean a time column in ms, us or ns.
 _PLAUSIBLE_RATE_HZ = (0.5, 1e5)
 _ROW_ERROR = re.compile(r"at row (\d+)")
@@ -158,12 +158,12 @@ def _split_channel(values: np.ndarray, seg_flags: np.ndarray) -> tuple[np.ndarra
 def _load(text: bytes, usecols: list[int], delim: str, n_fields: int, path: Path
           ) -> np.ndarray:
     """Parse the rows after the header line of ``text`` (the whole file; ``n_fields`` fields
-    per row): the compiled parser where it converts every field exactly, else np.loadtxt."""
+    per row): the fast parser where it reads the rows as np.loadtxt would, else np.loadtxt."""
     end = text.find(b"\n")
-    if end >= 0 and len(text) - end > COMPILED_PARSE_MIN_BYTES:
-        from imunoise.daq.readers.csv_numbers import parse_numbers  # imports numba
+    if end >= 0 and len(text) - end > FAST_PARSE_MIN_BYTES:
+        from imunoise.daq.readers.csv_numbers import parse_numbers  # imports pyarrow
 
-        fast = parse_numbers(text[end + 1:], n_fields, usecols, delim)
+        fast = parse_numbers(memoryview(text)[end + 1:], n_fields, usecols, delim)
         if fast is not None:
             return fast
 

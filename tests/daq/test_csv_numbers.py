@@ -1,4 +1,4 @@
-"""The CSV reader's compiled number parser: the same doubles as np.loadtxt, or it gives up."""
+"""The CSV reader's fast number parser: the same doubles as np.loadtxt, or it gives up."""
 
 import io
 import subprocess
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from imunoise.daq.readers import ReadError, csv_numbers
-from imunoise.daq.readers.csv_file import COMPILED_PARSE_MIN_BYTES, read_csv
+from imunoise.daq.readers.csv_file import FAST_PARSE_MIN_BYTES, read_csv
 from imunoise.daq.readers.csv_numbers import parse_numbers
 
-pytestmark = pytest.mark.skipif(csv_numbers.njit is None, reason="numba is not importable")
+pytestmark = pytest.mark.skipif(csv_numbers._arrow() is None, reason="pyarrow is not importable")
 
 FORMATS = ["{:.10g}", "{:.15g}", "{:.6e}", "{:+.8f}", " {:.3f} ", "{:.4E}", "{:.0f}"]
 
@@ -20,7 +20,6 @@ def _body(rows: int, seed: int = 0) -> tuple[bytes, np.ndarray]:
     """Rows of five fields in assorted notations (one empty field in each 97th row) and what
     np.loadtxt reads from them, empty fields as NaN."""
     rng = np.random.default_rng(seed)
-    # within the fast path's range: 15 significant digits and 10^-6 give 10^-20
     values = rng.choice([-1.0, 1.0], (rows, 5)) * rng.uniform(1.0, 10.0, (rows, 5)) \
         * 10.0 ** rng.integers(-6, 7, (rows, 5))
     lines = []
@@ -53,9 +52,25 @@ def test_columns_asked_for_in_their_order_and_text_elsewhere_skipped():
     assert np.array_equal(out, ref[:, [4, 0]], equal_nan=True)
 
 
-@pytest.mark.parametrize("field", ["nan", "inf", "0.12345678901234567", "1e23", "3e-30",
-                                   "1.5x", ".", "-", "  ", "1e", "1e+", "--1", "1,2"])
-def test_gives_up_where_it_cannot_be_exact(field):
+@pytest.mark.parametrize("field", ["nan", "-inf", " NaN ", "0.12345678901234567", "1e23",
+                                   "3e-30", "4.9e-324", "1e400", "+.5", "5."])
+def test_words_and_long_numbers_read_as_loadtxt_reads_them(field):
+    body, _ = _body(3_000, seed=5)
+    lines = body.decode().splitlines()
+    parts = lines[1234].split(",")
+    parts[1] = field
+    lines[1234] = ",".join(parts)
+    text = ("\n".join(lines) + "\n").encode()
+    out = parse_numbers(text, 5, [0, 1, 2, 3, 4], ",")
+    ref = np.loadtxt(io.BytesIO(text.replace(b",,", b",nan,")), delimiter=",",
+                     dtype=np.float64, ndmin=2, comments=None)
+    assert out is not None
+    assert np.array_equal(out.view(np.int64), ref.view(np.int64))
+
+
+@pytest.mark.parametrize("field", ["1.5x", ".", "-", "  ", "1e", "1e+", "--1", "1,2", "NA",
+                                   "null", '"2.5"', "0x10", "1_0"])
+def test_gives_up_where_loadtxt_would_not_read_the_same(field):
     body, _ = _body(30_000, seed=2)
     lines = body.decode().splitlines()
     parts = lines[1234].split(",")
@@ -76,10 +91,13 @@ def test_each_column_comes_contiguous_and_a_last_row_without_newline_counts():
     assert np.array_equal(cut, ref[:, [3, 1]], equal_nan=True)
 
 
-def test_gives_up_on_blank_lines_short_rows_and_other_delimiters():
-    body, _ = _body(30_000, seed=3)
-    assert parse_numbers(body.replace(b"\n", b"\n\n", 1), 5, [0, 1], ",") is None
+def test_skips_blank_lines_and_gives_up_on_short_rows_and_other_delimiters():
+    body, ref = _body(30_000, seed=3)
+    blank = parse_numbers(body.replace(b"\n", b"\n\n", 1), 5, [0, 1], ",")
+    assert blank is not None  # np.loadtxt skips blank lines too
+    assert np.array_equal(blank, ref[:, [0, 1]], equal_nan=True)
     assert parse_numbers(body + b"1,2,3\n", 5, [0, 1], ",") is None
+    assert parse_numbers(body + b"1,2,3,4,5,6\n", 5, [0, 1], ",") is None
     assert parse_numbers(body, 5, [0, 1], " ") is None
 
 
@@ -98,11 +116,11 @@ def _record_file(tmp_path, rows: int, bad_line: int | None = None):
 
 def test_reader_gives_the_same_record_with_and_without_the_fast_path(tmp_path, monkeypatch):
     p = _record_file(tmp_path, 40_000)
-    assert p.stat().st_size > COMPILED_PARSE_MIN_BYTES
+    assert p.stat().st_size > FAST_PARSE_MIN_BYTES
     body = p.read_bytes().split(b"\n", 1)[1]
     assert csv_numbers.parse_numbers(body, 5, [0, 1, 2, 3], ",") is not None  # the fast path
     fast = read_csv(p)
-    monkeypatch.setattr(csv_numbers, "_compiled", None)
+    monkeypatch.setattr(csv_numbers, "_arrow", lambda: None)
     slow = read_csv(p)
     for name in ("gyro_x", "gyro_y", "gyro_z"):
         assert np.array_equal(fast.channels[name].values, slow.channels[name].values)
@@ -110,10 +128,10 @@ def test_reader_gives_the_same_record_with_and_without_the_fast_path(tmp_path, m
     assert fast.metadata == slow.metadata and fast.warnings == slow.warnings
 
 
-def test_small_files_do_not_load_the_compiled_parser(tmp_path):
+def test_small_files_do_not_load_the_fast_parser(tmp_path):
     code = ("import sys; from imunoise.daq.readers.csv_file import read_csv; "
             f"read_csv({str(_record_file(tmp_path, 200))!r}); "
-            "print('imunoise.daq.readers.csv_numbers' in sys.modules, 'numba' in sys.modules)")
+            "print('imunoise.daq.readers.csv_numbers' in sys.modules, 'pyarrow' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.split() == ["False", "False"]
@@ -123,3 +141,15 @@ def test_reader_still_names_the_bad_line_of_a_big_file(tmp_path):
     p = _record_file(tmp_path, 40_000, bad_line=30_000)
     with pytest.raises(ReadError, match=r"line 30002, column 2: 'oops' is not a number"):
         read_csv(p)
+
+
+def test_big_files_are_read_without_loading_numba(tmp_path):
+    # numba's import and cached machine code cost a process about 0.8 s; a CSV is read
+    # without them (the Allan kernels load them for records of 2.1e6 points and more)
+    code = ("import sys; from imunoise.daq.readers.csv_file import read_csv; "
+            f"r = read_csv({str(_record_file(tmp_path, 40_000))!r}); "
+            "print(r.channels['gyro_x'].n_samples, 'pyarrow' in sys.modules, "
+            "'numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split() == ["40000", "True", "False"]
