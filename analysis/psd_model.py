@@ -34,8 +34,9 @@ belongs to the estimate it is compared with.
 
 from __future__ import annotations
 
-import functools
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -181,16 +182,52 @@ def _level_bins(est: PsdEstimate, fs: float, L: int, ppd: float | None
     return out
 
 
-@functools.lru_cache(maxsize=128)
+_GRID_GAINS: OrderedDict[tuple[float, int, int, int], np.ndarray] = OrderedDict()
+_GRID_GAINS_KEPT = 128
+_GRID_GAINS_LOCK = threading.Lock()
+
+
 def _grid_gain(fs: float, n_grid: int, j: int, alias: int) -> np.ndarray:
     """The cascade's power gain at level ``j`` on the convolution grid of ``n_grid`` points
     shifted by ``alias`` periods (read-only). The same for every model compared with one
-    estimate, and most of the time of an expectation: computed once."""
-    u = np.arange(n_grid) / n_grid
-    u = np.where(u > 0.5, u - 1.0, u)
-    gain = _cascade_gain(np.abs((u + alias) * (fs / 2**j)), fs, j)
-    gain.setflags(write=False)
+    estimate, and most of the time of an expectation: computed once per process (the last
+    :data:`_GRID_GAINS_KEPT` kept), or handed over by :func:`adopt_grid_gains`."""
+    key = (float(fs), int(n_grid), int(j), int(alias))
+    gain = _GRID_GAINS.get(key)
+    if gain is None:
+        u = np.arange(n_grid) / n_grid
+        u = np.where(u > 0.5, u - 1.0, u)
+        gain = _cascade_gain(np.abs((u + alias) * (fs / 2**j)), fs, j)
+        gain.setflags(write=False)
+        _remember_gain(key, gain)
     return gain
+
+
+def _remember_gain(key: tuple[float, int, int, int], gain: np.ndarray) -> None:
+    with _GRID_GAINS_LOCK:  # the live service computes expectations in threads
+        _GRID_GAINS[key] = gain
+        while len(_GRID_GAINS) > _GRID_GAINS_KEPT:
+            _GRID_GAINS.popitem(last=False)
+
+
+def grid_gains() -> dict[tuple[float, int, int, int], np.ndarray]:
+    """The cascade gains this process has computed, for :func:`adopt_grid_gains` in another.
+
+    A job map's worker that computes the first expectation of a diagnosis (0.1-0.2 s of
+    gains for a 1e6-sample record) hands them to the parent, so that every worker forked
+    from the parent later starts with them instead of computing them again."""
+    with _GRID_GAINS_LOCK:
+        return dict(_GRID_GAINS)
+
+
+def adopt_grid_gains(found: dict[tuple[float, int, int, int], np.ndarray]) -> None:
+    """Keep the gains another process computed (:func:`grid_gains`): the same arrays
+    :func:`_grid_gain` would compute here."""
+    for key, gain in found.items():
+        if key not in _GRID_GAINS:
+            gain = np.asarray(gain)
+            gain.setflags(write=False)
+            _remember_gain(key, gain)
 
 
 def expected_log_psd(model: Model, est: PsdEstimate, fs_hz: float,

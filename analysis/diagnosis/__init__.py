@@ -47,6 +47,7 @@ from imunoise.analysis.diagnosis.result import DEFAULT_ALPHA, Diagnosis, Suggest
 from imunoise.analysis.fit import fit_series
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.model_error import HoldoutHalves, holdout_halves
+from imunoise.analysis.psd_model import adopt_grid_gains
 from imunoise.analysis.terms import parse_model
 
 __all__ = ["DEFAULT_ALPHA", "RECHOSEN_FILTER_EXCESS", "Diagnosis", "Suggestion", "diagnose"]
@@ -138,8 +139,9 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     # the evidence and the transient and PSD tests read the base fit, not each other
     tests = _BaseTests(x, fs_hz, starts, segments, t_rate, base, names, temperature, alpha,
                        units, transients, time_origin_s)
-    (findings, by_term, filt), (cuts, psd_baseline, time_domain) = job_map(
+    (findings, by_term, filt), (cuts, psd_baseline, time_domain, gains) = job_map(
         _base_test, tests, ["evidence", "spectrum"])
+    adopt_grid_gains(gains)  # the workers forked from here on start with them
     findings.extend(cuts)
     psd_est, nperseg, psd_block, psd_before = psd_baseline
     candidates = _candidates(names, base, filt, temperature is not None, sensor_filter)

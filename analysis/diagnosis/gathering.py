@@ -15,6 +15,7 @@ from imunoise.analysis.evidence.finding import Finding, family_p
 from imunoise.analysis.evidence.resonance_drift import MIN_Q as DRIFT_MIN_Q
 from imunoise.analysis.fit import FitResult
 from imunoise.analysis.model_error import measured_psd, psd_parts, time_domain_part
+from imunoise.analysis.psd_model import grid_gains
 from imunoise.analysis.terms import get_term, model_psd
 
 
@@ -158,7 +159,9 @@ class _BaseTests:
 def _base_test(t: _BaseTests, which: str) -> Any:
     """One of the two independent groups of tests on the base fit, as a job map calls it:
     ``"evidence"`` (:func:`_evidence`), or ``"spectrum"``: ``(the step and warm-up
-    findings, :func:`_psd_baseline`, the time-domain part)``."""
+    findings, :func:`_psd_baseline`, the time-domain part, the cascade gains its PSD part
+    computed)``, the gains for :func:`imunoise.analysis.psd_model.adopt_grid_gains` in the
+    process that forks the next workers."""
     if which == "evidence":
         return _evidence(t.x, t.fs_hz, t.starts, t.segments, t.t_rate, t.base, t.names,
                          t.temperature, t.alpha, t.units, t.time_origin_s)
@@ -173,4 +176,4 @@ def _base_test(t: _BaseTests, which: str) -> Any:
     time_domain = time_domain_part(t.x, t.fs_hz, t.base.params, t.starts, t.units,
                                    cuts or None) if t.transients \
         else {"statistic": None, "p": None, "reason": "not requested"}
-    return cuts, baseline, time_domain
+    return cuts, baseline, time_domain, grid_gains()

@@ -130,3 +130,43 @@ def test_the_hann_kernel_in_closed_form_is_the_windows_transform() -> None:
     # its integral over one period is 1
     u = np.linspace(-0.5, 0.5, 200001)
     assert np.trapezoid(_hann_kernel(u, 64), u) == pytest.approx(1.0, rel=1e-6)
+
+
+def test_cascade_gains_handed_to_another_process_give_the_same_expectation(monkeypatch):
+    # the diagnosis's spectrum worker hands its gains to the parent, whose later workers
+    # must compute bit for bit what they would have computed themselves
+    from imunoise.analysis import psd_model
+
+    model = CASES["gauss_markov"][0]
+    est = log_psd(simulate(model, 1 << 18, FS, rng=3), FS)
+    monkeypatch.setattr(psd_model, "_GRID_GAINS", type(psd_model._GRID_GAINS)())
+    computed = expected_log_psd(model, est, FS)
+    gains = psd_model.grid_gains()
+    assert len(gains) >= 6  # levels 1.. of the cascade, three folds each
+    # what a worker sends back is a pickled copy
+    sent = {k: np.array(v) for k, v in gains.items()}
+    monkeypatch.setattr(psd_model, "_GRID_GAINS", type(psd_model._GRID_GAINS)())
+    psd_model.adopt_grid_gains(sent)
+    sizes: list[int] = []
+    cascade = psd_model._cascade_gain
+
+    def counted(f, fs, level):
+        sizes.append(len(f))
+        return cascade(f, fs, level)
+    monkeypatch.setattr(psd_model, "_cascade_gain", counted)
+    again = expected_log_psd(model, est, FS)
+    assert np.array_equal(again.view(np.int64), computed.view(np.int64))
+    grid = {k[1] for k in gains}
+    assert sizes and not grid & set(sizes)  # no grid gain computed again
+    assert not any(g.flags.writeable for g in psd_model.grid_gains().values())
+
+
+def test_cascade_gains_kept_are_bounded(monkeypatch):
+    from imunoise.analysis import psd_model
+
+    monkeypatch.setattr(psd_model, "_GRID_GAINS", type(psd_model._GRID_GAINS)())
+    many = {(100.0, 64, j, 0): np.ones(64) for j in range(1, psd_model._GRID_GAINS_KEPT + 40)}
+    psd_model.adopt_grid_gains(many)
+    kept = psd_model.grid_gains()
+    assert len(kept) == psd_model._GRID_GAINS_KEPT
+    assert (100.0, 64, psd_model._GRID_GAINS_KEPT + 39, 0) in kept  # the newest stay
