@@ -152,22 +152,30 @@ def _spread_and_centre(cols: list[np.ndarray], w: int) -> WindowStats:
     (1.4826 times the median absolute deviation, which a spike, a shock or an outlier
     does not move), the median of each axis, and each axis's ``SHOCK_SAMPLES``-th largest
     absolute departure from its median (a shock's reach). The windows are gathered a chunk at
-    a time, so no copy of the whole record is made."""
+    a time, so no copy of the whole record is made.
+
+    Each window's samples are sorted (numpy's vectorised sort of contiguous rows is about ten
+    times faster than ``np.median`` and ``np.partition`` along a strided axis); the medians
+    are the mean of the middle two sorted values, as ``np.median`` takes them, and an axis
+    whose window holds a NaN gets NaN for all three, as ``np.median`` gives it."""
     n_win = cols[0].shape[0] // w
     spread = np.empty(n_win)
     centre = np.empty((n_win, len(cols)))
     reach = np.empty((n_win, len(cols)))
-    part = np.empty((min(n_win, _CHUNK_WINDOWS), w, len(cols)))
+    part = np.empty((min(n_win, _CHUNK_WINDOWS), len(cols), w))
     kth = w - min(SHOCK_SAMPLES, w)
+    middle = slice((w - 1) // 2, w // 2 + 1)  # one value for an odd w, two for an even
     for a in range(0, n_win, _CHUNK_WINDOWS):
         k = min(_CHUNK_WINDOWS, n_win - a)
         for j, c in enumerate(cols):
-            part[:k, :, j] = c[a * w:(a + k) * w].reshape(k, w)
-        med = np.median(part[:k], axis=1, keepdims=True)
-        dev = np.abs(part[:k] - med)
-        spread[a:a + k] = 1.4826 * np.median(dev, axis=1).max(axis=1)
-        centre[a:a + k] = med[:, 0, :]
-        reach[a:a + k] = np.partition(dev, kth, axis=1)[:, kth, :]
+            part[:k, j, :] = c[a * w:(a + k) * w].reshape(k, w)
+        ordered = np.sort(part[:k], axis=2)
+        med = ordered[:, :, middle].mean(axis=2, keepdims=True)
+        med[np.isnan(ordered[:, :, -1:])] = np.nan  # a sort puts NaN last
+        dev = np.sort(np.abs(part[:k] - med), axis=2)
+        spread[a:a + k] = 1.4826 * dev[:, :, middle].mean(axis=2).max(axis=1)
+        centre[a:a + k] = med[:, :, 0]
+        reach[a:a + k] = dev[:, :, kth]
     return spread, centre, reach
 
 

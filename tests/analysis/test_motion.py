@@ -124,3 +124,25 @@ def test_real_still_recordings_do_not_move(shared_data):
     assert not detect_motion(10.0, d["gyro"], d["accel"]).moved
     d = np.load(shared_data / "mtig_outliers" / "gyro_x.npz")  # a hundred 10-sigma outliers
     assert not detect_motion(100.0, d["gyro_x"][:, None]).moved
+
+
+@pytest.mark.parametrize("w", [32, 100, 101])
+def test_window_statistics_are_the_medians_numpy_defines(w):
+    # the windows are sorted, not put through np.median: the same doubles, NaN included
+    from imunoise.analysis.motion import SHOCK_SAMPLES, _spread_and_centre
+
+    rng = np.random.default_rng(w)
+    cols = [rng.normal(0.0, 1e-3, 50 * w + 7), np.round(rng.normal(0.0, 3.0, 50 * w + 7)),
+            rng.standard_t(2, 50 * w + 7)]
+    cols[2][[3, 5 * w + 1]] = np.nan  # two windows of one axis hold a NaN
+    spread, centre, reach = _spread_and_centre(cols, w)
+    win = np.stack([c[:50 * w].reshape(50, w) for c in cols], axis=1)
+    with np.errstate(invalid="ignore"):
+        med = np.median(win, axis=2)
+        dev = np.abs(win - med[:, :, None])
+        want_spread = 1.4826 * np.median(dev, axis=2).max(axis=1)
+        want_reach = np.partition(dev, w - SHOCK_SAMPLES, axis=2)[:, :, w - SHOCK_SAMPLES]
+    assert np.array_equal(centre, med, equal_nan=True)
+    assert np.array_equal(spread, want_spread, equal_nan=True)
+    assert np.array_equal(reach, want_reach, equal_nan=True)
+    assert np.isnan(centre[0, 2]) and np.isnan(spread[5]) and not np.isnan(spread[1])
