@@ -58,6 +58,53 @@ def resonance_unit_psd(f: np.ndarray, fs: float, f0: float | np.ndarray, q: floa
     return 2.0 * innovation / (fs * den)
 
 
+def resonance_psd_mixture(f: np.ndarray, fs: float, f0: np.ndarray, weights: np.ndarray,
+                          q: float) -> np.ndarray:
+    """``sum_k weights[k] * resonance_unit_psd(f, fs, f0[k], q)`` (1/Hz) at ``f`` (Hz): the
+    spectrum of a resonance whose centre frequency takes the values ``f0`` with those weights.
+
+    The same expression as :func:`resonance_unit_psd`, with the sines of the half-angle
+    difference and sum taken from those of the two angles (``sin(a -+ b) = sin a cos b -+ cos
+    a sin b``): one sine and cosine per frequency and per centre frequency instead of two
+    sines per pair, which made a fit with a wandering resonance behind an output filter spend
+    half its time in ``np.sin`` (the values agree to about 1e-13, relative, at Q = 1e4)."""
+    at = np.atleast_1d(np.asarray(f, dtype=np.float64))
+    centres = np.atleast_1d(np.asarray(f0, dtype=np.float64))
+    w = np.atleast_1d(np.asarray(weights, dtype=np.float64))
+    half_w = np.pi * at / fs
+    sin_w, cos_w = np.sin(half_w), np.cos(half_w)
+    out = np.zeros(at.shape)
+    rows = min(_MIXTURE_BLOCK, centres.size)
+    minus, plus, cross = (np.empty((rows, at.size)) for _ in range(3))
+    for a in range(0, centres.size, _MIXTURE_BLOCK):
+        c = centres[a:a + _MIXTURE_BLOCK, None]
+        n = c.shape[0]
+        d, s, x = minus[:n], plus[:n], cross[:n]
+        r = np.exp(-np.pi * c / (q * fs))
+        half_w0 = np.pi * c / fs
+        floor = (1.0 - r) ** 2
+        four_r = 4.0 * r
+        scale = w[a:a + _MIXTURE_BLOCK, None] \
+            * (2.0 * _innovation_var(2.0 * r * np.cos(2.0 * half_w0), -r * r) / fs)
+        np.multiply(sin_w, np.cos(half_w0), out=d)
+        np.multiply(cos_w, np.sin(half_w0), out=x)
+        np.add(d, x, out=s)  # sin((w + w0)/2)
+        d -= x  # sin((w - w0)/2)
+        for y in (d, s):
+            np.square(y, out=y)
+            y *= four_r
+            y += floor
+        d *= s
+        np.divide(scale, d, out=d)
+        out += d.sum(axis=0)
+    return out.reshape(np.shape(f))
+
+
+_MIXTURE_BLOCK = 32
+"""Centre frequencies taken together by :func:`resonance_psd_mixture` (bounds its scratch
+arrays to 32 rows of the frequency grid)."""
+
+
 def resonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float) -> np.ndarray:
     """Allan variance of the unit-variance resonance at averaging factors ``m``."""
     p, phi1, phi2 = _poles(fs, f0, q)
@@ -70,6 +117,29 @@ def resonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float) -> np.nd
     num = mm * (1.0 - p * p) - 2.0 * p * one_minus_pm - p * one_minus_pm**2
     shape = num / (mm * mm * (1.0 - p) ** 2)
     return np.maximum(2.0 * np.real(c * shape), 0.0)
+
+
+def resonance_avar_mixture(m: np.ndarray, fs: float, f0: np.ndarray, weights: np.ndarray,
+                           q: float) -> np.ndarray:
+    """``sum_k weights[k] * resonance_avar_shape(m, fs, f0[k], q)``: the Allan variance at
+    averaging factors ``m`` of a unit-variance resonance whose centre frequency takes the
+    values ``f0`` (Hz) with those weights, every centre frequency at once."""
+    mm = np.asarray(m, dtype=np.complex128).reshape(1, -1)
+    centres = np.atleast_1d(np.asarray(f0, dtype=np.float64))[:, None]
+    r = np.exp(-np.pi * centres / (q * fs))
+    w0 = 2.0 * np.pi * centres / fs
+    p = r * np.exp(1j * w0)
+    phi1, phi2 = 2.0 * r * np.cos(w0), -r * r
+    rho1 = phi1 / (1.0 - phi2)
+    # as in resonance_avar_shape: rho(0) = 1 and rho(1) = rho1 fix c
+    safe_imag = np.where(p.imag != 0.0, p.imag, 1.0)
+    c = 0.5 + 1j * np.where(p.imag != 0.0, (p.real - rho1) / (2.0 * safe_imag), 0.0)
+    pm = np.exp(mm * np.log(p))
+    one_minus_pm = 1.0 - pm
+    num = mm * (1.0 - p * p) - 2.0 * p * one_minus_pm - p * one_minus_pm**2
+    shape = num / (mm * mm * (1.0 - p) ** 2)
+    each = np.maximum(2.0 * np.real(c * shape), 0.0)
+    return (np.asarray(weights, dtype=np.float64) @ each).reshape(np.shape(m))
 
 
 class _ResonanceSim(TermSimulator):

@@ -37,14 +37,13 @@ from imunoise.analysis.terms.resonance import (
     Resonance,
     _innovation_var,
     _poles,
-    resonance_avar_shape,
-    resonance_unit_psd,
+    resonance_avar_mixture,
+    resonance_psd_mixture,
 )
 from imunoise.analysis.terms.shape_memo import ShapeMemo
 
 _SHAPES = ShapeMemo()
 _MAX_NODES = 241
-_BLOCK = 32
 _MIN_NODES = 17
 _REACH_SD = 6.0
 WANDER_S = 600.0
@@ -86,24 +85,17 @@ def wandering_avar_shape(m: np.ndarray, fs: float, f0: float, q: float, spread: 
                          ) -> np.ndarray:
     """Allan variance of the unit-variance wandering resonance at averaging factors ``m``."""
     freqs, weights, q_used = centre_frequencies(fs, f0, q, spread)
-    out = np.zeros(np.shape(m), dtype=np.float64)
-    for fk, wk in zip(freqs, weights, strict=True):
-        out += wk * resonance_avar_shape(m, fs, float(fk), q_used)
-    return out
+    return resonance_avar_mixture(m, fs, freqs, weights, q_used)
 
 
 def wandering_psd(f: np.ndarray, fs: float, f0: float, q: float, spread: float
                   ) -> np.ndarray:
     """One-sided PSD of the unit-variance wandering resonance at ``f`` (Hz): the resonance's
-    exact AR(2) spectrum (:func:`~imunoise.analysis.terms.resonance.resonance_unit_psd`) for every
-    centre frequency at once, in blocks of them (a fit asks for this thousands of times)."""
+    exact AR(2) spectrum averaged over the centre frequencies
+    (:func:`~imunoise.analysis.terms.resonance.resonance_psd_mixture`; a fit asks for this
+    thousands of times)."""
     freqs, weights, q_used = centre_frequencies(fs, f0, q, spread)
-    at = np.atleast_1d(np.asarray(f, dtype=np.float64))
-    out = np.zeros(at.shape)
-    for a in range(0, freqs.size, _BLOCK):
-        out += np.sum(weights[a:a + _BLOCK, None]
-                      * resonance_unit_psd(at, fs, freqs[a:a + _BLOCK, None], q_used), axis=0)
-    return out.reshape(np.shape(f))
+    return resonance_psd_mixture(f, fs, freqs, weights, q_used)
 
 
 class _WanderingSim(TermSimulator):
