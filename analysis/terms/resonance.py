@@ -14,7 +14,7 @@ the two apart by the width of the spectral peak.
 from __future__ import annotations
 
 import math
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -111,7 +111,14 @@ def resonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float) -> np.nd
     rho1 = phi1 / (1.0 - phi2)
     # rho(k) = 2 Re(c p^k): rho(0) = 1 and rho(1) = rho1 fix c
     c = complex(0.5, (p.real - rho1) / (2.0 * p.imag)) if p.imag != 0 else complex(0.5, 0.0)
-    mm = np.asarray(m, dtype=np.complex128)
+    return _pole_avar(np.asarray(m, dtype=np.complex128), p, c)
+
+
+def _pole_avar(mm: Any, p: Any, c: Any) -> Any:
+    """Allan variance at averaging factors ``mm`` (complex) of the unit-variance sequence with
+    autocorrelation ``rho(k) = 2 Re(c p^|k|)``: the first-order Markov closed form at the
+    complex pole ``p``. ``p`` and ``c`` are scalars, or columns of poles broadcasting against a
+    row of ``mm``."""
     pm = np.exp(mm * np.log(p))
     one_minus_pm = 1.0 - pm
     num = mm * (1.0 - p * p) - 2.0 * p * one_minus_pm - p * one_minus_pm**2
@@ -134,11 +141,7 @@ def resonance_avar_mixture(m: np.ndarray, fs: float, f0: np.ndarray, weights: np
     # as in resonance_avar_shape: rho(0) = 1 and rho(1) = rho1 fix c
     safe_imag = np.where(p.imag != 0.0, p.imag, 1.0)
     c = 0.5 + 1j * np.where(p.imag != 0.0, (p.real - rho1) / (2.0 * safe_imag), 0.0)
-    pm = np.exp(mm * np.log(p))
-    one_minus_pm = 1.0 - pm
-    num = mm * (1.0 - p * p) - 2.0 * p * one_minus_pm - p * one_minus_pm**2
-    shape = num / (mm * mm * (1.0 - p) ** 2)
-    each = np.maximum(2.0 * np.real(c * shape), 0.0)
+    each = _pole_avar(mm, p, c)
     return (np.asarray(weights, dtype=np.float64) @ each).reshape(np.shape(m))
 
 
