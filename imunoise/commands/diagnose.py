@@ -7,7 +7,8 @@ significant only when it passes the tool's own test, set so that on data the mod
 explains nothing is significant in at least 95 % of cases.
 
 Several files are replicates: recordings of one unit. Each run is diagnosed alone (``--rounds``
-rounds of the loop: the top significant term added), the most common term set is fitted to
+rounds of the loop, as on that file by itself: the top significant suggestion applied, a term
+or a cut of that run), the runs side by side on the CPUs; the most common term set is fitted to
 every run, the shape parameters (correlation times, resonance and line frequencies, quality
 factors, filter cutoffs and taps) are tested for agreement across runs and shared, the
 amplitudes refitted per run, and the parameters that differ between runs beyond their

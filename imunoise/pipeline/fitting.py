@@ -187,4 +187,4 @@ def diagnose_replicates(records: list[tuple[str, Record]], key: str, model_text:
                         {"t0_s": series.t0_s, "temperature": temp_rec, "units": series.units,
                          "sensor_filter": device_filter(record.metadata, key)}))
     with fit_errors(key):
-        return fit_replicates(runs, model_text, rounds=rounds)
+        return fit_replicates(runs, model_text, rounds=rounds, job_map=cpu_job_map())

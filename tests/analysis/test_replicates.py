@@ -116,3 +116,42 @@ def test_repeated_terms_are_matched_by_shape_not_by_order() -> None:
     run_b = SimpleNamespace(terms=[run_a.terms[0], run_a.terms[2], run_a.terms[1]])
     assert _order(run_a, names) == [0, 1, 2]
     assert _order(run_b, names) == [0, 2, 1]  # the 0.56 Hz resonance is the first in both
+
+
+def test_a_runs_loop_applies_a_cut_to_that_run_and_goes_on(monkeypatch) -> None:
+    # the loop on a file alone: a warm-up cut judged first is applied to the record (the next
+    # round sees the samples after it, on the time scale of the file), then a term
+    from types import SimpleNamespace
+
+    import imunoise.analysis.diagnosis as diagnosis
+    from imunoise.analysis.replicates import loop_terms
+
+    calls: list[dict] = []
+
+    def suggestion(args: list[str], model: str) -> SimpleNamespace:
+        return SimpleNamespace(significant=True, term="x", apply={"model": model, "args": args})
+
+    rounds = [[suggestion(["--skip", "100"], "white,random_walk")],
+              [suggestion(["--split", "50"], "white,random_walk")],
+              [suggestion([], "white,random_walk,gauss_markov")],
+              []]
+
+    def fake(values, fs_hz, model, **kw):
+        calls.append({"n": len(values), "model": model, **kw})
+        return SimpleNamespace(suggestions=rounds[len(calls) - 1])
+
+    monkeypatch.setattr(diagnosis, "diagnose", fake)
+    x = np.zeros(int(1000 * FS))
+    run = Run("r", x, FS, diagnose_kwargs={"t0_s": 7.0, "units": "m/s^2"})
+    assert loop_terms(run, "white,random_walk", 5) == ["white", "random_walk", "gauss_markov"]
+    assert [c["n"] for c in calls] == [x.size, x.size - 10000, x.size - 10000, x.size - 10000]
+    assert [c["t0_s"] for c in calls] == [7.0, 107.0, 107.0, 107.0]
+    assert [c["time_origin_s"] for c in calls] == [0.0, 100.0, 100.0, 100.0]
+    # the split (50 s after the first sample analysed) makes a segment of its own
+    assert list(calls[2]["segment_starts"]) == [0, 5000]
+    assert calls[3]["model"] == "white,random_walk,gauss_markov"
+    assert all(c["units"] == "m/s^2" for c in calls)
+    # a cut uses a round: with two rounds the term is never reached
+    calls.clear()
+    assert loop_terms(run, "white,random_walk", 2) == ["white", "random_walk"]
+    assert len(calls) == 2

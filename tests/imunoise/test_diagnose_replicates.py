@@ -64,6 +64,23 @@ def test_one_file_is_the_single_run_diagnosis(files, capsys) -> None:
     assert "replicates" not in doc and "suggestions" in doc
 
 
+def test_each_runs_loop_is_that_files_own_loop(files, capsys) -> None:
+    # the runs' loops run side by side in workers; each reaches what the loop on its file
+    # alone reaches, one round from white,random_walk: the 20-21 Hz resonance
+    from imunoise.analysis.replicates import Run, loop_terms
+
+    assert main(["diagnose", *map(str, files), "--channel", "gyro_x", "--model",
+                 "white,random_walk", "--rounds", "1", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)["replicates"]
+    alone = []
+    for f in files:
+        x = np.loadtxt(f, delimiter=",", skiprows=1)[:, 1]
+        alone.append(loop_terms(Run(str(f), x, FS, diagnose_kwargs={"units": "rad/s"}),
+                                "white,random_walk", 1))
+    assert [r["loop_terms"] for r in rep["runs"]] == alone
+    assert alone == [["white", "random_walk", "resonance"]] * 3
+
+
 def test_bad_rounds_is_a_usage_error(files, capsys) -> None:
     assert main(["diagnose", *map(str, files[:2]), "--channel", "gyro_x", "--model", "white",
                  "--rounds", "-1"]) == 2

@@ -704,3 +704,17 @@ def test_adis16405_a_term_that_predicts_the_other_half_worse_once_changes_are_fi
     assert held.chi2_per_dof_after < 2.5
     assert held.error_after["holdout"]["chi2_per_dof"] < before["chi2_per_dof"] + 1.0
     assert held.error_after["holdout"]["changes_free"]["chi2_per_dof"] > 5.0
+
+
+def test_a_run_of_the_unit_alone_chooses_what_the_loop_on_its_file_chooses(shared_data) -> None:
+    # ADIS16405 run 1 gyro_x: `imunoise diagnose` adds moving_average and then finds nothing
+    # significant (a 0.0015 Hz sinusoid at p 0.052, beside a bias-step cut). The replicates'
+    # loop on the run is the same diagnosis: without the transient tests in the family the
+    # sinusoid came out significant there and the run chose a set its own loop does not
+    from imunoise.analysis.replicates import Run, loop_terms
+
+    d = np.load(shared_data / "adis16405" / "run1.npz")
+    x = d["gyro_counts"][:, 0] * float(d["gyro_scale_dps"]) * math.pi / 180.0
+    run = Run("run1", np.asarray(x, dtype=np.float64), float(d["fs_hz"]),
+              diagnose_kwargs={"units": "rad/s"})
+    assert loop_terms(run, DEFAULT, 4) == DEFAULT.split(",") + ["moving_average"]
