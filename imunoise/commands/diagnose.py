@@ -18,6 +18,7 @@ intervals are named.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Any
 
@@ -197,6 +198,7 @@ def run_replicates(args: argparse.Namespace) -> int:
     from imunoise.pipeline import documents
     from imunoise.pipeline.fitting import diagnose_replicates
 
+    _distinct_files(args.file)
     records = []
     key = ""
     for path in args.file:
@@ -208,17 +210,41 @@ def run_replicates(args: argparse.Namespace) -> int:
         key = key_i
         apply_window(record, key, args.skip, args.split)
         records.append((path, record))
+    warnings = [f"{path}: {w}" for path, record in records for w in record.warnings]
+    warnings += _rate_warning(records, key)
     res = diagnose_replicates(records, key, args.model, args.rounds)
     if args.json:
         doc = {"channel": key, "units": records[0][1].series(key).units, "model": args.model,
-               "replicates": res.to_dict()}
+               "replicates": res.to_dict(), "warnings": warnings}
         sys.stdout.write(documents.dumps(doc) + "\n")
     else:
-        for _, record in records:
-            for w in record.warnings:
-                print(f"warning: {w}", file=sys.stderr)
+        for w in warnings:
+            print(f"warning: {w}", file=sys.stderr)
         print(replicates_text(key, records[0][1].series(key).units, res))
     return 0
+
+
+def _distinct_files(paths: list[str]) -> None:
+    """A usage error where one file is given twice: a replicate is another recording, and a
+    run compared with itself agrees by construction."""
+    seen: dict[str, str] = {}
+    for path in paths:
+        real = os.path.realpath(path)
+        if real in seen:
+            raise UsageError(f"diagnose: {path} is {seen[real]} again: replicates are "
+                             f"different recordings of one unit, each file once")
+        seen[real] = path
+
+
+def _rate_warning(records: list[tuple[str, Any]], key: str) -> list[str]:
+    """A warning where the runs were sampled at different rates: a filter's taps and a
+    Markov term near the sample period mean different things at each rate."""
+    rates = {path: float(record.series(key).fs_hz) for path, record in records}
+    if len({round(r, 9) for r in rates.values()}) < 2:
+        return []
+    listed = ", ".join(f"{r:g} Hz in {path}" for path, r in rates.items())
+    return [f"the runs' sample rates differ ({listed}): shapes counted in samples (a "
+            f"filter's taps) are compared across different sample periods"]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -87,6 +87,50 @@ def test_bad_rounds_is_a_usage_error(files, capsys) -> None:
     assert "--rounds '-1': a whole number >= 0" in capsys.readouterr().err
 
 
+def test_one_file_twice_is_a_usage_error(files, tmp_path, capsys) -> None:
+    # a run compared with itself agrees by construction; a link to it is the same file
+    link = tmp_path / "again.csv"
+    link.symlink_to(files[0])
+    for second in (files[0], link):
+        assert main(["diagnose", str(files[0]), str(second), "--channel", "gyro_x",
+                     "--model", "white", "--rounds", "0"]) == 2
+        err = capsys.readouterr().err
+        assert f"{second} is {files[0]} again: replicates are different recordings" in err
+
+
+def test_runs_at_different_rates_are_named_in_a_warning(files, tmp_path, capsys) -> None:
+    # the same samples stamped at 50 Hz: a filter's taps mean another time at that rate
+    x = np.loadtxt(files[1], delimiter=",", skiprows=1)
+    slow = tmp_path / "slow.csv"
+    np.savetxt(slow, np.column_stack([np.arange(len(x)) / 50.0, x[:, 1]]), delimiter=",",
+               header="t,gyro_x", comments="", fmt="%.10g")
+    args = ["diagnose", str(files[0]), str(slow), "--channel", "gyro_x", "--model",
+            "white,random_walk", "--rounds", "0"]
+    assert main(args + ["--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    expected = (f"the runs' sample rates differ (100 Hz in {files[0]}, 50 Hz in {slow}): "
+                f"shapes counted in samples")
+    assert len(doc["warnings"]) == 1 and doc["warnings"][0].startswith(expected)
+    assert main(args) == 0
+    assert f"warning: {expected}" in capsys.readouterr().err
+    # runs at one rate: no warning
+    assert main(["diagnose", *map(str, files[:2]), "--channel", "gyro_x", "--model",
+                 "white,random_walk", "--rounds", "0", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["warnings"] == []
+
+
+def test_a_files_warning_names_the_file(files, tmp_path, capsys) -> None:
+    x = np.loadtxt(files[1], delimiter=",", skiprows=1)
+    x[1000, 1] = np.nan
+    holed = tmp_path / "holed.csv"
+    np.savetxt(holed, x, delimiter=",", header="t,gyro_x", comments="", fmt="%.10g")
+    assert main(["diagnose", str(files[0]), str(holed), "--channel", "gyro_x", "--model",
+                 "white,random_walk", "--rounds", "0", "--json"]) == 0
+    warnings = json.loads(capsys.readouterr().out)["warnings"]
+    assert warnings == [f"{holed}: gyro_x: 1 missing or non-finite value(s) removed; "
+                        f"segments split around them"]
+
+
 # The six ADIS16405 runs (2.8 h at 100 Hz each), one channel, the model the loop closes
 # gyro_x with on run 1; what was measured on them (docs/replicates.md): the filter's length
 # pooled 1.27 samples, but run 5 (1.32) against the others (1.17-1.20) is beyond the
