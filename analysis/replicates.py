@@ -62,13 +62,17 @@ class Run:
 
 @dataclass
 class Estimate:
-    """One parameter of one run: value and 95 % interval (SI units)."""
+    """One parameter of one run: value and 95 % interval (SI units), and where it was
+    measured: ``"allan"`` (the fit of the Allan curve) or ``"psd"`` (a resonance's peak in
+    the run's spectrum)."""
 
     value: float
     ci95: tuple[float, float]
+    source: str = "allan"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"value": _num(self.value), "ci95": [_num(self.ci95[0]), _num(self.ci95[1])]}
+        return {"value": _num(self.value), "ci95": [_num(self.ci95[0]), _num(self.ci95[1])],
+                "source": self.source}
 
 
 @dataclass
@@ -117,7 +121,8 @@ class ReplicateResult:
         per_run_terms: the term set each run alone chose by the diagnosis loop (empty when the
             loop was not run).
         common_terms: the most common of those and how many runs chose it.
-        free_fits: each run's own fit of ``term_set``.
+        free_fits: each run's own fit of ``term_set``, its resonances' f0 and Q (where the
+            user did not hold them) from its spectrum, with the spectrum's intervals.
         tied_fits: each run's refit with the shapes that agree held at their pooled values.
         shared: the homogeneity test of every shape parameter.
         amplitudes: the homogeneity test of every amplitude parameter (on the runs' own fits).
@@ -138,6 +143,13 @@ class ReplicateResult:
     order: list[list[int]] = field(default_factory=list)
     """Per run, the term index in that run's fits of each model position (repeated terms are
     matched across runs by their shape, not by the order the fit left them in)."""
+    curve_fits: list[FitResult] = field(default_factory=list)
+    """Each run's fit of the Allan curve alone, before its resonances' shapes are taken from
+    its spectrum: the amplitudes are compared there."""
+    curve_order: list[list[int]] = field(default_factory=list)
+    """:attr:`order` of :attr:`curve_fits`."""
+    spectral: list[dict[int, dict[str, float]]] = field(default_factory=list)
+    """Per run, the resonance shapes taken from its spectrum, by term index of its fits."""
 
     @property
     def differ(self) -> list[Homogeneity]:
@@ -146,8 +158,16 @@ class ReplicateResult:
 
     def per_run_values(self, h: Homogeneity) -> list[Estimate | None]:
         """Each run's own estimate of the tested parameter (what the test compared)."""
-        return [_estimate(f, o[h.index], h.param) for f, o in zip(self.free_fits, self.order,
-                                                                   strict=True)]
+        if h.kind == "amplitude" and self.curve_fits:
+            return [_estimate(f, o[h.index], h.param)
+                    for f, o in zip(self.curve_fits, self.curve_order, strict=True)]
+        out = []
+        for r, (f, o) in enumerate(zip(self.free_fits, self.order, strict=True)):
+            e = _estimate(f, o[h.index], h.param)
+            if e is not None and self.spectral and h.param in self.spectral[r].get(o[h.index], {}):
+                e.source = "psd"
+            out.append(e)
+        return out
 
     def tied_values(self, h: Homogeneity) -> list[Estimate | None]:
         """Each run's estimate in the refit with the agreeing shapes held."""
@@ -340,6 +360,54 @@ def _loop_job(shared: tuple[str, int, float], run: Run) -> list[str]:
     return loop_terms(run, model, rounds, alpha)
 
 
+def _at_spectrum_peaks(run: Run, free: FitResult, fixed: dict | None, names: list[str],
+                       refit: Any) -> tuple[FitResult, dict[int, dict[str, float]]]:
+    """Run ``run``'s fit with the centre frequency and quality factor of each resonance the
+    user did not hold taken from the run's own spectrum, as the single-run diagnosis and the
+    hold-out part take them (:func:`imunoise.analysis.spectral_pins.pin_resonances`): held
+    there in the refit (``refit(held, start)``), with the spectrum's 95 % intervals as their
+    intervals. The Allan curve leaves a resonance's f0 loose (ADIS16405 gyro_z: 18.3 Hz from
+    the curve of a run whose spectrum peaks at 19.9 Hz). A peak is taken, one resonance at a
+    time, only where holding it does not raise the Allan chi2/dof beyond its noise (the
+    diagnosis's rule): a broad resonance standing in for a bend can find a narrow peak of
+    its own in the spectrum that the curve refuses (run 3: a Q 0.5 hump pinned to a 1.9 Hz
+    line took chi2/dof to 3e3). Peaks the spectrum does not resolve keep the curve's values.
+    Returns the fit and the shapes held, by term index."""
+    from imunoise.analysis.diagnosis.statistics import _rises
+    from imunoise.analysis.spectral_pins import Pin, pin_resonances
+
+    held = {(i, p) for i, n in enumerate(names) for p in get_term(n).param_names
+            if _held(fixed, names, i, p)}
+    try:
+        pins = pin_resonances(run.values, run.fs_hz, free.params, held, run.segment_starts)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return free, {}
+    user: dict[int, dict[str, float]] = {}
+    for key, pars in (fixed or {}).items():
+        user.setdefault(key if isinstance(key, int) else names.index(key), {}).update(pars)
+    best = free
+    kept: list[Pin] = []
+    for pin in pins:
+        trial = kept + [pin]
+        tie = {k: dict(v) for k, v in user.items()}
+        start = best.params
+        for q in trial:
+            shape = {k: float(q.params[k]) for k in q.ci95}
+            tie.setdefault(q.index, {}).update(shape)
+            start[q.index][1].update(shape)
+        try:
+            pinned = refit(tie, start)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+            continue
+        if _rises(free.chi2_per_dof, pinned.chi2_per_dof, free.misfit.dof):
+            continue
+        best, kept = pinned, trial
+    for pin in kept:
+        best.terms[pin.index].ci95.update(
+            {k: (float(lo), float(hi)) for k, (lo, hi) in pin.ci95.items()})
+    return best, {q.index: {k: float(q.params[k]) for k in q.ci95} for q in kept}
+
+
 def _common(sets: list[list[str]]) -> tuple[list[str], int]:
     """The most common term set (order-free; a tie goes to the smaller set, then the first)."""
     keys = [tuple(sorted(s)) for s in sets]
@@ -388,18 +456,25 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
                           temperature=r.temperature, fixed=held, memo=memos[i],
                           intervals=intervals, start=start)[0]
 
-    free_fits = [fit(i, fixed) for i in range(len(runs))]
+    curve_fits = [fit(i, fixed) for i in range(len(runs))]
+    at_peaks = [_at_spectrum_peaks(runs[i], curve_fits[i], fixed, names,
+                                   lambda held, start, i=i: fit(i, held, start))
+                for i in range(len(runs))]
+    free_fits = [f for f, _ in at_peaks]
     order = [_order(f, names) for f in free_fits]
+    curve_order = [_order(f, names) for f in curve_fits]
     params = [(i, p, k) for i, p, k in _kinds(names) if not _held(fixed, names, i, p)]
     level = alpha / max(1, len(params))
 
-    def test(i: int, p: str, kind: str, fits: list[FitResult]) -> Homogeneity:
+    def test(i: int, p: str, kind: str) -> Homogeneity:
+        fits, where = (free_fits, order) if kind == "shape" else (curve_fits, curve_order)
         pooled, ci, q, dof, pv, used = homogeneity(
-            [_estimate(f, o[i], p) for f, o in zip(fits, order, strict=True)], labels)
+            [_estimate(f, o[i], p) for f, o in zip(fits, where, strict=True)], labels)
         return Homogeneity(names[i], i, p, kind, pooled, ci, q, dof, pv, used,
                            differs=dof > 0 and pv < level)
 
-    shared = [test(i, p, k, free_fits) for i, p, k in params if k == "shape"]
+    # shapes are compared where they are measured best: a resonance's at its spectrum's peak
+    shared = [test(i, p, k) for i, p, k in params if k == "shape"]
     tie: dict[int, dict[str, float]] = {}
     for key, pars in (fixed or {}).items():
         idx = key if isinstance(key, int) else names.index(key)
@@ -407,8 +482,11 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
     pooled = [h for h in shared if not h.differs and np.isfinite(h.pooled)]
 
     def tie_of(r: int) -> dict[int, dict[str, float]] | None:
-        """Run ``r``'s held parameters: the user's, and the pooled shapes at its own indices."""
+        """Run ``r``'s held parameters: the user's, its own spectrum's resonance shapes, and
+        the pooled shapes at its own indices."""
         out = {k: dict(v) for k, v in tie.items()}
+        for idx, pars in at_peaks[r][1].items():
+            out.setdefault(idx, {}).update(pars)
         for h in pooled:
             out.setdefault(order[r][h.index], {})[h.param] = h.pooled
         return out or None
@@ -420,24 +498,35 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
         start = free_fits[r].params
         for idx, pars in (held or {}).items():
             start[idx][1].update(pars)
-        return fit(r, held, start)
+        out = fit(r, held, start)
+        for idx, pars in at_peaks[r][1].items():
+            # a shape at the run's own spectrum peak keeps the spectrum's interval
+            own = free_fits[r].terms[idx]
+            out.terms[idx].ci95.update({k: own.ci95[k] for k in pars
+                                        if out.terms[idx].params[k] == own.params[k]})
+        return out
 
     tied_fits = [tied(r) for r in range(len(runs))] if pooled or tie else free_fits
-    # amplitudes are compared on the runs' own fits: their intervals there carry the
-    # uncertainty of the shapes, which holding a pooled shape would leave out (and a run
-    # whose shape estimate lies off the pooled one moves its amplitude to compensate)
-    amplitudes = [test(i, p, k, free_fits) for i, p, k in params if k == "amplitude"]
-    per_run = []
-    for f, o in zip(tied_fits, order, strict=True):
-        row: dict[str, Estimate] = {}
-        for i, name in enumerate(names):
-            for p in f.terms[o[i]].params:
-                e = _estimate(f, o[i], p)
-                if e is not None:
-                    row[f"{name}#{i}.{p}"] = e
-        per_run.append(row)
+    # amplitudes are compared on the runs' fits of the curve alone: their intervals there
+    # carry the uncertainty of the shapes, which holding a shape (the spectrum's, or a
+    # pooled one) would leave out (and a run whose shape estimate lies off the pooled one
+    # moves its amplitude to compensate)
+    amplitudes = [test(i, p, k) for i, p, k in params if k == "amplitude"]
+    per_run = [_table(f, o, names) for f, o in zip(tied_fits, order, strict=True)]
     return ReplicateResult(labels, names, per_run_terms, common, free_fits, tied_fits, shared,
-                           amplitudes, per_run, alpha, order)
+                           amplitudes, per_run, alpha, order, curve_fits, curve_order,
+                           [shapes for _, shapes in at_peaks])
+
+
+def _table(fit: FitResult, order: list[int], names: list[str]) -> dict[str, Estimate]:
+    """``{"term#position.param": Estimate}`` of one run's fit, by model position."""
+    row: dict[str, Estimate] = {}
+    for i, name in enumerate(names):
+        for p in fit.terms[order[i]].params:
+            e = _estimate(fit, order[i], p)
+            if e is not None:
+                row[f"{name}#{i}.{p}"] = e
+    return row
 
 
 __all__ = ["Run", "Estimate", "Homogeneity", "ReplicateResult", "fit_replicates",

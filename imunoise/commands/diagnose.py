@@ -184,10 +184,13 @@ def replicates_text(key: str, units: str, res: Any) -> str:
         lines.append("  differ between runs beyond their intervals")
         for h in differ:
             u = unit(h.term, h.param)
-            vals = ", ".join("-" if e is None else f"{e.value:.4g}"
-                             for e in res.per_run_values(h))
-            lines.append(f"    {h.term} {h.param}: {vals} {u} by run; chi2 = {h.q:.3g} on "
-                         f"{h.dof} dof, p = {h.p_value:.2g}")
+            values = res.per_run_values(h)
+            vals = ", ".join("-" if e is None else f"{e.value:.4g}" for e in values)
+            peaks = [str(r + 1) for r, e in enumerate(values) if e is not None
+                     and e.source == "psd"]
+            src = f" (runs {', '.join(peaks)} at their spectrum's peak)" if peaks else ""
+            lines.append(f"    {h.term} {h.param}: {vals} {u} by run{src}; chi2 = {h.q:.3g} "
+                         f"on {h.dof} dof, p = {h.p_value:.2g}")
     else:
         lines.append("  no parameter differs between runs beyond its interval")
     return "\n".join(lines)

@@ -77,8 +77,16 @@ def test_a_resonance_moved_by_5_percent_is_named(seed: int) -> None:
     res = fit_replicates(_runs(seed, [20.0, 20.0, 21.0]), MODEL, intervals="jacobian")
     names = [(h.term, h.param) for h in res.differ]
     assert ("resonance", "f0") in names
-    f0 = [e.value for e in res.per_run_values(res.differ[names.index(("resonance", "f0"))])]
+    f0_runs = res.per_run_values(res.differ[names.index(("resonance", "f0"))])
+    f0 = [e.value for e in f0_runs]
     assert f0[2] / f0[0] == pytest.approx(1.05, abs=0.01)
+    # each run's f0 is its spectrum's peak, to about 0.01 Hz (the Allan curve gives 0.05 Hz)
+    assert all(e.source == "psd" and e.ci95[1] - e.ci95[0] < 0.04 for e in f0_runs), f0_runs
+    assert all(abs(v - t) < 0.05 for v, t in zip(f0, (20.0, 20.0, 21.0), strict=True)), f0
+    # amplitudes are compared on the curve's own fits, whose intervals carry the shapes'
+    sigma = next(h for h in res.amplitudes if h.param == "sigma")
+    assert all(e.source == "allan" and e.ci95[0] < e.value < e.ci95[1]
+               for e in res.per_run_values(sigma))
     # a shape that differs is not held: each run keeps its own f0 in the refit
     assert res.tied_fits[2].terms[2].params["f0"] == pytest.approx(f0[2], rel=1e-3)
     # the Q that agrees is held at its pooled value in every run's refit
