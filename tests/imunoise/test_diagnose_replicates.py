@@ -163,7 +163,7 @@ def test_six_adis16405_runs_gyro_x(shared_data) -> None:
 def test_six_adis16405_runs_gyro_z_compare_the_peak_where_the_spectrum_shows_it(
         shared_data) -> None:
     # the 20 Hz vibration: the Allan curve alone put it at 18.3 Hz in runs 2-4, whose
-    # spectra peak at 19.8-19.9 Hz; held at the peak where that does not raise a run's
+    # spectra peak at 19.76-19.95 Hz; held at the peak where that does not raise a run's
     # Allan misfit beyond its noise, with the spectrum's interval
     from imunoise.analysis.replicates import Run, fit_replicates
 
