@@ -289,6 +289,15 @@ def _kinds(names: list[str]) -> list[tuple[int, str, str]]:
     return out
 
 
+def _by_index(fixed: dict[str | int, dict[str, float]] | None, names: list[str]
+              ) -> dict[int, dict[str, float]]:
+    """``fixed`` (keyed by model index or first term name) keyed by model index."""
+    out: dict[int, dict[str, float]] = {}
+    for key, pars in (fixed or {}).items():
+        out.setdefault(key if isinstance(key, int) else names.index(key), {}).update(pars)
+    return out
+
+
 def _held(fixed: dict[str | int, dict[str, float]] | None, names: list[str], index: int,
           param: str) -> bool:
     """Whether ``fixed`` (keyed by model index or first term name) holds this parameter."""
@@ -376,15 +385,12 @@ def _at_spectrum_peaks(run: Run, free: FitResult, fixed: dict | None, names: lis
     from imunoise.analysis.diagnosis.statistics import _rises
     from imunoise.analysis.spectral_pins import Pin, pin_resonances
 
-    held = {(i, p) for i, n in enumerate(names) for p in get_term(n).param_names
-            if _held(fixed, names, i, p)}
+    user = _by_index(fixed, names)
+    held = {(i, p) for i, pars in user.items() for p in pars}
     try:
         pins = pin_resonances(run.values, run.fs_hz, free.params, held, run.segment_starts)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):
         return free, {}
-    user: dict[int, dict[str, float]] = {}
-    for key, pars in (fixed or {}).items():
-        user.setdefault(key if isinstance(key, int) else names.index(key), {}).update(pars)
     best = free
     kept: list[Pin] = []
     for pin in pins:
@@ -475,10 +481,7 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
 
     # shapes are compared where they are measured best: a resonance's at its spectrum's peak
     shared = [test(i, p, k) for i, p, k in params if k == "shape"]
-    tie: dict[int, dict[str, float]] = {}
-    for key, pars in (fixed or {}).items():
-        idx = key if isinstance(key, int) else names.index(key)
-        tie.setdefault(idx, {}).update(pars)
+    tie = _by_index(fixed, names)
     pooled = [h for h in shared if not h.differs and np.isfinite(h.pooled)]
 
     def tie_of(r: int) -> dict[int, dict[str, float]] | None:
