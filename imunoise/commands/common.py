@@ -65,8 +65,9 @@ def add_window_options(parser: argparse.ArgumentParser) -> None:
                              "from its first one (a warm-up transient; default 0)")
     parser.add_argument("--split", type=split_times, default=[], metavar="T[,T...]",
                         help="cut the channel into separate segments at these times (s from "
-                             "its first sample): no Allan difference spans a bias step "
-                             "(default: no cut)")
+                             "its first sample): no Allan difference spans a bias step; a "
+                             "time outside the samples analysed cuts nothing and is named "
+                             "in a warning (default: no cut)")
 
 
 def model_lines(result: FitResult | Any, units: str) -> list[str]:

@@ -205,13 +205,21 @@ def run_replicates(args: argparse.Namespace) -> int:
     records = []
     key = ""
     for path in args.file:
-        record, key_i = open_imu_channel(path, args.rate, args.channel, "diagnose",
-                                         args.static)
+        try:
+            record, key_i = open_imu_channel(path, args.rate, args.channel, "diagnose",
+                                             args.static)
+        except UsageError as exc:
+            # a reading error names its file already; a channel missing from one of the
+            # runs would not say which
+            raise UsageError(str(exc) if path in str(exc) else f"{path}: {exc}") from exc
         if key and key_i != key:
             raise UsageError(f"diagnose: --channel {args.channel} is {key} in "
                              f"{args.file[0]} but {key_i} in {path}")
         key = key_i
-        apply_window(record, key, args.skip, args.split)
+        try:
+            apply_window(record, key, args.skip, args.split)
+        except UsageError as exc:
+            raise UsageError(f"{path}: {exc}") from exc
         records.append((path, record))
     warnings = [f"{path}: {w}" for path, record in records for w in record.warnings]
     warnings += _rate_warning(records, key)

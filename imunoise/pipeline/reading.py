@@ -23,13 +23,21 @@ from imunoise.errors import UsageError
 
 def apply_window(record: Record, key: str, skip_s: float, split_s: list[float]) -> None:
     """Channel ``key`` of ``record`` cut by ``--skip`` and ``--split`` (in place); a skip that
-    leaves nothing is a usage error."""
+    leaves nothing is a usage error, a split time outside what is analysed a warning (it
+    cuts nothing)."""
     if not skip_s and not split_s:
         return
+    series = record.channels[key]
     try:
-        record.channels[key] = record.channels[key].windowed(skip_s, split_s)
+        record.channels[key] = series.windowed(skip_s, split_s)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    first = round(max(float(skip_s), 0.0) * series.fs_hz)
+    for t in split_s:
+        if not first < round(float(t) * series.fs_hz) < series.n_samples:
+            record.warnings.append(
+                f"{key}: --split {float(t):g} s is outside the samples analysed "
+                f"({first / series.fs_hz:.6g} to {series.duration_s:.6g} s): it cuts nothing")
 
 
 def read_record(path: str, rate_hz: float | None = None, static: str = "all") -> Record:

@@ -59,6 +59,15 @@ def test_skip_and_split_on_the_command_line(tmp_path, capsys) -> None:
                  "--split", "600", "--skip", "10", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["n_segments"] == 2 and doc["n_samples"] == n - 500
+    assert not [w for w in doc["warnings"] if "--split" in w]
+    # a split time before the skip's end or beyond the record cuts nothing, and says so
+    assert main(["fit", str(path), "--channel", "gyro_x", "--model", "white,random_walk",
+                 "--split", "5,600,1300", "--skip", "10", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["n_segments"] == 2
+    assert [w for w in doc["warnings"] if "--split" in w] == [
+        f"gyro_x: --split {t} s is outside the samples analysed (10 to 1200 s): it cuts nothing"
+        for t in (5, 1300)]
 
 
 def test_a_cut_suggestion_applies_as_stated(tmp_path, capsys) -> None:

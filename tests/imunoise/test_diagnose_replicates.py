@@ -98,6 +98,25 @@ def test_one_file_twice_is_a_usage_error(files, tmp_path, capsys) -> None:
         assert f"{second} is {files[0]} again: replicates are different recordings" in err
 
 
+def test_a_run_without_the_channel_or_too_short_for_the_skip_is_named(files, tmp_path,
+                                                                      capsys) -> None:
+    x = np.loadtxt(files[1], delimiter=",", skiprows=1)
+    other = tmp_path / "accel.csv"
+    np.savetxt(other, x, delimiter=",", header="t,accel_x", comments="", fmt="%.10g")
+    assert main(["diagnose", str(files[0]), str(other), "--channel", "gyro_x", "--model",
+                 "white", "--rounds", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"imunoise: {other}: unknown channel 'gyro_x'; valid channels: accel_x"]
+    # a skip longer than one of the runs
+    short = tmp_path / "short.csv"
+    np.savetxt(short, x[:500], delimiter=",", header="t,gyro_x", comments="", fmt="%.10g")
+    assert main(["diagnose", str(files[0]), str(short), "--channel", "gyro_x", "--model",
+                 "white", "--rounds", "0", "--skip", "100"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"imunoise: {short}: gyro_x: --skip 100 s leaves no samples (the channel "
+                   f"has 5 s)"]
+
+
 def test_runs_at_different_rates_are_named_in_a_warning(files, tmp_path, capsys) -> None:
     # the same samples stamped at 50 Hz: a filter's taps mean another time at that rate
     x = np.loadtxt(files[1], delimiter=",", skiprows=1)
