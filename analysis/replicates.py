@@ -150,6 +150,10 @@ class ReplicateResult:
     """:attr:`order` of :attr:`curve_fits`."""
     spectral: list[dict[int, dict[str, float]]] = field(default_factory=list)
     """Per run, the resonance shapes taken from its spectrum, by term index of its fits."""
+    error_parts: list[dict[str, Any]] = field(default_factory=list)
+    """Per run, the error parts beside the Allan one of its own fit (:attr:`free_fits`):
+    ``{"psd", "holdout", "time_domain"}`` as :func:`imunoise.analysis.model_error.error_parts`
+    gives them (plain numbers)."""
 
     @property
     def differ(self) -> list[Homogeneity]:
@@ -187,6 +191,7 @@ class ReplicateResult:
         return {
             "runs": [{"label": lab, "chi2_per_dof": _num(free.chi2_per_dof),
                       "chi2_per_dof_tied": _num(tied.chi2_per_dof),
+                      "error": self.error_parts[i] if self.error_parts else None,
                       "loop_terms": list(self.per_run_terms[i]) if self.per_run_terms else None}
                      for i, (lab, free, tied) in enumerate(zip(self.runs, self.free_fits,
                                                                self.tied_fits, strict=True))],
@@ -425,8 +430,8 @@ def _common(sets: list[list[str]]) -> tuple[list[str], int]:
 
 def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
                    alpha: float = DEFAULT_ALPHA, rounds: int = 0,
-                   intervals: str = "profile", job_map: JobMap = serial_map
-                   ) -> ReplicateResult:
+                   intervals: str = "profile", error_parts: bool = True,
+                   job_map: JobMap = serial_map) -> ReplicateResult:
     """Fit one model to several runs of one unit with shared shapes and per-run amplitudes.
 
     Args:
@@ -437,8 +442,12 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
         rounds: when positive, each run is first diagnosed alone for up to ``rounds`` rounds
             and the most common resulting term set is fitted to the unit.
         intervals: interval method of the fits (``"profile"`` or ``"jacobian"``).
-        job_map: how the runs' loops run (one job per run; :mod:`imunoise.analysis.jobs`):
-            one after the other by default. The result is the same.
+        error_parts: also each run's PSD, hold-out and time-domain parts of its own fit
+            (:attr:`ReplicateResult.error_parts`; the hold-out part fits each half of the
+            run again).
+        job_map: how the runs' loops and their error parts run (one job per run;
+            :mod:`imunoise.analysis.jobs`): one after the other by default. The result is
+            the same.
 
     Raises:
         ValueError: fewer than two runs; and as :func:`imunoise.analysis.fit.fit_series`.
@@ -467,6 +476,8 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
                                    lambda held, start, i=i: fit(i, held, start))
                 for i in range(len(runs))]
     free_fits = [f for f, _ in at_peaks]
+    parts = job_map(_parts_job, (runs, spec, fixed, free_fits), range(len(runs))) \
+        if error_parts else []
     order = [_order(f, names) for f in free_fits]
     curve_order = [_order(f, names) for f in curve_fits]
     params = [(i, p, k) for i, p, k in _kinds(names) if not _held(fixed, names, i, p)]
@@ -518,7 +529,20 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
     per_run = [_table(f, o, names) for f, o in zip(tied_fits, order, strict=True)]
     return ReplicateResult(labels, names, per_run_terms, common, free_fits, tied_fits, shared,
                            amplitudes, per_run, alpha, order, curve_fits, curve_order,
-                           [shapes for _, shapes in at_peaks])
+                           [shapes for _, shapes in at_peaks], parts)
+
+
+def _parts_job(shared: tuple[list[Run], str, dict | None, list[FitResult]], i: int
+               ) -> dict[str, Any]:
+    """Run ``i``'s PSD, hold-out and time-domain parts of its own fit (a job of a job map:
+    the runs and fits come with the shared context, not through a pipe)."""
+    from imunoise.analysis.model_error import error_parts, plain
+
+    runs, spec, fixed, fits = shared
+    r = runs[i]
+    _, parts = error_parts(r.values, r.fs_hz, spec, fits[i], r.segment_starts, fixed,
+                           units=str(r.diagnose_kwargs.get("units", "rad/s")))
+    return dict(plain(parts))
 
 
 def _table(fit: FitResult, order: list[int], names: list[str]) -> dict[str, Estimate]:

@@ -141,6 +141,11 @@ def _value(v: float, unit: str) -> str:
     return f"{v:.4g} {unit}".removesuffix(" 1")
 
 
+def _part(value: float | None) -> str:
+    """An error part for the text, "n/a" where it could not be computed."""
+    return "n/a" if value is None else f"{value:.3g}"
+
+
 def replicates_text(key: str, units: str, res: Any) -> str:
     """Readable report of several runs of one unit: term sets, shared shapes, per-run
     amplitudes and the parameters that differ between runs."""
@@ -156,9 +161,20 @@ def replicates_text(key: str, units: str, res: Any) -> str:
         common, n = res.common_terms
         lines.append(f"  most common term set ({n} of {len(res.runs)} runs): {','.join(common)}")
     lines.append(f"  model fitted to every run: {','.join(res.term_set)}")
-    lines.append("  runs (chi2/dof alone -> with the shared shapes held)")
-    for lab, free, tied in zip(res.runs, res.free_fits, res.tied_fits, strict=True):
-        lines.append(f"    {lab}: {free.chi2_per_dof:.3g} -> {tied.chi2_per_dof:.3g}")
+    lines.append("  runs (allan chi2/dof alone -> shared shapes held | the run's own fit's psd "
+                 "deviance/bin | hold-out chi2/dof)")
+    parts = res.error_parts or [{} for _ in res.runs]
+    for lab, free, tied, p in zip(res.runs, res.free_fits, res.tied_fits, parts, strict=True):
+        psd = (p.get("psd") or {}).get("deviance_per_bin")
+        holdout = p.get("holdout") or {}
+        changes = holdout.get("changes_free") or {}
+        # a change between the run's halves is a finding: the part with it fitted says
+        # whether anything else is wrong
+        found = "" if changes.get("chi2_per_dof") is None else \
+            f" ({_part(changes['chi2_per_dof'])} with {', '.join(changes['params'])} " \
+            f"fitted on each half)"
+        lines.append(f"    {lab}: {free.chi2_per_dof:.3g} -> {tied.chi2_per_dof:.3g} | psd "
+                     f"{_part(psd)} | hold-out {_part(holdout.get('chi2_per_dof'))}{found}")
     lines.append(f"  shared shape parameters (95 % intervals; chi2 of the runs against the "
                  f"pooled value, * = differ at family level {res.alpha:g})")
     if not res.shared:

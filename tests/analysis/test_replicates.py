@@ -63,7 +63,8 @@ def test_the_side_of_the_interval_facing_the_pooled_value_weighs() -> None:
 def test_identical_runs_name_no_parameter() -> None:
     named = []
     for seed in range(20):
-        res = fit_replicates(_runs(seed, [20.0, 20.0, 20.0]), MODEL, intervals="jacobian")
+        res = fit_replicates(_runs(seed, [20.0, 20.0, 20.0]), MODEL, intervals="jacobian",
+                             error_parts=False)
         assert [h.param for h in res.shared] == ["f0", "Q"]
         f0 = res.shared[0]
         assert 19.0 < f0.pooled < 21.0 and f0.ci95[0] < f0.pooled < f0.ci95[1]
@@ -74,7 +75,8 @@ def test_identical_runs_name_no_parameter() -> None:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_resonance_moved_by_5_percent_is_named(seed: int) -> None:
-    res = fit_replicates(_runs(seed, [20.0, 20.0, 21.0]), MODEL, intervals="jacobian")
+    res = fit_replicates(_runs(seed, [20.0, 20.0, 21.0]), MODEL, intervals="jacobian",
+                         error_parts=False)
     names = [(h.term, h.param) for h in res.differ]
     assert ("resonance", "f0") in names
     f0_runs = res.per_run_values(res.differ[names.index(("resonance", "f0"))])
@@ -104,7 +106,8 @@ def test_loop_per_run_and_the_common_term_set() -> None:
     # runs with a strong resonance: one round of the loop from white,random_walk adds it in
     # each run, and that set is fitted to the unit
     runs = _runs(5, [20.0, 20.0])
-    res = fit_replicates(runs, "white,random_walk", rounds=1, intervals="jacobian")
+    res = fit_replicates(runs, "white,random_walk", rounds=1, intervals="jacobian",
+                         error_parts=False)
     assert res.per_run_terms == [["white", "random_walk", "resonance"]] * 2, res.per_run_terms
     assert res.common_terms == (["white", "random_walk", "resonance"], 2)
     assert "resonance" in res.term_set

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from imunoise.analysis.model_error import right_model_limit
 from imunoise.analysis.noise_stream import NoiseStream
 from imunoise.cli import main
 from imunoise.core.units import DEG
@@ -46,6 +48,13 @@ def test_json_names_the_moved_resonance(files, capsys) -> None:
     f0 = [e["value"] for e in differ[("resonance", "f0")]["per_run"]]
     assert f0[2] / f0[0] == pytest.approx(1.05, abs=0.01)
     assert len(rep["per_run"]) == 3 and "white#0.N" in rep["per_run"][0]
+    # each run's own fit of the model it was simulated from shows the parts of a right
+    # model: PSD deviance about 1 (0.88-0.98 here over 139 bins) and a hold-out within
+    # three standard deviations of 1 over its degrees of freedom
+    for r in rep["runs"]:
+        assert 0.7 < r["error"]["psd"]["deviance_per_bin"] < 1.4
+        assert r["error"]["holdout"]["chi2_per_dof"] < right_model_limit(15)
+        assert 0.0 < r["error"]["time_domain"]["p"] <= 1.0
 
 
 def test_text_lists_shared_shapes_and_differences(files, capsys) -> None:
@@ -55,6 +64,10 @@ def test_text_lists_shared_shapes_and_differences(files, capsys) -> None:
     assert "2 runs of one unit" in out and "shared shape parameters" in out
     assert "resonance         f0" in out
     assert "no parameter differs between runs beyond its interval" in out
+    for f in files[:2]:
+        assert re.search(rf"^    {re.escape(str(f))}: [0-9.]+ -> [0-9.]+ \| psd [0-9.]+ \| "
+                         rf"hold-out [0-9.]+( \([0-9.]+ with [A-Za-z_.#0-9, ]+ fitted on each "
+                         rf"half\))?$", out, re.M), out
 
 
 def test_one_file_is_the_single_run_diagnosis(files, capsys) -> None:
@@ -168,7 +181,8 @@ def test_six_adis16405_runs_gyro_x(shared_data) -> None:
         d = np.load(shared_data / "adis16405" / f"run{r}.npz")
         g = d["gyro_counts"][:, 0] * float(d["gyro_scale_dps"]) * DEG
         runs.append(Run(f"run{r}", g, float(d["fs_hz"])))
-    res = fit_replicates(runs, "white,bias_instability,random_walk,moving_average")
+    res = fit_replicates(runs, "white,bias_instability,random_walk,moving_average",
+                         error_parts=False)
     taps = next(h for h in res.shared if h.param == "taps")
     assert MEASURED_TAPS[0] < taps.pooled < MEASURED_TAPS[1]
     assert taps.differs is MEASURED_TAPS_DIFFER
@@ -192,7 +206,7 @@ def test_six_adis16405_runs_gyro_z_compare_the_peak_where_the_spectrum_shows_it(
         g = d["gyro_counts"][:, 2] * float(d["gyro_scale_dps"]) * DEG
         runs.append(Run(f"run{r}", g, float(d["fs_hz"])))
     res = fit_replicates(runs, "white,bias_instability,random_walk,resonance,resonance",
-                         intervals="jacobian")
+                         intervals="jacobian", error_parts=False)
     f0 = next(h for h in res.shared if h.param == "f0" and h.pooled > 15.0)
     values = res.per_run_values(f0)
     at_peak = [e for e in values if e is not None and e.source == "psd"]
