@@ -27,7 +27,9 @@ the one fitted to the unit.
 from __future__ import annotations
 
 import collections
+import contextlib
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,7 +38,7 @@ import numpy as np
 from imunoise.analysis import distributions as dist
 from imunoise.analysis.fit import FitResult, fit_series
 from imunoise.analysis.jobs import JobMap, serial_map
-from imunoise.analysis.terms import get_term, parse_model
+from imunoise.analysis.terms import TermError, get_term, parse_model
 
 Z95 = 1.959963984540054
 """Two-sided 95 % normal quantile: the fit's intervals are 95 % intervals."""
@@ -371,7 +373,21 @@ def _cut_of(args: list[str]) -> tuple[float, list[float]] | None:
 def _loop_job(shared: tuple[str, int, float], run: Run) -> list[str]:
     """:func:`loop_terms` of one run, as a job of a job map."""
     model, rounds, alpha = shared
-    return loop_terms(run, model, rounds, alpha)
+    with _naming(run):
+        return loop_terms(run, model, rounds, alpha)
+
+
+@contextlib.contextmanager
+def _naming(run: Run) -> Iterator[None]:
+    """A record that one run's analysis cannot use (too short, no finite curve) raises its
+    ValueError with the run's label first: among several runs, the message says which. A
+    bad model (:class:`TermError`) is the same for every run and is left as it is."""
+    try:
+        yield
+    except TermError:
+        raise
+    except ValueError as exc:
+        raise ValueError(f"{run.label}: {exc}") from exc
 
 
 def _at_spectrum_peaks(run: Run, free: FitResult, fixed: dict | None, names: list[str],
@@ -467,9 +483,10 @@ def fit_replicates(runs: list[Run], model: str, *, fixed: dict | None = None,
 
     def fit(i: int, held: dict | None, start: Any = None) -> FitResult:
         r = runs[i]
-        return fit_series(r.values, r.fs_hz, spec, segment_starts=r.segment_starts,
-                          temperature=r.temperature, fixed=held, memo=memos[i],
-                          intervals=intervals, start=start)[0]
+        with _naming(r):
+            return fit_series(r.values, r.fs_hz, spec, segment_starts=r.segment_starts,
+                              temperature=r.temperature, fixed=held, memo=memos[i],
+                              intervals=intervals, start=start)[0]
 
     curve_fits = [fit(i, fixed) for i in range(len(runs))]
     at_peaks = [_at_spectrum_peaks(runs[i], curve_fits[i], fixed, names,

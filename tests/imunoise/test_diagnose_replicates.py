@@ -128,6 +128,15 @@ def test_a_run_without_the_channel_or_too_short_for_the_skip_is_named(files, tmp
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"imunoise: {short}: gyro_x: --skip 100 s leaves no samples (the channel "
                    f"has 5 s)"]
+    # a run too short to fit, with and without each run's loop
+    tiny = tmp_path / "tiny.csv"
+    np.savetxt(tiny, x[:3], delimiter=",", header="t,gyro_x", comments="", fmt="%.10g")
+    for rounds in ("0", "1"):
+        assert main(["diagnose", str(files[0]), str(tiny), "--channel", "gyro_x", "--model",
+                     "white", "--rounds", rounds]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"imunoise: gyro_x: {tiny}: the Allan "
+                                                   f"curve has 1 usable taus"), err
 
 
 def test_runs_at_different_rates_are_named_in_a_warning(files, tmp_path, capsys) -> None:
