@@ -115,16 +115,33 @@ class ChannelSeries:
             ValueError: nothing left after the skip.
         """
         n = self.n_samples
-        first = int(round(max(float(skip_s), 0.0) * self.fs_hz))
+        first = self._first_kept(skip_s)
         if first >= n:
             raise ValueError(f"{self.name}: --skip {skip_s:g} s leaves no samples (the channel "
                              f"has {n / self.fs_hz:.6g} s)")
-        cuts = sorted({int(round(float(t) * self.fs_hz)) for t in split_s} - {first})
-        cuts = [c for c in cuts if first < c < n]
+        cuts = sorted({self._sample_at(t) for t in split_s if self._cuts(skip_s, t)})
         edges = [first, *cuts, n]
         if first == 0 and not cuts:
             return self
         return self.restricted(list(zip(edges[:-1], edges[1:], strict=True)))
+
+    def idle_splits(self, skip_s: float, split_s: list[float] | tuple[float, ...]
+                    ) -> list[float]:
+        """The times of ``split_s`` that :meth:`windowed` leaves out: at or before the end of
+        the skip, or at or beyond the last sample (they would cut nothing)."""
+        return [float(t) for t in split_s if not self._cuts(skip_s, t)]
+
+    def _first_kept(self, skip_s: float) -> int:
+        """Index of the first sample after a skip of ``skip_s`` seconds."""
+        return int(round(max(float(skip_s), 0.0) * self.fs_hz))
+
+    def _sample_at(self, t_s: float) -> int:
+        """Index of the sample at ``t_s`` seconds from the first one."""
+        return int(round(float(t_s) * self.fs_hz))
+
+    def _cuts(self, skip_s: float, t_s: float) -> bool:
+        """Whether a split at ``t_s`` falls strictly inside the samples a skip leaves."""
+        return self._first_kept(skip_s) < self._sample_at(t_s) < self.n_samples
 
     @property
     def n_samples(self) -> int:

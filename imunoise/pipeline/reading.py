@@ -32,12 +32,11 @@ def apply_window(record: Record, key: str, skip_s: float, split_s: list[float]) 
         record.channels[key] = series.windowed(skip_s, split_s)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    first = round(max(float(skip_s), 0.0) * series.fs_hz)
-    for t in split_s:
-        if not first < round(float(t) * series.fs_hz) < series.n_samples:
-            record.warnings.append(
-                f"{key}: --split {float(t):g} s is outside the samples analysed "
-                f"({first / series.fs_hz:.6g} to {series.duration_s:.6g} s): it cuts nothing")
+    start = series.duration_s - record.channels[key].duration_s  # the skip, whole samples
+    for t in series.idle_splits(skip_s, split_s):
+        record.warnings.append(
+            f"{key}: --split {t:g} s is outside the samples analysed "
+            f"({start:.6g} to {series.duration_s:.6g} s): it cuts nothing")
 
 
 def read_record(path: str, rate_hz: float | None = None, static: str = "all") -> Record:
