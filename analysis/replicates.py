@@ -66,15 +66,17 @@ class Run:
 class Estimate:
     """One parameter of one run: value and 95 % interval (SI units), and where it was
     measured: ``"allan"`` (the fit of the Allan curve) or ``"psd"`` (a resonance's peak in
-    the run's spectrum)."""
+    the run's spectrum). ``unresolved``: an amplitude whose interval reaches zero, an upper
+    bound and no estimate (:meth:`imunoise.analysis.terms.base.Term.resolved`)."""
 
     value: float
     ci95: tuple[float, float]
     source: str = "allan"
+    unresolved: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return {"value": _num(self.value), "ci95": [_num(self.ci95[0]), _num(self.ci95[1])],
-                "source": self.source}
+                "source": self.source, "unresolved": self.unresolved}
 
 
 @dataclass
@@ -216,7 +218,9 @@ def _estimate(fit: FitResult, index: int, param: str) -> Estimate | None:
     if param not in t.params:
         return None
     ci = t.ci95.get(param, (math.nan, math.nan))
-    return Estimate(float(t.params[param]), (float(ci[0]), float(ci[1])))
+    interval = (float(ci[0]), float(ci[1]))
+    return Estimate(float(t.params[param]), interval,
+                    unresolved=not get_term(t.term).resolved(param, interval))
 
 
 def _log_sd(e: Estimate, towards: float) -> float:

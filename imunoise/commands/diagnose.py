@@ -189,9 +189,8 @@ def replicates_text(key: str, units: str, res: Any) -> str:
     for h in res.amplitudes:
         u = unit(h.term, h.param)
         mark = "*" if h.differs else " "
-        vals = ", ".join("-" if e is None else
-                         (f"<{e.ci95[1]:.3g}" if not get_term(h.term).resolved(h.param, e.ci95)
-                          else f"{e.value:.3g} [{e.ci95[0]:.3g}, {e.ci95[1]:.3g}]")
+        vals = ", ".join("-" if e is None else f"<{e.ci95[1]:.3g}" if e.unresolved else
+                         f"{e.value:.3g} [{e.ci95[0]:.3g}, {e.ci95[1]:.3g}]"
                          for e in res.tied_values(h))
         lines.append(f"  {mark} {h.term:17s} {h.param:5s} ({u}): {vals}  chi2 {h.q:.3g} on "
                      f"{h.dof} dof (own fits)")

@@ -48,6 +48,10 @@ def test_json_names_the_moved_resonance(files, capsys) -> None:
     f0 = [e["value"] for e in differ[("resonance", "f0")]["per_run"]]
     assert f0[2] / f0[0] == pytest.approx(1.05, abs=0.01)
     assert len(rep["per_run"]) == 3 and "white#0.N" in rep["per_run"][0]
+    # a random walk of 1e-5 over 11 min is not resolved: an upper bound, flagged as such
+    k = [run["random_walk#1.K"] for run in rep["per_run"]]
+    assert all(e["unresolved"] and e["ci95"][0] == 0.0 for e in k)
+    assert not any(run["white#0.N"]["unresolved"] for run in rep["per_run"])
     # each run's own fit of the model it was simulated from shows the parts of a right
     # model: PSD deviance about 1 (0.88-0.98 here over 139 bins) and a hold-out within
     # three standard deviations of 1 over its degrees of freedom

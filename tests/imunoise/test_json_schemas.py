@@ -18,7 +18,7 @@ from tests.shared_paths import REPO
 
 SCHEMAS = REPO / "docs" / "schemas"
 FS = 100.0
-DOCUMENTS = ("analyze", "fit", "diagnose", "plan")
+DOCUMENTS = ("analyze", "fit", "diagnose", "plan", "replicates")
 
 
 def _registry() -> Registry:
@@ -49,6 +49,22 @@ def recording(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> list[Path]:
+    """Two recordings of one gyro (white noise, a random walk), 5 min at 100 Hz each."""
+    d = tmp_path_factory.mktemp("replicates")
+    paths = []
+    for seed in (21, 22):
+        rng = np.random.default_rng(seed)
+        n = 30_000
+        x = 1e-3 * rng.normal(size=n) + np.cumsum(1e-5 * rng.normal(size=n))
+        path = d / f"run{seed}.csv"
+        np.savetxt(path, np.column_stack([np.arange(n) / FS, x]), delimiter=",",
+                   header="t,gyro_x", comments="", fmt="%.10g")
+        paths.append(path)
+    return paths
+
+
 def _cli(args: list[str]) -> dict:
     out = subprocess.run([sys.executable, "-m", "imunoise", *args, "--json"],
                          capture_output=True, text=True, timeout=300)
@@ -57,7 +73,7 @@ def _cli(args: list[str]) -> dict:
 
 
 @pytest.fixture(scope="module")
-def documents(recording) -> dict[str, list[dict]]:
+def documents(recording, runs) -> dict[str, list[dict]]:
     f = str(recording)
     model = "white,bias_instability,random_walk"
     return {
@@ -68,6 +84,8 @@ def documents(recording) -> dict[str, list[dict]]:
         "plan": [_cli(["plan", f, "--channel", "gyro_x", "--target", "N=5%,K=50%"]),
                  _cli(["plan", "--model", "white:N=3e-4,random_walk:K=2e-5", "--rate", "100",
                        "--target", "K=20%", "--method", "likelihood"])],
+        "replicates": [_cli(["diagnose", *map(str, runs), "--channel", "gyro_x", "--model",
+                             "white,random_walk", "--rounds", "1"])],
     }
 
 
@@ -112,6 +130,7 @@ def test_the_schemas_reject_broken_documents(documents):
     diagnose = documents["diagnose"][0]
     analyze = documents["analyze"][0]
     plan = documents["plan"][0]
+    replicates = documents["replicates"][0]
     key = next(iter(analyze["channels"]))
     cases = [
         ("fit", _broken(fit, ["model"], delete=True)),
@@ -124,6 +143,13 @@ def test_the_schemas_reject_broken_documents(documents):
         ("analyze", _broken(analyze, ["channels", key, "failures"], [{"tau_s": [1.0]}])),
         ("plan", _broken(plan, ["targets", 0, "record_s"], -5.0)),
         ("plan", _broken(plan, ["targets", 0, "method"], "guess")),
+        ("replicates", _broken(replicates, ["replicates", "per_run", 0, "white#0.N",
+                                            "unresolved"], delete=True)),
+        ("replicates", _broken(replicates, ["replicates", "amplitudes", 0, "kind"], "level")),
+        ("replicates", _broken(replicates, ["replicates", "runs"],
+                               replicates["replicates"]["runs"][:1])),
+        ("replicates", _broken(replicates, ["replicates", "runs", 0, "error", "holdout",
+                                            "changed"], "none")),
     ]
     for name, doc in cases:
         assert not validator(name).is_valid(doc), name
