@@ -19,8 +19,9 @@ from typing import Any
 
 from imunoise.version import SOFTWARE, __version__
 
-_API = ("read", "oadev", "psd", "fit", "diagnose", "analyze", "DEFAULT_MODEL", "Recording",
-        "Channel", "AllanResult", "PsdResult", "FitReport", "Diagnosis")
+_API = ("read", "oadev", "psd", "fit", "diagnose", "replicates", "analyze", "DEFAULT_MODEL",
+        "Recording", "Channel", "AllanResult", "PsdResult", "FitReport", "Diagnosis",
+        "Replicates")
 
 __all__ = ["SOFTWARE", "__version__", *_API]
 

@@ -1,15 +1,18 @@
-"""The Python API: ``imunoise.read``, ``oadev``, ``psd``, ``fit``, ``diagnose``, ``analyze``.
+"""The Python API: ``imunoise.read``, ``oadev``, ``psd``, ``fit``, ``diagnose``, ``replicates``,
+``analyze``.
 
 Every function computes what the command of the same name computes, with the same code: a
 recording read with :func:`read` is cut to its still stretches and timed as ``imunoise
 analyze`` does, :func:`oadev` and :func:`psd` are ``analyze``'s estimates, :func:`fit` and
-:func:`diagnose` are ``imunoise fit`` and ``imunoise diagnose``, and each result's
+:func:`diagnose` are ``imunoise fit`` and ``imunoise diagnose``, :func:`replicates` is
+``imunoise diagnose`` given several files of one unit, and each result's
 ``document()`` is the JSON document that command prints (docs/json.md). Bad input raises
 :class:`imunoise.errors.UsageError` (a ValueError) with the command line's one-line message.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -22,6 +25,7 @@ from imunoise.api.results import (
     FitReport,
     PsdResult,
     Recording,
+    Replicates,
 )
 from imunoise.core.series import ChannelSeries
 
@@ -29,7 +33,8 @@ DEFAULT_MODEL = DEFAULT_MODEL_TEXT
 """The model ``analyze`` fits: ``"white,bias_instability,random_walk"``."""
 
 __all__ = ["DEFAULT_MODEL", "AllanResult", "Channel", "Diagnosis", "FitReport", "PsdResult",
-           "Recording", "analyze", "diagnose", "fit", "oadev", "psd", "read"]
+           "Recording", "Replicates", "analyze", "diagnose", "fit", "oadev", "psd", "read",
+           "replicates"]
 
 
 def read(path: str, *, rate_hz: float | None = None, static: str = "auto") -> Recording:
@@ -187,6 +192,61 @@ def diagnose(channel: Channel, model: str = DEFAULT_MODEL) -> Diagnosis:
         sug.apply["args"] = full_window_args(sug.apply.get("args", []), channel.skip_s,
                                              list(channel.split_s))
     return Diagnosis(diag, channel, model)
+
+
+def replicates(channels: Sequence[Channel], model: str = DEFAULT_MODEL, rounds: int = 0
+               ) -> Replicates:
+    """Several recordings of one unit described by one model, as ``imunoise diagnose FILE1
+    FILE2 ...`` (docs/replicates.md): each run fitted alone (with ``rounds``, first
+    diagnosed alone that many rounds, and the term set most runs choose fitted to all), the
+    shape parameters tested for agreement across runs and held at their pooled values where
+    they agree, the amplitudes per run, and the parameters that differ between runs named.
+
+    ``channels``: the same channel of two or more recordings of :func:`read` (cut with
+    :meth:`Channel.window` where a run needs it); each run is labelled with its file.
+
+    Raises:
+        UsageError: fewer than two runs, one run given twice, channels with different keys,
+            an unknown term, or a run too short to fit (the message names the run).
+
+    >>> import numpy as np, imunoise
+    >>> runs = [imunoise.read(_example_csv(np.random.default_rng(s).normal(0.0, 0.01, 36_000)))
+    ...         for s in (1, 2)]
+    >>> rep = imunoise.replicates([r["gyro_x"] for r in runs], "white")
+    >>> rep.term_set, [d["param"] for d in rep.differ]
+    (['white'], [])
+    """
+    import os
+
+    from imunoise.errors import UsageError
+    from imunoise.pipeline.fitting import diagnose_replicates
+
+    runs = list(channels)
+    if not all(isinstance(ch, Channel) for ch in runs):
+        raise TypeError("replicates needs channels of imunoise.read (their samples)")
+    if len(runs) < 2:
+        raise UsageError(f"replicates needs two or more runs of one unit, got {len(runs)}")
+    keys = sorted({ch.key for ch in runs})
+    if len(keys) > 1:
+        raise UsageError(f"replicates compares one channel across runs, got {', '.join(keys)}")
+    labels = [_run_label(ch) for ch in runs]
+    same = [(os.path.realpath(ch.recording.path), ch.skip_s, ch.split_s) for ch in runs]
+    twice = next((n for n in range(len(runs)) if same[n] in same[:n]), None)
+    if twice is not None:
+        raise UsageError(f"replicates: {labels[twice]} is given twice: a run compared with "
+                         f"itself agrees by construction")
+    records = [(lab, ch.recording.record) for lab, ch in zip(labels, runs, strict=True)]
+    result = diagnose_replicates(records, keys[0], model, rounds)
+    return Replicates(result, records, keys[0], model)
+
+
+def _run_label(channel: Channel) -> str:
+    """A run's label: its file as read, with its cuts where it has any."""
+    cuts = (f"skip {channel.skip_s:g} s" if channel.skip_s else "") + \
+        ("; " if channel.skip_s and channel.split_s else "") + \
+        (f"split {', '.join(f'{t:g}' for t in channel.split_s)} s" if channel.split_s else "")
+    path = channel.recording.path
+    return f"{path} ({cuts})" if cuts else path
 
 
 def analyze(source: str | Recording, channels: list[str] | None = None) -> dict[str, Any]:

@@ -1,5 +1,5 @@
 """What the Python API returns: a recording and its channels, an Allan curve, a PSD, a fitted
-model and a diagnosis.
+model, a diagnosis and several runs of one unit.
 
 Each result gives the command line's JSON document (``document()``, and ``to_json()`` as
 text), a table or a labelled array where one is natural (``to_pandas()``, ``to_xarray()``,
@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from imunoise.analysis.diagnosis import Diagnosis as AnalysisDiagnosis
     from imunoise.analysis.fit import FitResult
     from imunoise.analysis.psd import PsdEstimate
+    from imunoise.analysis.replicates import ReplicateResult
 
 
 def _pandas() -> Any:
@@ -462,3 +463,68 @@ class Diagnosis:
         verdict = (f"best: {best.get('action', 'add')} {best.get('label') or best['term']} "
                    f"(p = {best['p_value']:.2g})" if best else "nothing significant is missing")
         return f"<Diagnosis {self.channel.key}: {len(self.suggestions)} suggestion(s), {verdict}>"
+
+
+@dataclass
+class Replicates:
+    """Several runs of one unit described by one model (:func:`imunoise.replicates`).
+
+    Attributes:
+        result: :class:`imunoise.analysis.replicates.ReplicateResult` (each run's fits, the
+            homogeneity tests).
+        records: ``(label, record)`` of each run, in the order given.
+        key: the channel compared.
+        model_text: the model given.
+    """
+
+    result: ReplicateResult
+    records: list[tuple[str, Record]]
+    key: str
+    model_text: str = ""
+
+    @property
+    def runs(self) -> list[str]:
+        """The runs' labels (their files, with their cuts)."""
+        return list(self.result.runs)
+
+    @property
+    def term_set(self) -> list[str]:
+        """Term names of the model fitted to every run."""
+        return list(self.result.term_set)
+
+    @property
+    def differ(self) -> list[dict[str, Any]]:
+        """The parameters that differ between runs beyond their intervals (the JSON's
+        ``differ`` entries: each run's own value and interval under ``per_run``)."""
+        return list(self.result.to_dict()["differ"])
+
+    def document(self) -> dict[str, Any]:
+        """``imunoise diagnose FILE1 FILE2 ... --json``'s document."""
+        from imunoise.pipeline.assembly import replicates_document
+
+        return replicates_document(self.records, self.key, self.model_text, self.result)
+
+    def to_json(self) -> str:
+        return documents.dumps(self.document())
+
+    def to_pandas(self) -> Any:
+        """One row per run: ``run``, ``chi2_per_dof`` (its own fit's Allan part),
+        ``chi2_per_dof_tied`` (with the agreeing shapes held), ``psd_deviance_per_bin``,
+        ``holdout_chi2_per_dof`` (``notebook`` extra)."""
+        pd = _pandas()
+        rows = []
+        for run in self.result.to_dict()["runs"]:
+            error = run["error"] or {}
+            rows.append({"run": run["label"], "chi2_per_dof": run["chi2_per_dof"],
+                         "chi2_per_dof_tied": run["chi2_per_dof_tied"],
+                         "psd_deviance_per_bin": (error.get("psd") or {}).get(
+                             "deviance_per_bin"),
+                         "holdout_chi2_per_dof": (error.get("holdout") or {}).get(
+                             "chi2_per_dof")})
+        return pd.DataFrame(rows)
+
+    def __repr__(self) -> str:
+        named = [f"{d['term']}.{d['param']}" for d in self.differ]
+        verdict = f"differ: {', '.join(named)}" if named else "no parameter differs"
+        return (f"<Replicates {self.key}: {len(self.runs)} runs, model "
+                f"{','.join(self.term_set)}, {verdict}>")

@@ -214,6 +214,7 @@ def replicates_text(key: str, units: str, res: Any) -> str:
 def run_replicates(args: argparse.Namespace) -> int:
     """Several files: replicates of one unit (see the module docstring)."""
     from imunoise.pipeline import documents
+    from imunoise.pipeline.assembly import replicates_document, replicates_warnings
     from imunoise.pipeline.fitting import diagnose_replicates
 
     _distinct_files(args.file)
@@ -236,15 +237,12 @@ def run_replicates(args: argparse.Namespace) -> int:
         except UsageError as exc:
             raise UsageError(f"{path}: {exc}") from exc
         records.append((path, record))
-    warnings = [f"{path}: {w}" for path, record in records for w in record.warnings]
-    warnings += _rate_warning(records, key)
     res = diagnose_replicates(records, key, args.model, args.rounds)
     if args.json:
-        doc = {"channel": key, "units": records[0][1].series(key).units, "model": args.model,
-               "replicates": res.to_dict(), "warnings": warnings}
+        doc = replicates_document(records, key, args.model, res)
         sys.stdout.write(documents.dumps(doc) + "\n")
     else:
-        for w in warnings:
+        for w in replicates_warnings(records, key):
             print(f"warning: {w}", file=sys.stderr)
         print(replicates_text(key, records[0][1].series(key).units, res))
     return 0
@@ -260,17 +258,6 @@ def _distinct_files(paths: list[str]) -> None:
             raise UsageError(f"diagnose: {path} is {seen[real]} again: replicates are "
                              f"different recordings of one unit, each file once")
         seen[real] = path
-
-
-def _rate_warning(records: list[tuple[str, Any]], key: str) -> list[str]:
-    """A warning where the runs were sampled at different rates: a filter's taps and a
-    Markov term near the sample period mean different things at each rate."""
-    rates = {path: float(record.series(key).fs_hz) for path, record in records}
-    if len({round(r, 9) for r in rates.values()}) < 2:
-        return []
-    listed = ", ".join(f"{r:g} Hz in {path}" for path, r in rates.items())
-    return [f"the runs' sample rates differ ({listed}): shapes counted in samples (a "
-            f"filter's taps) are compared across different sample periods"]
 
 
 def run(args: argparse.Namespace) -> int:

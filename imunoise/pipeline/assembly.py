@@ -1,4 +1,5 @@
-"""The whole JSON documents of ``analyze``, ``fit`` and ``diagnose``, as the command line prints
+"""The whole JSON documents of ``analyze``, ``fit`` and ``diagnose`` (of one file, and of several
+files of one unit), as the command line prints
 them and the Python API returns them: the per-channel documents of
 :mod:`imunoise.pipeline.documents` completed with what needs the whole record (the error parts
 of a fit, the coherence with the other channels, the own noise after subtraction).
@@ -76,3 +77,25 @@ def diagnosis_document(record: Record, key: str, diagnosis: Any, group: list[str
         doc["coherence"] = coherence
         cross_channel.mark_origins(doc["suggestions"], coherence, key)
     return doc, coherence
+
+
+def replicates_warnings(records: list[tuple[str, Record]], key: str) -> list[str]:
+    """The warnings of several runs of one unit: what reading each record found, prefixed with
+    its label, and a note where the runs were sampled at different rates (a filter's taps
+    and a Markov term near the sample period mean different things at each rate)."""
+    warnings = [f"{label}: {w}" for label, record in records for w in record.warnings]
+    rates = {label: float(record.series(key).fs_hz) for label, record in records}
+    if len({round(r, 9) for r in rates.values()}) > 1:
+        listed = ", ".join(f"{r:g} Hz in {label}" for label, r in rates.items())
+        warnings.append(f"the runs' sample rates differ ({listed}): shapes counted in samples "
+                        f"(a filter's taps) are compared across different sample periods")
+    return warnings
+
+
+def replicates_document(records: list[tuple[str, Record]], key: str, model_text: str,
+                        result: Any) -> dict[str, Any]:
+    """``diagnose FILE1 FILE2 ... --json``'s document of channel ``key`` of ``records``
+    (``(label, record)`` per run) and their
+    :class:`imunoise.analysis.replicates.ReplicateResult`."""
+    return {"channel": key, "units": records[0][1].series(key).units, "model": model_text,
+            "replicates": result.to_dict(), "warnings": replicates_warnings(records, key)}

@@ -209,3 +209,60 @@ def test_a_windowed_channel_is_fit_and_diagnosed_as_with_skip_and_split(recordin
         ["diagnose", recording, *args])
     with pytest.raises(UsageError, match="leaves no samples"):
         rec["gyro_x"].window(skip_s=1e6)
+
+
+@pytest.fixture(scope="module")
+def second_run(tmp_path_factory) -> str:
+    """Another recording of the gyro of :func:`recording` (another noise draw, the same
+    levels), 20 min at 100 Hz."""
+    rng = np.random.default_rng(43)
+    n = 120_000
+    gyro = rng.normal(0.0, 0.01, n) + np.cumsum(rng.normal(0.0, 2e-5, n))
+    path = tmp_path_factory.mktemp("api2") / "imu.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) / FS, gyro]), delimiter=",",
+               header="t,gyro_x", comments="", fmt="%.10g")
+    return str(path)
+
+
+def test_replicates_document_equals_the_command_line(recording, second_run):
+    runs = [imunoise.read(recording)["gyro_x"], imunoise.read(second_run)["gyro_x"]]
+    rep = imunoise.replicates(runs, "white,random_walk", rounds=1)
+    assert rep.document() == _cli_json(["diagnose", recording, second_run, "--channel",
+                                        "gyro_x", "--model", "white,random_walk", "--rounds",
+                                        "1", "--json"])
+    assert rep.runs == [recording, second_run]
+    assert rep.term_set == ["white", "random_walk"]
+    # one unit's levels on both runs: the pooled white level is the simulated one
+    doc = rep.document()["replicates"]
+    white = next(h for h in doc["amplitudes"] if h["term"] == "white")
+    assert white["value"] == pytest.approx(0.01 / np.sqrt(FS), rel=0.01)  # N = sigma sqrt(dt)
+    assert rep.differ == doc["differ"]
+    table = rep.to_pandas()
+    assert list(table["run"]) == rep.runs
+    assert table["chi2_per_dof"].between(0.2, 3.0).all()
+    named = ", ".join(f"{d['term']}.{d['param']}" for d in doc["differ"])
+    assert repr(rep) == ("<Replicates gyro_x: 2 runs, model white,random_walk, "
+                         + (f"differ: {named}>" if named else "no parameter differs>"))
+
+
+def test_replicates_of_cut_runs_name_their_cuts(recording, second_run):
+    first = imunoise.read(recording)["gyro_x"]
+    runs = [first.window(skip_s=60.0), first.window(split_s=[600.0]),
+            imunoise.read(second_run)["gyro_x"]]
+    rep = imunoise.replicates(runs, "white,random_walk")
+    assert rep.runs == [f"{recording} (skip 60 s)", f"{recording} (split 600 s)", second_run]
+
+
+def test_replicates_refuse_what_cannot_be_compared(recording, second_run):
+    rec = imunoise.read(recording)
+    other = imunoise.read(second_run)["gyro_x"]
+    with pytest.raises(UsageError, match="two or more runs of one unit, got 1"):
+        imunoise.replicates([rec["gyro_x"]])
+    with pytest.raises(UsageError, match="is given twice"):
+        imunoise.replicates([rec["gyro_x"], other, imunoise.read(recording)["gyro_x"]])
+    with pytest.raises(UsageError, match="one channel across runs, got accel_x, gyro_x"):
+        imunoise.replicates([rec["accel_x"], other])
+    with pytest.raises(UsageError, match="unknown term"):
+        imunoise.replicates([rec["gyro_x"], other], "white,pink")
+    with pytest.raises(TypeError, match="channels of imunoise.read"):
+        imunoise.replicates([rec["gyro_x"], other.values])
