@@ -207,7 +207,8 @@ def replicates(channels: Sequence[Channel], model: str = DEFAULT_MODEL, rounds: 
 
     Raises:
         UsageError: fewer than two runs, one run given twice, channels with different keys,
-            an unknown term, or a run too short to fit (the message names the run).
+            ``rounds`` not a whole number >= 0, an unknown term, or a run too short to fit
+            (the message names the run).
 
     >>> import numpy as np, imunoise
     >>> runs = [imunoise.read(_example_csv(np.random.default_rng(s).normal(0.0, 0.01, 36_000)))
@@ -226,6 +227,8 @@ def replicates(channels: Sequence[Channel], model: str = DEFAULT_MODEL, rounds: 
         raise TypeError("replicates needs channels of imunoise.read (their samples)")
     if len(runs) < 2:
         raise UsageError(f"replicates needs two or more runs of one unit, got {len(runs)}")
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
+        raise UsageError(f"replicates: rounds {rounds!r}: a whole number >= 0")
     keys = sorted({ch.key for ch in runs})
     if len(keys) > 1:
         raise UsageError(f"replicates compares one channel across runs, got {', '.join(keys)}")

@@ -264,5 +264,7 @@ def test_replicates_refuse_what_cannot_be_compared(recording, second_run):
         imunoise.replicates([rec["accel_x"], other])
     with pytest.raises(UsageError, match="unknown term"):
         imunoise.replicates([rec["gyro_x"], other], "white,pink")
+    with pytest.raises(UsageError, match="rounds -1: a whole number >= 0"):
+        imunoise.replicates([rec["gyro_x"], other], rounds=-1)
     with pytest.raises(TypeError, match="channels of imunoise.read"):
         imunoise.replicates([rec["gyro_x"], other.values])
