@@ -47,6 +47,18 @@ def model(ax: Any, tau_s: np.ndarray, adev: np.ndarray, terms: Mapping[str, np.n
     ax.legend(loc="best", fontsize="small")
 
 
+def run(ax: Any, tau_s: np.ndarray, adev: np.ndarray, model_adev: np.ndarray, units: str,
+        label: str) -> None:
+    """One run of several: its measured Allan deviation (points) and its model's (a line of
+    the same colour), on log axes."""
+    line, = ax.loglog(tau_s, adev, "o", ms=3, label=label)
+    ax.loglog(tau_s, model_adev, "-", lw=1, color=line.get_color())
+    ax.set_xlabel("averaging time tau [s]")
+    ax.set_ylabel(f"Allan deviation [{units}]" if units else "Allan deviation")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+
+
 def psd(ax: Any, f_hz: np.ndarray, value: np.ndarray, low: np.ndarray, high: np.ndarray,
         units: str, label: str) -> None:
     """A one-sided PSD with its confidence band, on log axes."""

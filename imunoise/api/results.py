@@ -507,6 +507,25 @@ class Replicates:
     def to_json(self) -> str:
         return documents.dumps(self.document())
 
+    def text(self) -> str:
+        """The command's readable report: each run's term set and error parts, the shared
+        shapes with their test, the per-run amplitudes, what differs between runs."""
+        from imunoise.export.replicates_text import replicates_text
+
+        units = self.records[0][1].series(self.key).units
+        return replicates_text(self.key, units, self.result)
+
+    def plot(self, ax: Any = None) -> Any:
+        """Each run's measured Allan deviation (points) and its model with the shared shapes
+        held (line, the run's colour) on one plot (``plot`` extra)."""
+        ax = plotting.axes(ax)
+        units = self.records[0][1].series(self.key).units
+        for label, fit in zip(self.result.runs, self.result.tied_fits, strict=True):
+            plotting.run(ax, np.asarray(fit.tau_s), np.sqrt(np.asarray(fit.avar_measured)),
+                         np.sqrt(np.asarray(fit.avar_fit)), units, label)
+        ax.set_title(f"{self.key}: {len(self.runs)} runs, model {','.join(self.term_set)}")
+        return ax
+
     def to_pandas(self) -> Any:
         """One row per run: ``run``, ``chi2_per_dof`` (its own fit's Allan part),
         ``chi2_per_dof_tied`` (with the agreeing shapes held), ``psd_deviance_per_bin``,

@@ -245,6 +245,28 @@ def test_replicates_document_equals_the_command_line(recording, second_run):
                          + (f"differ: {named}>" if named else "no parameter differs>"))
 
 
+def test_replicates_text_and_plot(recording, second_run, capsys):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    runs = [imunoise.read(recording)["gyro_x"], imunoise.read(second_run)["gyro_x"]]
+    rep = imunoise.replicates(runs, "white,random_walk")
+    assert main(["diagnose", recording, second_run, "--channel", "gyro_x", "--model",
+                 "white,random_walk", "--rounds", "0"]) == 0
+    assert rep.text() + "\n" == capsys.readouterr().out
+    ax = rep.plot()
+    # per run: the measured points, then its model with the shared shapes held
+    measured, model = ax.lines[0::2], ax.lines[1::2]
+    assert [line.get_label() for line in measured] == rep.runs
+    for line, fit in zip(measured, rep.result.tied_fits, strict=True):
+        assert np.allclose(line.get_ydata(), np.sqrt(fit.avar_measured))
+    for line, fit in zip(model, rep.result.tied_fits, strict=True):
+        assert np.allclose(line.get_ydata(), np.sqrt(fit.avar_fit))
+    assert [m.get_color() for m in model] == [m.get_color() for m in measured]
+    assert ax.get_title() == "gyro_x: 2 runs, model white,random_walk"
+    assert ax.get_ylabel() == "Allan deviation [rad/s]"
+
+
 def test_replicates_of_cut_runs_name_their_cuts(recording, second_run):
     first = imunoise.read(recording)["gyro_x"]
     runs = [first.window(skip_s=60.0), first.window(split_s=[600.0]),
