@@ -510,7 +510,7 @@ class Replicates:
     def text(self) -> str:
         """The command's readable report: each run's term set and error parts, the shared
         shapes with their test, the per-run amplitudes, what differs between runs."""
-        from imunoise.export.replicates_text import replicates_text
+        from imunoise.pipeline.replicates_text import replicates_text
 
         units = self.records[0][1].series(self.key).units
         return replicates_text(self.key, units, self.result)

@@ -139,10 +139,10 @@ def diagnosis_text(key: str, series: Any, diag: Any, file: str = "FILE",
 
 def run_replicates(args: argparse.Namespace) -> int:
     """Several files: replicates of one unit (see the module docstring)."""
-    from imunoise.export.replicates_text import replicates_text
     from imunoise.pipeline import documents
     from imunoise.pipeline.assembly import replicates_document, replicates_warnings
     from imunoise.pipeline.fitting import diagnose_replicates
+    from imunoise.pipeline.replicates_text import replicates_text
 
     _distinct_files(args.file)
     records = []

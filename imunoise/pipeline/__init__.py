@@ -6,7 +6,9 @@
 - :mod:`~imunoise.pipeline.streamed_analysis`: the same for a file too long to hold;
 - :mod:`~imunoise.pipeline.fitting`: one channel's fit and diagnosis (``fit``, ``diagnose``);
 - :mod:`~imunoise.pipeline.channel_extras`: the discrete model, its check, the report's curves;
-- :mod:`~imunoise.pipeline.documents`: the JSON documents (also the HTTP API's parts).
+- :mod:`~imunoise.pipeline.documents`: the JSON documents (also the HTTP API's parts);
+- :mod:`~imunoise.pipeline.assembly`: whole documents, also of several runs of one unit, and
+  :mod:`~imunoise.pipeline.replicates_text` the readable report of those runs.
 
 The commands under :mod:`imunoise.commands` parse arguments, call these and print.
 """
