@@ -245,11 +245,11 @@ def replicates(channels: Sequence[Channel], model: str = DEFAULT_MODEL, rounds: 
 
 def _run_label(channel: Channel) -> str:
     """A run's label: its file as read, with its cuts where it has any."""
-    cuts = (f"skip {channel.skip_s:g} s" if channel.skip_s else "") + \
-        ("; " if channel.skip_s and channel.split_s else "") + \
-        (f"split {', '.join(f'{t:g}' for t in channel.split_s)} s" if channel.split_s else "")
+    cuts = [f"skip {channel.skip_s:g} s"] if channel.skip_s else []
+    if channel.split_s:
+        cuts.append(f"split {', '.join(f'{t:g}' for t in channel.split_s)} s")
     path = channel.recording.path
-    return f"{path} ({cuts})" if cuts else path
+    return f"{path} ({'; '.join(cuts)})" if cuts else path
 
 
 def analyze(source: str | Recording, channels: list[str] | None = None) -> dict[str, Any]:

@@ -270,9 +270,11 @@ def test_replicates_text_and_plot(recording, second_run, capsys):
 def test_replicates_of_cut_runs_name_their_cuts(recording, second_run):
     first = imunoise.read(recording)["gyro_x"]
     runs = [first.window(skip_s=60.0), first.window(split_s=[600.0]),
+            first.window(skip_s=30.0, split_s=[300.0, 900.0]),
             imunoise.read(second_run)["gyro_x"]]
     rep = imunoise.replicates(runs, "white,random_walk")
-    assert rep.runs == [f"{recording} (skip 60 s)", f"{recording} (split 600 s)", second_run]
+    assert rep.runs == [f"{recording} (skip 60 s)", f"{recording} (split 600 s)",
+                        f"{recording} (skip 30 s; split 300, 900 s)", second_run]
 
 
 def test_replicates_refuse_what_cannot_be_compared(recording, second_run):
