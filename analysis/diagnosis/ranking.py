@@ -307,15 +307,21 @@ def _first_filter_of_a_tie(suggestions: list[Suggestion], alpha: float) -> list[
     test followed the record as before (ADIS16405 run 2 accel_y: against the low-pass the
     moving average p = 0.043 and the Bartlett window 0.057 alone; run 6 accel_x 0.022 and
     0.027, the two 1 % apart). The first tied filter in term order is named, the same one on
-    every record the data do not decide.
+    every record the data do not decide. The filters compared are the plain additions: where
+    the top suggestion adds a filter together with a line, another filter so named goes
+    first alone and the line is left to the next round.
     """
     terms = _significant_additions(suggestions)
     first = next((s for s in suggestions if s.significant), None)
     if not terms or first is not terms[0] or get_term(first.term).kind != "filter":
         return suggestions
     k_top = len(get_term(first.term).params)
-    filters = [s for s in terms if get_term(s.term).kind == "filter"
+    # plain additions only: a filter added together with a line ("lowpass and sinusoid")
+    # fits with a term more, so its chi2 cannot be set against a filter's alone
+    filters = [s for s in terms if get_term(s.term).kind == "filter" and not s.label
                and len(get_term(s.term).params) == k_top]
+    if len(filters) < 2:
+        return suggestions
     compared = len(filters) - 1
 
     def chi2_of(s: Suggestion) -> float:
@@ -330,7 +336,7 @@ def _first_filter_of_a_tie(suggestions: list[Suggestion], alpha: float) -> list[
         tied += more
     order = list(TERMS)
     choice = min(tied, key=lambda s: order.index(s.term))
-    if choice is first:
+    if choice.term == first.term:
         return suggestions
     alike_text = ", ".join(f"{s.term} {s.chi2_per_dof_after:.3g}"
                            for s in sorted(tied, key=chi2_of))

@@ -91,8 +91,8 @@ def test_a_resonance_is_resolved_only_when_its_q_interval_clears_the_no_peak_lim
 
 
 def _suggestion(term: str, chi2: float, significant: bool, args: list[str] | None = None,
-                ci95: dict | None = None) -> Suggestion:
-    return Suggestion(term=term, params={}, ci95=ci95 or {}, chi2_per_dof_before=10.0,
+                ci95: dict | None = None, label: str = "") -> Suggestion:
+    return Suggestion(term=term, params={}, ci95=ci95 or {}, chi2_per_dof_before=10.0, label=label,
                       chi2_per_dof_after=chi2 / 100.0, p_value=0.001 if significant else 0.5,
                       log_p=-7.0 if significant else -0.7, significant=significant, why="",
                       fit=SimpleNamespace(misfit=SimpleNamespace(chi2=chi2, dof=10.0)),
@@ -156,6 +156,24 @@ def test_filters_that_fit_alike_give_the_first_filter_in_term_order() -> None:
     # Bonferroni)
     assert order(("bartlett", 104.0, True), ("lowpass", 100.0, True),
                  ("moving_average", 112.0, True))[0] == "bartlett"
+
+
+def test_a_filter_added_with_a_line_is_not_compared_with_filters_alone() -> None:
+    """The top suggestion adds a low-pass and a line together (a term more, chi2 70): the
+    filter is chosen among the plain additions. Where the moving average fits alike to the
+    plain low-pass it goes first alone, the line left to the next round; where the low-pass
+    fits significantly better the pair stays first."""
+    def ranked(ma_chi2: float) -> list[Suggestion]:
+        return _first_filter_of_a_tie([
+            _suggestion("lowpass", 70.0, True, label="lowpass and sinusoid"),
+            _suggestion("lowpass", 100.0, True), _suggestion("sinusoid", 105.0, True),
+            _suggestion("moving_average", ma_chi2, True)], 0.05)
+    tied = ranked(102.0)
+    assert (tied[0].term, tied[0].label) == ("moving_average", "")
+    assert "Bonferroni over 1)" in tied[0].why
+    kept = ranked(110.0)
+    assert (kept[0].term, kept[0].label) == ("lowpass", "lowpass and sinusoid")
+    assert kept[0].why == "" and kept[3].why == ""
 
 
 def _line_diagnosis(second_amplitude: float, seed: int = 5):
