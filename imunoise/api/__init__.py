@@ -273,13 +273,22 @@ def analyze(source: str | Recording, channels: list[str] | None = None) -> dict[
     return printed_analysis(analysis_document(rec.path, rec.record, results)[0])
 
 
+_EXAMPLES: list[Any] = []
+"""The temporary folder of the examples' recordings (one per process, removed when the
+process ends)."""
+
+
 def _example_csv(rate: np.ndarray, fs_hz: float = 100.0) -> str:
-    """A CSV recording (columns ``t``, ``gyro_x`` in rad/s) of ``rate`` in a temporary folder,
-    for the examples."""
+    """A CSV recording (columns ``t``, ``gyro_x`` in rad/s) of ``rate`` in this process's
+    temporary folder of examples, for the examples."""
     import tempfile
     from pathlib import Path
 
-    path = Path(tempfile.mkdtemp(prefix="imunoise-example-")) / "imu.csv"
+    if not _EXAMPLES:
+        # a TemporaryDirectory removes its folder when the interpreter exits
+        _EXAMPLES.append(tempfile.TemporaryDirectory(prefix="imunoise-example-"))
+    folder = Path(_EXAMPLES[0].name)
+    path = folder / f"imu{len(list(folder.iterdir()))}.csv"
     t = np.arange(len(rate)) / fs_hz
     np.savetxt(path, np.column_stack([t, rate]), delimiter=",", header="t,gyro_x",
                comments="", fmt="%.9g")

@@ -8,8 +8,10 @@ import dataclasses
 import doctest
 import io
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -292,3 +294,17 @@ def test_replicates_refuse_what_cannot_be_compared(recording, second_run):
         imunoise.replicates([rec["gyro_x"], other], rounds=-1)
     with pytest.raises(TypeError, match="channels of imunoise.read"):
         imunoise.replicates([rec["gyro_x"], other.values])
+
+
+def test_the_examples_leave_no_file_behind(tmp_path):
+    """The docstring examples' recordings go in one temporary folder per process, removed when
+    the process ends."""
+    code = ("import numpy as np, imunoise.api as api; "
+            "a = api._example_csv(np.zeros(10)); b = api._example_csv(np.ones(10)); "
+            "print(a); print(b)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert run.returncode == 0, run.stderr
+    a, b = (Path(p) for p in run.stdout.split())
+    assert a != b and a.parent == b.parent and a.parent.parent == tmp_path
+    assert not a.parent.exists() and list(tmp_path.iterdir()) == []
