@@ -165,7 +165,9 @@ def test_the_schemas_accept_the_parts_being_added(documents):
         psd={"deviance_per_bin": 1.2, "bins": 186, "outside_95": 0.06},
         holdout={"chi2_per_dof": 1.3, "parts": 2,
                  "changed": [{"param": "resonance.f0", "values": [20.69, 19.91], "z": 5.2,
-                              "source": "psd"}]},
+                              "source": "psd"}],
+                 "joint_difference": {"params": ["white.N", "random_walk.K"], "chi2": 7.1,
+                                      "dof": 2, "p": 0.029}},
         time_domain=None)
     fit["psd"] = {"f_hz": [0.1] * n, "psd": [1.0] * n, "dof": [2.0] * n, "ci_low": [0.5] * n,
                   "ci_high": [2.0] * n, "model_psd": [1.0] * n, "z": [0.0] * n}
@@ -174,6 +176,10 @@ def test_the_schemas_accept_the_parts_being_added(documents):
     wrong = copy.deepcopy(fit)
     wrong["error"]["holdout"]["changed"][0]["source"] = "spectrum"
     with pytest.raises(jsonschema.ValidationError, match="spectrum"):
+        validator("fit").validate(wrong)
+    wrong = copy.deepcopy(fit)
+    wrong["error"]["holdout"]["joint_difference"]["dof"] = 0
+    with pytest.raises(jsonschema.ValidationError, match="minimum"):
         validator("fit").validate(wrong)
     analyze = copy.deepcopy(documents["analyze"][0])
     analyze["coherence"] = {"pairs": []}
