@@ -677,6 +677,10 @@ def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
     def num(x: Any) -> str:
         return "n/a" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
 
+    def why(part: dict[str, Any]) -> str:
+        # a part not computed says why
+        return f" ({part['reason']})" if part.get("reason") else ""
+
     psd = parts.get("psd") or {}
     ho = parts.get("holdout") or {}
     td = parts.get("time_domain") or {}
@@ -684,10 +688,17 @@ def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
           f"{num(psd.get('deviance_per_bin'))}"
     if psd.get("outside_95") is not None:
         out += f" ({100.0 * psd['outside_95']:.0f} % of {psd.get('bins')} bins outside 95 %)"
+    elif psd.get("deviance_per_bin") is None:
+        out += why(psd)
     out += f" | hold-out chi2/dof {num(ho.get('chi2_per_dof'))}"
     if (ho.get("changes_free") or {}).get("chi2_per_dof") is not None:
         out += f" ({num(ho['changes_free']['chi2_per_dof'])} with the changes below fitted)"
-    out += f" | time domain max|z| {num(td.get('statistic'))} (p {num(td.get('p'))})"
+    elif ho.get("chi2_per_dof") is None:
+        out += why(ho)
+    if td.get("statistic") is None:
+        out += f" | time domain n/a{why(td)}"
+    else:
+        out += f" | time domain max|z| {num(td.get('statistic'))} (p {num(td.get('p'))})"
     lines = [out]
     for c in ho.get("changed") or []:
         a, b = c["values"]

@@ -131,8 +131,10 @@ def run(args: argparse.Namespace) -> int:
 def _print_text(file: str, record: Record, results: list, coherence: dict | None,
                 residuals: dict | None) -> None:
     """The text output: each channel's table and fit (and own noise), then the coherence."""
+    from imunoise.analysis.model_error import parts_line
     from imunoise.commands.fit import fit_summary
     from imunoise.export.report_text import channel_text
+    from imunoise.pipeline.documents import analyze_error_parts
 
     for w in record.warnings:
         print(f"warning: {w}", file=sys.stderr)
@@ -142,6 +144,9 @@ def _print_text(file: str, record: Record, results: list, coherence: dict | None
         print(channel_text(r.key, r.series, r.allan, r.psd, r.warnings))
         if r.fit is not None:
             print(fit_summary(r.fit, r.series.units))
+            if r.psd is not None:
+                _, parts = analyze_error_parts(r)
+                print("  " + parts_line(r.fit.chi2_per_dof, parts))
         for line in dataset_lines(record, r.key):
             print(line)
         if residuals and r.key in residuals:

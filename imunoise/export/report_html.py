@@ -240,7 +240,8 @@ def _param(ch: Mapping, term: str, param: str) -> tuple[float | None, list | Non
 
 def _summary_section(channels: Mapping[str, Mapping]) -> str:
     head = ("<tr><th>channel</th><th>N (white)</th><th>B (bias instability)</th>"
-            "<th>K (rate random walk)</th><th>\u03c7\u00b2/dof</th><th>model fits?</th></tr>")
+            "<th>K (rate random walk)</th><th>Allan \u03c7\u00b2/dof</th>"
+            "<th>PSD deviance/bin</th><th>model fits?</th></tr>")
     rows = []
     for name, ch in channels.items():
         cells = [f'<td><a href="#ch-{escape(name)}">{escape(name)}</a></td>']
@@ -257,6 +258,8 @@ def _summary_section(channels: Mapping[str, Mapping]) -> str:
         err = ch.get("error") or {}
         chi2 = err.get("chi2_per_dof")
         cells.append(f'<td class="num">{_num(chi2, 3)}</td>')
+        cells.append(f'<td class="num">{_num((err.get("psd") or {}).get("deviance_per_bin"), 3)}'
+                     "</td>")
         fails = ch.get("failures") or []
         cells.append('<td class="ok">yes</td>' if chi2 is not None and not fails else
                      f'<td class="bad">{len(fails)} failing range(s)</td>' if fails else
@@ -351,6 +354,60 @@ def _coefficient_table(ch: Mapping, kind: str) -> str:
     return f"<table>{head}{''.join(rows)}</table>"
 
 
+def _part_cells(err: Mapping) -> list[str]:
+    """The error's parts beside the Allan one, as table cells: the PSD deviance per bin (with
+    the share of bins outside their 95 % interval), the hold-out chi2/dof (with the named
+    changes fitted, where any) and the time-domain statistic with its p-value; a part not
+    computed says why."""
+    def missing(part: Mapping | None) -> str:
+        why = (part or {}).get("reason") or "not computed"
+        return f'<td class="muted">{escape(str(why))}</td>'
+
+    psd = err.get("psd") or {}
+    ho = err.get("holdout") or {}
+    td = err.get("time_domain") or {}
+    cells = []
+    if psd.get("deviance_per_bin") is None:
+        cells.append(missing(psd))
+    else:
+        out = psd.get("outside_95")
+        share = "" if out is None else (f" ({_num(100.0 * out, 2)} % of {psd.get('bins')} "
+                                        "bins outside 95 %)")
+        cells.append(f'<td class="num">{_num(psd["deviance_per_bin"], 3)}{share}</td>')
+    if ho.get("chi2_per_dof") is None:
+        cells.append(missing(ho))
+    else:
+        free = (ho.get("changes_free") or {}).get("chi2_per_dof")
+        loose = "" if free is None else f" ({_num(free, 3)} with the changes named fitted)"
+        cells.append(f'<td class="num">{_num(ho["chi2_per_dof"], 3)}{loose}</td>')
+    if td.get("statistic") is None:
+        cells.append(missing(td))
+    else:
+        cells.append(f'<td class="num">max |z| {_num(td["statistic"], 3)} '
+                     f'(p {_num(td.get("p"), 2)})</td>')
+    return cells
+
+
+def _holdout_findings(ho: Mapping) -> str:
+    """The parameters that changed between the halves, and a difference of the halves taken
+    together, as a list (findings about the sensor, not failures of the model)."""
+    items = []
+    for c in ho.get("changed") or []:
+        a, b = (c.get("values") or [None, None])[:2]
+        src = " (from each half's spectrum)" if c.get("source") == "psd" else ""
+        items.append(f"<li>{escape(str(c.get('param')))} changed between the first and second "
+                     f"half: {_num(a, 4)} \u2192 {_num(b, 4)}{src}, z = "
+                     f"{_num(c.get('z'), 2)}</li>")
+    joint = ho.get("joint_difference")
+    if joint:
+        items.append(f"<li>the halves differ in {escape(', '.join(joint['params']))} taken "
+                     f"together (\u03c7\u00b2 {_num(joint['chi2'], 3)} over {joint['dof']} "
+                     f"parameters, p {_num(joint['p'], 2)}), none beyond its own level</li>")
+    if not items:
+        return ""
+    return f"<p>Findings of the hold-out part:</p><ul>{''.join(items)}</ul>"
+
+
 def _error_block(ch: Mapping) -> str:
     err = ch.get("error") or {}
     if not err:
@@ -359,6 +416,15 @@ def _error_block(ch: Mapping) -> str:
     text = (f"<p>Misfit \u03c7\u00b2/dof = <b>{_num(err.get('chi2_per_dof'), 3)}</b> "
             f"(about 1 when the model explains the measurement), largest |z| = "
             f"{_num(err.get('max_abs_z'), 3)}.</p>")
+    text += ("<table><tr><th>Allan \u03c7\u00b2/dof</th><th>PSD deviance/bin</th>"
+             "<th>hold-out \u03c7\u00b2/dof</th><th>time domain</th></tr><tr>"
+             f'<td class="num">{_num(err.get("chi2_per_dof"), 3)}</td>'
+             + "".join(_part_cells(err)) + "</tr></table>"
+             '<p class="muted">Each part is about 1 when the model describes the sensor: the '
+             "Allan curve, the measured spectrum against the model's expected one, the model "
+             "fitted on one half of the record predicting the other half; the time-domain "
+             "part tests for a bias step or warm-up under the model.</p>")
+    text += _holdout_findings(err.get("holdout") or {})
     if not fails:
         return text + ('<p class="ok">The measurement stays inside the model\'s band at every '
                        "\u03c4.</p>")

@@ -210,21 +210,31 @@ def _with_psd_part(doc: dict[str, Any], r: Any) -> dict[str, Any]:
     """An ``analyze`` channel document with the default model's PSD part: ``psd.model_psd``,
     ``psd.z`` and ``error.psd``; the hold-out and time-domain parts are left to ``fit`` (they
     cost two fits and a transient search per channel)."""
-    from imunoise.analysis.model_error import plain, psd_parts
-    from imunoise.analysis.psd import default_nperseg
+    from imunoise.analysis.model_error import plain
 
     if r.fit is None or r.psd is None:
         return doc
+    block, parts = analyze_error_parts(r)
+    doc["psd"]["model_psd"] = plain(block["model_psd"])
+    doc["psd"]["z"] = plain(block["z"])
+    doc["error"].update(plain(parts))
+    return doc
+
+
+def analyze_error_parts(r: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(psd block, error parts)`` of an ``analyze`` channel result with a fit and a PSD:
+    the default model's PSD part; the hold-out and time-domain parts not computed, with the
+    reason."""
+    from imunoise.analysis.model_error import psd_parts
+    from imunoise.analysis.psd import default_nperseg
+
     bounds = np.append(r.series.segment_starts, r.series.n_samples)
     nperseg = default_nperseg(int(np.max(np.diff(bounds))))
     block, part = psd_parts(r.fit.params, r.psd, r.series.fs_hz, nperseg)
-    doc["psd"]["model_psd"] = plain(block["model_psd"])
-    doc["psd"]["z"] = plain(block["z"])
-    doc["error"]["psd"] = plain(part)
     why = "not computed by analyze: imunoise fit reports it"
-    doc["error"]["holdout"] = {"chi2_per_dof": None, "parts": 2, "reason": why}
-    doc["error"]["time_domain"] = {"statistic": None, "p": None, "reason": why}
-    return doc
+    return block, {"psd": part,
+                   "holdout": {"chi2_per_dof": None, "parts": 2, "reason": why},
+                   "time_domain": {"statistic": None, "p": None, "reason": why}}
 
 
 def dataset_statement(record: Record) -> dict[str, Any]:

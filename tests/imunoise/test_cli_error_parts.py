@@ -111,3 +111,15 @@ def test_a_cut_reports_the_time_domain_part_that_fit_reports_after_the_cut(tmp_p
     assert td["p"] >= 0.05 and doc["error"]["time_domain"]["p"] < 1e-4
     assert td["statistic"] == pytest.approx(want["statistic"], rel=1e-6)
     assert td["p"] == pytest.approx(want["p"], rel=1e-6)
+
+
+def test_analyze_text_shows_the_psd_part_of_its_json_and_why_the_others_are_absent(csv):
+    doc = json.loads(_run("analyze", str(csv), "--json"))
+    err = doc["channels"]["gyro_x"]["error"]
+    text = _run("analyze", str(csv))
+    line = next(s.strip() for s in text.splitlines() if s.strip().startswith("error: allan"))
+    why = "not computed by analyze: imunoise fit reports it"
+    assert line == (f"error: allan chi2/dof {err['chi2_per_dof']:.3g} | psd deviance/bin "
+                    f"{err['psd']['deviance_per_bin']:.3g} "
+                    f"({100 * err['psd']['outside_95']:.0f} % of {err['psd']['bins']} bins "
+                    f"outside 95 %) | hold-out chi2/dof n/a ({why}) | time domain n/a ({why})")

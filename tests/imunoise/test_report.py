@@ -185,6 +185,46 @@ def test_report_handles_missing_parts():
     assert p.errors == []
 
 
+
+def test_report_shows_every_part_of_the_error_and_the_halves_findings():
+    """The error's parts side by side (Allan, PSD, hold-out, time domain) in each channel's
+    section and the PSD part in the summary; a part not computed says why; the hold-out
+    findings are listed."""
+    doc = _doc()
+    doc["channels"]["gyro_x"]["error"].update(
+        psd={"deviance_per_bin": 2.52, "bins": 186, "outside_95": 0.15},
+        holdout={"chi2_per_dof": 5.26, "parts": 2, "halves": [5.7, 4.8],
+                 "changed": [{"param": "resonance.f0", "values": [10.2, 9.602], "z": 38.3,
+                              "source": "psd"}],
+                 "changes_free": {"chi2_per_dof": 5.37, "halves": [5.95, 4.78],
+                                  "params": ["resonance.f0"]},
+                 "joint_difference": {"params": ["white.N", "random_walk.K"], "chi2": 9.1,
+                                      "dof": 2, "p": 0.011}},
+        time_domain={"statistic": 4.11, "p": 0.005, "test": "bias step or warm-up"})
+    doc["channels"]["accel_z"]["error"].update(
+        psd={"deviance_per_bin": 1.1, "bins": 180, "outside_95": 0.05},
+        holdout={"chi2_per_dof": None, "parts": 2,
+                 "reason": "not computed by analyze: imunoise fit reports it"},
+        time_domain={"statistic": None, "p": None,
+                     "reason": "not computed by analyze: imunoise fit reports it"})
+    html = render_report(doc)
+    p = _Collector()
+    p.feed(html)
+    assert p.errors == []
+    text = " ".join(" ".join(p.text).split())
+    assert ("Allan \u03c7\u00b2/dof PSD deviance/bin hold-out \u03c7\u00b2/dof time domain "
+            "3.7 2.52 (15 % of 186 bins outside 95 %) 5.26 (5.37 with the changes named "
+            "fitted) max |z| 4.11 (p 0.005)") in text
+    assert ("3.7 1.1 (5 % of 180 bins outside 95 %) not computed by analyze: imunoise fit "
+            "reports it not computed by analyze: imunoise fit reports it") in text
+    assert ("resonance.f0 changed between the first and second half: 10.2 \u2192 9.602 "
+            "(from each half's spectrum), z = 38") in text
+    assert ("the halves differ in white.N, random_walk.K taken together (\u03c7\u00b2 9.1 "
+            "over 2 parameters, p 0.011), none beyond its own level") in text
+    # the summary: Allan part then PSD part per channel
+    assert "Allan \u03c7\u00b2/dof PSD deviance/bin model fits?" in text
+    assert "3.7 2.52 " in text
+
 def _png_rows(path: Path) -> tuple[int, int, np.ndarray]:
     """Width, height and the filtered scan lines (one row per image row) of a PNG."""
     data = path.read_bytes()
