@@ -104,6 +104,17 @@ def _check_dashboard(page, url: str) -> None:
     live_terms = term_names(live=True)
     assert page.locator("#model-editor button.add-any").count() == len(live_terms) - 3
     assert "samples" in page.locator("#status").inner_text()
+    # the error's other parts beside the Allan one: the PSD part as /coefficients gives it,
+    # the hold-out and time-domain parts with the reason they are not computed live
+    # (the next refresh, should this one have asked before the PSD had its first estimate)
+    page.wait_for_function(
+        "/^PSD deviance\\/bin \\d/.test(document.getElementById('error-parts').textContent)",
+        timeout=15000)
+    parts = page.locator("#error-parts").inner_text()
+    assert re.search(r"^PSD deviance/bin \d", parts) and "bins outside 95 %" in parts, parts
+    assert ("hold-out χ²/dof n/a (not computed by the live service: imunoise fit on the "
+            "recording reports it)") in parts, parts
+    assert "time domain max|z| n/a (not computed by the live service" in parts, parts
     assert page.errors == [], f"console errors {page.errors}"
 
 

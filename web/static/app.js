@@ -211,6 +211,20 @@ function drawCoefficients(c) {
     `${fmt(c.duration_s, 4)} s analysed in ${c.segments} segment(s) at ${fmt(c.fs_hz)} Hz`;
 }
 
+// The error's other parts beside the Allan one (from /coefficients): each about 1 when the
+// model describes the sensor; a part not computed here says why.
+function drawErrorParts(e) {
+  if (!e) { $("error-parts").textContent = ""; return; }
+  const part = (label, p, key, extra) => (p && p[key] != null ?
+    `${label} ${fmt(p[key])}${extra(p)}` : `${label} n/a (${(p && p.reason) || "not computed"})`);
+  const psd = part("PSD deviance/bin", e.psd, "deviance_per_bin", (p) => (p.outside_95 == null ?
+    "" : ` (${fmt(100 * p.outside_95, 2)} % of ${p.bins} bins outside 95 %)`));
+  const ho = part("hold-out χ²/dof", e.holdout, "chi2_per_dof", () => "");
+  const td = part("time domain max|z|", e.time_domain, "statistic",
+    (p) => ` (p ${fmt(p.p, 2)})`);
+  $("error-parts").textContent = [psd, ho, td].join(" · ");
+}
+
 function drawModel(m) {
   $("error-value").textContent = m.error ? fmt(m.error.chi2_per_dof) : "–";
   $("error-value").dataset.value = m.error ? String(m.error.chi2_per_dof) : "";
@@ -283,6 +297,7 @@ async function refresh() {
     const [a, p, c, m, d] = await Promise.all([getJSON(`/allan${q}`), getJSON(`/psd${q}`),
       getJSON("/coefficients"), getJSON(`/model${q}`), getJSON(`/diagnosis${q}`)]);
     drawAllan(a); drawPsd(p); drawCoefficients(c.channels[state.channel]); drawModel(m);
+    drawErrorParts(c.channels[state.channel].error);
     drawDiagnosis(d);
     await refreshCoherence();
     state.renders += 1;
