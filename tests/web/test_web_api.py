@@ -109,6 +109,13 @@ def test_diagnosis_then_add_the_suggestion_and_error_falls(client) -> None:
     assert dy["suggestions"] and not [s for s in dy["suggestions"] if s["significant"]]
     m0 = client.get("/model", params={"channel": "gyro_x"}).json()
     assert "sinusoid" in m0["valid_terms"] and "temperature" not in m0["valid_terms"]
+    # /diagnosis and /model give the error with every part, as /coefficients does: the
+    # missing line shows in the PSD part; the hold-out and time-domain parts say why absent
+    c0 = client.get("/coefficients").json()["channels"]["gyro_x"]
+    assert d["error"] == m0["error"] == c0["error"]
+    assert d["error"]["psd"]["deviance_per_bin"] > 3.0 and d["error"]["psd"]["bins"] > 10
+    assert "not computed by the live service" in d["error"]["holdout"]["reason"]
+    assert "not computed by the live service" in d["error"]["time_domain"]["reason"]
     # the Add button posts the suggestion's apply.model: the full model, the line's
     # frequency held where the spectrum put it
     assert top["apply"]["args"] == []
@@ -118,10 +125,13 @@ def test_diagnosis_then_add_the_suggestion_and_error_falls(client) -> None:
     change = r.json()
     assert change["error_before"]["chi2_per_dof"] == pytest.approx(d["error"]["chi2_per_dof"])
     assert change["error_after"]["chi2_per_dof"] < change["error_before"]["chi2_per_dof"] / 10
+    # the reply's errors carry the PSD part too, both against the same spectrum: the line
+    # modelled, it falls
+    assert change["error_before"] == d["error"]
+    assert change["error_after"]["psd"]["deviance_per_bin"] < \
+        change["error_before"]["psd"]["deviance_per_bin"] / 2
     c = client.get("/coefficients").json()["channels"]["gyro_x"]
-    allan_part = ("chi2_per_dof", "max_abs_z")
-    assert {k: c["error"][k] for k in allan_part} == {k: change["error_after"][k]
-                                                      for k in allan_part}
+    assert c["error"] == change["error_after"]
     sine = next(t for t in c["model"] if t["term"] == "sinusoid")
     assert sine["params"]["f"] == pytest.approx(SINE_F, rel=0.01)  # Allan fit, octave taus
     assert sine["params"]["A"] == pytest.approx(SINE_A, rel=0.05)

@@ -30,11 +30,7 @@ async def diagnosis(a: deps.AnalyzerDep) -> dict[str, Any]:
 
 @router.get("/model", response_model=ModelOut, summary="current model and error history")
 async def get_model(a: deps.AnalyzerDep) -> dict[str, Any]:
-    s = a.snapshot()
-    d = views.diagnosis_view(s)
-    return {"channel": a.channel, "model": d["model"], "model_revision": d["model_revision"],
-            "valid_terms": list(VALID_TERMS), "error": d["error"],
-            "history": views.history_view(s)}
+    return views.model(a, VALID_TERMS)
 
 
 @router.post("/model", response_model=ModelChangeOut, dependencies=[Depends(deps.require_token)],
@@ -45,13 +41,13 @@ def post_model(change: ModelChangeRequest, request: Request) -> dict[str, Any]:
         if change.add is not None:
             if change.add in a.model:
                 raise ValueError(f"term {change.add!r} is already in the model")
-            return views.model_change(a.add_term(change.add))
+            return views.model_change(a.add_term(change.add), a)
         if change.remove is not None:
-            return views.model_change(a.remove_term(change.remove))
+            return views.model_change(a.remove_term(change.remove), a)
         if change.model is not None:
             return views.model_change(
-                a.set_model([e.text() for e in parse_model(change.model).entries]))
-        return views.model_change(a.set_model(change.terms or []))
+                a.set_model([e.text() for e in parse_model(change.model).entries]), a)
+        return views.model_change(a.set_model(change.terms or []), a)
     except ValueError as exc:
         raise HTTPException(400, str(exc)) from None
 

@@ -126,12 +126,29 @@ def coefficients(channel: LiveChannel) -> dict[str, Any]:
     return out
 
 
+def error_with_parts(fit: FitResult | None, est: Any, fs_hz: float) -> dict[str, Any] | None:
+    """A fit's error (:func:`error_json`) with the PSD part against the streaming estimate
+    ``est`` beside the Allan's, and the hold-out and time-domain parts with the reason the
+    live service leaves them to ``imunoise fit``; None without a fit."""
+    if fit is None:
+        return None
+    out: dict[str, Any] = dict(error_json(fit))
+    out.update(_parts_of(est, fit, fs_hz)[1])
+    return out
+
+
 _LIVE_WHY = "not computed by the live service: imunoise fit on the recording reports it"
 
 
 def _live_parts(est: Any, s: ChannelSnapshot) -> tuple[np.ndarray | None, dict[str, Any]]:
-    """The estimator's expected PSD under the fitted model (or None) and the error's PSD,
+    """The estimator's expected PSD under the snapshot's fit (or None) and the error's PSD,
     hold-out and time-domain parts for the live views."""
+    return _parts_of(est, s.fit, s.fs_hz)
+
+
+def _parts_of(est: Any, fit: FitResult | None, fs_hz: float
+              ) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """:func:`_live_parts` of any fit of the channel (the one before a model change too)."""
     from imunoise.analysis.model_error import plain, streaming_psd_part
 
     parts: dict[str, Any] = {
@@ -139,9 +156,9 @@ def _live_parts(est: Any, s: ChannelSnapshot) -> tuple[np.ndarray | None, dict[s
                 "reason": "no PSD estimate yet"},
         "holdout": {"chi2_per_dof": None, "parts": 2, "reason": _LIVE_WHY},
         "time_domain": {"statistic": None, "p": None, "reason": _LIVE_WHY}}
-    if est is None or s.fit is None:
+    if est is None or fit is None:
         return None, parts
-    expected, part = streaming_psd_part(s.fit.params, est, s.fs_hz)
+    expected, part = streaming_psd_part(fit.params, est, fs_hz)
     parts["psd"] = plain(part)
     return expected, parts
 
@@ -244,8 +261,22 @@ def diagnosis_view(s: ChannelSnapshot) -> dict[str, Any]:
 
 
 def diagnosis(channel: LiveChannel) -> dict[str, Any]:
-    """``/diagnosis`` of one channel."""
-    return diagnosis_view(channel.snapshot())
+    """``/diagnosis`` of one channel, its error with every part (:func:`error_with_parts`)."""
+    s = channel.snapshot()
+    out = diagnosis_view(s)
+    out["error"] = error_with_parts(s.fit, channel.psd_estimate(), s.fs_hz)
+    return out
+
+
+def model(channel: LiveChannel, valid_terms: Sequence[str]) -> dict[str, Any]:
+    """``GET /model`` of one channel: the model, its revision, the terms that may be added,
+    the error with every part (:func:`error_with_parts`) and the error history."""
+    s = channel.snapshot()
+    d = diagnosis_view(s)
+    return {"channel": s.channel, "model": d["model"], "model_revision": d["model_revision"],
+            "valid_terms": list(valid_terms),
+            "error": error_with_parts(s.fit, channel.psd_estimate(), s.fs_hz),
+            "history": history_view(s)}
 
 
 def history_view(s: ChannelSnapshot) -> list[dict[str, Any]]:
@@ -259,8 +290,17 @@ def history(channel: LiveChannel) -> list[dict[str, Any]]:
     return history_view(channel.snapshot())
 
 
-def model_change(result: ModelChangeResult) -> dict[str, Any]:
-    """The reply to a model change: the model, its revision, the error before and after."""
+def model_change(result: ModelChangeResult, channel: LiveChannel | None = None
+                 ) -> dict[str, Any]:
+    """The reply to a model change: the model, its revision, the error before and after;
+    given the ``channel``, each error with every part, both PSD parts against the same
+    streaming estimate (:func:`error_with_parts`)."""
+    if channel is None:
+        before, after = error_json(result.before), error_json(result.after)
+    else:
+        est, fs_hz = channel.psd_estimate(), channel.snapshot().fs_hz
+        before = error_with_parts(result.before, est, fs_hz) or error_json(None)
+        after = error_with_parts(result.after, est, fs_hz) or error_json(None)
     return {"channel": result.channel, "model": list(result.model),
             "model_revision": result.model_revision,
-            "error_before": error_json(result.before), "error_after": error_json(result.after)}
+            "error_before": before, "error_after": after}
