@@ -699,22 +699,28 @@ def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
         out += f" | time domain n/a{why(td)}"
     else:
         out += f" | time domain max|z| {num(td.get('statistic'))} (p {num(td.get('p'))})"
-    lines = [out]
-    for c in ho.get("changed") or []:
+    return "\n".join([out] + [f"  finding: {f}" for f in holdout_findings(ho)])
+
+
+def holdout_findings(holdout: dict[str, Any]) -> list[str]:
+    """The hold-out part's findings (``error.holdout``) as sentences: each parameter that
+    changed between the halves, then a difference of the halves taken together."""
+    out = []
+    for c in holdout.get("changed") or []:
         a, b = c["values"]
         unit = _unit_of(str(c["param"]))
         src = " (from each half's spectrum)" if c.get("source") == "psd" else ""
         how = {"joint": ", the other parameters held equal",
                "profile": ", each half's curve held at the other's value"}.get(
                    str(c.get("test")), "")
-        lines.append(f"  finding: {c['param']} changed between the first and second half: "
-                     f"{a:.4g} -> {b:.4g}{unit}{src} (z = {c['z']:.1f}{how})")
-    joint = ho.get("joint_difference")
+        out.append(f"{c['param']} changed between the first and second half: "
+                   f"{a:.4g} -> {b:.4g}{unit}{src} (z = {c['z']:.1f}{how})")
+    joint = holdout.get("joint_difference")
     if joint:
-        lines.append(f"  finding: the halves differ in {', '.join(joint['params'])} taken "
-                     f"together (chi2 {joint['chi2']:.1f} over {joint['dof']} parameters, "
-                     f"p {joint['p']:.2g}), none beyond its own level")
-    return "\n".join(lines)
+        out.append(f"the halves differ in {', '.join(joint['params'])} taken together "
+                   f"(chi2 {joint['chi2']:.1f} over {joint['dof']} parameters, "
+                   f"p {joint['p']:.2g}), none beyond its own level")
+    return out
 
 
 def _unit_of(param: str) -> str:

@@ -391,21 +391,10 @@ def _part_cells(err: Mapping) -> list[str]:
 def _holdout_findings(ho: Mapping) -> str:
     """The parameters that changed between the halves, and a difference of the halves taken
     together, as a list (findings about the sensor, not failures of the model)."""
-    items = []
-    for c in ho.get("changed") or []:
-        a, b = (c.get("values") or [None, None])[:2]
-        src = " (from each half's spectrum)" if c.get("source") == "psd" else ""
-        items.append(f"<li>{escape(str(c.get('param')))} changed between the first and second "
-                     f"half: {_num(a, 4)} \u2192 {_num(b, 4)}{src}, z = "
-                     f"{_num(c.get('z'), 2)}</li>")
-    joint = ho.get("joint_difference")
-    if joint:
-        items.append(f"<li>the halves differ in {escape(', '.join(joint['params']))} taken "
-                     f"together (\u03c7\u00b2 {_num(joint['chi2'], 3)} over {joint['dof']} "
-                     f"parameters, p {_num(joint['p'], 2)}), none beyond its own level</li>")
-    if not items:
-        return ""
-    return f"<p>Findings of the hold-out part:</p><ul>{''.join(items)}</ul>"
+    from imunoise.analysis.model_error import holdout_findings
+
+    items = "".join(f"<li>{escape(f)}</li>" for f in holdout_findings(dict(ho)))
+    return f"<p>Findings of the hold-out part:</p><ul>{items}</ul>" if items else ""
 
 
 def _error_block(ch: Mapping) -> str:

@@ -217,10 +217,11 @@ def test_report_shows_every_part_of_the_error_and_the_halves_findings():
             "fitted) max |z| 4.11 (p 0.005)") in text
     assert ("3.7 1.1 (5 % of 180 bins outside 95 %) not computed by analyze: imunoise fit "
             "reports it not computed by analyze: imunoise fit reports it") in text
-    assert ("resonance.f0 changed between the first and second half: 10.2 \u2192 9.602 "
-            "(from each half's spectrum), z = 38") in text
-    assert ("the halves differ in white.N, random_walk.K taken together (\u03c7\u00b2 9.1 "
-            "over 2 parameters, p 0.011), none beyond its own level") in text
+    assert ("Findings of the hold-out part: resonance.f0 changed between the first and "
+            "second half: 10.2 -> 9.602 Hz (from each half's spectrum) (z = 38.3) the halves "
+            "differ in white.N, random_walk.K taken together (chi2 9.1 over 2 parameters, "
+            "p 0.011), none beyond its own level") in text
+    assert "-&gt; 9.602 Hz" in html
     # the summary: Allan part then PSD part per channel
     assert "Allan \u03c7\u00b2/dof PSD deviance/bin model fits?" in text
     assert "3.7 2.52 " in text
