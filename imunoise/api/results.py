@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -335,6 +336,21 @@ class FitReport:
         """The tau ranges where the measurement leaves the model's band."""
         return list(self.result.failures)
 
+    @cached_property
+    def error(self) -> dict[str, Any]:
+        """The error in its parts, as ``imunoise fit --json`` gives it: ``chi2_per_dof`` and
+        ``max_abs_z`` of the Allan fit, and for a channel the ``psd``, ``holdout`` and
+        ``time_domain`` parts (each about 1 when the model describes the sensor; computed on
+        first use: two fits of the record's halves and a transient search)."""
+        from imunoise.analysis.model_error import plain
+        from imunoise.pipeline.fitting import fit_error_parts
+
+        out: dict[str, Any] = dict(documents.error_json(self.result))
+        if self.channel is not None:
+            out.update(plain(fit_error_parts(self.channel.recording.record, self.channel.key,
+                                             self.model_text, self.result)[1]))
+        return out
+
     def document(self) -> dict[str, Any]:
         """``imunoise fit --json``'s document for a channel; for a curve of an array, its
         ``model``, ``error``, ``failures`` and ``allan``."""
@@ -422,6 +438,16 @@ class Diagnosis:
     def best(self) -> dict[str, Any] | None:
         """The best significant suggestion, or None when the model explains the data."""
         return next((s for s in self.suggestions if s["significant"]), None)
+
+    @property
+    def error(self) -> dict[str, Any]:
+        """The given model's error in its parts (Allan, ``psd``, ``holdout``,
+        ``time_domain``), as ``imunoise diagnose --json`` gives it."""
+        from imunoise.analysis.model_error import plain
+
+        out: dict[str, Any] = dict(documents.error_json(self.diagnosis.fit))
+        out.update(plain(self.diagnosis.error_parts or {}))
+        return out
 
     def document(self) -> dict[str, Any]:
         """``imunoise diagnose --json``'s document."""

@@ -76,10 +76,20 @@ def test_the_four_lines_give_analyze_numbers(recording):
 def test_fit_and_diagnose_documents_equal_the_commands(recording):
     rec = imunoise.read(recording)
     model = "white,random_walk"
-    assert imunoise.fit(rec["gyro_x"], model).document() == _cli_json(
-        ["fit", recording, "--channel", "gyro_x", "--model", model, "--json"])
-    assert imunoise.diagnose(rec["gyro_x"], model).document() == _cli_json(
-        ["diagnose", recording, "--channel", "gyro_x", "--model", model, "--json"])
+    fit_doc = _cli_json(["fit", recording, "--channel", "gyro_x", "--model", model, "--json"])
+    report = imunoise.fit(rec["gyro_x"], model)
+    assert report.document() == fit_doc
+    # the error in its parts without the whole document
+    assert report.error == fit_doc["error"]
+    assert set(report.error) == {"chi2_per_dof", "max_abs_z", "psd", "holdout", "time_domain"}
+    diagnose_doc = _cli_json(["diagnose", recording, "--channel", "gyro_x", "--model", model,
+                              "--json"])
+    dx = imunoise.diagnose(rec["gyro_x"], model)
+    assert dx.document() == diagnose_doc
+    assert dx.error == diagnose_doc["error"]
+    # a curve of an array has the Allan part alone
+    assert set(imunoise.fit(imunoise.oadev(rec["gyro_x"].values, 100.0), model).error) == {
+        "chi2_per_dof", "max_abs_z"}
 
 
 def test_fit_of_a_channel_and_of_its_curve_agree(recording):
