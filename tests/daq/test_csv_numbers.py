@@ -143,13 +143,36 @@ def test_reader_still_names_the_bad_line_of_a_big_file(tmp_path):
         read_csv(p)
 
 
-def test_big_files_are_read_without_loading_numba(tmp_path):
-    # numba's import and cached machine code cost a process about 0.8 s; a CSV is read
-    # without them (the Allan kernels load them for records of 2.1e6 points and more)
+def test_big_files_are_read_without_loading_numba_or_pandas(tmp_path):
+    # numba's import and cached machine code cost a process about 0.8 s, pandas's (which
+    # pyarrow's own array conversion imports) about 0.25 s; a CSV is read without them (the
+    # Allan kernels load numba for records of 2.1e6 points and more)
+    p = _record_file(tmp_path, 40_000)
+    text = p.read_text().splitlines()
+    fields = text[5].split(",")
+    text[5] = ",".join(fields[:2] + [""] + fields[3:])  # gyro_y of row 4 missing: removed
+    p.write_text("\n".join(text) + "\n")
     code = ("import sys; from imunoise.daq.readers.csv_file import read_csv; "
-            f"r = read_csv({str(_record_file(tmp_path, 40_000))!r}); "
-            "print(r.channels['gyro_x'].n_samples, 'pyarrow' in sys.modules, "
-            "'numba' in sys.modules)")
+            f"r = read_csv({str(p)!r}); "
+            "print(r.channels['gyro_x'].n_samples, r.channels['gyro_y'].n_samples, "
+            "'pyarrow' in sys.modules, 'numba' in sys.modules, 'pandas' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
-    assert out.stdout.split() == ["40000", "True", "False"]
+    assert out.stdout.split() == ["40000", "39999", "True", "False", "False"]
+
+
+def test_columns_are_copied_from_every_chunk_and_offset_with_nulls_as_nan():
+    pa = csv_numbers._arrow()[0]
+    values = np.arange(40.0)
+    valid = np.ones(40, dtype=bool)
+    valid[[3, 17, 18, 39]] = False
+    whole = pa.array(values, mask=~valid)
+    # chunks that start inside a byte of the validity bitmap, and one without nulls
+    chunks = [whole.slice(0, 5), whole.slice(5, 14), whole.slice(19, 20),
+              pa.array(np.array([7.5, -1.0]))]
+    out = np.empty(41)
+    csv_numbers._copy_chunks(chunks, out)
+    expected = np.concatenate([np.where(valid, values, np.nan)[:39], [7.5, -1.0]])
+    assert np.array_equal(out, expected, equal_nan=True)
+    with pytest.raises(ValueError, match="39 values for 41 rows"):
+        csv_numbers._copy_chunks(chunks[:3], np.empty(41))
