@@ -38,7 +38,7 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -193,12 +193,15 @@ def _paired_terms(fit_a: Any, fit_b: Any) -> list[tuple[str, int, int]]:
             if get_term(names[i]).role != "regressor"]
 
 
-def _fit_half(shared: tuple[Any, ...], k: int) -> tuple[Any, dict[int, Any] | None]:
-    """Half ``k``'s fit and its resonance shapes (f0, Q) from its own spectrum, by model index
+def _fit_half(shared: tuple[Any, ...], k: int) -> HalfFit:
+    """Half ``k``'s fit, its resonance shapes (f0, Q) from its own spectrum, by model index
     (:func:`imunoise.analysis.spectral_pins.pin_resonances`; None where that spectrum cannot
-    be fitted). Held shapes are measured too: a resonance the model holds at one frequency
-    (as the diagnosis writes it) can still move between the halves, and that is a finding
-    about the sensor."""
+    be fitted), and the other half's chi2/dof under its model. Held shapes are measured too:
+    a resonance the model holds at one frequency (as the diagnosis writes it) can still move
+    between the halves, and that is a finding about the sensor. The prediction is made here,
+    where the half's filter shapes are remembered from its fit (the halves have the same
+    taus): in another process it costs a filtered model's shapes again, a quarter of a
+    second for a Bartlett filter with a resonance on a 1.4 h half."""
     from imunoise.analysis.fit import fit_series
     from imunoise.analysis.spectral_pins import pin_resonances
 
@@ -212,11 +215,17 @@ def _fit_half(shared: tuple[Any, ...], k: int) -> tuple[Any, dict[int, Any] | No
         if cold.misfit.chi2 < fit.misfit.chi2:
             fit = cold
     fit = fit.in_canonical_order()
+    other, other_starts = halves[1 - k]
+    predicts: float | Exception
+    try:
+        predicts = _prediction(other, other_starts, fs_hz, fit, frozenset(), {})
+    except _HALF_ERRORS as exc:
+        predicts = exc
     try:
         pins = pin_resonances(h, fs_hz, fit.params, set(), starts)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):
-        return fit, None
-    return fit, {p.index: p for p in pins}
+        return HalfFit(fit, None, predicts)
+    return HalfFit(fit, {p.index: p for p in pins}, predicts)
 
 
 def _start_misled(half: Any, whole: Any) -> bool:
@@ -477,11 +486,12 @@ class HoldoutHalves:
         failed = next((d for d in done if isinstance(d, Exception)), None)
         if failed is not None:
             return _unfitted(failed)
-        fits = [fit for fit, _ in done]
-        try:
-            chis = self._predictions(fits, set())
-        except _HALF_ERRORS as exc:
-            return _unfitted(exc)
+        fits = [d.fit for d in done]
+        # half 0 as half 1's model predicts it, then half 1 as half 0's does
+        chis = [done[1].predicts, done[0].predicts]
+        failed = next((c for c in chis if isinstance(c, Exception)), None)
+        if failed is not None:
+            return _unfitted(failed)
         recheck = functools.partial(self._held_rise, fits)
         changed = _changed(fits[0], fits[1], _shapes_of(done), recheck)
         if by_curves and float(np.mean(chis)) > right_model_limit(
@@ -498,29 +508,18 @@ class HoldoutHalves:
             out["joint_difference"] = joint
         if names:
             try:
-                loose = self._predictions(fits, set(names))
+                loose = job_map(_prediction_job, (self, fits, frozenset(names)), [0, 1])
             except _HALF_ERRORS:
                 return out
             out["changes_free"] = {"chi2_per_dof": float(np.mean(loose)),
                                    "halves": [float(c) for c in loose], "params": names}
         return out
 
-    def _predictions(self, fits: Sequence[Any], free: set[str]) -> list[float]:
-        """Chi2/dof of each half predicted by the other half's model, every parameter held
-        but those labelled in ``free`` (fitted on the half predicted)."""
-        from imunoise.analysis.fit import fit_series
-
-        chis = []
-        for (h, starts), other in zip(self.halves, fits[::-1], strict=True):
-            given = [(t.term, dict(t.params)) for t in other.terms]
-            names = labels([n for n, _ in given])
-            held: dict[str | int, dict[str, float]] = {
-                i: {k: v for k, v in p.items() if f"{label}.{k}" not in free}
-                for i, ((_, p), label) in enumerate(zip(given, names, strict=True))}
-            chis.append(fit_series(h, self.fs_hz, given, segment_starts=starts, fixed=held,
-                                   intervals="jacobian", memo=self.memo, profile_terms=()
-                                   )[0].chi2_per_dof)
-        return chis
+    def predicted(self, k: int, other: Any, free: frozenset[str] = frozenset()) -> float:
+        """Chi2/dof of half ``k`` predicted by the other half's fitted model ``other``,
+        every parameter held but those labelled in ``free`` (fitted on half ``k``)."""
+        h, starts = self.halves[k]
+        return _prediction(h, starts, self.fs_hz, other, free, self.memo)
 
     def _held_rise(self, fits: Sequence[Any], half: int, index: int, param: str,
                    value: float) -> float | None:
@@ -547,6 +546,41 @@ def _held_rise_job(shared: tuple[HoldoutHalves, Sequence[Any]],
     return setup._held_rise(fits, *item)
 
 
+def _prediction_job(shared: tuple[HoldoutHalves, Sequence[Any], frozenset[str]], k: int
+                    ) -> float:
+    """:meth:`HoldoutHalves.predicted` of half ``k`` by the other half's fit, as a job."""
+    setup, fits, free = shared
+    return setup.predicted(k, fits[1 - k], free)
+
+
+def _prediction(h: np.ndarray, starts: np.ndarray, fs_hz: float, other: Any,
+                free: frozenset[str], memo: dict) -> float:
+    """Chi2/dof of the samples ``h`` under the fitted model ``other``, every parameter held
+    but those labelled in ``free``."""
+    from imunoise.analysis.fit import fit_series
+
+    given = [(t.term, dict(t.params)) for t in other.terms]
+    names = labels([n for n, _ in given])
+    held: dict[str | int, dict[str, float]] = {
+        i: {k: v for k, v in p.items() if f"{label}.{k}" not in free}
+        for i, ((_, p), label) in enumerate(zip(given, names, strict=True))}
+    return fit_series(h, fs_hz, given, segment_starts=starts, fixed=held,
+                      intervals="jacobian", memo=memo, profile_terms=())[0].chi2_per_dof
+
+
+class HalfFit(NamedTuple):
+    """What :func:`fit_half` gives for one half of the record."""
+
+    fit: Any
+    """The half's :class:`imunoise.analysis.fit.FitResult`, terms in canonical order."""
+    shapes: dict[int, Any] | None
+    """Its resonances' shapes from its own spectrum, by model index (None where that
+    spectrum cannot be fitted)."""
+    predicts: float | Exception
+    """Chi2/dof of the other half under this half's model, every parameter held; or the
+    exception that says why it cannot be computed."""
+
+
 _HALF_ERRORS = (ValueError, ArithmeticError, np.linalg.LinAlgError)
 """What a half that cannot be fitted raises (too short, no finite curve)."""
 
@@ -555,7 +589,7 @@ def _unfitted(exc: BaseException) -> dict[str, Any]:
     return {"chi2_per_dof": None, "parts": 2, "reason": f"a half cannot be fitted: {exc}"}
 
 
-def fit_half(shared: tuple[Any, ...], k: int) -> Any:
+def fit_half(shared: tuple[Any, ...], k: int) -> HalfFit | Exception:
     """:func:`_fit_half`, or the exception that says why half ``k`` cannot be fitted (given
     back, not raised, so that it does not stop the other jobs of a job map)."""
     try:
@@ -597,10 +631,10 @@ def holdout_part(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     return setup.part(job_map(fit_half, setup.shared(), [0, 1]), by_curves, job_map)
 
 
-def _shapes_of(done: Sequence[tuple[Any, dict[int, Any] | None]]) -> list[dict[int, Any]]:
+def _shapes_of(done: Sequence[HalfFit]) -> list[dict[int, Any]]:
     """Both halves' resonance shapes, or none where one half's spectrum could not be fitted
     (the Allan fits' intervals judge the resonance then)."""
-    shapes = [s for _, s in done]
+    shapes = [d.shapes for d in done]
     return [{}, {}] if any(s is None for s in shapes) else [dict(s or {}) for s in shapes]
 
 

@@ -9,6 +9,8 @@ import pytest
 
 from imunoise.analysis.fit import TermFit, fit_series
 from imunoise.analysis.model_error import (
+    HalfFit,
+    HoldoutHalves,
     _changed,
     _pairs,
     error_parts,
@@ -26,6 +28,13 @@ N = 1 << 19
 MODEL = [("white", {"N": 1e-3}), ("gauss_markov", {"sigma": 1e-3, "T": 0.5}),
          ("random_walk", {"K": 1e-5})]
 SPEC = "white,gauss_markov,random_walk"
+
+
+def _half(setup: HoldoutHalves | dict, k: int) -> HalfFit:
+    assert isinstance(setup, HoldoutHalves)
+    done = fit_half(setup.shared(), k)
+    assert isinstance(done, HalfFit), done
+    return done
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +160,7 @@ def test_a_change_seen_only_through_correlated_parameters_is_named():
     spec = "white,moving_average"
     fit = fit_series(x, FS, spec)[0]
     setup = holdout_halves(x, FS, spec, fit)
-    (a, _), (b, _) = (fit_half(setup.shared(), k) for k in (0, 1))
+    a, b = (_half(setup, k).fit for k in (0, 1))
     changed = _changed(a, b)
     assert [c["test"] for c in changed] == ["joint"], changed
     # two parameters compared: the Bonferroni level is norm.isf(0.05 / 4) = 2.50
@@ -189,8 +198,8 @@ def test_flicker_that_trades_places_with_the_random_walk_is_not_a_change():
     x = simulate(model, N, FS, rng=1031)
     fit = fit_series(x, FS, spec)[0]
     setup = holdout_halves(x, FS, spec, fit)
-    done = [fit_half(setup.shared(), k) for k in (0, 1)]
-    (a, _), (b, _) = done
+    done = [_half(setup, k) for k in (0, 1)]
+    a, b = (d.fit for d in done)
     assert b.terms[1].ci95["B"][0] == 0.0 < a.terms[1].ci95["B"][0]
     assert [c["param"] for c in _changed(a, b)] == ["bias_instability.B"]
     assert setup.part(done)["changed"] == []
