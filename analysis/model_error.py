@@ -667,24 +667,57 @@ def error_parts(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
                 transient_findings: Sequence[Any] | None = None,
                 job_map: JobMap = serial_map
                 ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
-    """``(psd block, {"psd", "holdout", "time_domain"})`` of a fitted model on a channel
-    (``job_map``: see :func:`holdout_part`)."""
-    params = fitted.params
-    parts: dict[str, Any] = {}
-    block = None
-    try:
-        est, nperseg = measured_psd(values, fs_hz, segment_starts)
-        block, parts["psd"] = psd_parts(params, est, fs_hz, nperseg)
-    except ValueError as exc:
-        parts["psd"] = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
-                        "reason": f"no PSD: {exc}"}
-    parts["holdout"] = (holdout_part(values, fs_hz, model, fitted, segment_starts, fixed,
-                                     job_map)
-                        if holdout else {"chi2_per_dof": None, "parts": 2,
-                                         "reason": "not requested"})
-    parts["time_domain"] = time_domain_part(values, fs_hz, params, segment_starts, units,
-                                            transient_findings)
+    """``(psd block, {"psd", "holdout", "time_domain"})`` of a fitted model on a channel.
+
+    ``job_map`` runs the hold-out halves' fits, the PSD part and the time-domain part side
+    by side (:mod:`imunoise.analysis.jobs`; the same result whichever runs them), then the
+    hold-out part's own jobs (see :func:`holdout_part`)."""
+    setup: HoldoutHalves | dict[str, Any] = {"chi2_per_dof": None, "parts": 2,
+                                             "reason": "not requested"}
+    if holdout:
+        setup = holdout_halves(values, fs_hz, model, fitted, segment_starts, fixed)
+    jobs: list[tuple[str, int]] = [("half", 0), ("half", 1)] \
+        if isinstance(setup, HoldoutHalves) else []
+    jobs += [("psd", 0), ("time_domain", 0)]
+    done = job_map(_part_job, _PartsContext(values, fs_hz, fitted.params, segment_starts,
+                                            units, transient_findings, setup), jobs)
+    block, psd = done[-2]
+    parts: dict[str, Any] = {"psd": psd}
+    parts["holdout"] = setup.part(done[:2], job_map=job_map) \
+        if isinstance(setup, HoldoutHalves) else setup
+    parts["time_domain"] = done[-1]
     return block, parts
+
+
+@dataclass
+class _PartsContext:
+    """What the jobs of :func:`error_parts` read."""
+
+    values: np.ndarray
+    fs_hz: float
+    params: Model
+    segment_starts: np.ndarray | None
+    units: str
+    transient_findings: Sequence[Any] | None
+    setup: HoldoutHalves | dict[str, Any]
+
+
+def _part_job(ctx: _PartsContext, item: tuple[str, int]) -> Any:
+    """One job of :func:`error_parts`: a hold-out half's :func:`fit_half`, the PSD part
+    ``(psd block, error.psd)`` or the time-domain part."""
+    kind, k = item
+    if kind == "half":
+        assert isinstance(ctx.setup, HoldoutHalves)  # halves are only asked for when set up
+        return fit_half(ctx.setup.shared(), k)
+    if kind == "time_domain":
+        return time_domain_part(ctx.values, ctx.fs_hz, ctx.params, ctx.segment_starts,
+                                ctx.units, ctx.transient_findings)
+    try:
+        est, nperseg = measured_psd(ctx.values, ctx.fs_hz, ctx.segment_starts)
+        return psd_parts(ctx.params, est, ctx.fs_hz, nperseg)
+    except ValueError as exc:
+        return None, {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                      "reason": f"no PSD: {exc}"}
 
 
 def plain(value: Any) -> Any:
