@@ -545,7 +545,9 @@ def test_a_half_fit_the_whole_records_solution_misleads_is_searched_again(shared
     setup = holdout_halves(x, fs, model, whole)
     assert not isinstance(setup, dict)
     done = [fit_half(setup.shared(), k) for k in (0, 1)]
-    for fit, _ in done:
+    for half in done:
+        assert not isinstance(half, Exception), half
+        fit = half.fit
         assert fit.chi2_per_dof < whole.chi2_per_dof
         assert fit.terms[3].params["taps"] > 1.1  # the filter kept
     part = setup.part(done)["chi2_per_dof"]
