@@ -74,6 +74,7 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
     findings: list[Finding] = []
     findings.append(evidence.outliers(segments, fs_hz, alpha=alpha, units=units))
     findings.append(evidence.gaps(starts, x.size, fs_hz))
+    findings.append(evidence.held_samples(segments, fs_hz, alpha=alpha, units=units))
     findings.append(evidence.noise_level_windows(
         segments, fs_hz, alpha=alpha, exclude=evidence.outlier_indices(segments, alpha),
         units=units))

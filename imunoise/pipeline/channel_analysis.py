@@ -91,6 +91,22 @@ def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
         out.warnings.append(f"no PSD: {exc}")
 
 
+def _held(series: ChannelSeries, out: ChannelAnalysis) -> None:
+    """Warn of held samples (:func:`imunoise.analysis.evidence.held_samples`): the first
+    command a user runs should say when a log repeats values instead of measuring."""
+    from imunoise.analysis.evidence import held_samples
+
+    bounds = np.append(series.segment_starts, series.n_samples)
+    found = held_samples([series.values[a:b] for a, b in zip(bounds[:-1], bounds[1:],
+                                                               strict=True)],
+                         series.fs_hz, units=series.units)
+    if found.significant:
+        out.warnings.append(
+            f"{int(found.params['count'])} samples ({100 * found.params['share']:.2g} %) repeat "
+            f"the sample before them exactly, in runs of up to {found.params['longest_s']:.3g} s:"
+            f" held values, not measurements (diagnose's held_samples evidence says more)")
+
+
 def analyze_record(record: Record, keys: list[str], show_progress: bool | None = None
                    ) -> list[ChannelAnalysis]:
     """Allan deviation and PSD of the selected channels of a record."""
@@ -104,6 +120,7 @@ def analyze_record(record: Record, keys: list[str], show_progress: bool | None =
             series = record.series(key)
             out = ChannelAnalysis(key=key, series=series)
             bar.update(task, description=f"{key}: Allan deviation")
+            _held(series, out)
             _allan(series, out)
             _fit(out)
             bar.advance(task)

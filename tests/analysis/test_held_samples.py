@@ -1,0 +1,144 @@
+"""Held samples: repeated values beyond what the data's resolution explains."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.evidence import held_samples
+from imunoise.analysis.evidence.held import MIN_EXCESS
+from tests.shared_paths import SHARED_DATA
+
+FS = 100.0
+
+
+def _hold(x: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
+    """``x`` with the sample before each start repeated over the next ``length`` samples."""
+    y = x.copy()
+    for s in starts:
+        y[s:s + length] = y[s - 1]
+    return y
+
+
+def test_held_runs_are_counted_exactly():
+    x = np.random.default_rng(1).standard_normal(200_000) * 1e-3
+    starts = np.arange(1_000, 190_000, 2_000)  # 95 runs of 7 repeats each
+    f = held_samples([_hold(x, starts, 7)], FS)
+    assert f.significant and f.kind == "held_samples" and f.term is None
+    assert f.params["count"] == 95 * 7 and f.details["runs"] == 95
+    assert f.details["longest_samples"] == 7 and f.params["longest_s"] == pytest.approx(0.07)
+    assert f.details["t_s"][:2] == pytest.approx([10.0, 30.0])
+    assert f.details["run_samples"][:2] == [7, 7]
+    assert f.params["share"] == pytest.approx(665 / 200_000)
+    assert "665 samples" in f.why and "95 runs of up to 7 samples (0.07 s)" in f.why
+
+
+def test_continuous_noise_without_holds_has_none():
+    x = np.random.default_rng(2).standard_normal(100_000)
+    f = held_samples([x], FS)
+    assert not f.significant and f.params["count"] == 0
+    assert f.why == "No held values: no sample equals the sample before it."
+
+
+def test_a_pair_across_a_gap_is_no_repeat():
+    rng = np.random.default_rng(3)
+    a, b = rng.standard_normal(5_000), rng.standard_normal(5_000)
+    b[0] = a[-1]  # equal values on either side of a gap
+    assert held_samples([a, b], FS).params["count"] == 0
+    assert held_samples([np.concatenate([a, b])], FS).params["count"] == 1
+
+
+@pytest.mark.parametrize("kind", ["white", "moving_average", "markov"])
+def test_chance_repeats_of_finely_quantized_noise_are_not_flagged(kind: str):
+    # A resolution of 0.002-0.01 standard deviations makes a few hundred equal neighbours
+    # in 1e5 samples by chance. The chance expectation is estimated within 40 % on every
+    # seed (observed/expected 0.8-1.4 over 40 seeds of each kind), so none of them reaches
+    # MIN_EXCESS times it.
+    ratios = []
+    for seed in range(40):
+        x = np.random.default_rng(seed).standard_normal(100_000)
+        if kind == "moving_average":
+            x = np.convolve(x, np.ones(4) / 4, mode="same")
+        elif kind == "markov":
+            x = lfilter([1.0], [1.0, -0.9], x)
+        q = (0.002, 0.004, 0.01)[seed % 3] * x.std()
+        f = held_samples([np.round(x / q) * q], FS)
+        assert f.details["testable"] and not f.significant
+        ratios.append(f.statistic / f.details["expected_by_chance"])
+    assert 0.9 < np.median(ratios) < 1.1
+    assert max(ratios) < MIN_EXCESS
+
+
+def test_coarse_data_cannot_be_judged():
+    x = np.round(np.random.default_rng(4).standard_normal(50_000) * 2.0)  # counts, sigma 2
+    x = _hold(x, np.arange(100, 49_000, 1_000), 10)
+    f = held_samples([x], FS, units="m/s^2")
+    assert not f.significant and f.p_value == 1.0 and not f.details["testable"]
+    assert f.details["resolution"] == 1.0
+    assert f.details["chance_per_pair"] > 0.1
+    assert "held values cannot be told apart" in f.why and "1 m/s^2" in f.why
+
+
+def test_a_channel_that_never_changes_is_held_throughout():
+    f = held_samples([np.full(1_000, 0.25)], FS)
+    assert f.significant and f.p_value == 0.0 and f.params["count"] == 999
+    assert f.why.startswith("The channel never changes: all 1000 samples equal 0.25 rad/s.")
+
+
+def test_too_short_a_record_says_so():
+    f = held_samples([np.array([1.0, 1.0])], FS)
+    assert not f.significant and f.why == "Too few samples to look for held values."
+
+
+def test_diagnose_lists_held_samples_in_its_evidence():
+    rng = np.random.default_rng(5)
+    x = _hold(rng.standard_normal(60_000) * 1e-3, np.arange(500, 59_000, 600), 5)
+    kinds = {f.kind: f for f in diagnose(x, FS, "white").findings}
+    assert kinds["held_samples"].significant
+    assert kinds["held_samples"].params["count"] == 98 * 5
+
+
+def _need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"reference data {path} not available (needs ../shared next to the repo)")
+    return path
+
+
+def test_galaxy_s5_resampled_night_holds_its_samples():
+    d = np.load(_need(SHARED_DATA / "galaxy_s5" / "galaxy_s5_static_10hz.npz"))
+    f = held_samples([d["gyro"][:, 1]], float(d["fs"]))
+    assert f.significant
+    assert f.params["count"] == 14254 and f.details["runs"] == 3318
+    assert f.details["longest_samples"] == 19 and f.params["longest_s"] == pytest.approx(1.9)
+    assert f.details["expected_by_chance"] < 10
+
+
+def test_adis16405_counts_are_too_coarse_and_mtig_has_no_repeats():
+    d = np.load(_need(SHARED_DATA / "adis16405" / "run1.npz"))
+    gyro = d["gyro_counts"][:, 0] * float(d["gyro_scale_dps"]) * np.pi / 180.0
+    f = held_samples([gyro], 100.0)
+    assert not f.significant and not f.details["testable"]
+    # the chance estimate matches the share of equal neighbours the counts show (0.045)
+    assert f.details["chance_per_pair"] == pytest.approx(np.mean(np.diff(gyro) == 0), rel=0.1)
+    m = np.load(_need(SHARED_DATA / "mtig_outliers" / "gyro_x.npz"))["gyro_x"]
+    g = held_samples([m], 100.0)
+    assert not g.significant and g.params["count"] == 0
+
+
+def test_analyze_warns_of_held_samples(tmp_path, capsys):
+    import json
+
+    from imunoise.cli import main
+
+    rng = np.random.default_rng(6)
+    x = _hold(rng.standard_normal(20_000) * 1e-3, np.arange(300, 19_000, 400), 4)
+    path = tmp_path / "held.csv"
+    np.savetxt(path, np.column_stack([np.arange(x.size) / FS, x]), delimiter=",",
+               header="t,gyro_x", comments="", fmt="%.10g")
+    assert main(["analyze", str(path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["channels"]["gyro_x"]["warnings"] == [
+        "188 samples (0.94 %) repeat the sample before them exactly, in runs of up to 0.04 s: "
+        "held values, not measurements (diagnose's held_samples evidence says more)"]
