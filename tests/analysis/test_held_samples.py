@@ -71,6 +71,27 @@ def test_chance_repeats_of_finely_quantized_noise_are_not_flagged(kind: str):
     assert max(ratios) < MIN_EXCESS
 
 
+@pytest.mark.parametrize("kind", ["white", "moving_average", "markov"])
+def test_a_logger_reading_each_sample_twice_is_found_in_quantized_noise(kind: str):
+    # counts whose first differences have a standard deviation of 8.5 steps: about 5 % of
+    # neighbours equal by chance, within 20 % of the estimate; reading every sample twice
+    # makes it over half
+    x = np.random.default_rng(7).standard_normal(100_000)
+    if kind == "moving_average":
+        x = np.convolve(x, np.ones(4) / 4, mode="same")
+    elif kind == "markov":
+        x = lfilter([1.0], [1.0, -0.9], x)
+    x = np.round(6.0 * np.sqrt(2.0) * x / np.diff(x).std())
+    clean = held_samples([x], FS)
+    assert clean.details["testable"] and not clean.significant
+    assert 0.8 < clean.statistic / clean.details["expected_by_chance"] < 1.25
+    twice = x.copy()
+    twice[1::2] = twice[0::2]
+    f = held_samples([twice], FS)
+    assert f.significant and f.params["share"] > 0.5
+    assert f.statistic > 5 * f.details["expected_by_chance"]
+
+
 def test_coarse_data_cannot_be_judged():
     x = np.round(np.random.default_rng(4).standard_normal(50_000) * 2.0)  # counts, sigma 2
     x = _hold(x, np.arange(100, 49_000, 1_000), 10)
@@ -115,30 +136,15 @@ def test_galaxy_s5_resampled_night_holds_its_samples():
     assert f.details["expected_by_chance"] < 10
 
 
-def test_adis16405_counts_are_too_coarse_and_mtig_has_no_repeats():
+def test_adis16405_gyro_repeats_are_chance_accels_too_coarse_mtig_has_none():
     d = np.load(_need(SHARED_DATA / "adis16405" / "run1.npz"))
     gyro = d["gyro_counts"][:, 0] * float(d["gyro_scale_dps"]) * np.pi / 180.0
     f = held_samples([gyro], 100.0)
-    assert not f.significant and not f.details["testable"]
+    assert f.details["testable"] and not f.significant
     # the chance estimate matches the share of equal neighbours the counts show (0.045)
     assert f.details["chance_per_pair"] == pytest.approx(np.mean(np.diff(gyro) == 0), rel=0.1)
+    accel = held_samples([d["accel_counts"][:, 0] * 1.0], 100.0)
+    assert not accel.significant and not accel.details["testable"]
     m = np.load(_need(SHARED_DATA / "mtig_outliers" / "gyro_x.npz"))["gyro_x"]
     g = held_samples([m], 100.0)
     assert not g.significant and g.params["count"] == 0
-
-
-def test_analyze_warns_of_held_samples(tmp_path, capsys):
-    import json
-
-    from imunoise.cli import main
-
-    rng = np.random.default_rng(6)
-    x = _hold(rng.standard_normal(20_000) * 1e-3, np.arange(300, 19_000, 400), 4)
-    path = tmp_path / "held.csv"
-    np.savetxt(path, np.column_stack([np.arange(x.size) / FS, x]), delimiter=",",
-               header="t,gyro_x", comments="", fmt="%.10g")
-    assert main(["analyze", str(path), "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["channels"]["gyro_x"]["warnings"] == [
-        "188 samples (0.94 %) repeat the sample before them exactly, in runs of up to 0.04 s: "
-        "held values, not measurements (diagnose's held_samples evidence says more)"]
