@@ -19,9 +19,9 @@ count is judged against Poisson(E), and reported only where it is also at least
 
 Where either factor is uncertain it is taken on chance's side:
 
-- ``q``, the median spacing of the sorted distinct values of (at most ``RESOLUTION_SAMPLES``
-  evenly spaced samples of) the record: the step of quantized data; for data of finer
-  resolution an upper bound of it (the spacing of the values a record happens to take);
+- ``q``, the median spacing of the sorted distinct values of the record's first
+  ``RESOLUTION_SAMPLES`` samples: the step of quantized data; for data of finer resolution an
+  upper bound of it (the spacing of the values a record happens to take);
 - ``g``, the larger of the Gaussian density at zero of differences with the MAD's spread and
   the differences' own share within a quarter of that spread of zero.
 
@@ -49,8 +49,9 @@ from scipy import special
 from imunoise.analysis.evidence.finding import Finding
 
 RESOLUTION_SAMPLES = 1 << 17
-"""Most samples sorted to find the data's resolution: a subsample can only widen the spacing of
-distinct values, which overstates chance (sorting a million values costs 0.13 s)."""
+"""Samples (the record's first) sorted to find the data's resolution, and whose differences
+give their density at zero: fewer values can only widen the spacing of distinct values, which
+overstates chance; a streamed file keeps no more (sorting a million values costs 0.13 s)."""
 
 COARSE_CHANCE = 0.05
 """Chance of two neighbours being equal above which held values cannot be told apart. Below it
@@ -68,11 +69,8 @@ _MAX_LISTED = 100
 
 
 def _resolution(x: np.ndarray) -> float:
-    """Median spacing of the distinct values of (a strided subsample of) ``x``; 0 when it
-    takes a single value."""
-    step = max(1, x.size // RESOLUTION_SAMPLES)
-    v = np.sort(x[::step])
-    d = np.diff(v)
+    """Median spacing of the distinct values of ``x``; 0 when it takes a single value."""
+    d = np.diff(np.sort(x))
     d = d[d > 0]
     return float(np.median(d)) if d.size else 0.0
 
@@ -90,11 +88,150 @@ def _density_at_zero(d: np.ndarray) -> tuple[float, float]:
     return max(gaussian, near), spread
 
 
-def _runs(equal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Start index (of the first repeated pair) and length in pairs of each run of True."""
-    e = np.diff(np.concatenate(([0], equal.astype(np.int8), [0])))
-    starts = np.flatnonzero(e == 1)
-    return starts, np.flatnonzero(e == -1) - starts
+class HeldCounter:
+    """The count behind :func:`held_samples`, fed block by block in bounded memory: an
+    overnight file streamed through ``analyze`` is never held whole.
+
+    ``update`` takes the next samples of the current gap-free segment, ``new_segment`` starts
+    another (a pair across a gap is no pair), ``finding`` judges what was counted. The data's
+    resolution and the differences' density at zero come from the first
+    ``RESOLUTION_SAMPLES`` samples (and their differences); the count, the runs and the longest
+    run from every sample.
+    """
+
+    def __init__(self) -> None:
+        self.n = 0  # samples
+        self.pairs = 0  # neighbouring pairs within segments
+        self.count = 0  # samples equal to the one before them
+        self.runs = 0
+        self.longest = 0
+        self.first_value = math.nan
+        self._last: float | None = None  # last sample of the current segment
+        self._run = 0  # length (pairs) of the run still open at the end of the last block
+        self._run_start = 0
+        self._starts: list[int] = []
+        self._lengths: list[int] = []
+        self._head: list[np.ndarray] = []  # the first RESOLUTION_SAMPLES samples
+        self._head_diffs: list[np.ndarray] = []
+        self._head_n = 0
+
+    def new_segment(self) -> None:
+        """The next samples start a new gap-free segment."""
+        self._close(self._run_start, self._run)
+        self._run, self._last = 0, None
+
+    def _close(self, start: int, length: int) -> None:
+        if length:
+            self.runs += 1
+            self.longest = max(self.longest, length)
+            if len(self._starts) < _MAX_LISTED:
+                self._starts.append(start)
+                self._lengths.append(length)
+
+    def update(self, values: np.ndarray) -> None:
+        """Count the next samples of the current segment."""
+        v = np.asarray(values, dtype=np.float64)
+        if v.size == 0:
+            return
+        if self.n == 0:
+            self.first_value = float(v[0])
+        first = self.n  # index of v[0] among all samples
+        d = np.diff(v) if self._last is None else np.diff(v, prepend=self._last)
+        at = first + v.size - d.size  # index of the later sample of d[0]
+        if self._head_n < RESOLUTION_SAMPLES:
+            self._head.append(v[:RESOLUTION_SAMPLES - self._head_n])
+            self._head_diffs.append(d[:RESOLUTION_SAMPLES - self._head_n])
+            self._head_n += self._head[-1].size
+        self.n += v.size
+        self.pairs += d.size
+        self._last = float(v[-1])
+        equal = d == 0
+        self.count += int(np.count_nonzero(equal))
+        e = np.diff(np.concatenate(([0], equal.view(np.int8), [0])))
+        starts = np.flatnonzero(e == 1)
+        lengths = np.flatnonzero(e == -1) - starts
+        if not starts.size:
+            self._close(self._run_start, self._run)
+            self._run = 0
+            return
+        open_end = bool(equal[-1])
+        if starts[0] == 0 and self._run:  # the run open at the last block goes on
+            lengths[0] += self._run
+            starts[0] = self._run_start - at
+        else:
+            self._close(self._run_start, self._run)
+        for s0, k in zip(starts[:-1] if open_end else starts,
+                         lengths[:-1] if open_end else lengths, strict=True):
+            self._close(int(at + s0), int(k))
+        self._run, self._run_start = (int(lengths[-1]), int(at + starts[-1])) if open_end \
+            else (0, 0)
+
+    def finding(self, fs_hz: float, alpha: float = 0.05, units: str = "rad/s") -> Finding:
+        """The :func:`held_samples` finding of what was counted (runs still open count as
+        ended)."""
+        starts = self._starts + ([self._run_start] if self._run and len(self._starts)
+                                 < _MAX_LISTED else [])
+        lengths = self._lengths + ([self._run] if self._run and len(self._lengths)
+                                   < _MAX_LISTED else [])
+        runs = self.runs + (1 if self._run else 0)
+        longest = max(self.longest, self._run)
+        return _judge(self, runs, longest, starts, lengths, fs_hz, alpha, units)
+
+
+def _judge(c: HeldCounter, runs: int, longest: int, starts: list[int], lengths: list[int],
+           fs_hz: float, alpha: float, units: str) -> Finding:
+    n, count = c.n, c.count
+    if n < 3 or c.pairs < 2:
+        return Finding("held_samples", None, 0.0, "repeats", 1.0, alpha,
+                       why="Too few samples to look for held values.")
+    q = _resolution(np.concatenate(c._head))
+    g, spread = _density_at_zero(np.concatenate(c._head_diffs))
+    params = {"count": float(count), "share": count / n, "longest_s": longest / fs_hz}
+    details: dict = {"runs": runs, "longest_samples": longest,
+                     "t_s": [float(i / fs_hz) for i in starts],
+                     "run_samples": [int(k) for k in lengths],
+                     "resolution": q, "spread": spread}
+    span = {"t_s": [float(starts[0] / fs_hz), float((starts[-1] + lengths[-1]) / fs_hz)]} \
+        if starts else {}
+    if count == c.pairs:
+        details.update(testable=True, chance_per_pair=None, expected_by_chance=None)
+        why = (f"The channel never changes: all {n} samples equal {c.first_value:.6g} {units}. "
+               f"A stuck sensor, a disconnected input or a logger repeating one value; there is "
+               f"no noise to analyse.")
+        return Finding("held_samples", None, float(count), "repeats", 0.0, alpha, params,
+                       span, why, details)
+    chance = min(1.0, q * g)
+    expected = chance * c.pairs
+    details.update(chance_per_pair=chance, expected_by_chance=expected,
+                   testable=chance <= COARSE_CHANCE)
+    if chance > COARSE_CHANCE:
+        why = (f"{count} samples ({100 * count / n:.2g} %) equal the sample before them; at a "
+               f"resolution of {q:.3g} {units} against a sample-to-sample spread of "
+               f"{spread:.3g} {units} equal neighbours are common by chance (about "
+               f"{100 * chance:.2g} % of pairs), so held values cannot be told apart.")
+        return Finding("held_samples", None, float(count), "repeats", 1.0, alpha, params,
+                       span, why, details)
+    # P(X >= count) for X ~ Poisson(expected), without loading scipy.stats at start-up
+    p = float(special.gammainc(count, expected)) if count else 1.0
+    if count < MIN_EXCESS * expected:
+        p = 1.0
+    if p < alpha:
+        why = (f"{count} samples ({100 * count / n:.2g} %) repeat the sample before them "
+               f"exactly, in {runs} runs of up to {longest} samples "
+               f"({longest / fs_hz:.3g} s), where the data's resolution ({q:.3g} {units} "
+               f"against a sample-to-sample spread of {spread:.3g} {units}) explains about "
+               f"{expected:.2g}: a logger or resampler held the last value where readings were "
+               f"missing. Those samples are not measurements; they lower the Allan deviation "
+               f"at the shortest tau and raise it at taus near their length, which no noise "
+               f"term of the sensor follows. Analyse the sensor's own time-stamped samples, "
+               f"where a missing reading is a gap.")
+    elif count:
+        why = (f"No held values: {count} samples equal the sample before them, as the data's "
+               f"resolution explains (about {expected:.2g} by chance).")
+    else:
+        why = "No held values: no sample equals the sample before it."
+    return Finding("held_samples", None, float(count), "repeats", p, alpha, params, span,
+                   why, details)
 
 
 def held_samples(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
@@ -117,67 +254,9 @@ def held_samples(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
         (s from the first sample, gaps not counted) and lengths ``run_samples`` (samples
         repeating the one before).
     """
-    pieces = [np.asarray(s, dtype=np.float64) for s in segments if len(s)]
-    n = int(sum(s.size for s in pieces))
-    if n < 3:
-        return Finding("held_samples", None, 0.0, "repeats", 1.0, alpha,
-                       why="Too few samples to look for held values.")
-    x = np.concatenate(pieces)
-    d = np.concatenate([np.diff(s) for s in pieces])
-    # a run must not join across a gap: mark each segment's first sample as no repeat
-    equal = np.zeros(n, dtype=bool)
-    offsets = np.cumsum([0] + [s.size for s in pieces[:-1]])
-    ok = np.ones(n, dtype=bool)
-    ok[offsets] = False
-    equal[ok] = d == 0
-    count = int(np.count_nonzero(equal))
-    starts, lengths = _runs(equal)
-    longest = int(lengths.max()) if lengths.size else 0
-    q = _resolution(x)
-    g, spread = _density_at_zero(d)
-    params = {"count": float(count), "share": count / n, "longest_s": longest / fs_hz}
-    details = {"runs": int(lengths.size), "longest_samples": longest,
-               "t_s": [float(i / fs_hz) for i in starts[:_MAX_LISTED]],
-               "run_samples": [int(k) for k in lengths[:_MAX_LISTED]],
-               "resolution": q, "spread": spread}
-    span = {"t_s": [float(starts[0] / fs_hz), float((starts[-1] + lengths[-1]) / fs_hz)]} \
-        if lengths.size else {}
-    if count == d.size:
-        details.update(testable=True, chance_per_pair=None, expected_by_chance=None)
-        why = (f"The channel never changes: all {n} samples equal {x[0]:.6g} {units}. A stuck "
-               f"sensor, a disconnected input or a logger repeating one value; there is no "
-               f"noise to analyse.")
-        return Finding("held_samples", None, float(count), "repeats", 0.0, alpha, params,
-                       span, why, details)
-    chance = min(1.0, q * g)
-    expected = chance * d.size
-    details.update(chance_per_pair=chance, expected_by_chance=expected,
-                   testable=chance <= COARSE_CHANCE)
-    if chance > COARSE_CHANCE:
-        why = (f"{count} samples ({100 * count / n:.2g} %) equal the sample before them; at a "
-               f"resolution of {q:.3g} {units} against a sample-to-sample spread of "
-               f"{spread:.3g} {units} equal neighbours are common by chance (about "
-               f"{100 * chance:.2g} % of pairs), so held values cannot be told apart.")
-        return Finding("held_samples", None, float(count), "repeats", 1.0, alpha, params,
-                       span, why, details)
-    # P(X >= count) for X ~ Poisson(expected), without loading scipy.stats at start-up
-    p = float(special.gammainc(count, expected)) if count else 1.0
-    if count < MIN_EXCESS * expected:
-        p = 1.0
-    if p < alpha:
-        why = (f"{count} samples ({100 * count / n:.2g} %) repeat the sample before them "
-               f"exactly, in {lengths.size} runs of up to {longest} samples "
-               f"({longest / fs_hz:.3g} s), where the data's resolution ({q:.3g} {units} "
-               f"against a sample-to-sample spread of {spread:.3g} {units}) explains about "
-               f"{expected:.2g}: a logger or resampler held the last value where readings were "
-               f"missing. Those samples are not measurements; they lower the Allan deviation "
-               f"at the shortest tau and raise it at taus near their length, which no noise "
-               f"term of the sensor follows. Analyse the sensor's own time-stamped samples, "
-               f"where a missing reading is a gap.")
-    elif count:
-        why = (f"No held values: {count} samples equal the sample before them, as the data's "
-               f"resolution explains (about {expected:.2g} by chance).")
-    else:
-        why = "No held values: no sample equals the sample before it."
-    return Finding("held_samples", None, float(count), "repeats", p, alpha, params, span,
-                   why, details)
+    counter = HeldCounter()
+    for s in segments:
+        if len(s):
+            counter.new_segment()
+            counter.update(s)
+    return counter.finding(fs_hz, alpha, units)

@@ -214,6 +214,12 @@ class _Feed:
     psd: Any  # imunoise.analysis.psd.StreamingPsd
     next_index: int = -1  # stream index that continues the current segment
     starts: list[int] = field(default_factory=list)
+    held: Any = None  # imunoise.analysis.evidence.held.HeldCounter
+
+    def __post_init__(self) -> None:
+        from imunoise.analysis.evidence.held import HeldCounter
+
+        self.held = HeldCounter()
 
     def feed(self, values: np.ndarray, first: int, t_first: float) -> None:
         """Finite runs of ``values`` (stream indices from ``first``), a new segment whenever
@@ -231,10 +237,12 @@ class _Feed:
                 else:
                     self.allan.new_segment()
                     self.psd.new_segment()
+                self.held.new_segment()
                 self.starts.append(self.summary.n_samples)
             part = values[a:b]
             self.allan.update(part)
             self.psd.update(part)
+            self.held.update(part)
             self.summary.n_samples += b - a
             self.next_index = first + b
 
@@ -347,11 +355,14 @@ def _second_pass(path: str, src, scans: dict[str, _TopicScan], feeds: dict[str, 
 def _result(f: _Feed):
     """The ``analyze`` result of one fed channel."""
     from imunoise.core.units import CI95
-    from imunoise.pipeline.channel_analysis import ChannelAnalysis, _fit
+    from imunoise.pipeline.channel_analysis import ChannelAnalysis, _fit, held_warning
 
     f.summary.segment_starts = np.asarray(f.starts or [0], dtype=np.int64)
     # a summary stands for the series: the reports read its shape, never its samples
     out = ChannelAnalysis(key=f.key, series=f.summary)  # type: ignore[arg-type]
+    warning = held_warning(f.held.finding(f.summary.fs_hz, units=f.summary.units))
+    if warning:
+        out.warnings.append(warning)
     try:
         if f.summary.n_samples < 4:
             raise ValueError(f"need at least 4 samples, the channel has {f.summary.n_samples}")

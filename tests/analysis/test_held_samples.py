@@ -148,3 +148,27 @@ def test_adis16405_gyro_repeats_are_chance_accels_too_coarse_mtig_has_none():
     m = np.load(_need(SHARED_DATA / "mtig_outliers" / "gyro_x.npz"))["gyro_x"]
     g = held_samples([m], 100.0)
     assert not g.significant and g.params["count"] == 0
+
+
+def test_counted_block_by_block_as_in_one_piece():
+    from imunoise.analysis.evidence.held import HeldCounter
+
+    rng = np.random.default_rng(8)
+    x = _hold(rng.standard_normal(30_000), np.arange(50, 29_000, 97), 6)
+    x[10_000:10_040] = x[9_999]  # a long run
+    whole = held_samples([x[:20_000], x[20_000:]], FS)
+    counter = HeldCounter()
+    cuts = np.sort(rng.choice(np.arange(1, 30_000), 400, replace=False))
+    for k, part in enumerate(np.split(x, cuts)):
+        if k == 0 or cuts[k - 1] == 20_000:
+            counter.new_segment()
+        counter.update(part)
+    if 20_000 not in cuts:  # the gap between the two segments fell inside a block
+        counter = HeldCounter()
+        for part in (x[:20_000], x[20_000:]):
+            counter.new_segment()
+            for piece in np.array_split(part, 211):
+                counter.update(piece)
+    f = counter.finding(FS)
+    assert f.to_dict() == whole.to_dict()
+    assert whole.details["longest_samples"] == 40 and whole.details["runs"] > 290

@@ -152,3 +152,29 @@ def test_temperature_channel_of_a_streamed_record(recording):
     streamed = _analyze(recording, "--stream", "always", "--channel", "temp")
     assert streamed["channels"] == loaded["channels"]
     assert streamed["channels"]["temp"]["n_samples"] == 240_000
+
+
+def test_streamed_and_loaded_warn_alike_of_held_samples(tmp_path):
+    """gyro_y read twice a sample for 100 s, and held for 0.35 s across a block boundary."""
+    blocks = _blocks(n_blocks=400)
+    for b in blocks[100:200]:
+        v = b.channels["gyro_y"].copy()
+        v[1::2] = v[0::2]
+        b.channels["gyro_y"] = v
+    for b, part in ((blocks[250], slice(80, 100)), (blocks[251], slice(0, 15))):
+        v = b.channels["gyro_y"].copy()
+        v[part] = blocks[250].channels["gyro_y"][79]
+        b.channels["gyro_y"] = v
+    record_blocks(tmp_path, blocks)
+    (path,) = tmp_path.glob("*.mcap")
+    loaded = _analyze(path, "--stream", "never")["channels"]
+    streamed = _analyze(path, "--stream", "always")["channels"]
+    y = np.concatenate([b.channels["gyro_y"] for b in blocks])
+    count = int(np.count_nonzero(np.diff(y) == 0))  # 5,035 held, the rest by chance
+    assert 5_035 < count < 5_035 + 0.05 * y.size
+    expected = (f"{count} samples ({100 * count / y.size:.2g} %) repeat the sample before them "
+                "exactly, in runs of up to 0.35 s: held values, not measurements (diagnose's "
+                "held_samples evidence says more)")
+    assert expected in loaded["gyro_y"]["warnings"]
+    assert streamed["gyro_y"]["warnings"] == loaded["gyro_y"]["warnings"]
+    assert not any("held" in w for w in streamed["gyro_x"].get("warnings") or [])
