@@ -200,6 +200,15 @@ def _judge(c: HeldCounter, runs: int, longest: int, starts: list[int], lengths: 
                f"no noise to analyse.")
         return Finding("held_samples", None, float(count), "repeats", 0.0, alpha, params,
                        span, why, details)
+    if spread == 0.0:
+        details.update(testable=False, chance_per_pair=None, expected_by_chance=None)
+        why = (f"The first {min(n, RESOLUTION_SAMPLES)} samples never change, so the data's "
+               f"resolution and noise cannot be judged from them; {count} samples "
+               f"({100 * count / n:.2g} %) equal the sample before them, the longest run "
+               f"{longest} samples ({longest / fs_hz:.3g} s): a sensor that started stuck, or "
+               f"one whose noise stays within one step.")
+        return Finding("held_samples", None, float(count), "repeats", 1.0, alpha, params,
+                       span, why, details)
     chance = min(1.0, q * g)
     expected = chance * c.pairs
     details.update(chance_per_pair=chance, expected_by_chance=expected,

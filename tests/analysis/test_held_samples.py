@@ -108,6 +108,15 @@ def test_a_channel_that_never_changes_is_held_throughout():
     assert f.why.startswith("The channel never changes: all 1000 samples equal 0.25 rad/s.")
 
 
+def test_a_channel_stuck_at_its_start_says_it_cannot_judge():
+    x = np.concatenate([np.full(140_000, 0.5), np.random.default_rng(9).standard_normal(1_000)])
+    f = held_samples([x], FS)
+    assert not f.significant and not f.details["testable"]
+    assert f.details["longest_samples"] == 139_999 and f.details["expected_by_chance"] is None
+    assert f.why.startswith("The first 131072 samples never change, so the data's resolution")
+    assert "the longest run 139999 samples (1.4e+03 s)" in f.why
+
+
 def test_too_short_a_record_says_so():
     f = held_samples([np.array([1.0, 1.0])], FS)
     assert not f.significant and f.why == "Too few samples to look for held values."
