@@ -25,7 +25,7 @@ Where either factor is uncertain it is taken on chance's side:
 - ``g``, the larger of the Gaussian density at zero of differences with the MAD's spread and
   the differences' own share within a quarter of that spread of zero.
 
-On quantized simulated noise (white, moving average, Markov) the observed count was 0.8-1.4
+On quantized simulated noise (white, moving average, Markov) the observed count was 0.8-1.3
 times ``E`` where the chance is below 1 % (few repeats, a noisy count) and within 20 % of it up
 to ``COARSE_CHANCE``: hence the floor of ``MIN_EXCESS``. A logger that reads every sample twice
 repeats half of them: 8-15 times chance's share at 3-7 %.
@@ -61,7 +61,7 @@ steps, it fell short by up to a factor three on Markov noise."""
 
 MIN_EXCESS = 2.0
 """Fewest repeats, as a multiple of the chance expectation, worth reporting: ``E`` is itself an
-estimate (within about 40 % on simulated quantized noise), and a finding must name an effect
+estimate (within about 30 % on simulated quantized noise), and a finding must name an effect
 that is there, not a chance count a little above an estimate."""
 
 _MAD_TO_SIGMA = 1.482602218505602

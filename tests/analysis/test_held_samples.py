@@ -53,8 +53,8 @@ def test_a_pair_across_a_gap_is_no_repeat():
 @pytest.mark.parametrize("kind", ["white", "moving_average", "markov"])
 def test_chance_repeats_of_finely_quantized_noise_are_not_flagged(kind: str):
     # A resolution of 0.002-0.01 standard deviations makes a few hundred equal neighbours
-    # in 1e5 samples by chance. The chance expectation is estimated within 40 % on every
-    # seed (observed/expected 0.8-1.4 over 40 seeds of each kind), so none of them reaches
+    # in 1e5 samples by chance. The chance expectation is estimated within 30 % on every
+    # seed (observed/expected 0.82-1.28 over 40 seeds of each kind), so none of them reaches
     # MIN_EXCESS times it.
     ratios = []
     for seed in range(40):
@@ -68,7 +68,7 @@ def test_chance_repeats_of_finely_quantized_noise_are_not_flagged(kind: str):
         assert f.details["testable"] and not f.significant
         ratios.append(f.statistic / f.details["expected_by_chance"])
     assert 0.9 < np.median(ratios) < 1.1
-    assert max(ratios) < MIN_EXCESS
+    assert 0.7 < min(ratios) and max(ratios) < 1.5 < MIN_EXCESS
 
 
 @pytest.mark.parametrize("kind", ["white", "moving_average", "markov"])
