@@ -34,9 +34,9 @@ Where ``q g`` exceeds ``COARSE_CHANCE`` the data are too coarse against their no
 ADIS16405 accelerometer moves by one count a sample or by none, 27 % of its neighbours are
 equal; its gyros, 3-5 %, are judged): equal neighbours are common there, the spread of the
 differences is itself a count or two and ``g`` no longer follows, and a held value cannot be
-told from a repeated one. The finding then
-says so and is never significant. A channel whose values never change is held throughout
-(a stuck sensor or a disconnected input), a fact with ``p_value`` 0.
+told from a repeated one. The finding then says so and is never significant. A channel whose
+values never change is held throughout (a stuck sensor or a disconnected input), a fact with
+``p_value`` 0.
 """
 
 from __future__ import annotations
@@ -139,8 +139,9 @@ class HeldCounter:
         d = np.diff(v) if self._last is None else np.diff(v, prepend=self._last)
         at = first + v.size - d.size  # index of the later sample of d[0]
         if self._head_n < RESOLUTION_SAMPLES:
-            self._head.append(v[:RESOLUTION_SAMPLES - self._head_n])
-            self._head_diffs.append(d[:RESOLUTION_SAMPLES - self._head_n])
+            # copies: the head outlives the block it came from, which its caller may reuse
+            self._head.append(v[:RESOLUTION_SAMPLES - self._head_n].copy())
+            self._head_diffs.append(d[:RESOLUTION_SAMPLES - self._head_n].copy())
             self._head_n += self._head[-1].size
         self.n += v.size
         self.pairs += d.size

@@ -181,3 +181,15 @@ def test_counted_block_by_block_as_in_one_piece():
     f = counter.finding(FS)
     assert f.to_dict() == whole.to_dict()
     assert whole.details["longest_samples"] == 40 and whole.details["runs"] > 290
+
+
+def test_the_counter_keeps_its_own_copy_of_a_block():
+    from imunoise.analysis.evidence.held import HeldCounter
+
+    x = np.random.default_rng(10).standard_normal(5_000)
+    counter = HeldCounter()
+    counter.new_segment()
+    block = x.copy()
+    counter.update(block)
+    block[:] = 0.0  # a reader refilling its buffer
+    assert counter.finding(FS).to_dict() == held_samples([x], FS).to_dict()
