@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         from imunoise.analysis.model_error import parts_line
 
-        for w in record.warnings:
+        for w in doc.get("warnings", []):  # the reader's, and the channel's held samples
             print(f"warning: {w}", file=sys.stderr)
         print(fit_text(key, record.series(key), result, curve))
         print("  " + parts_line(result.chi2_per_dof, parts).replace("\n", "\n  "))

@@ -102,14 +102,18 @@ def held_warning(found: Any) -> str | None:
             f" held values, not measurements (diagnose's held_samples evidence says more)")
 
 
-def _held(series: ChannelSeries, out: ChannelAnalysis) -> None:
+def series_held_warning(series: ChannelSeries) -> str | None:
+    """:func:`held_warning` of a series in memory, its gap-free segments judged apart."""
     from imunoise.analysis.evidence import held_samples
 
     bounds = np.append(series.segment_starts, series.n_samples)
-    found = held_samples([series.values[a:b] for a, b in zip(bounds[:-1], bounds[1:],
-                                                               strict=True)],
-                         series.fs_hz, units=series.units)
-    warning = held_warning(found)
+    return held_warning(held_samples([series.values[a:b] for a, b in
+                                      zip(bounds[:-1], bounds[1:], strict=True)],
+                                     series.fs_hz, units=series.units))
+
+
+def _held(series: ChannelSeries, out: ChannelAnalysis) -> None:
+    warning = series_held_warning(series)
     if warning:
         out.warnings.append(warning)
 

@@ -253,15 +253,19 @@ def dataset_statement(record: Record) -> dict[str, Any]:
 def fit_json(record: Record, key: str, result: Any, curve: Any,
              parts: tuple[dict[str, Any] | None, dict[str, Any]] | None = None
              ) -> dict[str, Any]:
-    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any).
+    """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any, and
+    the channel's held samples, :func:`imunoise.pipeline.channel_analysis.held_warning`).
 
     ``parts`` is ``(psd block, error parts)`` from
     :func:`imunoise.analysis.model_error.error_parts`: the ``psd`` block (measured PSD with
     ``model_psd`` and ``z``) and the ``error``'s ``psd``, ``holdout`` and ``time_domain``."""
     from imunoise.analysis.model_error import plain
+    from imunoise.pipeline.channel_analysis import series_held_warning
 
+    held = series_held_warning(record.series(key))
     doc = channel_json(record.series(key), curve, channel=key,
-                                 warnings=record.warnings, **fit_fields(result, curve))
+                       warnings=[*record.warnings, *([held] if held else [])],
+                       **fit_fields(result, curve))
     for fact in ("timing", "motion"):
         if fact in record.facts:
             doc[fact] = record.facts[fact]

@@ -193,3 +193,23 @@ def test_the_counter_keeps_its_own_copy_of_a_block():
     counter.update(block)
     block[:] = 0.0  # a reader refilling its buffer
     assert counter.finding(FS).to_dict() == held_samples([x], FS).to_dict()
+
+
+def test_fit_warns_of_held_samples_in_json_and_text(tmp_path, capsys):
+    import json
+
+    from imunoise.cli import main
+
+    rng = np.random.default_rng(11)
+    x = _hold(rng.standard_normal(20_000) * 1e-3, np.arange(300, 19_000, 400), 4)
+    path = tmp_path / "held.csv"
+    np.savetxt(path, np.column_stack([np.arange(x.size) / FS, x]), delimiter=",",
+               header="t,gyro_x", comments="", fmt="%.10g")
+    warning = ("188 samples (0.94 %) repeat the sample before them exactly, in runs of up to "
+               "0.04 s: held values, not measurements (diagnose's held_samples evidence says "
+               "more)")
+    args = ["fit", str(path), "--channel", "gyro_x", "--model", "white,random_walk"]
+    assert main([*args, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["warnings"] == [warning]
+    assert main(args) == 0
+    assert capsys.readouterr().err.strip() == f"warning: {warning}"
