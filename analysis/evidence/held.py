@@ -270,3 +270,23 @@ def held_samples(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05,
             counter.new_segment()
             counter.update(s)
     return counter.finding(fs_hz, alpha, units)
+
+
+def warning_text(found: Finding) -> str | None:
+    """The one-line channel warning of a significant held-samples finding, else None: the
+    first command a user runs should say when a log repeats values instead of measuring."""
+    if not found.significant:
+        return None
+    return (f"{int(found.params['count'])} samples ({100 * found.params['share']:.2g} %) repeat "
+            f"the sample before them exactly, in runs of up to {found.params['longest_s']:.3g} s:"
+            f" held values, not measurements (diagnose's held_samples evidence says more)")
+
+
+def held_warning(values: np.ndarray, segment_starts: np.ndarray, fs_hz: float,
+                 units: str) -> str | None:
+    """:func:`warning_text` of a channel in memory (``segment_starts``: the index of each
+    gap-free segment's first sample), its segments judged apart."""
+    bounds = np.append(np.asarray(segment_starts, dtype=np.int64), len(values))
+    return warning_text(held_samples([values[a:b] for a, b in
+                                      zip(bounds[:-1], bounds[1:], strict=True)],
+                                     fs_hz, units=units))

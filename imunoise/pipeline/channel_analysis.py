@@ -91,29 +91,10 @@ def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
         out.warnings.append(f"no PSD: {exc}")
 
 
-def held_warning(found: Any) -> str | None:
-    """The channel warning of a significant held-samples finding
-    (:func:`imunoise.analysis.evidence.held_samples`), else None: the first command a user
-    runs should say when a log repeats values instead of measuring."""
-    if not found.significant:
-        return None
-    return (f"{int(found.params['count'])} samples ({100 * found.params['share']:.2g} %) repeat "
-            f"the sample before them exactly, in runs of up to {found.params['longest_s']:.3g} s:"
-            f" held values, not measurements (diagnose's held_samples evidence says more)")
-
-
-def series_held_warning(series: ChannelSeries) -> str | None:
-    """:func:`held_warning` of a series in memory, its gap-free segments judged apart."""
-    from imunoise.analysis.evidence import held_samples
-
-    bounds = np.append(series.segment_starts, series.n_samples)
-    return held_warning(held_samples([series.values[a:b] for a, b in
-                                      zip(bounds[:-1], bounds[1:], strict=True)],
-                                     series.fs_hz, units=series.units))
-
-
 def _held(series: ChannelSeries, out: ChannelAnalysis) -> None:
-    warning = series_held_warning(series)
+    from imunoise.analysis.evidence.held import held_warning
+
+    warning = held_warning(series.values, series.segment_starts, series.fs_hz, series.units)
     if warning:
         out.warnings.append(warning)
 

@@ -354,13 +354,14 @@ def _second_pass(path: str, src, scans: dict[str, _TopicScan], feeds: dict[str, 
 
 def _result(f: _Feed):
     """The ``analyze`` result of one fed channel."""
+    from imunoise.analysis.evidence.held import warning_text
     from imunoise.core.units import CI95
-    from imunoise.pipeline.channel_analysis import ChannelAnalysis, _fit, held_warning
+    from imunoise.pipeline.channel_analysis import ChannelAnalysis, _fit
 
     f.summary.segment_starts = np.asarray(f.starts or [0], dtype=np.int64)
     # a summary stands for the series: the reports read its shape, never its samples
     out = ChannelAnalysis(key=f.key, series=f.summary)  # type: ignore[arg-type]
-    warning = held_warning(f.held.finding(f.summary.fs_hz, units=f.summary.units))
+    warning = warning_text(f.held.finding(f.summary.fs_hz, units=f.summary.units))
     if warning:
         out.warnings.append(warning)
     try:
