@@ -281,12 +281,3 @@ def warning_text(found: Finding) -> str | None:
             f"the sample before them exactly, in runs of up to {found.params['longest_s']:.3g} s:"
             f" held values, not measurements (diagnose's held_samples evidence says more)")
 
-
-def held_warning(values: np.ndarray, segment_starts: np.ndarray, fs_hz: float,
-                 units: str) -> str | None:
-    """:func:`warning_text` of a channel in memory (``segment_starts``: the index of each
-    gap-free segment's first sample), its segments judged apart."""
-    bounds = np.append(np.asarray(segment_starts, dtype=np.int64), len(values))
-    return warning_text(held_samples([values[a:b] for a, b in
-                                      zip(bounds[:-1], bounds[1:], strict=True)],
-                                     fs_hz, units=units))

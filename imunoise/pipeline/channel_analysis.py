@@ -92,9 +92,9 @@ def _psd(series: ChannelSeries, out: ChannelAnalysis) -> None:
 
 
 def _held(series: ChannelSeries, out: ChannelAnalysis) -> None:
-    from imunoise.analysis.evidence.held import held_warning
+    from imunoise.analysis.evidence.held import held_samples, warning_text
 
-    warning = held_warning(series.values, series.segment_starts, series.fs_hz, series.units)
+    warning = warning_text(held_samples(series.segments(), series.fs_hz, units=series.units))
     if warning:
         out.warnings.append(warning)
 

@@ -254,16 +254,16 @@ def fit_json(record: Record, key: str, result: Any, curve: Any,
              parts: tuple[dict[str, Any] | None, dict[str, Any]] | None = None
              ) -> dict[str, Any]:
     """The ``fit`` JSON document of one channel (with the reader's ``warnings``, if any, and
-    the channel's held samples, :func:`imunoise.analysis.evidence.held.held_warning`).
+    the channel's held samples, :func:`imunoise.analysis.evidence.held.warning_text`).
 
     ``parts`` is ``(psd block, error parts)`` from
     :func:`imunoise.analysis.model_error.error_parts`: the ``psd`` block (measured PSD with
     ``model_psd`` and ``z``) and the ``error``'s ``psd``, ``holdout`` and ``time_domain``."""
-    from imunoise.analysis.evidence.held import held_warning
+    from imunoise.analysis.evidence.held import held_samples, warning_text
     from imunoise.analysis.model_error import plain
 
     series = record.series(key)
-    held = held_warning(series.values, series.segment_starts, series.fs_hz, series.units)
+    held = warning_text(held_samples(series.segments(), series.fs_hz, units=series.units))
     doc = channel_json(series, curve, channel=key,
                        warnings=[*record.warnings, *([held] if held else [])],
                        **fit_fields(result, curve))

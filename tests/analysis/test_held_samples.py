@@ -166,18 +166,15 @@ def test_counted_block_by_block_as_in_one_piece():
     x = _hold(rng.standard_normal(30_000), np.arange(50, 29_000, 97), 6)
     x[10_000:10_040] = x[9_999]  # a long run
     whole = held_samples([x[:20_000], x[20_000:]], FS)
+    # 400 random cuts, the gap between the segments, and cuts inside the long run and at its
+    # edges, so that runs continue across blocks and blocks of one sample occur
+    cuts = np.union1d(rng.choice(np.arange(1, 30_000), 400, replace=False),
+                      [10_000, 10_001, 10_020, 10_040, 20_000])
     counter = HeldCounter()
-    cuts = np.sort(rng.choice(np.arange(1, 30_000), 400, replace=False))
     for k, part in enumerate(np.split(x, cuts)):
         if k == 0 or cuts[k - 1] == 20_000:
             counter.new_segment()
         counter.update(part)
-    if 20_000 not in cuts:  # the gap between the two segments fell inside a block
-        counter = HeldCounter()
-        for part in (x[:20_000], x[20_000:]):
-            counter.new_segment()
-            for piece in np.array_split(part, 211):
-                counter.update(piece)
     f = counter.finding(FS)
     assert f.to_dict() == whole.to_dict()
     assert whole.details["longest_samples"] == 40 and whole.details["runs"] > 290
