@@ -30,6 +30,7 @@ from imunoise.analysis.fit.starts import (
     Lines,
     _cold_starts,
     _folded,
+    _inner_filter_starts,
     _prefix,
     _residual_starts,
     as_lines,
@@ -288,7 +289,7 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
         exact = None
     else:
         cold = _cold_starts(prob, lines)
-        thetas = [_theta_of(prob, c) for c in cold]
+        thetas = [_theta_of(prob, c) for c in cold] + _inner_filter_starts(prob, cold[0])
         nested, exact = _nested_starts(prob, curve, parsed, lines, memo, cold[0])
         thetas += nested
     distinct: list[np.ndarray] = []

@@ -243,19 +243,39 @@ def _residual_starts(prob: _Problem, params: list[dict[str, float]], last: int,
     return out
 
 
+def _inner_filter_starts(prob: _Problem, params: list[dict[str, float]]
+                         ) -> list[np.ndarray]:
+    """Cold starts for each output filter with free parameters that is not the model's last
+    term: its :meth:`~OutputFilter.cold_grid` scored as :func:`_filter_starts` scores an
+    appended filter's grid, from the cold start ``params``. A filter fitted together with
+    the terms after it otherwise starts from one guess, and a solve that starts there can
+    stop in a valley of the filter's parameter that a term after it holds open."""
+    out: list[np.ndarray] = []
+    last = len(prob.names) - 1
+    for i, name in enumerate(prob.names):
+        term = get_term(name)
+        if isinstance(term, OutputFilter) and i != last:
+            out += _filter_starts(prob, params, i, grid=term.cold_grid(prob.fs))
+    return out
+
+
 def _filter_starts(prob: _Problem, params: list[dict[str, float]], last: int,
-                   keep: int = 2) -> list[np.ndarray]:
+                   keep: int = 2, grid: list[dict[str, float]] | None = None
+                   ) -> list[np.ndarray]:
     """Starts for an output filter appended to a solved smaller model: each candidate of
     its grid (``OutputFilter.start_grid``) is scored by one weighted NNLS solve of every noise
     amplitude, each noise term's curve taken through the other filters and the candidate; the
     ``keep`` best start from that solve. A filter acts on every noise term at once, so the
     amplitudes move with it: a model that misses elsewhere has a chi2 with several valleys
-    in the filter's parameter, and a single start ends in any of them."""
+    in the filter's parameter, and a single start ends in any of them. ``grid``: candidates
+    other than the filter's start grid (the filter at index ``last`` need not be the model's
+    last term then)."""
     names = prob.names
     term = get_term(names[last])
     assert isinstance(term, OutputFilter)
     held = {k: v for (i, k), v in prob.layout.fixed.items() if i == last}
-    grid = term.start_grid(prob.fs)
+    if grid is None:
+        grid = term.start_grid(prob.fs)
     if not grid or held:
         return []
     others = [(n, p) for j, (n, p) in enumerate(zip(names, params, strict=True))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from imunoise.analysis.terms.base import Param
-from imunoise.analysis.terms.moving_average import MAX_TAPS, boxcar
+from imunoise.analysis.terms.moving_average import COLD_TAPS, MAX_TAPS, boxcar
 from imunoise.analysis.terms.moving_average import TERM as MOVING_AVERAGE
 from imunoise.analysis.terms.output_filter import OutputFilter
 
@@ -34,6 +34,9 @@ class Bartlett(OutputFilter):
 
     def response(self, f, fs_hz, params):
         return MOVING_AVERAGE.response(f, fs_hz, params) ** 2
+
+    def cold_grid(self, fs_hz):
+        return [{"taps": t} for t in COLD_TAPS]
 
     def length(self, fs_hz, params):
         return 2.0 * float(params["taps"])

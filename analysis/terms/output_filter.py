@@ -181,6 +181,13 @@ class OutputFilter(Term):
         when the solve from :meth:`identity_params` finds the filter by itself."""
         return []
 
+    def cold_grid(self, fs_hz: float) -> list[dict[str, float]]:
+        """Candidate parameters scored when the filter is fitted together with terms after it
+        in the model, from no previous fit (see
+        :func:`imunoise.analysis.fit.starts._inner_filter_starts`; default: the
+        :meth:`start_grid`)."""
+        return self.start_grid(fs_hz)
+
     def coefficients(self, fs_hz: float, params: dict[str, float]
                      ) -> tuple[np.ndarray, np.ndarray]:
         """``(b, a)`` of the filter as a difference equation (default: the FIR ``g``)."""

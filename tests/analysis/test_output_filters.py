@@ -104,6 +104,26 @@ def test_fit_recovers_a_four_tap_moving_average() -> None:
     assert with_filter.chi2_per_dof < 2.0 < 10.0 < without.chi2_per_dof
 
 
+def test_a_filter_fitted_beside_the_terms_after_it_starts_from_its_taps_grid() -> None:
+    """A 4-tap moving average under a 20 Hz resonance (its f0 and Q held, as the spectrum
+    gives them) and a 30 s Markov term, fitted from no previous fit: the filter is not the
+    model's last term, so it is solved together with those after it. From one guess of
+    its taps the solve stopped at 3 taps with the resonance at zero (chi2/dof 55 against 1.3
+    at the truth); started from the grid of taps, it finds the truth."""
+    truth = [("white", {"N": 5e-4}), ("bias_instability", {"B": 1.4e-4}),
+             ("random_walk", {"K": 1.4e-5}), ("moving_average", {"taps": 4.0}),
+             ("resonance", {"sigma": 3e-3, "f0": 20.0, "Q": 15.0}),
+             ("gauss_markov", {"sigma": 2e-4, "T": 30.0})]
+    x = NoiseStream(truth, FS, seed=1).take(1_080_000)
+    fit, _ = fit_series(x, FS, "white,bias_instability,random_walk,moving_average,"
+                        "resonance:f0=20:Q=15,gauss_markov")
+    assert fit.chi2_per_dof < 3.0, fit.chi2_per_dof
+    for i, name, key, value in ((0, "white", "N", 5e-4), (3, "moving_average", "taps", 4.0),
+                                (4, "resonance", "sigma", 3e-3)):
+        lo, hi = fit.terms[i].ci95[key]
+        assert fit.terms[i].term == name and lo <= value <= hi, fit.terms[i]
+
+
 def test_an_appended_lowpass_starts_from_no_filter_and_near_the_true_cutoff() -> None:
     # the smaller model's solution with the pole at Nyquist (a pole at fs/1000 would stand
     # for "no filter" as amplitude 0 does for a noise term, and it filters everything), then
