@@ -5,7 +5,7 @@ shortest taus aside, and :func:`fit_allan`.
 from __future__ import annotations
 
 from collections.abc import Collection, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from scipy import optimize
@@ -280,6 +280,30 @@ def _memo_point(curve: CurveLike, spec: ModelSpec, lines: Lines,
     return memo[key]
 
 
+def _filter_may_be_stuck(prob: _Problem, best: _Point) -> bool:
+    """Whether the best solution from the usual starts may have a filter that is not the
+    model's last term stuck short of the minimum: the filter sits on a kink of the chi2 in
+    its parameter (:meth:`OutputFilter.kink`), or the model misses its curve by more than
+    :data:`_STUCK_CHI2_PER_DOF` (the filter can then sit in the wrong valley of a model one
+    term short, from which the nested start of the whole model sets out). Only then are the
+    filters' grids (:func:`_inner_filter_starts`) solved too: they cost two solves each."""
+    last = len(prob.names) - 1
+    inner = [i for i, name in enumerate(prob.names)
+             if i != last and isinstance(get_term(name), OutputFilter)
+             and any(j == i for j, _ in prob.layout.keys)]
+    if not inner:
+        return False
+    dof = max(int(np.count_nonzero(best.used)) - len(prob.layout.keys), 1)
+    if best.chi2 / dof > _STUCK_CHI2_PER_DOF:
+        return True
+    params = _unpack(prob.layout, best.theta)
+    return any(cast(OutputFilter, get_term(prob.names[i])).kink(params[i]) for i in inner)
+
+
+_STUCK_CHI2_PER_DOF = 10.0
+"""Chi2 per degree of freedom above which a fit also solves its inner filters' grids."""
+
+
 def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
                 lines: Lines, memo: dict) -> _Point:
     """The candidate with the smallest reported chi2 (the first of equals)."""
@@ -289,7 +313,7 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
         exact = None
     else:
         cold = _cold_starts(prob, lines)
-        thetas = [_theta_of(prob, c) for c in cold] + _inner_filter_starts(prob, cold[0])
+        thetas = [_theta_of(prob, c) for c in cold]
         nested, exact = _nested_starts(prob, curve, parsed, lines, memo, cold[0])
         thetas += nested
     distinct: list[np.ndarray] = []
@@ -297,6 +321,10 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
         if all(np.max(np.abs(theta0 - d)) > 0.1 for d in distinct):
             distinct.append(theta0)
     points = [_solve_all(prob, theta0) for theta0 in distinct]
+    if start is None and _filter_may_be_stuck(prob, min(points, key=lambda p: p.chi2)):
+        # solved whatever the nested starts near them gave: beside a kink, starts a few per
+        # cent apart end on different sides of it
+        points += [_solve_all(prob, theta0) for theta0 in _inner_filter_starts(prob, cold[0])]
     # chi2 differences below the solver's tolerance do not count: the first start among the
     # near-best wins (the order of the starts is fixed, so equal curves give equal models)
     low = min(p.chi2 for p in points)

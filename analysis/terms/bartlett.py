@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from imunoise.analysis.terms.base import Param
-from imunoise.analysis.terms.moving_average import COLD_TAPS, MAX_TAPS, boxcar
+from imunoise.analysis.terms.moving_average import COLD_TAPS, MAX_TAPS, boxcar, whole_taps
 from imunoise.analysis.terms.moving_average import TERM as MOVING_AVERAGE
 from imunoise.analysis.terms.output_filter import OutputFilter
 
@@ -37,6 +37,9 @@ class Bartlett(OutputFilter):
 
     def cold_grid(self, fs_hz):
         return [{"taps": t} for t in COLD_TAPS]
+
+    def kink(self, params):
+        return whole_taps(float(params["taps"]))
 
     def length(self, fs_hz, params):
         return 2.0 * float(params["taps"])

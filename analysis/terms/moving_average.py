@@ -18,6 +18,19 @@ take weight there), and a solve that starts on the wrong side of one stops at it
 4-tap filter under a 20 Hz resonance was left at 3 taps, chi2 657 against 24 at the truth)."""
 
 
+WHOLE_TAPS_TOLERANCE = 0.01
+"""How near a whole number of taps a solve that stopped at the kink there ends (a 4-tap
+filter under a resonance: 3.0017)."""
+
+
+def whole_taps(taps: float) -> bool:
+    """Whether ``taps`` lies within :data:`WHOLE_TAPS_TOLERANCE` of a whole number above one:
+    a kink of the averaging filters' Allan variance, where the next tap starts to take
+    weight."""
+    return taps > 1.0 + WHOLE_TAPS_TOLERANCE \
+        and abs(taps - round(taps)) < WHOLE_TAPS_TOLERANCE
+
+
 def boxcar(taps: float) -> np.ndarray:
     """Weights of an L-tap moving average with unit sum. A non-integer L (the fit moves it
     continuously) weights its last tap by the fraction, so the filter, its response and its
@@ -69,6 +82,9 @@ class MovingAverage(OutputFilter):
 
     def cold_grid(self, fs_hz):
         return [{"taps": t} for t in COLD_TAPS]
+
+    def kink(self, params):
+        return whole_taps(float(params["taps"]))
 
     def response(self, f, fs_hz, params):
         taps = float(params["taps"])

@@ -181,6 +181,11 @@ class OutputFilter(Term):
         when the solve from :meth:`identity_params` finds the filter by itself."""
         return []
 
+    def kink(self, params: dict[str, float]) -> bool:
+        """Whether the Allan variance has a kink in the filter's parameter at ``params`` (a
+        solve can stop there; default: none)."""
+        return False
+
     def cold_grid(self, fs_hz: float) -> list[dict[str, float]]:
         """Candidate parameters scored when the filter is fitted together with terms after it
         in the model, from no previous fit (see
