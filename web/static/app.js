@@ -3,8 +3,10 @@
 
 const params = new URLSearchParams(location.search);
 const token = params.get("token");
+// changes counts the starts and ends of model changes made from this page: a refresh that
+// overlaps one may hold a diagnosis asked for before it and a model after it, and is not drawn
 const state = { channel: params.get("channel"), plots: {}, busy: false, pending: false,
-                lastRefresh: 0, renders: 0 };
+                lastRefresh: 0, renders: 0, changes: 0 };
 const COLORS = ["#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22",
                 "#ff7f0e"];
 const $ = (id) => document.getElementById(id);
@@ -294,8 +296,10 @@ async function refresh() {
     if (!state.channel || !ch.channels.includes(state.channel)) state.channel = ch.channels[0];
     sel.value = state.channel;
     const q = `?channel=${encodeURIComponent(state.channel)}`;
+    const changes = state.changes;
     const [a, p, c, m, d] = await Promise.all([getJSON(`/allan${q}`), getJSON(`/psd${q}`),
       getJSON("/coefficients"), getJSON(`/model${q}`), getJSON(`/diagnosis${q}`)]);
+    if (changes !== state.changes) { state.pending = true; return; }  // the refresh queued redraws
     drawAllan(a); drawPsd(p); drawCoefficients(c.channels[state.channel]); drawModel(m);
     drawErrorParts(c.channels[state.channel].error);
     drawDiagnosis(d);
@@ -314,9 +318,11 @@ async function refresh() {
 async function changeModel(body) {
   const headers = { "Content-Type": "application/json" };
   if (token) headers["X-Imunoise-Token"] = token;
+  state.changes += 1;
   const r = await fetch("/model", { method: "POST", headers,
     body: JSON.stringify({ channel: state.channel, ...body }) });
   const j = await r.json();
+  state.changes += 1;
   if (!r.ok) { $("action-msg").textContent = `refused: ${j.detail}`; return; }
   $("action-msg").textContent = `model ${j.model.join(" + ")}: χ²/dof ` +
     `${fmt(j.error_before.chi2_per_dof)} → ${fmt(j.error_after.chi2_per_dof)}`;
