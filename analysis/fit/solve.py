@@ -280,6 +280,11 @@ def _memo_point(curve: CurveLike, spec: ModelSpec, lines: Lines,
     return memo[key]
 
 
+_STUCK_CHI2_PER_DOF = 10.0
+"""Reported chi2 (every tau) per degree of freedom (the taus the solution rests on, less its
+free parameters) above which a fit also solves its inner filters' grids."""
+
+
 def _filter_may_be_stuck(prob: _Problem, best: _Point) -> bool:
     """Whether the best solution from the usual starts may have a filter that is not the
     model's last term stuck short of the minimum: the filter sits on a kink of the chi2 in
@@ -300,10 +305,6 @@ def _filter_may_be_stuck(prob: _Problem, best: _Point) -> bool:
     return any(cast(OutputFilter, get_term(prob.names[i])).kink(params[i]) for i in inner)
 
 
-_STUCK_CHI2_PER_DOF = 10.0
-"""Chi2 per degree of freedom above which a fit also solves its inner filters' grids."""
-
-
 def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
                 lines: Lines, memo: dict) -> _Point:
     """The candidate with the smallest reported chi2 (the first of equals)."""
@@ -322,8 +323,8 @@ def _best_point(prob: _Problem, curve: CurveLike, parsed: ModelSpec, start: Any,
             distinct.append(theta0)
     points = [_solve_all(prob, theta0) for theta0 in distinct]
     if start is None and _filter_may_be_stuck(prob, min(points, key=lambda p: p.chi2)):
-        # solved whatever the nested starts near them gave: beside a kink, starts a few per
-        # cent apart end on different sides of it
+        # not thinned against the other starts: beside a kink, starts a few per cent apart
+        # end on different sides of it
         points += [_solve_all(prob, theta0) for theta0 in _inner_filter_starts(prob, cold[0])]
     # chi2 differences below the solver's tolerance do not count: the first start among the
     # near-best wins (the order of the starts is fixed, so equal curves give equal models)
