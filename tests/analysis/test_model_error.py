@@ -15,6 +15,7 @@ from imunoise.analysis.model_error import (
     _pairs,
     error_parts,
     fit_half,
+    holdout_findings,
     holdout_halves,
     holdout_part,
     parts_line,
@@ -52,7 +53,7 @@ def test_a_correct_model_has_every_part_near_one(stationary):
     assert parts["psd"]["outside_95"] < 0.12
     ho = parts["holdout"]
     assert ho["parts"] == 2 and 0.3 < ho["chi2_per_dof"] < 2.0 and ho["changed"] == []
-    assert "joint_difference" not in ho
+    assert "joint_difference" not in ho and ho["misses"] == []
     td = parts["time_domain"]
     assert td["p"] > 0.01 and td["statistic"] > 0
 
@@ -338,3 +339,49 @@ def test_halves_that_differ_only_taken_together_are_a_finding_naming_no_paramete
     # 1.5 standard errors each: 6.75 < 7.81, no finding
     assert _joint_difference(*_halves_differing_by(1.5), set()) is None
 
+
+
+def test_a_random_walk_one_half_cannot_resolve_is_where_its_prediction_misses():
+    # a random walk in the first half only: the second half's model (K at its bound, its
+    # interval reaching 0) predicts the first half's long taus below what they measure, and
+    # the miss names the amplitude the second half did not resolve
+    halves = [simulate([("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4})]
+                       + ([("random_walk", {"K": 1e-4})] if k == 0 else []),
+                       N // 2, FS, rng=40 + k) for k in (0, 1)]
+    x = np.concatenate(halves)
+    spec = "white,bias_instability,random_walk"
+    ho = holdout_part(x, FS, spec, fit_series(x, FS, spec)[0])
+    first = next(m for m in ho["misses"] if m["half"] == 1)
+    assert first["by"] == 2
+    assert [f["direction"] for f in first["failures"]] == ["measured above model"]
+    lo, hi = first["failures"][0]["tau_s"]
+    assert 5.0 <= lo <= 21.0 and hi > 300.0  # the long taus only
+    (k,) = [u for u in first["unresolved"] if u["param"] == "random_walk.K"]
+    assert k["ci95"][0] <= 1e-4 <= k["ci95"][1]  # the first half's own estimate
+    # the change is named, and with it fitted the halves predict each other: no miss left
+    assert "random_walk.K" in [c["param"] for c in ho["changed"]]
+    assert ho["changes_free"]["misses"] == []
+    assert not [f for f in holdout_findings(ho) if "misses" in f]
+
+
+def test_a_miss_reads_as_where_and_what_the_predicting_half_left_unresolved():
+    fail = {"tau_s": [20.48, 655.36], "max_abs_z": 7.16, "direction": "measured above model"}
+    one = {"tau_s": [2.56, 2.56], "max_abs_z": 2.9, "direction": "measured below model"}
+    misses = [{"half": 1, "by": 2, "failures": [fail],
+               "unresolved": [{"param": "random_walk.K", "value": 3.63e-4,
+                               "ci95": [2.64e-4, 5.01e-4]}]},
+              {"half": 2, "by": 1, "failures": [one], "unresolved": []}]
+    ho = {"chi2_per_dof": 31.4, "parts": 2, "changed": [], "misses": [],
+          "changes_free": {"chi2_per_dof": 5.0, "params": ["white.N"], "misses": misses}}
+    assert holdout_findings(ho) == [
+        "the second half's model with the changes fitted misses the first half: measured "
+        "above model at tau 20.5-655 s (max |z| 7.2); random_walk.K is not resolved on the "
+        "second half (its interval reaches 0) but is 0.000363 [0.000264, 0.000501] on the "
+        "first",
+        "the first half's model with the changes fitted misses the second half: measured "
+        "below model at tau 2.56 s (max |z| 2.9)"]
+    # without named changes the plain predictions' misses are the ones told
+    plain = {"chi2_per_dof": 3.2, "parts": 2, "changed": [], "misses": misses[1:]}
+    assert holdout_findings(plain) == [
+        "the first half's model misses the second half: measured below model at tau 2.56 s "
+        "(max |z| 2.9)"]

@@ -748,3 +748,29 @@ def test_adis16405_halves_that_differ_only_taken_together_say_so(shared_data: Pa
     assert joint["dof"] == 7 and 14.07 < joint["chi2"] < 20.0 and joint["p"] < 0.05
     assert "finding: the halves differ in white.N, bias_instability.B," in parts_line(
         1.0, {"holdout": ho})
+
+
+def test_adis16405_a_hold_out_miss_names_the_random_walk_a_half_left_unresolved(
+        shared_data: Path) -> None:
+    # run 1 accel_z with the loop's final model: its hold-out part is 31 and 5.0 with the
+    # named changes (the 10 Hz resonance moving from 10.4 to 9.9 Hz, the white level, the
+    # 0.56 Hz line's amplitude, the taps) fitted. What is left is the second half's model
+    # missing the first half's long taus: the second half puts the random walk at zero (its
+    # interval reaching 0), the first at about 3.6e-4 m/s^2/sqrt(s)
+    from imunoise.analysis.model_error import holdout_findings, holdout_part
+
+    d = np.load(shared_data / "adis16405" / "run1.npz")
+    fs = float(d["fs_hz"])
+    x = d["accel_counts"][:, 2] * float(d["accel_scale_g"]) * 9.80665
+    model = (f"{DEFAULT},moving_average,sinusoid:f=0.564,resonance:f0=10.16:Q=11.26,"
+             "sinusoid:f=1.691")
+    ho = holdout_part(x, fs, model, fit_series(x, fs, model)[0])
+    free = ho["changes_free"]
+    assert 3.0 < free["chi2_per_dof"] < 8.0
+    first = next(m for m in free["misses"] if m["half"] == 1)
+    assert [f["direction"] for f in first["failures"]] == ["measured above model"]
+    assert first["failures"][0]["tau_s"][0] >= 10.0  # the long taus
+    (k,) = [u for u in first["unresolved"] if u["param"] == "random_walk.K"]
+    assert 2e-4 < k["value"] < 5e-4 and k["ci95"][0] > 1e-4
+    assert any("random_walk.K is not resolved on the second half" in f
+               for f in holdout_findings(ho))
