@@ -299,6 +299,12 @@ class PsdResult:
                 f"{self.f_hz[-1]:.3g} Hz>" if self.f_hz.size else "<PsdResult empty>")
 
 
+def _findings(error: dict[str, Any]) -> list[str]:
+    from imunoise.analysis.model_error import holdout_findings
+
+    return holdout_findings(error.get("holdout") or {})
+
+
 @dataclass(frozen=True, repr=False)
 class FitReport:
     """A noise model fitted to an Allan curve, with its 95 % intervals and where it fails.
@@ -350,6 +356,13 @@ class FitReport:
             out.update(plain(fit_error_parts(self.channel.recording.record, self.channel.key,
                                              self.model_text, self.result)[1]))
         return out
+
+    @property
+    def findings(self) -> list[str]:
+        """The hold-out part's findings as the text output prints them: each parameter that
+        changed between the halves of the record, where each half's model misses the other
+        half (empty for a curve of an array, which has no halves)."""
+        return _findings(self.error)
 
     def document(self) -> dict[str, Any]:
         """``imunoise fit --json``'s document for a channel; for a curve of an array, its
@@ -448,6 +461,12 @@ class Diagnosis:
         out: dict[str, Any] = dict(documents.error_json(self.diagnosis.fit))
         out.update(plain(self.diagnosis.error_parts or {}))
         return out
+
+    @property
+    def findings(self) -> list[str]:
+        """The hold-out part's findings for the given model, as the text output prints
+        them (:attr:`FitReport.findings`)."""
+        return _findings(self.error)
 
     def document(self) -> dict[str, Any]:
         """``imunoise diagnose --json``'s document."""

@@ -318,3 +318,30 @@ def test_the_examples_leave_no_file_behind(tmp_path):
     a, b = (Path(p) for p in run.stdout.split())
     assert a != b and a.parent == b.parent and a.parent.parent == tmp_path
     assert not a.parent.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_findings_read_as_the_text_prints_them(tmp_path):
+    # a rate random walk through the first half only: the halves name it as changed
+    rng = np.random.default_rng(7)
+    n = 120_000
+    walk = np.cumsum(rng.normal(0.0, 2e-5, n))
+    walk[n // 2:] = walk[n // 2]
+    path = tmp_path / "changed.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) / FS, rng.normal(0.0, 0.01, n) + walk]),
+               delimiter=",", header="t,gyro_x", comments="", fmt="%.10g")
+    rec = imunoise.read(str(path))
+    report = imunoise.fit(rec["gyro_x"], "white,random_walk")
+    assert report.findings
+    assert report.findings[0].startswith("random_walk.K changed between the first and "
+                                         "second half: ")
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        assert main(["fit", str(path), "--channel", "gyro_x", "--model",
+                     "white,random_walk"]) == 0
+    printed = [line.strip().removeprefix("finding: ") for line in text.getvalue().splitlines()
+               if line.strip().startswith("finding: ")]
+    assert printed == report.findings
+    assert imunoise.diagnose(rec["gyro_x"], "white,random_walk").findings == report.findings
+    # a curve of an array has no halves
+    assert imunoise.fit(imunoise.oadev(rec["gyro_x"].values, FS), "white,random_walk"
+                        ).findings == []
