@@ -45,7 +45,7 @@ import numpy as np
 from imunoise.analysis.distributions import norm
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.psd import PsdEstimate, default_nperseg, log_psd
-from imunoise.analysis.psd_model import expected_log_psd, psd_z, whittle_part
+from imunoise.analysis.psd_model import expected_log_psd, psd_misses, psd_z, whittle_part
 from imunoise.analysis.terms import TermError, get_term, labels, parse_model
 
 Model = Sequence[tuple[str, dict[str, float]]]
@@ -102,11 +102,11 @@ def psd_parts(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int | None
                 {"deviance_per_bin": None, "bins": 0, "outside_95": None, "reason": str(exc)})
     block["model_psd"] = expected
     block["z"] = psd_z(est.psd, est.dof, expected)
-    part = whittle_part(est.psd, est.dof, expected)
-    if part is None:
-        part = {"deviance_per_bin": None, "bins": 0, "outside_95": None,
-                "reason": "fewer than 5 usable PSD points"}
-    return block, part
+    whittle = whittle_part(est.psd, est.dof, expected)
+    if whittle is None:
+        return block, {"deviance_per_bin": None, "bins": 0, "outside_95": None,
+                       "reason": "fewer than 5 usable PSD points"}
+    return block, {**whittle, "misses": psd_misses(est.f_hz, est.psd, est.dof, expected)}
 
 
 def streaming_psd_part(model: Model, est: PsdEstimate, fs_hz: float
@@ -820,7 +820,34 @@ def parts_line(chi2_per_dof: float, parts: dict[str, Any]) -> str:
         out += f" | time domain n/a{why(td)}"
     else:
         out += f" | time domain max|z| {num(td.get('statistic'))} (p {num(td.get('p'))})"
-    return "\n".join([out] + [f"  finding: {f}" for f in holdout_findings(ho)])
+    return "\n".join([out] + [f"  psd: {m}" for m in psd_miss_lines(psd)]
+                     + [f"  finding: {f}" for f in holdout_findings(ho)])
+
+
+PSD_MISS_SHARE = 0.05
+"""A PSD miss is told in the text when its bins carry at least this share of the deviance."""
+
+PSD_MISS_LINES = 4
+"""At most this many PSD misses are told in the text (the largest shares)."""
+
+
+def psd_miss_lines(psd: dict[str, Any]) -> list[str]:
+    """The PSD part's misses (``error.psd.misses``) that make it large, as sentences: those
+    carrying at least :data:`PSD_MISS_SHARE` of the deviance, at most
+    :data:`PSD_MISS_LINES` of them, in frequency order."""
+    misses = [m for m in psd.get("misses") or [] if m["deviance_share"] >= PSD_MISS_SHARE]
+    told = sorted(sorted(misses, key=lambda m: -m["deviance_share"])[:PSD_MISS_LINES],
+                  key=lambda m: m["f_hz"][0])
+    out = []
+    for m in told:
+        lo, hi = m["f_hz"]
+        where = f"{lo:.3g} Hz" if f"{lo:.3g}" == f"{hi:.3g}" else f"{lo:.3g}-{hi:.3g} Hz"
+        out.append(f"{m['direction']} at {where} (max |z| {m['max_abs_z']:.3g}, "
+                   f"{100.0 * m['deviance_share']:.0f} % of the deviance)")
+    rest = len(psd.get("misses") or []) - len(told)
+    if out and rest > 0:
+        out[-1] += f"; {rest} smaller miss{'es' if rest > 1 else ''} not shown"
+    return out
 
 
 def holdout_findings(holdout: dict[str, Any]) -> list[str]:

@@ -38,6 +38,7 @@ import math
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -321,6 +322,58 @@ def whittle_part(psd: np.ndarray, dof: np.ndarray, model: np.ndarray, ci: float 
     outside = (r < chi2.ppf(a, nu) / nu) | (r > chi2.ppf(1.0 - a, nu) / nu)
     return {"deviance_per_bin": float(np.mean(nu * (r - 1.0 - np.log(r)))),
             "bins": int(ok.sum()), "outside_95": float(np.mean(outside))}
+
+
+MISS_FAMILY_RATE = 0.05
+"""Probability that a right model's PSD flags any bin as missed (Sidak over the bins)."""
+
+MISS_EXTEND_Z = 2.0
+"""A miss extends over the neighbouring bins on its side of the model beyond this score."""
+
+
+def psd_misses(f_hz: np.ndarray, psd: np.ndarray, dof: np.ndarray, model: np.ndarray
+               ) -> list[dict[str, Any]]:
+    """Where the measured PSD leaves the model's band: each run of consecutive bins on one
+    side of the model, every one beyond :data:`MISS_EXTEND_Z` in normal score
+    (:func:`psd_z`), and at least one beyond the level at which a right model flags any bin
+    with probability :data:`MISS_FAMILY_RATE` (a run is not cut where one bin inside a broad
+    miss happens to fall a little short of that level). Each run gives ``f_hz`` (its first
+    and last bin, Hz), ``max_abs_z``, ``direction`` and ``deviance_share``, the share of the
+    whole Whittle deviance its bins carry: which misses make the PSD part large. Frequency
+    order."""
+    from imunoise.analysis.misfit import failure_threshold
+
+    f, p, nu, s = (np.asarray(x, dtype=np.float64) for x in (f_hz, psd, dof, model))
+    ok = np.isfinite(p) & np.isfinite(nu) & np.isfinite(s) & (p > 0) & (nu > 0) & (s > 0)
+    if ok.sum() < 5:
+        return []
+    f, p, nu, s = f[ok], p[ok], nu[ok], s[ok]
+    z = psd_z(p, nu, s)
+    r = p / s
+    dev = nu * (r - 1.0 - np.log(r))
+    total = float(np.sum(dev))
+    level = failure_threshold(int(z.size), MISS_FAMILY_RATE)
+    wide = np.abs(z) > MISS_EXTEND_Z
+    out: list[dict[str, Any]] = []
+    i = 0
+    while i < z.size:
+        if not wide[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < z.size and wide[j + 1] and np.sign(z[j + 1]) == np.sign(z[i]):
+            j += 1
+        if not np.max(np.abs(z[i:j + 1])) > level:
+            i = j + 1
+            continue
+        out.append({"f_hz": [float(f[i]), float(f[j])],
+                    "max_abs_z": float(np.max(np.abs(z[i:j + 1]))),
+                    "direction": "measured above model" if z[i] > 0 else
+                    "measured below model",
+                    "deviance_share": float(np.sum(dev[i:j + 1]) / total) if total > 0
+                    else 0.0})
+        i = j + 1
+    return out
 
 
 def psd_z(psd: np.ndarray, dof: np.ndarray, model: np.ndarray) -> np.ndarray:

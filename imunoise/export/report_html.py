@@ -388,6 +388,15 @@ def _part_cells(err: Mapping) -> list[str]:
     return cells
 
 
+def _psd_misses(psd: Mapping) -> str:
+    """Where the measured spectrum leaves the model's band, the misses that make the PSD
+    part large first told, as a list."""
+    from imunoise.analysis.model_error import psd_miss_lines
+
+    items = "".join(f"<li>{escape(m)}</li>" for m in psd_miss_lines(dict(psd)))
+    return f"<p>Where the spectrum misses the model:</p><ul>{items}</ul>" if items else ""
+
+
 def _holdout_findings(ho: Mapping) -> str:
     """The parameters that changed between the halves, and a difference of the halves taken
     together, as a list (findings about the sensor, not failures of the model)."""
@@ -413,6 +422,7 @@ def _error_block(ch: Mapping) -> str:
              "Allan curve, the measured spectrum against the model's expected one, the model "
              "fitted on one half of the record predicting the other half; the time-domain "
              "part tests for a bias step or warm-up under the model.</p>")
+    text += _psd_misses(err.get("psd") or {})
     text += _holdout_findings(err.get("holdout") or {})
     if not fails:
         return text + ('<p class="ok">The measurement stays inside the model\'s band at every '

@@ -23,6 +23,7 @@ from imunoise.analysis.model_error import (
     time_domain_part,
 )
 from imunoise.analysis.noise_stream import simulate
+from imunoise.analysis.psd_model import psd_misses, psd_z
 
 FS = 100.0
 N = 1 << 19
@@ -50,7 +51,7 @@ def test_a_correct_model_has_every_part_near_one(stationary):
     assert set(block) == {"f_hz", "psd", "dof", "ci_low", "ci_high", "model_psd", "z"}
     assert len(block["model_psd"]) == parts["psd"]["bins"] > 150
     assert 0.7 < parts["psd"]["deviance_per_bin"] < 1.4
-    assert parts["psd"]["outside_95"] < 0.12
+    assert parts["psd"]["outside_95"] < 0.12 and parts["psd"]["misses"] == []
     ho = parts["holdout"]
     assert ho["parts"] == 2 and 0.3 < ho["chi2_per_dof"] < 2.0 and ho["changed"] == []
     assert "joint_difference" not in ho and ho["misses"] == []
@@ -63,6 +64,37 @@ def test_a_model_missing_a_term_fails_the_psd_and_holdout_parts(stationary):
     fit = fit_series(x, FS, "white,random_walk")[0]
     _, parts = error_parts(x, FS, "white,random_walk", fit)
     assert parts["psd"]["deviance_per_bin"] > 5.0
+    # the missing 0.5 s Markov term: the spectrum stands above the model from well below
+    # its corner (0.32 Hz) to just beyond it, and that one miss makes most of the part
+    misses = parts["psd"]["misses"]
+    top = max(misses, key=lambda m: m["deviance_share"])
+    assert top["direction"] == "measured above model"
+    assert top["f_hz"][0] < 0.1 and 0.32 < top["f_hz"][1] < 1.0
+    assert top["deviance_share"] > 0.5
+    assert all(m["direction"] == "measured above model" for m in misses)
+    lines = parts_line(fit.chi2_per_dof, parts).splitlines()
+    assert lines[1].startswith("  psd: measured above model at ")
+
+
+def test_psd_misses_extend_over_the_bins_beside_a_flagged_one():
+    # 200 bins of 1000 degrees of freedom (a score of about sqrt(500) (r - 1)): a broad
+    # excess at bins 50-59 with bin 55 only a little above the model, one bin far below at
+    # 150, and a lone bin above by a score of 2.5, under the family level
+    f = np.arange(200.0) + 1.0
+    dof = np.full(200, 1000.0)
+    model = np.ones(200)
+    psd = np.ones(200)
+    psd[50:60] = 1.3
+    psd[55] = 1.1
+    psd[150] = 0.7
+    psd[100] = 1.115
+    misses = psd_misses(f, psd, dof, model)
+    assert [(m["f_hz"], m["direction"]) for m in misses] == [
+        ([51.0, 60.0], "measured above model"), ([151.0, 151.0], "measured below model")]
+    assert misses[0]["max_abs_z"] == pytest.approx(psd_z(psd[50:51], dof[:1], model[:1])[0])
+    r = psd / model
+    dev = dof * (r - 1.0 - np.log(r))
+    assert misses[1]["deviance_share"] == pytest.approx(dev[150] / dev.sum())
 
 
 @pytest.fixture(scope="module")

@@ -192,7 +192,11 @@ def test_report_shows_every_part_of_the_error_and_the_halves_findings():
     findings are listed."""
     doc = _doc()
     doc["channels"]["gyro_x"]["error"].update(
-        psd={"deviance_per_bin": 2.52, "bins": 186, "outside_95": 0.15},
+        psd={"deviance_per_bin": 2.52, "bins": 186, "outside_95": 0.15,
+             "misses": [{"f_hz": [0.46, 0.47], "max_abs_z": 9.1, "direction":
+                         "measured above model", "deviance_share": 0.31},
+                        {"f_hz": [13.1, 13.1], "max_abs_z": 4.2, "direction":
+                         "measured above model", "deviance_share": 0.01}]},
         holdout={"chi2_per_dof": 5.26, "parts": 2, "halves": [5.7, 4.8],
                  "changed": [{"param": "resonance.f0", "values": [10.2, 9.602], "z": 38.3,
                               "source": "psd"}],
@@ -217,6 +221,10 @@ def test_report_shows_every_part_of_the_error_and_the_halves_findings():
             "fitted) max |z| 4.11 (p 0.005)") in text
     assert ("3.7 1.1 (5 % of 180 bins outside 95 %) not computed by analyze: imunoise fit "
             "reports it not computed by analyze: imunoise fit reports it") in text
+    # the PSD's misses that make its part large, the small one counted
+    assert ("Where the spectrum misses the model: measured above model at 0.46-0.47 Hz "
+            "(max |z| 9.1, 31 % of the deviance); 1 smaller miss not shown "
+            "Findings of the hold-out part:") in text
     assert ("Findings of the hold-out part: resonance.f0 changed between the first and "
             "second half: 10.2 -> 9.602 Hz (from each half's spectrum) (z = 38.3) the halves "
             "differ in white.N, random_walk.K taken together (chi2 9.1 over 2 parameters, "
