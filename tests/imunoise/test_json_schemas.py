@@ -161,11 +161,20 @@ def test_the_schemas_accept_the_parts_being_added(documents):
     and additional keys are allowed (extensions)."""
     fit = copy.deepcopy(documents["fit"][0])
     n = len(fit["allan"]["tau_s"])
+    miss = {"half": 1, "by": 2, "failures": [{"tau_s": [20.48, 655.36], "max_abs_z": 7.2,
+                                              "direction": "measured above model"}],
+            "unresolved": [{"param": "random_walk.K", "value": 3.6e-4,
+                            "ci95": [2.6e-4, 5.0e-4]}]}
     fit["error"].update(
-        psd={"deviance_per_bin": 1.2, "bins": 186, "outside_95": 0.06},
+        psd={"deviance_per_bin": 1.2, "bins": 186, "outside_95": 0.06,
+             "misses": [{"f_hz": [23.0, 34.4], "max_abs_z": 53.1,
+                         "direction": "measured above model", "deviance_share": 0.55}]},
         holdout={"chi2_per_dof": 1.3, "parts": 2,
                  "changed": [{"param": "resonance.f0", "values": [20.69, 19.91], "z": 5.2,
                               "source": "psd"}],
+                 "misses": [miss],
+                 "changes_free": {"chi2_per_dof": 1.1, "halves": [1.0, 1.2],
+                                  "params": ["resonance.f0"], "misses": [miss]},
                  "joint_difference": {"params": ["white.N", "random_walk.K"], "chi2": 7.1,
                                       "dof": 2, "p": 0.029}},
         time_domain=None)
@@ -176,6 +185,14 @@ def test_the_schemas_accept_the_parts_being_added(documents):
     wrong = copy.deepcopy(fit)
     wrong["error"]["holdout"]["changed"][0]["source"] = "spectrum"
     with pytest.raises(jsonschema.ValidationError, match="spectrum"):
+        validator("fit").validate(wrong)
+    wrong = copy.deepcopy(fit)
+    wrong["error"]["holdout"]["changes_free"]["misses"][0]["half"] = 3
+    with pytest.raises(jsonschema.ValidationError, match="3 is not one of"):
+        validator("fit").validate(wrong)
+    wrong = copy.deepcopy(fit)
+    wrong["error"]["psd"]["misses"][0]["deviance_share"] = 55.0
+    with pytest.raises(jsonschema.ValidationError, match="maximum"):
         validator("fit").validate(wrong)
     wrong = copy.deepcopy(fit)
     wrong["error"]["holdout"]["joint_difference"]["dof"] = 0
