@@ -7,6 +7,8 @@ the model describes the sensor (CONTRACT.md ``error.psd``, ``error.holdout``,
   (:func:`imunoise.analysis.psd_model.expected_log_psd`): Whittle deviance per bin
   ``mean(nu (r - 1 - ln r))``, ``r = psd/model``, and the share of bins outside their 95 %
   chi-square interval (5 % expected).
+  ``misses`` says where the measured PSD leaves the model's band and what share of the
+  deviance each run of points carries (:func:`imunoise.analysis.psd_model.psd_misses`).
 - Hold-out: the record cut into two halves at its middle sample; the model's terms (the
   user's held parameters held) fitted on each half, from the whole record's solution (no
   starting-value search, linearised intervals: the two fits cost about one), and each half's
@@ -24,6 +26,9 @@ the model describes the sensor (CONTRACT.md ``error.psd``, ``error.holdout``,
   ``changes_free`` is the prediction with the named parameters fitted on the half
   predicted. ``joint_difference`` reports the parameters none of these named where they
   still differ taken together beyond their intervals (:func:`_joint_difference`).
+  ``misses`` (also in ``changes_free``), where the halves do not predict each other: the
+  tau ranges where each half leaves the other half's band, and the parameters the predicting
+  half left unresolved (:func:`_misses`).
 - Time domain: the step and warm-up test of :func:`imunoise.analysis.evidence.transients`
   under the fitted model; its statistic (largest standardised contrast of block means) and
   Monte Carlo p-value over every split and time constant.
@@ -840,9 +845,7 @@ def psd_miss_lines(psd: dict[str, Any]) -> list[str]:
                   key=lambda m: m["f_hz"][0])
     out = []
     for m in told:
-        lo, hi = m["f_hz"]
-        where = f"{lo:.3g} Hz" if f"{lo:.3g}" == f"{hi:.3g}" else f"{lo:.3g}-{hi:.3g} Hz"
-        out.append(f"{m['direction']} at {where} (max |z| {m['max_abs_z']:.3g}, "
+        out.append(f"{m['direction']} at {_span(*m['f_hz'])} Hz (max |z| {m['max_abs_z']:.3g}, "
                    f"{100.0 * m['deviance_share']:.0f} % of the deviance)")
     rest = len(psd.get("misses") or []) - len(told)
     if out and rest > 0:
@@ -876,7 +879,8 @@ def holdout_findings(holdout: dict[str, Any]) -> list[str]:
 _ORDINAL = {1: "first", 2: "second"}
 
 
-def _tau_range(a: float, b: float) -> str:
+def _span(a: float, b: float) -> str:
+    """``a-b`` to three digits, or ``a`` alone where the two print alike."""
     return f"{a:.3g}" if f"{a:.3g}" == f"{b:.3g}" else f"{a:.3g}-{b:.3g}"
 
 
@@ -885,7 +889,7 @@ def _miss_sentence(miss: dict[str, Any], changes_fitted: bool) -> str:
     band, and what the predicting half did not resolve."""
     by, half = _ORDINAL.get(int(miss["by"]), str(miss["by"])), \
         _ORDINAL.get(int(miss["half"]), str(miss["half"]))
-    where = "; ".join(f"{f['direction']} at tau {_tau_range(*f['tau_s'])} s "
+    where = "; ".join(f"{f['direction']} at tau {_span(*f['tau_s'])} s "
                       f"(max |z| {f['max_abs_z']:.1f})" for f in miss["failures"])
     text = (f"the {by} half's model{' with the changes fitted' if changes_fitted else ''} "
             f"misses the {half} half: {where}")
