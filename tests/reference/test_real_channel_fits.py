@@ -24,6 +24,13 @@ from imunoise.cli import main
 DEFAULT = "white,bias_instability,random_walk"
 
 
+def _adis_accel(shared_data: Path, run: int, axis: int) -> tuple[np.ndarray, float]:
+    """ADIS16405 run ``run``'s accelerometer axis ``axis`` (0 x, 1 y, 2 z) in m/s^2, and its
+    sample rate in Hz."""
+    d = np.load(shared_data / "adis16405" / f"run{run}.npz")
+    return d["accel_counts"][:, axis] * float(d["accel_scale_g"]) * 9.80665, float(d["fs_hz"])
+
+
 @pytest.fixture(scope="module")
 def galaxy_gyro_x(shared_data: Path) -> tuple[np.ndarray, float]:
     d = np.load(shared_data / "galaxy_s5" / "galaxy_s5_static_10hz.npz")
@@ -94,9 +101,7 @@ def test_a_markov_bias_that_closes_the_allan_curve_but_not_the_other_half_is_no_
     constant moves by a factor of six (7 s and 48 s, named as a change) and the model with it
     predicts the other half worse than without it (hold-out chi2/dof 77 -> 83): it does not
     describe the sensor, so it is not significant."""
-    d = np.load(shared_data / "adis16405" / "run4.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 4, 0)
     model = "white,bias_instability,random_walk,resonance,sinusoid:f=0.53559352837376073,sinusoid"
     diag = diagnose(x, fs, model)
     markov = next(s for s in diag.suggestions if s.term == "gauss_markov")
@@ -149,9 +154,7 @@ def test_a_markov_term_never_takes_the_white_noises_part(shared_data: Path) -> N
     term take the white noise's part, and the shortest tau then lay far above the model
     (z = +112). T is now never fitted below two sample periods, and a start below that (as
     the old solution) is moved onto the bound."""
-    d = np.load(shared_data / "adis16405" / "run2.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 2, 0)
     model = "white,bias_instability,random_walk,gauss_markov"
     res, curve = fit_series(x, fs, model)
     T = next(t.params["T"] for t in res.terms if t.term.startswith("gauss_markov"))
@@ -170,9 +173,7 @@ def test_a_trim_that_lowers_the_whole_curves_chi2_is_kept(shared_data: Path, run
     ADIS16405 run 1 accel_x's default fit at chi2/dof 6347 (not 3245); undoing every refit
     that put a set-aside tau above the model, though chi2 fell, left run 5's at 9303 (not
     7893)."""
-    d = np.load(shared_data / "adis16405" / f"run{run}.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, run, 0)
     res, _ = fit_series(x, fs, DEFAULT)
     assert low < res.chi2_per_dof < high
 
@@ -410,9 +411,7 @@ def test_a_drop_within_a_misfit_models_own_scatter_is_not_significant(shared_dat
     # part from 197 to 192 per bin, p = 1e-97 as chi-square(1) drops. Scaled by the refit's
     # own misfit beyond a right model's range they are p 0.14 and 0.07: not significant,
     # while the bench line that halves the error stays so
-    d = np.load(shared_data / "adis16405" / "run2.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 2, 0)
     diag = diagnose(x, fs, DEFAULT + ",gauss_markov,lowpass", holdout=False,
                     transients=False)
     assert diag.fit.chi2_per_dof > 1000
@@ -428,9 +427,7 @@ def test_the_bench_line_alone_predicts_the_other_half_better(shared_data: Path) 
     sinusoid at the 0.57 Hz bench line halves the Allan part and predicts the other half
     better (hold-out 189). It once read 1030, the halves' fits misled by the whole record's
     solution; the line is now suggested alone, first and significant."""
-    d = np.load(shared_data / "adis16405" / "run2.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 2, 0)
     diag = diagnose(x, fs, "white,bias_instability,random_walk,gauss_markov,lowpass,quantization")
     before = diag.error_parts["holdout"]["chi2_per_dof"]
     assert diag.fit.chi2_per_dof > 1000 and 300 < before < 500
@@ -459,9 +456,7 @@ def test_two_terms_that_describe_the_record_only_together_are_suggested_as_a_pai
         return part
 
     monkeypatch.setattr(holdout_judging, "holdout_part", worse_for_the_line_alone)
-    d = np.load(shared_data / "adis16405" / "run2.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 2, 0)
     diag = diagnose(x, fs, "white,bias_instability,random_walk,gauss_markov,lowpass,quantization")
     before = diag.error_parts["holdout"]["chi2_per_dof"]
     pair, *rest = diag.suggestions
@@ -490,9 +485,7 @@ def test_adis16405_accel_z_filter_chosen_before_the_line_is_replaced(shared_data
     dominated the misfit; with the line and the 10 Hz resonance modelled, the ADIS16405's
     own Bartlett window follows the shortest taus (Allan chi2/dof 21.5 -> 5.0) and the
     spectrum (PSD part 4.6 -> 2.9) far better, with as many parameters."""
-    d = np.load(shared_data / "adis16405" / "run1.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 2] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 1, 2)
     model = (f"{DEFAULT},lowpass,sinusoid:f=0.563952424134189,"
              "resonance:f0=10.152651310524918:Q=14.7817855390893")
     diag = diagnose(x, fs, model)
@@ -515,9 +508,7 @@ def test_adis16405_accel_x_bench_line_behind_a_low_pass_is_resolved(shared_data:
     # shortest tau below the model, and setting the filter's taus aside takes chi2 to 44533.
     # Both models then stand on the same taus, so the line is kept, with an amplitude whose
     # interval stays clear of zero, rather than reported at zero and "not resolved"
-    d = np.load(shared_data / "adis16405" / "run1.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 1, 0)
     smaller = fit_series(x, fs, DEFAULT + ",lowpass")[0]
     res = fit_series(x, fs, DEFAULT + ",lowpass,sinusoid:f=0.5669")[0]
     assert res.misfit.chi2 < 0.6 * smaller.misfit.chi2
@@ -537,9 +528,7 @@ def test_a_half_fit_the_whole_records_solution_misleads_is_searched_again(shared
     # from every start the halves reach 115 and 138, and each predicts the other at about 75
     from imunoise.analysis.model_error import fit_half, holdout_halves
 
-    d = np.load(shared_data / "adis16405" / "run5.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 5, 0)
     model = DEFAULT + ",bartlett,gauss_markov,sinusoid:f=0.46827523419293277"
     whole = fit_series(x, fs, model)[0]
     setup = holdout_halves(x, fs, model, whole)
@@ -561,9 +550,7 @@ def test_a_filter_swap_holds_a_free_resonance_at_its_spectral_peak(shared_data: 
     # moving average in the Bartlett's place the refit moves the resonance off the spectrum's
     # peak; held there (8.67 Hz, Q 23) the PSD part falls to 5.3, while the Allan part rises
     # to 11.6, so the swap is reported and not significant
-    d = np.load(shared_data / "adis16405" / "run5.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 5, 0)
     diag = diagnose(x, fs, DEFAULT + ",bartlett,sinusoid:f=0.46827523419293277,resonance",
                     holdout=False, transients=False)
     swap = next(s for s in diag.suggestions if s.label == "bartlett by moving_average")
@@ -604,9 +591,7 @@ def test_adis16405_accel_x_resonance_comes_with_the_filter_it_then_needs(shared_
     # Allan chi2/dof 622): the 10 Hz resonance alone brings it to 55.3, and with it a moving
     # average follows the shortest taus far better than the low-pass (11.5, PSD part 12.9 ->
     # 9.2). Offered one after the other, the filter would cost a round of its own
-    d = np.load(shared_data / "adis16405" / "run1.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 0] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 1, 0)
     model = f"{DEFAULT},lowpass,sinusoid:f=0.56401311849033453"
     diag = diagnose(x, fs, model)
     # the swap comes with the 1.69 Hz bench line, which the resonance lets the Allan curve
@@ -640,9 +625,7 @@ def test_adis16405_a_filter_that_stands_in_for_a_missing_resonance_is_not_swappe
     # comes next (Allan chi2/dof 182). With the 10 Hz resonance still missing a one-pole
     # low-pass takes part of its bump and would bring 149, leaving 81 % of the excess; the
     # next round, with the resonance, wants the moving average back. So the line comes alone
-    d = np.load(shared_data / "adis16405" / "run4.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 1] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 4, 1)
     diag = diagnose(x, fs, f"{DEFAULT},moving_average", holdout=False)
     top = diag.suggestions[0]
     assert top.significant and top.term == "sinusoid" and top.label == "", top.label
@@ -660,9 +643,7 @@ def test_adis16405_a_weak_line_comes_with_the_term_that_lets_the_curve_resolve_i
     # Allan chi2/dof 207): the spectrum's next line, 1.69 Hz, refits to zero amplitude while
     # the 10 Hz resonance is missing; with the resonance it is resolved. Offered one round
     # later it would cost a round of its own
-    d = np.load(shared_data / "adis16405" / "run1.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 1] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 1, 1)
     diag = diagnose(x, fs, f"{DEFAULT},moving_average,sinusoid:f=0.56392614126",
                     holdout=False)
     top, alone = diag.suggestions[:2]
@@ -689,9 +670,7 @@ def test_adis16405_a_term_that_predicts_the_other_half_worse_once_changes_are_fi
     # Markov term lowers the Allan part (3.18 -> 2.27) and leaves the plain part where it was,
     # but with the named changes fitted on each half the other half is predicted at chi2/dof
     # 3.2 without it and 6 with it: it does not describe the sensor
-    d = np.load(shared_data / "adis16405" / "run1.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 1] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 1, 1)
     model = (f"{DEFAULT},moving_average,sinusoid:f=0.56392614126,"
              "resonance:f0=10.0761827684:Q=14.8132053816,sinusoid:f=1.69090914435")
     diag = diagnose(x, fs, model)
@@ -759,9 +738,7 @@ def test_adis16405_a_hold_out_miss_names_the_random_walk_a_half_left_unresolved(
     # interval reaching 0), the first at about 3.6e-4 m/s^2/sqrt(s)
     from imunoise.analysis.model_error import holdout_findings, holdout_part
 
-    d = np.load(shared_data / "adis16405" / "run1.npz")
-    fs = float(d["fs_hz"])
-    x = d["accel_counts"][:, 2] * float(d["accel_scale_g"]) * 9.80665
+    x, fs = _adis_accel(shared_data, 1, 2)
     model = (f"{DEFAULT},moving_average,sinusoid:f=0.564,resonance:f0=10.16:Q=11.26,"
              "sinusoid:f=1.691")
     ho = holdout_part(x, fs, model, fit_series(x, fs, model)[0])
