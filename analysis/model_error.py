@@ -111,7 +111,8 @@ def psd_parts(model: Model, est: PsdEstimate, fs_hz: float, nperseg: int | None
     if whittle is None:
         return block, {"deviance_per_bin": None, "bins": 0, "outside_95": None,
                        "reason": "fewer than 5 usable PSD points"}
-    return block, {**whittle, "misses": psd_misses(est.f_hz, est.psd, est.dof, expected)}
+    return block, {**whittle, "misses": psd_misses(est.f_hz, est.psd, est.dof, expected,
+                                                   block["z"])}
 
 
 def streaming_psd_part(model: Model, est: PsdEstimate, fs_hz: float

@@ -331,8 +331,8 @@ MISS_EXTEND_Z = 2.0
 """A miss extends over the neighbouring bins on its side of the model beyond this score."""
 
 
-def psd_misses(f_hz: np.ndarray, psd: np.ndarray, dof: np.ndarray, model: np.ndarray
-               ) -> list[dict[str, Any]]:
+def psd_misses(f_hz: np.ndarray, psd: np.ndarray, dof: np.ndarray, model: np.ndarray,
+               z: np.ndarray | None = None) -> list[dict[str, Any]]:
     """Where the measured PSD leaves the model's band: each run of consecutive bins on one
     side of the model, every one beyond :data:`MISS_EXTEND_Z` in normal score
     (:func:`psd_z`), and at least one beyond the level at which a right model flags any bin
@@ -340,15 +340,15 @@ def psd_misses(f_hz: np.ndarray, psd: np.ndarray, dof: np.ndarray, model: np.nda
     miss happens to fall a little short of that level). Each run gives ``f_hz`` (its first
     and last bin, Hz), ``max_abs_z``, ``direction`` and ``deviance_share``, the share of the
     whole Whittle deviance its bins carry: which misses make the PSD part large. Frequency
-    order."""
+    order. ``z``: the points' :func:`psd_z` where the caller has it already."""
     from imunoise.analysis.misfit import failure_threshold
 
     f, p, nu, s = (np.asarray(x, dtype=np.float64) for x in (f_hz, psd, dof, model))
     ok = np.isfinite(p) & np.isfinite(nu) & np.isfinite(s) & (p > 0) & (nu > 0) & (s > 0)
     if ok.sum() < 5:
         return []
+    z = psd_z(p[ok], nu[ok], s[ok]) if z is None else np.asarray(z, dtype=np.float64)[ok]
     f, p, nu, s = f[ok], p[ok], nu[ok], s[ok]
-    z = psd_z(p, nu, s)
     r = p / s
     dev = nu * (r - 1.0 - np.log(r))
     total = float(np.sum(dev))
