@@ -109,12 +109,16 @@ def _periodic(f: np.ndarray, fs: float) -> np.ndarray:
     return np.minimum(g, fs - g)
 
 
+_PEAK_TERMS = ("resonance", "wandering_resonance", "antiresonance")
+"""Terms with a spectral peak at ``f0`` of width ``f0/Q``."""
+
+
 def _split_narrow(gaussian: list, df_grid: float) -> tuple[list, list]:
     """Resonances narrower than four grid steps (a wandering one with its wander) apart from
     the other Gaussian terms (the filter, if any, stays with both)."""
     filt = [(n, p) for n, p in gaussian if get_term(n).kind == "filter"]
     narrow = [(n, p) for n, p in gaussian
-              if n in ("resonance", "wandering_resonance")
+              if n in _PEAK_TERMS
               and p["f0"] / p["Q"] + 2.0 * p.get("spread", 0.0) < 4.0 * df_grid]
     rest = [(n, p) for n, p in gaussian if not any(p is q for _, q in narrow)]
     return rest, [[(n, p)] + filt for n, p in narrow]

@@ -52,10 +52,11 @@ from imunoise.analysis.psd import welch_psd
 from imunoise.analysis.terms import get_term
 from imunoise.analysis.terms.registry import model_psd
 
-PINNED = ("f0", "Q", "spread")
-"""The resonance parameters the spectrum pins (``spread`` only a wandering resonance's)."""
+PINNED = ("f0", "Q", "spread", "fa")
+"""The resonance parameters the spectrum pins (``spread`` only a wandering resonance's, ``fa``
+only an antiresonance's)."""
 
-PINNED_TERMS = ("resonance", "wandering_resonance")
+PINNED_TERMS = ("resonance", "wandering_resonance", "antiresonance")
 """The terms whose peaks the spectrum pins."""
 
 
@@ -131,23 +132,39 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
         return None
 
     q_lo = term.param("Q").lo
-    wanders = "spread" in term.param_names
     df = float(fb[1] - fb[0])
-    # sigma, f0, Q, (spread: from a tenth of a bin to a quarter of the band), background level
-    bounds_lo = [math.log(1e-30), math.log(lo_hz), math.log(q_lo)] \
-        + ([math.log(0.1 * df)] if wanders else []) + [math.log(0.2)]
-    bounds_hi = [math.log(1e6), math.log(hi_hz), math.log(1e4)] \
-        + ([math.log(0.25 * (hi_hz - lo_hz))] if wanders else []) + [math.log(5.0)]
-    lo_b, hi_b = np.array(bounds_lo), np.array(bounds_hi)
+    # sigma, f0, Q, the term's own (spread: from a tenth of a bin to a quarter of the band;
+    # fa: within the band), background level
+    extras = {"spread": (0.1 * df, 0.25 * (hi_hz - lo_hz)), "fa": (lo_hz, hi_hz)}
+    own = [k for k in extras if k in term.param_names]
+    # an anti-resonance's zeros dig into the floor under the peak: the floor's own terms
+    # (white level, other resonances) are fitted with it, not only scaled
+    flex = _flexible_background(rest, fs) if "fa" in own else []
+    k_flex = 3 + len(own)
+    lo_b = np.log([1e-30, lo_hz, q_lo] + [extras[k][0] for k in own]
+                  + [lo for _, _, lo, _ in flex] + [1.0 - 1e-6 if flex else 0.2])
+    hi_b = np.log([1e6, hi_hz, 1e4] + [extras[k][1] for k in own]
+                  + [hi for _, _, _, hi in flex] + [1.0 + 1e-6 if flex else 5.0])
+    fixed_rest = [t for k, t in enumerate(rest) if k not in {i for i, _, _, _ in flex}]
+    filters = [t for t in rest if get_term(t[0]).kind == "filter"]
+    if flex:
+        s_rest = model_psd(fixed_rest, fb, fs) \
+            if any(get_term(n).kind != "filter" for n, _ in fixed_rest) else np.zeros(fb.size)
 
     def shape_of(theta: np.ndarray) -> dict[str, float]:
         v = np.exp(theta)
         out = {"sigma": float(v[0]), "f0": float(v[1]), "Q": float(v[2])}
-        if wanders:
-            out["spread"] = float(v[3])
+        out.update({k: float(v[3 + n]) for n, k in enumerate(own)})
         return out
 
     def spectrum(theta: np.ndarray) -> np.ndarray:
+        if flex:
+            moved = [(n, dict(q)) for n, q in rest]
+            for (i, key, _, _), v in zip(flex, np.exp(theta[k_flex:-1]), strict=True):
+                moved[i][1][key] = float(v)
+            free = [moved[i] for i in sorted({i for i, _, _, _ in flex})]
+            # the long-tau terms' level is flat across the band: held as the Allan fit has it
+            return s_rest + model_psd(free + filters + [(name, shape_of(theta))], fb, fs)
         with_res = model_psd(rest + [(name, shape_of(theta))], fb, fs)
         return math.exp(float(theta[-1])) * s_rest + (with_res - s_rest)
 
@@ -162,8 +179,10 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     x0s = []
     for s0, f00, q0 in starts:
         q0 = max(q0, q_lo * 1.01)
-        spread0 = [float(params.get("spread", 0.5 * f00 / q0))] if wanders else []
-        x0s.append(np.clip(np.log([s0, f00, q0] + spread0 + [1.0]), lo_b + 1e-9, hi_b - 1e-9))
+        first = {"spread": 0.5 * f00 / q0, "fa": 0.8 * f00}
+        x0 = [float(params.get(k, first[k])) for k in own] \
+            + [max(float(rest[i][1][key]), 1e-12) for i, key, _, _ in flex]
+        x0s.append(np.clip(np.log([s0, f00, q0] + x0 + [1.0]), lo_b + 1e-9, hi_b - 1e-9))
     best = _least_deviance(resid, x0s, lo_b, hi_b)
     if best is None:
         return None
@@ -181,18 +200,46 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     gain = (2.0 * float(sol0.cost) - dev1) / disp
     if gain <= 2.0 * float(special.gammainccinv(1.5, GAIN_LEVEL)):
         return None
-    jac = np.asarray(best.jac, dtype=np.float64)
+    sd = _pin_sd(np.asarray(best.jac, dtype=np.float64), disp, level_free=not flex)
+    if sd is None:
+        return None
+    ci = _resolved_intervals(theta, sd, lo_b, hi_b, own)
+    if ci is None:
+        return None
+    return Pin(index, shape_of(theta), ci, (float(fb[0]), float(fb[-1])), dev1 / n_dof)
+
+
+def _pin_sd(jac: np.ndarray, disp: float, level_free: bool) -> np.ndarray | None:
+    """Standard deviations of the pin's log-parameters from the deviance residuals' Jacobian
+    (the last column the background level, left out where it is held), or None where the
+    information matrix is singular."""
+    if not level_free:
+        jac = jac[:, :-1]
     try:
         cov = np.linalg.inv(jac.T @ jac) * ENBW_BINS * disp
     except np.linalg.LinAlgError:
         return None
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    if not np.all(np.isfinite(sd)):
+    var = np.diag(cov)
+    if not (np.all(np.isfinite(var)) and np.all(var > 0.0)):
         return None
-    ci = _resolved_intervals(theta, sd, lo_b, hi_b, wanders)
-    if ci is None:
-        return None
-    return Pin(index, shape_of(theta), ci, (float(fb[0]), float(fb[-1])), dev1 / n_dof)
+    return np.sqrt(np.append(var, 0.0) if not level_free else var)
+
+
+def _flexible_background(rest: list[tuple[str, dict[str, float]]], fs: float
+                         ) -> list[tuple[int, str, float, float]]:
+    """``(index in rest, parameter, lower, upper bound)`` of the background's parameters an
+    anti-resonance's pin fits with it: the white level and each plain resonance's power,
+    centre and width (a broad one shapes the floor the zeros dig into). The long-tau terms
+    stay as the Allan fit has them: across the band they are flat and would trade with the
+    white level."""
+    out: list[tuple[int, str, float, float]] = []
+    for i, (n, _) in enumerate(rest):
+        if n == "white":
+            out.append((i, "N", 1e-30, 1e6))
+        elif n == "resonance":
+            out += [(i, "sigma", 1e-30, 1e6), (i, "f0", 1e-3 * fs, 0.49 * fs),
+                    (i, "Q", get_term(n).param("Q").lo, 1e4)]
+    return out
 
 
 def _least_deviance(resid: Any, starts: list[np.ndarray], lo: np.ndarray, hi: np.ndarray
@@ -212,22 +259,24 @@ def _least_deviance(resid: Any, starts: list[np.ndarray], lo: np.ndarray, hi: np
 
 
 def _resolved_intervals(theta: np.ndarray, sd: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                        wanders: bool) -> dict[str, tuple[float, float]] | None:
+                        own: Sequence[str] = ()) -> dict[str, tuple[float, float]] | None:
     """95 % intervals of the pinned parameters from the log-parameters ``theta`` and their
-    standard deviations, or None where the spectrum does not resolve the peak: f0 at the
-    band's edge, Q's interval below :data:`MIN_Q`, or a wander whose interval reaches its
-    lower bound (the peak is then one resonance's)."""
+    standard deviations (``own``: the term's parameters beyond sigma, f0 and Q, from
+    ``theta[3]`` on), or None where the spectrum does not resolve the peak: f0 at the
+    band's edge, Q's interval below :data:`MIN_Q`, a wander whose interval reaches its
+    lower bound (the peak is then one resonance's), or an anti-resonance whose interval
+    reaches the band's edge (no dip within it)."""
     lf0, lq = theta[1], theta[2]
     if (lf0 - lo[1] < _EDGE or hi[1] - lf0 < _EDGE
             or lq - _Z95 * sd[2] < math.log(MIN_Q)):
         return None
     ci = {"f0": (math.exp(lf0 - _Z95 * sd[1]), math.exp(lf0 + _Z95 * sd[1])),
           "Q": (math.exp(lq - _Z95 * sd[2]), math.exp(min(lq + _Z95 * sd[2], hi[2])))}
-    if wanders:
-        ls = theta[3]
-        if ls - _Z95 * sd[3] <= lo[3] + _EDGE:
+    for n, k in enumerate(own, start=3):
+        v, s = theta[n], sd[n]
+        if v - _Z95 * s <= lo[n] + _EDGE or (k == "fa" and v + _Z95 * s >= hi[n] - _EDGE):
             return None
-        ci["spread"] = (math.exp(ls - _Z95 * sd[3]), math.exp(min(ls + _Z95 * sd[3], hi[3])))
+        ci[k] = (math.exp(v - _Z95 * s), math.exp(min(v + _Z95 * s, hi[n])))
     return ci
 
 

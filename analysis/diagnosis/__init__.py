@@ -145,7 +145,8 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
     findings.extend(cuts)
     psd_est, nperseg, psd_block, psd_before = psd_baseline
     candidates = _candidates(names, base, filt, temperature is not None, sensor_filter)
-    swaps = _swaps(base_spec, base, sensor_filter, findings) if only is None else []
+    swaps = _swaps(base_spec, base, sensor_filter, findings, psd_before) \
+        if only is None else []
     if only is not None:
         candidates = [c for c in candidates if c in only]
     parts: dict[str, Any] = {"psd": psd_before, "time_domain": time_domain}

@@ -368,24 +368,52 @@ def _removal(ctx: _Context, index: int, alpha: float) -> Suggestion:
 
 def _swaps(spec: ModelSpec, base: FitResult,
            sensor_filter: tuple[str, dict[str, float]] | None,
-           findings: Sequence[Finding] = ()) -> list[tuple[int, str]]:
+           findings: Sequence[Finding] = (),
+           psd: dict[str, Any] | None = None) -> list[tuple[int, str]]:
     """``(index, other term)`` for each term that may replace one of the given model's: each
     other kind of output filter, when the model fails (a filter the user held or the
-    device's configuration states stays), and a wandering resonance for each resonance whose
-    peak the evidence finds moving (a significant ``resonance_drift`` finding)."""
+    device's configuration states stays); a wandering resonance for each resonance whose
+    peak the evidence finds moving (a significant ``resonance_drift`` finding); and an
+    antiresonance for each resonance whose spectrum ``psd`` (the given model's
+    ``error.psd``) misses on both sides of its peak in opposite directions, as zeros beside
+    the poles leave it (:func:`_skirts_miss`)."""
     out: list[tuple[int, str]] = []
     if base.failures and sensor_filter is None:
         filters = [n for n, t in TERMS.items() if t.kind == "filter"]
         out += [(i, other) for i, entry in enumerate(spec.entries)
                 if get_term(entry.name).kind == "filter" and not entry.fixed
                 for other in filters if other != entry.name]
-    refinements = {t.replaces: n for n, t in TERMS.items() if t.replaces is not None}
     for f in findings:
         i = f.details.get("term_index")
         if f.kind == "resonance_drift" and f.significant and isinstance(i, int) \
-                and i < len(spec.entries) and spec.entries[i].name in refinements:
-            out.append((i, refinements[spec.entries[i].name]))
+                and i < len(spec.entries) and spec.entries[i].name == "resonance":
+            out.append((i, "wandering_resonance"))
+    misses = (psd or {}).get("misses") or []
+    for i, (name, params) in enumerate(base.params):
+        if name == "resonance" and _skirts_miss(misses, float(params["f0"])):
+            out.append((i, "antiresonance"))
     return out
+
+
+SKIRT_SHARE = 0.05
+"""Share of the PSD part's deviance each of a peak's two skirt misses carries before an
+antiresonance is offered in the resonance's place."""
+
+
+def _skirts_miss(misses: Sequence[dict[str, Any]], f0: float) -> bool:
+    """Whether the PSD misses (``error.psd.misses``) hold, reaching into the octave either
+    side of ``f0`` (Hz), a run centred below the peak and one centred above it in opposite
+    directions, each with at least :data:`SKIRT_SHARE` of the deviance: the spectrum
+    dipping on one side of the peak and standing out on the other, which no resonance's
+    level or width makes."""
+    sides: dict[str, set[str]] = {"under": set(), "over": set()}
+    for m in misses:
+        lo, hi = (float(v) for v in m["f_hz"])
+        if float(m.get("deviance_share") or 0.0) < SKIRT_SHARE \
+                or hi < f0 / 2.0 or lo > 2.0 * f0:
+            continue
+        sides["under" if np.sqrt(lo * hi) < f0 else "over"].add(str(m["direction"]))
+    return any(u != o for u in sides["under"] for o in sides["over"])
 
 
 def _replaced(spec: ModelSpec, index: int, entry: Entry) -> ModelSpec:
@@ -409,15 +437,20 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     added terms) the hold-out part does not rise.
 
     A term that refines another (:attr:`~imunoise.analysis.terms.base.Term.replaces`: a
-    wandering resonance for a resonance whose peak moves) comes with the shape the spectrum
+    wandering resonance for a resonance whose peak moves, an antiresonance for one whose
+    skirts the spectrum refuses) comes with the shape the spectrum
     gives it (:mod:`imunoise.analysis.spectral_pins`: centre, width and wander held, the
     power left to the Allan refit), as a suggested resonance is held at its peak; the Allan
-    curve alone barely tells a moving peak from a fixed one. It has one parameter more, and
-    its chi2 drop is judged as that of one parameter."""
+    curve alone barely tells a moving peak from a fixed one; an antiresonance (zeros beside a
+    resonance's poles) likewise, its zeros from the spectrum. Its chi2 drop is judged as that
+    of the parameters it adds (one for a wander, two for the zeros)."""
     old = ctx.spec.labels[index]
     before = ctx.base.chi2_per_dof
     label = f"{old} by {new}"
     refines = get_term(new).replaces is not None
+    # the parameters a refinement adds (a wander: spread; zeros: fa)
+    extra = len(get_term(new).params) - len(get_term(ctx.spec.names[index]).params) \
+        if refines else 1
     shape: dict[str, float] = {}
     shape_ci: dict[str, _Interval] = {}
     if refines:
@@ -425,7 +458,8 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
         if pin is None:
             spec = _replaced(ctx.spec, index, Entry(new, {}))
             return _swap_not_offered(new, before, label, spec,
-                                     f"The spectrum does not resolve a wander of {old}'s peak.")
+                                     f"The spectrum does not resolve {old}'s peak as a "
+                                     f"{new}'s.")
         shape, shape_ci = pinned_of(pin.params), dict(pin.ci95)
     spec = _replaced(ctx.spec, index, Entry(new, shape))
     profiled = {i for i, n in enumerate(spec.names) if n == "white"} | {index}
@@ -444,9 +478,7 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
         if at_peaks is not None:
             after, spec = at_peaks[0], at_peaks[1]
     if refines:
-        why = (f"The peak of {old} moves through the record; a {new} averages it over the "
-               f"centre frequencies it visits (spread {shape['spread']:.2g} Hz from the "
-               f"spectrum).")
+        why = get_term(new).refinement_reason(old, shape)
     else:
         why = f"The shortest taus may follow a {new} filter better than the model's {old}."
     if after is None:
@@ -454,22 +486,24 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
                                  why + " The model with it could not be fitted.")
     drop = float(ctx.base.misfit.chi2 - after.misfit.chi2)
     falls = bool(np.isfinite(after.chi2_per_dof) and after.chi2_per_dof < before)
-    sources = [_chi2_logsf(drop / _dispersion(after.chi2_per_dof, after.misfit.dof), 1)] \
+    sources = [_chi2_logsf(drop / _dispersion(after.chi2_per_dof, after.misfit.dof), extra)] \
         if falls and drop > 0 else []
     psd_after = _psd_after(ctx, after)
-    psd_logp = _psd_logp(ctx, psd_after, 1)
+    psd_logp = _psd_logp(ctx, psd_after, extra)
     if psd_logp < 0.0:
         sources.append(psd_logp)
     logp = _combined_logp(ctx, sources)
     tf = after.terms[index]
     # a filter's reason is the sentence itself; a refinement's what the evidence showed
     why = (why + " " if refines else "") + (
-        f"Replacing {old} by a {new}{'' if refines else ' filter'} brings chi2/dof from "
+        f"Replacing {old} by {'an' if new[0] in 'aeiou' else 'a'} {new}"
+        f"{'' if refines else ' filter'} brings chi2/dof from "
         f"{before:.3g} to {after.chi2_per_dof:.3g}")
     psd_b, psd_a = _deviance(ctx.psd_before), _deviance(psd_after)
     if psd_b is not None and psd_a is not None:
         why += f" and the PSD part from {psd_b:.3g} to {psd_a:.3g}"
-    why += " with one parameter more." if refines else " with as many parameters."
+    why += (f" with {'one parameter' if extra == 1 else f'{extra} parameters'} more."
+            if refines else " with as many parameters.")
     imitation = _imitation(ctx, after, index)
     rises = _parts_rise(ctx, after, psd_after)
     allan_up = not rises and not falls and bool(np.isfinite(after.chi2_per_dof))

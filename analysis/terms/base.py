@@ -300,6 +300,11 @@ class Term:
         is significant too."""
         return None
 
+    def refinement_reason(self, old: str, shape: dict[str, float]) -> str:
+        """Why the diagnosis offers this term (a refinement, :attr:`replaces`) in the place of
+        the model's term labelled ``old``, its shape ``shape`` taken from the spectrum."""
+        return f"A {self.name} may describe {old} better."
+
     # --- starting values of the Allan fit ----------------------------------------------------
     def start_shapes(self, fs_hz: float, duration_s: float,
                      line: tuple[float, float] | None) -> list[dict[str, float]]:

@@ -107,11 +107,18 @@ arrays to 32 rows of the frequency grid)."""
 
 def resonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float) -> np.ndarray:
     """Allan variance of the unit-variance resonance at averaging factors ``m``."""
+    p, c = pole_and_weight(fs, f0, q)
+    return _pole_avar(np.asarray(m, dtype=np.complex128), p, c)
+
+
+def pole_and_weight(fs: float, f0: float, q: float) -> tuple[complex, complex]:
+    """The pole ``p`` and weight ``c`` of the unit-variance resonance's autocorrelation
+    ``rho(k) = 2 Re(c p^|k|)``."""
     p, phi1, phi2 = _poles(fs, f0, q)
     rho1 = phi1 / (1.0 - phi2)
-    # rho(k) = 2 Re(c p^k): rho(0) = 1 and rho(1) = rho1 fix c
+    # rho(0) = 1 and rho(1) = rho1 fix c
     c = complex(0.5, (p.real - rho1) / (2.0 * p.imag)) if p.imag != 0 else complex(0.5, 0.0)
-    return _pole_avar(np.asarray(m, dtype=np.complex128), p, c)
+    return p, c
 
 
 def _pole_avar(mm: Any, p: Any, c: Any) -> Any:
@@ -119,11 +126,16 @@ def _pole_avar(mm: Any, p: Any, c: Any) -> Any:
     autocorrelation ``rho(k) = 2 Re(c p^|k|)``: the first-order Markov closed form at the
     complex pole ``p``. ``p`` and ``c`` are scalars, or columns of poles broadcasting against a
     row of ``mm``."""
+    return np.maximum(2.0 * np.real(c * pole_shape(mm, p)), 0.0)
+
+
+def pole_shape(mm: Any, p: Any) -> Any:
+    """The complex factor of :func:`_pole_avar`: the Allan variance at averaging factors
+    ``mm`` of a sequence with autocovariance ``2 Re(c p^|k|)`` is ``2 Re(c pole_shape)``."""
     pm = np.exp(mm * np.log(p))
     one_minus_pm = 1.0 - pm
     num = mm * (1.0 - p * p) - 2.0 * p * one_minus_pm - p * one_minus_pm**2
-    shape = num / (mm * mm * (1.0 - p) ** 2)
-    return np.maximum(2.0 * np.real(c * shape), 0.0)
+    return num / (mm * mm * (1.0 - p) ** 2)
 
 
 def resonance_avar_mixture(m: np.ndarray, fs: float, f0: np.ndarray, weights: np.ndarray,

@@ -177,6 +177,12 @@ class WanderingResonance(Resonance):
                     "reaches zero): a resonance of one frequency describes it")
         return super().unresolved(params, ci95)
 
+    def refinement_reason(self, old: str, shape: dict[str, float]) -> str:
+        """Why the diagnosis offers this term in the place of resonance ``old``."""
+        return (f"The peak of {old} moves through the record; a {self.name} averages it over "
+                f"the centre frequencies it visits (spread {shape['spread']:.2g} Hz from the "
+                f"spectrum).")
+
     def _avar(self, tau: np.ndarray, fs: float, **params: Any) -> np.ndarray:  # type: ignore[override]
         sigma, f0, q, spread = (float(params[k]) for k in ("sigma", "f0", "Q", "spread"))
         return sigma * sigma * _SHAPES.get(

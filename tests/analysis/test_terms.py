@@ -20,7 +20,8 @@ def test_registry_matches_contract_vocabulary_and_units():
     # the contract's vocabulary comes first, in its order; terms added since follow it
     assert TERM_NAMES[:len(CONTRACT)] == tuple(CONTRACT)
     assert set(TERM_NAMES[len(CONTRACT):]) == {"resonance", "wandering_resonance",
-                                                "moving_average", "bartlett", "lowpass"}
+                                                "antiresonance", "moving_average", "bartlett",
+                                                "lowpass"}
     for name, params in CONTRACT.items():
         term = get_term(name)
         assert term.param_names == params
