@@ -121,7 +121,12 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     name, params = model[index]
     term = get_term(name)
     f0a = float(params["f0"])
-    lo_hz, hi_hz = f0a / 2.0, min(2.0 * f0a, 0.49 * fs)
+    # an anti-resonance's band reaches two octaves below the peak and up to Nyquist: the
+    # floor its zeros dig into is shaped by terms (a broad resonance) that one octave
+    # leaves loose (ADIS16405 run 1 gyro_z: fa 15.2 Hz over one octave, where the Allan
+    # refit then trades the white level to zero; 14.7 Hz over this band, Allan 2.21)
+    lo_hz, hi_hz = (f0a / 4.0, 0.49 * fs) if "fa" in term.param_names \
+        else (f0a / 2.0, min(2.0 * f0a, 0.49 * fs))
     sel = (f >= lo_hz) & (f <= hi_hz)
     if np.count_nonzero(sel) < 40 or hi_hz <= lo_hz:
         return None
@@ -200,7 +205,8 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     gain = (2.0 * float(sol0.cost) - dev1) / disp
     if gain <= 2.0 * float(special.gammainccinv(1.5, GAIN_LEVEL)):
         return None
-    sd = _pin_sd(np.asarray(best.jac, dtype=np.float64), disp, level_free=not flex)
+    sd = _pin_sd(np.asarray(best.jac, dtype=np.float64), disp, level_free=not flex,
+                 first_background=k_flex)
     if sd is None:
         return None
     ci = _resolved_intervals(theta, sd, lo_b, hi_b, own)
@@ -209,20 +215,28 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     return Pin(index, shape_of(theta), ci, (float(fb[0]), float(fb[-1])), dev1 / n_dof)
 
 
-def _pin_sd(jac: np.ndarray, disp: float, level_free: bool) -> np.ndarray | None:
+def _pin_sd(jac: np.ndarray, disp: float, level_free: bool, first_background: int
+            ) -> np.ndarray | None:
     """Standard deviations of the pin's log-parameters from the deviance residuals' Jacobian
-    (the last column the background level, left out where it is held), or None where the
-    information matrix is singular."""
-    if not level_free:
-        jac = jac[:, :-1]
+    (the last column the background level, left out where it is held; a background
+    parameter from column ``first_background`` on whose column vanishes, a level at its
+    bound, is left out too, its deviation 0), or None where the information matrix is
+    singular."""
+    n = jac.shape[1]
+    norms = np.sqrt(np.sum(jac * jac, axis=0))
+    keep = np.ones(n, dtype=bool)
+    keep[first_background:n - 1] = norms[first_background:n - 1] > 1e-10 * norms.max()
+    keep[n - 1] = level_free
     try:
-        cov = np.linalg.inv(jac.T @ jac) * ENBW_BINS * disp
+        cov = np.linalg.inv(jac[:, keep].T @ jac[:, keep]) * ENBW_BINS * disp
     except np.linalg.LinAlgError:
         return None
     var = np.diag(cov)
     if not (np.all(np.isfinite(var)) and np.all(var > 0.0)):
         return None
-    return np.sqrt(np.append(var, 0.0) if not level_free else var)
+    sd = np.zeros(n)
+    sd[keep] = np.sqrt(var)
+    return sd
 
 
 def _flexible_background(rest: list[tuple[str, dict[str, float]]], fs: float

@@ -153,3 +153,17 @@ def test_the_diagnosis_offers_it_where_a_resonance_s_skirts_miss() -> None:
     assert swap.error_after["psd"]["deviance_per_bin"] < 1.5
     assert swap.chi2_per_dof_after < 1.5
     assert swap.significant and d.suggestions[0] is swap
+
+
+def test_a_background_level_at_its_bound_is_held_in_the_pin_s_intervals() -> None:
+    # ADIS16405 run 5 gyro_z: the band's white level goes to its lower bound beside a Markov
+    # term, its Jacobian column vanishes, and the pin's intervals come from the other columns
+    from imunoise.analysis.spectral_pins import _pin_sd
+
+    rng = np.random.default_rng(7)
+    jac = rng.standard_normal((200, 6))
+    jac[:, 4] = 0.0  # the background's white level, at its bound
+    sd = _pin_sd(jac, 1.0, level_free=False, first_background=4)
+    assert sd is not None and sd[4] == 0.0 and sd[5] == 0.0 and np.all(sd[:4] > 0.0)
+    jac[:, 2] = 0.0  # a pinned parameter the band does not see: no pin
+    assert _pin_sd(jac, 1.0, level_free=False, first_background=4) is None
