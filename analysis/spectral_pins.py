@@ -5,10 +5,13 @@ width changes it by a few per cent, so an Allan fit leaves f0 and Q loose (ADIS1
 f0 20.4 Hz [20.3, 20.7], Q 20 [12, 1e4]), while the spectrum shows the peak itself. For each
 resonance of a fitted model whose f0 and Q are not held, this fits the measured PSD near the
 peak by Whittle likelihood; a wandering resonance's ``spread`` (the standard deviation of its
-centre frequency) is fitted with them. Two callers use it: the hold-out part compares each
-half's peak (:func:`imunoise.analysis.model_error.holdout_part`), and the diagnosis holds a
-suggested resonance at the peak where the Allan refit put it elsewhere, and gives a wandering
-resonance offered in a resonance's place its shape (:mod:`imunoise.analysis.diagnosis`).
+centre frequency) is fitted with them, and an antiresonance's zeros ``fa`` (over a wider band,
+f0/4 to 0.49 fs, with the background's white level and plain resonances free: the zeros dig
+into a floor that a level alone cannot follow). Two callers use it: the hold-out part compares
+each half's peak (:func:`imunoise.analysis.model_error.holdout_part`), and the diagnosis holds
+a suggested resonance at the peak where the Allan refit put it elsewhere, and gives a
+wandering resonance or an antiresonance offered in a resonance's place its shape
+(:mod:`imunoise.analysis.diagnosis`).
 The fit itself stays an Allan fit: held at the peak of a drifting, asymmetric real peak, a
 resonance follows the Allan curve worse.
 
