@@ -443,7 +443,7 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     power left to the Allan refit), as a suggested resonance is held at its peak; the Allan
     curve alone barely tells a moving peak from a fixed one; an antiresonance (zeros beside a
     resonance's poles) likewise, its zeros from the spectrum. Its chi2 drop is judged as that
-    of the parameters it adds (one for a wander, two for the zeros)."""
+    of the parameters it adds (one: a wander's spread, the zeros' fa)."""
     old = ctx.spec.labels[index]
     before = ctx.base.chi2_per_dof
     label = f"{old} by {new}"
