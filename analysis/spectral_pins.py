@@ -153,7 +153,8 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
                   + [lo for _, _, lo, _ in flex] + [1.0 - 1e-6 if flex else 0.2])
     hi_b = np.log([1e6, hi_hz, 1e4] + [extras[k][1] for k in own]
                   + [hi for _, _, _, hi in flex] + [1.0 + 1e-6 if flex else 5.0])
-    fixed_rest = [t for k, t in enumerate(rest) if k not in {i for i, _, _, _ in flex}]
+    flexed = sorted({i for i, _, _, _ in flex})
+    fixed_rest = [t for k, t in enumerate(rest) if k not in flexed]
     filters = [t for t in rest if get_term(t[0]).kind == "filter"]
     if flex:
         s_rest = model_psd(fixed_rest, fb, fs) \
@@ -170,7 +171,7 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
             moved = [(n, dict(q)) for n, q in rest]
             for (i, key, _, _), v in zip(flex, np.exp(theta[k_flex:-1]), strict=True):
                 moved[i][1][key] = float(v)
-            free = [moved[i] for i in sorted({i for i, _, _, _ in flex})]
+            free = [moved[i] for i in flexed]
             # the long-tau terms' level is flat across the band: held as the Allan fit has it
             return s_rest + model_psd(free + filters + [(name, shape_of(theta))], fb, fs)
         with_res = model_psd(rest + [(name, shape_of(theta))], fb, fs)

@@ -35,12 +35,11 @@ from typing import Any
 
 import numpy as np
 
-from imunoise.analysis.terms.base import Param, TermSimulator
+from imunoise.analysis.terms.base import Param
 from imunoise.analysis.terms.output_filter import avar_from_autocovariance
 from imunoise.analysis.terms.resonance import (
     Resonance,
-    _innovation_var,
-    _poles,
+    _ResonanceSim,
     pole_and_weight,
     pole_shape,
     resonance_unit_psd,
@@ -106,30 +105,6 @@ def antiresonance_avar_shape(m: np.ndarray, fs: float, f0: float, q: float, fa: 
     return np.maximum(pole + avar_from_autocovariance(short, mm).reshape(mm.shape), 0.0)
 
 
-class _AntiresonanceSim(TermSimulator):
-    def __init__(self, sigma: float, fs: float, f0: float, q: float, fa: float,
-                 rng: np.random.Generator) -> None:
-        from scipy.signal import lfilter  # slow to import: see analysis.dsp
-
-        _, phi1, phi2 = _poles(fs, f0, q)
-        self.a = np.array([1.0, -phi1, -phi2])
-        self.b = zero_taps(fs, fa)
-        self.e_sd = sigma * math.sqrt(_innovation_var(phi1, phi2))
-        self.rng = rng
-        burn = int(min(50.0 * q * fs / (math.pi * f0), 2e6)) + 10
-        _, self.zi = lfilter(self.b, self.a, rng.standard_normal(burn) * self.e_sd,
-                             zi=np.zeros(2))
-
-    def take(self, n: int, temperature: np.ndarray | None = None) -> np.ndarray:
-        from scipy.signal import lfilter
-
-        if n <= 0:
-            return np.zeros(0)
-        y, self.zi = lfilter(self.b, self.a, self.rng.standard_normal(n) * self.e_sd,
-                             zi=self.zi)
-        return y
-
-
 class Antiresonance(Resonance):
     name = "antiresonance"
     order = 152
@@ -150,9 +125,9 @@ class Antiresonance(Resonance):
     replaces = "resonance"  # offered in a resonance's place where the spectrum shows the zeros
 
     def log_fit_bounds(self, param, fs_hz, duration_s):
-        if param.name == "fa":
-            return math.log(20.0 / duration_s), math.log(0.49 * fs_hz)
-        return super().log_fit_bounds(param, fs_hz, duration_s)
+        # the zeros range as the centre frequency does
+        return super().log_fit_bounds(self.param("f0") if param.name == "fa" else param,
+                                      fs_hz, duration_s)
 
     def refinement_reason(self, old: str, shape: dict[str, float]) -> str:
         """Why the diagnosis offers this term in the place of resonance ``old``."""
@@ -176,8 +151,8 @@ class Antiresonance(Resonance):
                 for c in super().start_shapes(fs_hz, duration_s, line)]
 
     def simulator(self, params, fs_hz, rng, **options):
-        return _AntiresonanceSim(float(params["sigma"]), fs_hz, float(params["f0"]),
-                                 float(params["Q"]), float(params["fa"]), rng)
+        return _ResonanceSim(float(params["sigma"]), fs_hz, float(params["f0"]),
+                             float(params["Q"]), rng, zero_taps(fs_hz, float(params["fa"])))
 
 
 TERM = Antiresonance()

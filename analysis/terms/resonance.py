@@ -158,17 +158,21 @@ def resonance_avar_mixture(m: np.ndarray, fs: float, f0: np.ndarray, weights: np
 
 
 class _ResonanceSim(TermSimulator):
+    """The AR(2) recursion, its output through the FIR ``taps`` where given (at most three:
+    an antiresonance's zeros)."""
+
     def __init__(self, sigma: float, fs: float, f0: float, q: float,
-                 rng: np.random.Generator) -> None:
+                 rng: np.random.Generator, taps: np.ndarray | None = None) -> None:
         from scipy.signal import lfilter  # slow to import: see analysis.dsp
 
         _, phi1, phi2 = _poles(fs, f0, q)
         self.a = np.array([1.0, -phi1, -phi2])
+        self.b = np.ones(1) if taps is None else np.asarray(taps, dtype=np.float64)
         self.e_sd = sigma * math.sqrt(_innovation_var(phi1, phi2))
         self.rng = rng
         # start in the stationary law: run the recursion over its settling time first
         burn = int(min(50.0 * q * fs / (math.pi * f0), 2e6)) + 10
-        _, self.zi = lfilter([1.0], self.a, rng.standard_normal(burn) * self.e_sd,
+        _, self.zi = lfilter(self.b, self.a, rng.standard_normal(burn) * self.e_sd,
                              zi=np.zeros(2))
 
     def take(self, n: int, temperature: np.ndarray | None = None) -> np.ndarray:
@@ -176,7 +180,7 @@ class _ResonanceSim(TermSimulator):
 
         if n <= 0:
             return np.zeros(0)
-        y, self.zi = lfilter([1.0], self.a, self.rng.standard_normal(n) * self.e_sd,
+        y, self.zi = lfilter(self.b, self.a, self.rng.standard_normal(n) * self.e_sd,
                              zi=self.zi)
         return y
 
