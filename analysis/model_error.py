@@ -16,7 +16,9 @@ the model describes the sensor (CONTRACT.md ``error.psd``, ``error.holdout``,
   :func:`imunoise.analysis.fit.fit_allan`). The part is the mean of the two chi2/dof.
   ``changed`` names the parameters whose two values differ beyond their intervals: in log
   scale, ``z = |ln a - ln b| / sqrt(se_a^2 + se_b^2)`` with ``se`` from each 95 % interval,
-  above the two-sided Bonferroni level 5 % over the parameters compared. An amplitude
+  widened by the misfit of the taus the parameter rests on in that half
+  (``FitResult.dispersion_of``: a half that misses its long taus keeps its white level's
+  interval), above the two-sided Bonferroni level 5 % over the parameters compared. An amplitude
   resolved on one half whose interval reaches zero on the other is compared on the linear
   scale (:func:`_vanished_z`); one that reaches zero on both is not compared. Parameters
   whose change shows only jointly (a white level and a filter's taps, estimated from the
@@ -283,9 +285,10 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
                     vanished[len(pairs) - 1] = (i, j, k, ca, cb)
                 continue  # held, or no estimate on a half
             if source == "allan":
-                # a half whose own fit misses its curve has wider intervals than it reports
-                sa *= math.sqrt(max(1.0, fit_a.chi2_per_dof))
-                sb *= math.sqrt(max(1.0, fit_b.chi2_per_dof))
+                # a half whose fit misses the taus a parameter rests on has a wider interval
+                # for it than it reports
+                sa *= math.sqrt(fit_a.dispersion_of(i, k))
+                sb *= math.sqrt(fit_b.dispersion_of(j, k))
             z = abs(math.log(a) - math.log(b)) / math.hypot(sa, sb)
             pairs.append((f"{label}.{k}", a, b, z, source))
     if not pairs:
@@ -303,15 +306,15 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
 def _refused(recheck: Recheck, fits: tuple[Any, Any], at: tuple[int, int, str, Any, Any],
              crit: float) -> bool:
     """Whether the half where an amplitude vanished refuses the near end of the other half's
-    interval: held there, its chi2 (scaled by its chi2/dof where above 1) rises beyond
-    ``crit^2``."""
+    interval: held there, its chi2 (scaled by the misfit of the taus the amplitude rests on,
+    ``FitResult.dispersion_of``) rises beyond ``crit^2``."""
     i, j, k, ca, cb = at
     resolved_a = float(ca[0]) > 0.0
     half, index, near = (1, j, float(ca[0])) if resolved_a else (0, i, float(cb[0]))
     rise = recheck(half, index, k, near)
     if rise is None:
         return True  # no refit to judge by: the intervals alone decide
-    return rise / max(1.0, float(fits[half].chi2_per_dof)) > crit * crit
+    return rise / fits[half].dispersion_of(index, k) > crit * crit
 
 
 def _jointly_changed(fit_a: Any, fit_b: Any, named: set[str], crit: float
@@ -324,8 +327,9 @@ def _jointly_changed(fit_a: Any, fit_b: Any, named: set[str], crit: float
     white.N -0.4 %, marginal z 2.0, yet the other half's model misses its shortest tau by
     z 5). The log-parameter differences ``d`` of the well-determined parameters (linearised
     standard error below 0.5 on both halves, not yet named) have covariance
-    ``S = c_a S_a + c_b S_b``, each half's covariance scaled by its chi2/dof where above 1
-    (amplitudes whose interval reaches zero on a half are left out).
+    ``S = D_a S_a D_a + D_b S_b D_b``, each half's covariance scaled by the misfit of the taus
+    each parameter rests on (``D`` the square roots of ``FitResult.dispersion_of``; amplitudes
+    whose interval reaches zero on a half are left out).
     Only when ``d' S^-1 d`` exceeds the chi-square level ``HOLDOUT_ALPHA`` are parameters
     named, one at a time: the parameter's change estimated with the others held equal
     (``z = (S^-1 d)_p / sqrt((S^-1)_pp)``) is named when beyond ``crit``, and is then left
@@ -359,7 +363,8 @@ def _joint_differences(fit_a: Any, fit_b: Any, named: set[str]
                        ) -> tuple[list[tuple[str, float, float]], np.ndarray, np.ndarray]:
     """``(keys, d, S)`` of :func:`_jointly_changed`: each well-determined parameter not in
     ``named`` as ``(label.param, value a, value b)``, the halves' log-parameter differences
-    and their covariance (each half's scaled by its chi2/dof where above 1)."""
+    and their covariance (each half's scaled by the misfit of the taus each parameter rests
+    on, ``FitResult.dispersion_of``)."""
     rows_a = {k: n for n, k in enumerate(fit_a.free_params)}
     rows_b = {k: n for n, k in enumerate(fit_b.free_params)}
     keys, ia, ib, d = [], [], [], []
@@ -379,13 +384,20 @@ def _joint_differences(fit_a: Any, fit_b: Any, named: set[str]
             d.append(math.log(a) - math.log(b))
     if not keys:
         return [], np.zeros(0), np.zeros((0, 0))
-    cov_a = np.asarray(fit_a.param_cov)[np.ix_(ia, ia)] * max(1.0, fit_a.chi2_per_dof)
-    cov_b = np.asarray(fit_b.param_cov)[np.ix_(ib, ib)] * max(1.0, fit_b.chi2_per_dof)
+    cov_a = _scaled_cov(fit_a, ia)
+    cov_b = _scaled_cov(fit_b, ib)
     sd_a, sd_b = np.sqrt(np.abs(np.diag(cov_a))), np.sqrt(np.abs(np.diag(cov_b)))
     keep = np.flatnonzero(np.isfinite(sd_a) & np.isfinite(sd_b) & (sd_a > 0) & (sd_b > 0)
                           & (sd_a < 0.5) & (sd_b < 0.5))
     cov = (cov_a + cov_b)[np.ix_(keep, keep)]
     return [keys[n] for n in keep], np.asarray(d)[keep], cov
+
+
+def _scaled_cov(fit: Any, rows: Sequence[int]) -> np.ndarray:
+    """The covariance of the log-parameters in ``rows`` (of ``fit.free_params``), each
+    parameter's standard deviation widened by the misfit of the taus it rests on."""
+    d = np.sqrt([fit.dispersion_of(*fit.free_params[r]) for r in rows])
+    return np.asarray(fit.param_cov)[np.ix_(rows, rows)] * np.outer(d, d)
 
 
 def _joint_difference(fit_a: Any, fit_b: Any, named: set[str]) -> dict[str, Any] | None:
@@ -420,10 +432,11 @@ def _profile_changed(fit_a: Any, fit_b: Any, named: Sequence[dict[str, Any]],
     Each half's interval of an amplitude near its bound, widened by that half's misfit, is
     wide on the log scale; the curve can still refuse the other half's value. For each
     parameter not yet named, ``R_a`` is the rise of half a's chi2 with the parameter held at
-    half b's value and the rest refitted, ``R_b`` the converse, each divided by its half's
-    chi2/dof where above 1. Where each half's chi2 is quadratic in the parameter, the
-    smallest summed rise over one shared value is ``1 / (1/R_a + 1/R_b)``: a chi-square
-    with one degree of freedom when the parameter did not change. It is named (``"test":
+    half b's value and the rest refitted, ``R_b`` the converse, each divided by the misfit of
+    the taus the parameter rests on in that half (``FitResult.dispersion_of``). Where each
+    half's chi2 is quadratic in the parameter, the smallest summed rise over one shared
+    value is ``1 / (1/R_a + 1/R_b)``: a chi-square with one degree of freedom when the
+    parameter did not change. It is named (``"test":
     "profile"``) beyond the Bonferroni level over the parameters compared. ADIS16405 run 3
     accel_z warms up in its first hour: the random walk is 5.9e-4 on the first half, 1.6e-4
     on the second, and held there the first half's chi2 rises by 99 (z 3.2 against the
@@ -442,15 +455,19 @@ def _profile_changed(fit_a: Any, fit_b: Any, named: Sequence[dict[str, Any]],
     crit = float(norm.isf(HOLDOUT_ALPHA / (2.0 * len(compared))))
     todo = [c for c in compared if c[0] not in done]
 
-    def scaled(rise: float | None, fit: Any) -> float:
+    def scaled(rise: float | None, fit: Any, index: int, param: str) -> float:
         # 0 for a half that does not mind the other's value (or cannot be refitted)
-        return rise / max(1.0, float(fit.chi2_per_dof)) if rise is not None and rise > 0.0 \
+        return rise / fit.dispersion_of(index, param) if rise is not None and rise > 0.0 \
             else 0.0
 
-    first = [scaled(r, fit_a) for r in rises([(0, i, k, b) for _, i, _, k, _, b in todo])]
+    first = [scaled(r, fit_a, i, k)
+             for r, (_, i, _, k, _, _) in zip(rises([(0, i, k, b) for _, i, _, k, _, b in todo]),
+                                              todo, strict=True)]
     beyond = [(c, r) for c, r in zip(todo, first, strict=True) if r > crit * crit]
-    second = [scaled(r, fit_b)
-              for r in rises([(1, j, k, a) for (_, _, j, k, a, _), _ in beyond])]
+    second = [scaled(r, fit_b, j, k)
+              for r, ((_, _, j, k, _, _), _) in zip(
+                  rises([(1, j, k, a) for (_, _, j, k, a, _), _ in beyond]), beyond,
+                  strict=True)]
     out: list[dict[str, Any]] = []
     for ((name, _, _, _, a, b), r_a), r_b in zip(beyond, second, strict=True):
         if r_b <= 0.0:

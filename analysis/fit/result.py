@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
+import scipy.linalg
 
 from imunoise.analysis.misfit import Misfit
 from imunoise.analysis.terms import (
@@ -82,6 +83,9 @@ class FitResult:
     free_params: list[tuple[int, str]] = field(default_factory=list)
     used: np.ndarray | None = None
     """Taus the parameters rest on (failing shortest taus are set aside)."""
+    _dispersions: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """:meth:`dispersion_of` of each free parameter (order of :attr:`free_params`), computed
+    on first use; a reordering of the terms keeps the order of :attr:`free_params`."""
 
     @property
     def params(self) -> list[tuple[str, dict[str, float]]]:
@@ -117,7 +121,8 @@ class FitResult:
         moved = {old: new for new, old in enumerate(order)}
         return replace(self, terms=[self.terms[i] for i in order],
                        term_avar=[self.term_avar[i] for i in order],
-                       free_params=[(moved[i], k) for i, k in self.free_params])
+                       free_params=[(moved[i], k) for i, k in self.free_params],
+                       _dispersions=self._dispersions)
 
     @property
     def labels(self) -> list[str]:
@@ -140,6 +145,54 @@ class FitResult:
     @property
     def max_abs_z(self) -> float:
         return self.misfit.max_abs_z
+
+    def dispersion_of(self, index: int, param: str) -> float:
+        """How much wider than its linearised interval the interval of parameter ``param`` of
+        term ``index`` is, in variance: the fit's chi2/dof, or less where the taus the
+        parameter rests on fit better than the curve as a whole; at least 1.
+
+        The misfit of a parameter's taus is the mean of the squared residuals over the taus
+        the fit used, each weighted by the parameter's Fisher information there, both in the
+        metric of the chi2: the standardised residuals ``z`` and the sensitivities of the
+        standardised log Allan variance to the log-parameter (:func:`log_sensitivities`),
+        whitened by the Cholesky factor of the estimates' correlation over increasing tau.
+        A model that misses its long taus says nothing about the white level, estimated at
+        the shortest ones, whose interval the chi2/dof would widen all the same: ADIS16405
+        run 2 accel_y's first half misses at 2.6-41 s (chi2/dof 2.51) and its white level's
+        taus give 1.0. The value never exceeds the chi2/dof: a weighted mean over the few
+        taus a parameter rests on is noisy (a right model's random walk reaches 2.4 at
+        chi2/dof 1.34), and a parameter whose own taus fit worse than the whole keeps the
+        whole's widening. A parameter the fit holds, or one no tau is sensitive to, gets the
+        chi2/dof (at least 1)."""
+        whole = max(1.0, float(self.chi2_per_dof))
+        if (index, param) not in self.free_params:
+            return whole
+        if self._dispersions is None:
+            self._dispersions = self._local_dispersions(whole)
+        return float(self._dispersions[self.free_params.index((index, param))])
+
+    def _local_dispersions(self, whole: float) -> np.ndarray:
+        used = np.flatnonzero(np.ones(self.tau_s.size, bool) if self.used is None
+                              else np.asarray(self.used))
+        # in the chi2's own metric: residuals and sensitivities whitened by the Cholesky
+        # factor of the estimates' correlation, taus in increasing order, so that each
+        # whitened value is what its tau adds to the shorter ones (a misfit can lie in the
+        # pattern of correlated neighbours, each |z| small)
+        corr = np.asarray(self.misfit.corr, dtype=np.float64)[np.ix_(used, used)]
+        jitter = 1e-9 * max(float(np.max(np.abs(np.diag(corr)), initial=0.0)), 1e-300)
+        try:
+            chol = np.linalg.cholesky(corr + jitter * np.eye(used.size))
+        except np.linalg.LinAlgError:
+            return np.full(len(self.free_params), whole)
+        e2 = scipy.linalg.solve_triangular(chol, np.asarray(self.misfit.z)[used], lower=True) ** 2
+        out = np.full(len(self.free_params), whole)
+        for n, s in enumerate(log_sensitivities(self, self.free_params)):
+            if not np.all(np.isfinite(s[used])):
+                continue
+            w = scipy.linalg.solve_triangular(chol, s[used], lower=True) ** 2
+            if float(w.sum()) > 0.0:
+                out[n] = max(1.0, min(whole, float(w @ e2) / float(w.sum())))
+        return out
 
     def model_avar(self, tau_s: np.ndarray | float) -> np.ndarray:
         """Model Allan variance at any ``tau_s`` (the fitted noise terms; temperature, removed
@@ -170,3 +223,42 @@ def _term_avar(name: str, params: dict[str, float], tau: np.ndarray, fs: float) 
     if term.role == "regressor":
         return np.zeros_like(tau)
     return term.avar(tau, fs, **params)
+
+
+_LOG_STEP = 1e-4
+"""Step of the log-parameters in :func:`log_sensitivities`."""
+
+
+def log_sensitivities(fit: FitResult, params: Sequence[tuple[int, str]]) -> list[np.ndarray]:
+    """For each ``(term index, parameter)``, the change of each tau's standardised log Allan
+    variance per unit change of the log-parameter: ``d ln avar / d ln p`` at the fitted model
+    times ``sqrt(nu / 2)`` (``nu`` the estimate's degrees of freedom, so that one unit is one
+    standard deviation of ``ln avar``). Central differences, one-sided where a step leaves the
+    parameter's range; NaN where neither step can be taken."""
+    model = [(t.term, dict(t.params)) for t in fit.terms]
+    noise = [n for n, (name, _) in enumerate(model) if get_term(name).role != "regressor"]
+    scale = np.sqrt(np.asarray(fit.misfit.nu, dtype=np.float64) / 2.0)
+
+    def ln_avar(index: int, param: str, step: float) -> np.ndarray | None:
+        trial = [(name, dict(p)) for name, p in model]
+        if step:
+            trial[index][1][param] *= float(np.exp(step))
+        try:
+            avar = model_avar([trial[n] for n in noise], fit.tau_s, fit.fs_hz)
+        except (ValueError, ArithmeticError):  # TermError is a ValueError: out of range
+            return None
+        return np.log(np.maximum(avar, 1e-300)) if np.all(np.isfinite(avar)) else None
+
+    mid = ln_avar(0, "", 0.0) if noise else None
+    out = []
+    for index, param in params:
+        up, down = ln_avar(index, param, _LOG_STEP), ln_avar(index, param, -_LOG_STEP)
+        d = np.full(fit.tau_s.size, np.nan)
+        if up is not None and down is not None:
+            d = (up - down) / (2.0 * _LOG_STEP)
+        elif up is not None and mid is not None:
+            d = (up - mid) / _LOG_STEP
+        elif down is not None and mid is not None:
+            d = (mid - down) / _LOG_STEP
+        out.append(d * scale)
+    return out

@@ -258,9 +258,11 @@ def test_the_profile_change_combines_both_halves_rises_scaled_by_their_misfit() 
     from imunoise.analysis.model_error import _profile_changed
 
     def fit(k: float, per_dof: float) -> SimpleNamespace:
+        # the misfit of every parameter's taus taken as the half's chi2/dof
         return SimpleNamespace(terms=[TermFit("white", {"N": 1.0}, {}),
                                       TermFit("random_walk", {"K": k}, {})],
-                               chi2_per_dof=per_dof)
+                               chi2_per_dof=per_dof,
+                               dispersion_of=lambda index, param: max(1.0, per_dof))
 
     rises = {(0, "N"): 0.5, (1, "N"): 0.5, (0, "K"): 99.0, (1, "K"): 32.0}
     asked: list[tuple] = []
@@ -342,7 +344,8 @@ def _halves_differing_by(z: float, se: float = 0.01) -> tuple[SimpleNamespace, S
                  for name, k in (("white", "N"), ("bias_instability", "B"),
                                  ("random_walk", "K"))]
         return SimpleNamespace(terms=terms, free_params=[(0, "N"), (1, "B"), (2, "K")],
-                               param_cov=np.eye(3) * se * se, chi2_per_dof=1.0)
+                               param_cov=np.eye(3) * se * se, chi2_per_dof=1.0,
+                               dispersion_of=lambda index, param: 1.0)
 
     return fit(z * se * np.sqrt(2.0)), fit(0.0)
 
@@ -417,3 +420,57 @@ def test_a_miss_reads_as_where_and_what_the_predicting_half_left_unresolved():
     assert holdout_findings(plain) == [
         "the first half's model misses the second half: measured below model at tau 2.56 s "
         "(max |z| 2.9)"]
+
+
+# white noise, flicker and random walk with a Markov term the model leaves out: the model
+# misses at 2-300 s, its shortest taus fit
+_MISSED_MARKOV = [("white", {"N": 1e-3}), ("bias_instability", {"B": 1e-4}),
+                  ("random_walk", {"K": 1e-5}), ("gauss_markov", {"sigma": 4e-4, "T": 60.0})]
+_WBK = "white,bias_instability,random_walk"
+
+
+def test_a_misfit_widens_only_the_intervals_of_the_parameters_resting_on_its_taus() -> None:
+    fit = fit_series(simulate(_MISSED_MARKOV, N, FS, rng=3), FS, _WBK,
+                     intervals="jacobian")[0]
+    assert fit.chi2_per_dof > 3.0  # the missing term costs it
+    # the white level rests on the shortest taus, which fit: no widening
+    assert fit.dispersion_of(0, "N") == 1.0
+    # flicker rests on the taus of the miss, which fit worse than the curve as a whole
+    # (6.7 per degree of freedom): the chi2/dof caps it
+    assert fit.dispersion_of(1, "B") == pytest.approx(fit.chi2_per_dof, rel=1e-12)
+    # a parameter the fit does not estimate gets the chi2/dof
+    assert fit.dispersion_of(0, "tau") == pytest.approx(fit.chi2_per_dof, rel=1e-12)
+
+
+def _white_changed_by(change: float, seed: int) -> tuple[np.ndarray, object]:
+    """A record whose second half's white level is ``1 + change`` times its first's, with
+    the Markov term the model leaves out, and its fit."""
+    x = np.concatenate([simulate([(n, dict(p, N=p["N"] * scale) if n == "white" else p)
+                                  for n, p in _MISSED_MARKOV], N, FS, rng=10 * seed + h)
+                        for h, scale in ((0, 1.0), (1, 1.0 + change))])
+    return x, fit_series(x, FS, _WBK, intervals="jacobian")[0]
+
+
+def test_a_white_level_change_is_named_beside_a_misfit_at_long_tau(monkeypatch) -> None:
+    # the white level 0.4 % higher in the second half. Each half's model misses at long tau
+    # (chi2/dof 2-4), where the white level plays no part: its intervals are widened by the
+    # misfit of its own taus, not by the chi2/dof. Over seeds 0-5, 5 of 6 name it this way
+    # and 2 of 6 by the chi2/dof; with no change, none of 20 (the random walk, whose taus
+    # the missing term disturbs, in 2 of 20 both ways)
+    x, fit = _white_changed_by(0.004, seed=0)
+    setup = holdout_halves(x, FS, _WBK, fit)
+    done = [_half(setup, k) for k in (0, 1)]
+    a, b = (d.fit for d in done)
+    assert min(a.chi2_per_dof, b.chi2_per_dof) > 2.0
+    named = {c["param"]: c for c in setup.part(done)["changed"]}
+    assert "white.N" in named and named["white.N"]["values"][1] > named["white.N"]["values"][0]
+    from imunoise.analysis.fit.result import FitResult
+
+    monkeypatch.setattr(FitResult, "dispersion_of",
+                        lambda self, index, param: max(1.0, float(self.chi2_per_dof)))
+    assert "white.N" not in {c["param"] for c in _changed(a, b)}
+
+
+def test_an_unchanged_white_level_beside_a_misfit_at_long_tau_is_not_named() -> None:
+    x, fit = _white_changed_by(0.0, seed=0)
+    assert holdout_part(x, FS, _WBK, fit)["changed"] == []
