@@ -235,30 +235,36 @@ def log_sensitivities(fit: FitResult, params: Sequence[tuple[int, str]]) -> list
     times ``sqrt(nu / 2)`` (``nu`` the estimate's degrees of freedom, so that one unit is one
     standard deviation of ``ln avar``). Central differences, one-sided where a step leaves the
     parameter's range; NaN where neither step can be taken."""
-    model = [(t.term, dict(t.params)) for t in fit.terms]
-    noise = [n for n, (name, _) in enumerate(model) if get_term(name).role != "regressor"]
+    fitted = [(t.term, dict(t.params)) for t in fit.terms
+              if get_term(t.term).role != "regressor"]
+    position = {n: p for p, n in enumerate(
+        n for n, t in enumerate(fit.terms) if get_term(t.term).role != "regressor")}
     scale = np.sqrt(np.asarray(fit.misfit.nu, dtype=np.float64) / 2.0)
 
-    def ln_avar(index: int, param: str, step: float) -> np.ndarray | None:
-        trial = [(name, dict(p)) for name, p in model]
-        if step:
-            trial[index][1][param] *= float(np.exp(step))
+    def ln_avar(model: list[tuple[str, dict[str, float]]]) -> np.ndarray | None:
         try:
-            avar = model_avar([trial[n] for n in noise], fit.tau_s, fit.fs_hz)
+            avar = model_avar(model, fit.tau_s, fit.fs_hz)
         except (ValueError, ArithmeticError):  # TermError is a ValueError: out of range
             return None
         return np.log(np.maximum(avar, 1e-300)) if np.all(np.isfinite(avar)) else None
 
-    mid = ln_avar(0, "", 0.0) if noise else None
+    def moved(index: int, param: str, step: float) -> list[tuple[str, dict[str, float]]]:
+        trial = [(name, dict(p)) for name, p in fitted]
+        trial[position[index]][1][param] *= float(np.exp(step))
+        return trial
+
+    mid = ln_avar(fitted)
     out = []
     for index, param in params:
-        up, down = ln_avar(index, param, _LOG_STEP), ln_avar(index, param, -_LOG_STEP)
         d = np.full(fit.tau_s.size, np.nan)
-        if up is not None and down is not None:
-            d = (up - down) / (2.0 * _LOG_STEP)
-        elif up is not None and mid is not None:
-            d = (up - mid) / _LOG_STEP
-        elif down is not None and mid is not None:
-            d = (mid - down) / _LOG_STEP
+        if index in position:
+            up = ln_avar(moved(index, param, _LOG_STEP))
+            down = ln_avar(moved(index, param, -_LOG_STEP))
+            if up is not None and down is not None:
+                d = (up - down) / (2.0 * _LOG_STEP)
+            elif up is not None and mid is not None:
+                d = (up - mid) / _LOG_STEP
+            elif down is not None and mid is not None:
+                d = (mid - down) / _LOG_STEP
         out.append(d * scale)
     return out

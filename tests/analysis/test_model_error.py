@@ -442,6 +442,21 @@ def test_a_misfit_widens_only_the_intervals_of_the_parameters_resting_on_its_tau
     assert fit.dispersion_of(0, "tau") == pytest.approx(fit.chi2_per_dof, rel=1e-12)
 
 
+def test_log_sensitivities_are_the_standardised_derivatives_of_the_log_allan_variance() -> None:
+    from imunoise.analysis.fit.result import log_sensitivities
+
+    fit = fit_series(simulate([("white", {"N": 1e-3}), ("random_walk", {"K": 1e-5})],
+                              1 << 16, FS, rng=2), FS, "white,random_walk",
+                     intervals="jacobian")[0]
+    n_sens, k_sens = log_sensitivities(fit, [(0, "N"), (1, "K")])
+    # each amplitude's share of the Allan variance, twice (avar goes as its square), in
+    # standard deviations of ln avar
+    share = fit.term_avar[0] / fit.avar_fit
+    unit = np.sqrt(fit.misfit.nu / 2.0)
+    np.testing.assert_allclose(n_sens, 2.0 * share * unit, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(k_sens, 2.0 * (1.0 - share) * unit, rtol=1e-6, atol=1e-6)
+
+
 def _white_changed_by(change: float, seed: int) -> tuple[np.ndarray, object]:
     """A record whose second half's white level is ``1 + change`` times its first's, with
     the Markov term the model leaves out, and its fit."""
