@@ -36,7 +36,13 @@ from imunoise.analysis.diagnosis.statistics import (
 )
 from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.fit import FitResult, fit_series
-from imunoise.analysis.model_error import HoldoutHalves, fit_half, time_domain_part
+from imunoise.analysis.model_error import (
+    HoldoutHalves,
+    fit_half,
+    measured_psd,
+    psd_parts,
+    time_domain_part,
+)
 from imunoise.analysis.spectral_pins import PINNED, pin_resonances, pinned_of
 from imunoise.analysis.terms import TERMS, Entry, ModelSpec, get_term
 from imunoise.analysis.terms.gauss_markov import MIN_T_SAMPLES
@@ -268,9 +274,14 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
         why += f" Doing so brings chi2/dof from {before:.3g} to {chi_after:.3g}."
     # The Allan curve barely sees a step (a random walk takes it in), so the cut is judged by
     # the part that does: the transient test on the cut record under its own refit. It must
-    # no longer find a transient, and the Allan part must not rise beyond its noise.
+    # no longer find a transient, and the Allan part must not rise beyond its noise. Like a
+    # term, a cut may raise neither the Allan nor the PSD part beyond its noise: ADIS16405
+    # run 3 accel_z, cut at 289 s by a step that lowered the Allan part (1.14 -> 0.89): the
+    # cut record's refit moved a resonance from 0.002 Hz to 1.77 Hz, PSD part 2.62 -> 3.90
     td_after: dict[str, Any] | None = None
+    psd_after: dict[str, Any] | None = None
     clears = False
+    rises = False
     if after is not None:
         td_after = time_domain_part(series.values, ctx.fs_hz, after.params,
                                     series.segment_starts, units)
@@ -280,6 +291,13 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
         if clears and not falls:
             why += (f" The cut record shows no transient (time-domain p {p_after:.2g}) and "
                     f"the Allan part stays within its noise.")
+        if ctx.psd_est is not None:
+            est, nperseg = measured_psd(series.values, ctx.fs_hz, series.segment_starts)
+            psd_after = psd_parts(after.params, est, ctx.fs_hz, nperseg)[1]
+        rises = _parts_rise(ctx, after, psd_after)
+    held_by, held_reason = _held_back(None, rises)
+    if rises:
+        why += " The cut raises a part of the error beyond its noise."
     names = ("t_s", "size") if step else ("tau_s", "amplitude")
     ci = {k: (float(finding.details[f"{k}_ci95"][0]), float(finding.details[f"{k}_ci95"][1]))
           for k in names if np.all(np.isfinite(finding.details.get(f"{k}_ci95", [np.nan])))}
@@ -287,11 +305,13 @@ def _remedy(ctx: _Context, finding: Finding, units: str, alpha: float) -> Sugges
         term=finding.kind, params=dict(finding.params), ci95=ci,
         chi2_per_dof_before=before, chi2_per_dof_after=chi_after,
         p_value=float(np.exp(logp)), log_p=logp,
-        significant=bool(logp < np.log(alpha) and (falls or clears)), why=why,
+        significant=bool(logp < np.log(alpha) and (falls or clears) and not rises), why=why,
         evidence=[finding.kind] if finding.significant else [], fit=after,
         apply={"model": ctx.spec.text(), "args": args}, action="cut",
         error_after={} if after is None
-        else _error_after(after, _not_computed("the PSD part"), td_after))
+        else _error_after(after, psd_after if psd_after is not None
+                          else _not_computed("the PSD part"), td_after),
+        held_by=held_by, held_reason=held_reason)
 
 
 def _unresolved_terms(ctx: _Context) -> list[int]:

@@ -77,6 +77,31 @@ def test_a_knock_is_named_with_its_time_and_split_away() -> None:
     assert abs(np.log(k_after / 2e-6)) < abs(np.log(k_before / 2e-6))
 
 
+def test_a_cut_that_raises_the_psd_part_is_held_back(monkeypatch) -> None:
+    # the knock's cut, judged by every part of the error: its PSD part (the cut record's
+    # spectrum under the cut's refit) is reported and must not rise beyond its noise
+    from imunoise.analysis.diagnosis import candidates
+
+    model = [("white", {"N": 1e-3}), ("random_walk", {"K": 2e-6})]
+    x = NoiseStream(model, FS, seed=11).take(720_000)
+    x[400_000:] += 8e-3
+    cut = next(s for s in diagnose(x, FS, "white,random_walk").suggestions
+               if s.term == "bias_step")
+    assert cut.significant and cut.held_by == ""
+    assert 0.5 < cut.error_after["psd"]["deviance_per_bin"] < 2.0
+    real = candidates.psd_parts
+
+    def worse(*args, **kwargs):  # the cut record's spectrum fitted 3 times worse
+        block, part = real(*args, **kwargs)
+        return block, {**part, "deviance_per_bin": 3.0 * part["deviance_per_bin"]}
+
+    monkeypatch.setattr(candidates, "psd_parts", worse)
+    held = next(s for s in diagnose(x, FS, "white,random_walk").suggestions
+                if s.term == "bias_step")
+    assert not held.significant and held.held_by == "rise"
+    assert held.held_reason == "it raises a part of the error beyond its noise."
+
+
 def test_a_knock_that_comes_back_fits_a_step_either_way_and_is_said_to() -> None:
     # a one-block excursion: a step up at its start and a step down at its end fit the block
     # means alike; the hull of both sizes would reach across zero, yet no size near zero fits
