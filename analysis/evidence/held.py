@@ -121,12 +121,9 @@ class HeldCounter:
         self._run, self._last = 0, None
 
     def _close(self, start: int, length: int) -> None:
+        """The run of ``length`` pairs from sample ``start`` has ended (none if 0)."""
         if length:
-            self.runs += 1
-            self.longest = max(self.longest, length)
-            if len(self._starts) < _MAX_LISTED:
-                self._starts.append(start)
-                self._lengths.append(length)
+            self._close_many(np.array([start]), np.array([length]))
 
     def update(self, values: np.ndarray) -> None:
         """Count the next samples of the current segment."""
