@@ -21,6 +21,7 @@ from imunoise.analysis.environment import (
     features_from_diagnosis,
 )
 from imunoise.analysis.hat import sensors_document
+from imunoise.analysis.shared_shape import shared_shapes
 from imunoise.analysis.subtraction import Subtraction, subtract_common
 
 MAX_LINES_PER_CHANNEL = 5
@@ -74,6 +75,9 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
             (:func:`log_coherence` of their :func:`cross_spectra`, with the same
             ``nperseg``, ``segment_starts``, ``points_per_decade``, ``ci`` and ``alpha``).
 
+    ``shared_shapes`` lists the channels whose spectra have one shape and no coherence (a
+    filter of the chain they pass through, :mod:`imunoise.analysis.shared_shape`).
+
     Channels of several devices with one name (``imu1/gyro_x``, ``imu2/gyro_x``) also give
     ``sensors``: the three-cornered hat of three, the two-sensor bounds of two
     (:func:`imunoise.analysis.hat.sensors_document`).
@@ -115,6 +119,7 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
                   for c, v in suggestions.items()}, origins)
     doc = co.to_dict()
     doc["classification"] = [o.to_dict() for o in origins]
+    doc["shared_shapes"] = [s.to_dict() for s in shared_shapes(co)]
     shared = [c for c in names if channel_device(c)]
     bases = [c[len(channel_device(c)) + 1:] for c in shared]
     if any(bases.count(b) >= 2 for b in bases):

@@ -219,4 +219,11 @@ def run(args: argparse.Namespace) -> int:
             print("  environment or sensor (coherence with the other channels)")
             for c in lines:
                 print(f"    {c['term']} at {c['f_hz']:.4g} Hz: {c['origin']}. {c['why']}")
+        shapes = [s for s in (coherence or {}).get("shared_shapes", [])
+                  if key in s.get("channels", [])]
+        if shapes:
+            print()
+            print("  the channel's spectral shape (against the other channels)")
+            for s in shapes:
+                print(f"    {s['text']}")
     return 0

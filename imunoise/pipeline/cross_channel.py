@@ -326,4 +326,6 @@ def coherence_lines(co: dict[str, Any] | None) -> list[str]:
     for c in co.get("classification", []):
         lines.append(f"  {c['channel']} {c['term']} at {c['f_hz']:.4g} Hz: {c['origin']}. "
                      f"{c['why']}")
+    for s in co.get("shared_shapes", []):
+        lines.append(f"  spectral shape: {s['text']}")
     return lines

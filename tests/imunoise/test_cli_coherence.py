@@ -58,6 +58,7 @@ def test_analyze_json_has_the_coherence_of_every_pair(bench_csv):
     assert "rotation" in rock["why"]
     assert found[("accel_z", 3.3)]["origin"] == "own"
     assert "own" not in doc["channels"]["accel_y"]
+    assert co["shared_shapes"] == []  # a shared motion and own lines: no common filter
 
 
 def test_analyze_subtract_common_reports_the_own_noise_beside_the_raw(bench_csv):
@@ -98,6 +99,33 @@ def test_diagnose_says_common_or_own(bench_csv):
     assert own and own[0]["origin"] == "own"
     line = [s for s in doc["suggestions"] if s["term"] == "sinusoid"]
     assert line and "Own to accel_z" in line[0]["why"] and line[0]["origin"] == "own"
+
+
+def test_diagnose_names_a_filter_every_channel_passes_through(tmp_path):
+    # independent noise in each channel through one steep lowpass, as a decimating logger
+    # leaves it: one spectral shape and no coherence
+    from scipy import signal
+
+    rng = np.random.default_rng(71)
+    n = 1 << 16
+    w = rng.standard_normal((n, 4)) * np.array([1e-3, 2e-3, 5e-2, 3e-2])
+    x = signal.sosfilt(signal.butter(6, 5.0, fs=100.0, output="sos"), w, axis=0) \
+        + 0.03 * w[::-1]
+    names = ["gyro_x", "gyro_y", "accel_x", "accel_y"]
+    path = tmp_path / "decimated.csv"
+    np.savetxt(path, np.column_stack([np.arange(n) / 100.0, x]), delimiter=",",
+               fmt="%.10g", comments="", header="t," + ",".join(names))
+    proc = _run("diagnose", path, "--channel", "accel_x", "--model", "white")
+    assert proc.returncode == 0, proc.stderr
+    assert "the channel's spectral shape (against the other channels)" in proc.stdout
+    assert "share one spectral shape and no signal" in proc.stdout
+    proc = _run("diagnose", path, "--channel", "accel_x", "--model", "white", "--json")
+    shapes = json.loads(proc.stdout)["coherence"]["shared_shapes"]
+    assert len(shapes) == 1 and sorted(shapes[0]["channels"]) == sorted(names)
+    assert shapes[0]["span"] > 100.0 and shapes[0]["kinds"].count("gyro") == 2
+    proc = _run("analyze", path)
+    assert proc.returncode == 0, proc.stderr
+    assert "spectral shape: gyro_x, gyro_y, accel_x, accel_y share one" in proc.stdout
 
 
 def test_subtract_common_on_a_streamed_file_is_a_usage_error(tmp_path):

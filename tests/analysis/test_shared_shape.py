@@ -1,0 +1,108 @@
+"""Channels with one spectral shape and no common signal: a filter of the chain, named."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from imunoise.analysis.coherence import cross_spectra, log_coherence
+from imunoise.analysis.shared_shape import (
+    MAX_COMMON_POWER,
+    MAX_UNEXPLAINED,
+    MIN_RANGE,
+    pair_shape,
+    shared_shapes,
+)
+
+FS = 100.0
+N = 2**18
+NAMES = ["gyro_x", "gyro_y", "accel_x", "accel_y"]
+
+
+def _view(x: np.ndarray, names: list[str] = NAMES):
+    return log_coherence(cross_spectra(x, FS, names), intervals=False)
+
+
+def _through(cutoff_hz: float, w: np.ndarray) -> np.ndarray:
+    # a steep lowpass (a decimation filter's passband and stopband) and a floor 1e-3 of the
+    # passband after it: the PSD spans about a factor 1000
+    sos = signal.butter(6, cutoff_hz, fs=FS, output="sos")
+    return signal.sosfilt(sos, w, axis=0) + 0.03 * w[::-1]
+
+
+def test_independent_noise_through_one_filter_is_named_as_one_shape():
+    rng = np.random.default_rng(11)
+    w = rng.standard_normal((N, 4)) * np.array([1e-3, 2e-3, 5e-2, 3e-2])
+    shapes = shared_shapes(_view(_through(5.0, w)))
+    assert len(shapes) == 1
+    s = shapes[0]
+    assert s.channels == tuple(NAMES)
+    assert s.explained >= 1.0 - MAX_UNEXPLAINED
+    assert s.span > 100.0
+    assert s.common_power <= MAX_COMMON_POWER
+    assert set(s.kinds) == {"gyro", "accel"}
+    assert "share one spectral shape and no signal" in s.text()
+    assert "different quantities" in s.text()
+    doc = s.to_dict()
+    assert doc["channels"] == NAMES and doc["text"] == s.text()
+
+
+def test_a_pair_through_one_filter_has_its_ratio_and_the_others_are_not_joined():
+    rng = np.random.default_rng(12)
+    w = rng.standard_normal((N, 4))
+    x = np.column_stack([_through(5.0, w[:, :2]), _through(15.0, w[:, 2:3]),
+                         w[:, 3:] * 0.1])  # another cutoff; white noise, no shape at all
+    co = _view(x)
+    p = pair_shape(co, "gyro_x", "gyro_y")
+    assert p.explained > 0.99
+    assert p.ratio == pytest.approx(1.0, rel=0.05)  # equal amplitudes, equal filters
+    assert pair_shape(co, "gyro_x", "accel_x").explained < 0.5
+    shapes = shared_shapes(co)
+    assert [s.channels for s in shapes] == [("gyro_x", "gyro_y")]
+    assert "a filter the channels have in common" in shapes[0].text()
+
+
+def test_white_channels_have_no_shape_to_share():
+    rng = np.random.default_rng(13)
+    co = _view(rng.standard_normal((N, 4)))
+    assert pair_shape(co, "gyro_x", "accel_x").explained < 0.5  # nothing but scatter
+    assert shared_shapes(co) == []
+    assert MIN_RANGE >= 10.0
+
+
+def test_a_motion_every_channel_sees_is_not_a_filter():
+    # one filtered motion in every channel, far above their own noise: the same shape, and
+    # coherent, so the shape is the motion's (the environment view's case), not the chain's
+    rng = np.random.default_rng(14)
+    motion = _through(5.0, rng.standard_normal((N, 1)))
+    x = motion * np.array([1.0, -0.5, 2.0, 0.7]) + 1e-2 * rng.standard_normal((N, 4))
+    co = _view(x)
+    assert pair_shape(co, "gyro_x", "accel_x").common_power > 0.9
+    assert shared_shapes(co) == []
+
+
+def test_the_galaxy_s5_channels_share_their_decimation_filter(shared_data):
+    # the phone log, already decimated to 10 Hz: every gyro and accelerometer axis has one
+    # shape (a fall of more than a factor 100 from 0.01 to 4.5 Hz) and no two are coherent
+    d = np.load(shared_data / "galaxy_s5" / "galaxy_s5_static_10hz.npz")
+    x = np.column_stack([d["gyro"], d["accel"]])
+    names = ["gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]
+    co = log_coherence(cross_spectra(x, float(d["fs"]), names), intervals=False)
+    shapes = shared_shapes(co)
+    assert len(shapes) == 1
+    assert shapes[0].channels == tuple(names)
+    assert shapes[0].span > 100.0
+    assert shapes[0].explained > 0.99
+
+
+def test_the_adis16405_channels_have_no_shared_shape(shared_data):
+    # gyro_x and gyro_y share the sensor's short averaging filter, but it bends their PSD by a
+    # factor of about two only; the accelerometers share the bench's motion (coherent)
+    d = np.load(shared_data / "adis16405" / "run1.npz")
+    x = np.column_stack([d["gyro_counts"], d["accel_counts"]]).astype(np.float64)
+    names = ["gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]
+    co = log_coherence(cross_spectra(x, float(d["fs_hz"]), names), intervals=False)
+    assert pair_shape(co, "gyro_x", "gyro_y").explained > 0.99
+    assert pair_shape(co, "accel_x", "accel_y").common_power > 0.5
+    assert shared_shapes(co) == []
