@@ -26,7 +26,7 @@ On the log-frequency points of the coherence view (:class:`~imunoise.analysis.co
 
 Channels are gathered into groups whose every pair qualifies. Galaxy S5 record
 (``../shared/data``, six channels at 10 Hz): every channel, gyroscope and accelerometer, has
-the same shape (the PSD falls by a factor of about 150 between 0.02 and 5 Hz, with a notch
+the same shape (the PSD falls by a factor of about 240 between 0.01 and 4.5 Hz, with a notch
 near 0.43 Hz and a lobe near 0.6 Hz) and no pair is coherent: the phone's processing, not six
 sensors' physics.
 """
@@ -123,14 +123,14 @@ class SharedShape:
 
 
 def _log_psd(co: Coherence) -> tuple[np.ndarray, np.ndarray]:
-    """Each channel's log-PSD at the points (channels, points) and the points' weights,
-    the points with a non-positive or non-finite PSD in any channel left out."""
+    """Each channel's log-PSD at the points and its weights, both ``(channels, points)``: a
+    point's number of averages, 0 where that channel's PSD there is not positive and finite
+    (a constant channel leaves out only itself)."""
     psd = np.asarray(co.psd, dtype=np.float64)
     n = np.asarray(co.n_avg, dtype=np.float64)
-    ok = np.all(np.isfinite(psd) & (psd > 0.0), axis=0) & np.isfinite(n) & (n > 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        logs = np.where(ok, np.log(np.where(ok, psd, 1.0)), 0.0)
-    return logs, np.where(ok, n, 0.0)
+    ok = np.isfinite(psd) & (psd > 0.0) & (np.isfinite(n) & (n > 0.0))[None, :]
+    logs = np.log(np.where(ok, psd, 1.0))
+    return logs, np.where(ok, n[None, :], 0.0)
 
 
 def _variation(y: np.ndarray, w: np.ndarray) -> float:
@@ -140,8 +140,9 @@ def _variation(y: np.ndarray, w: np.ndarray) -> float:
 
 def pair_shape(co: Coherence, a: str, b: str) -> PairShape:
     """:class:`PairShape` of channels ``a`` and ``b`` of a coherence view."""
-    logs, w = _log_psd(co)
+    logs, weights = _log_psd(co)
     i, j = co.channels.index(a), co.channels.index(b)
+    w = np.minimum(weights[i], weights[j])  # the points both channels have
     if np.sum(w > 0) < 3:
         return PairShape(a, b, math.nan, math.nan, math.nan)
     d = logs[i] - logs[j]
@@ -171,8 +172,7 @@ def shared_shapes(co: Coherence) -> list[SharedShape]:
     if len(names) < 2 or len(co.f_hz) < 3:
         return []
     logs, w = _log_psd(co)
-    n = np.asarray(co.n_avg, dtype=np.float64)
-    spans = [_span(logs[k][w > 0], n[w > 0]) for k in range(len(names))]
+    spans = [_span(logs[k][w[k] > 0], w[k][w[k] > 0]) for k in range(len(names))]
     shaped = [k for k in range(len(names)) if spans[k] >= MIN_RANGE]
     pairs: dict[tuple[int, int], PairShape] = {}
     for i, j in combinations(shaped, 2):
@@ -195,10 +195,10 @@ def shared_shapes(co: Coherence) -> list[SharedShape]:
         if len(group) >= 2:
             groups.append(sorted(group))
             taken.update(group)
-    f = np.asarray(co.f_hz, dtype=np.float64)[w > 0]
     out = []
     for g in sorted(groups, key=lambda g: (-len(g), g)):
         members = [pairs[(i, j)] for i, j in combinations(g, 2)]
+        f = np.asarray(co.f_hz, dtype=np.float64)[np.all(w[g] > 0, axis=0)]
         out.append(SharedShape(
             channels=tuple(names[k] for k in g), f_lo_hz=float(f[0]), f_hi_hz=float(f[-1]),
             span=min(spans[k] for k in g), explained=min(p.explained for p in members),

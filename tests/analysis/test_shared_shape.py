@@ -48,6 +48,16 @@ def test_independent_noise_through_one_filter_is_named_as_one_shape():
     assert doc["channels"] == NAMES and doc["text"] == s.text()
 
 
+def test_a_constant_channel_leaves_out_only_itself():
+    rng = np.random.default_rng(15)
+    x = _through(5.0, rng.standard_normal((N, 4)))
+    x[:, 1] = 0.25  # a stuck axis: no spectrum at all
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shapes = shared_shapes(_view(x))
+    assert [s.channels for s in shapes] == [("gyro_x", "accel_x", "accel_y")]
+    assert np.isfinite(shapes[0].span) and shapes[0].f_hi_hz > 40.0
+
+
 def test_a_pair_through_one_filter_has_its_ratio_and_the_others_are_not_joined():
     rng = np.random.default_rng(12)
     w = rng.standard_normal((N, 4))
