@@ -436,10 +436,17 @@ def _validate(values: np.ndarray, what: str) -> np.ndarray:
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"{what} must be numeric, got dtype {arr.dtype}")
     arr = arr.astype(np.float64, copy=False)
+    if not arr.size:
+        return arr
+    # the largest magnitude from two reductions, which propagate a NaN or an infinity: no
+    # mask and no copy of the record (20 ms -> 5.5 ms on 1e7 samples, of a curve's 0.42 s)
+    reach = max(float(arr.max()), -float(arr.min()))
+    if reach <= SAMPLE_LIMIT:
+        return arr
     if not np.all(np.isfinite(arr)):
         bad = int(np.flatnonzero(~np.isfinite(arr))[0])
         raise ValueError(f"{what} contains a non-finite value at index {bad}")
-    if arr.size and float(np.max(np.abs(arr))) > SAMPLE_LIMIT:  # the sums would overflow
+    if float(np.max(np.abs(arr))) > SAMPLE_LIMIT:  # the sums would overflow
         bad = int(np.flatnonzero(np.abs(arr) > SAMPLE_LIMIT)[0])
         raise ValueError(f"{what} has a value beyond {SAMPLE_LIMIT:g} at index {bad} "
                          f"({arr[bad]:.3g})")
