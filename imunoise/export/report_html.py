@@ -190,6 +190,10 @@ def _coherence_section(co: Mapping) -> str:
         out.append("<h3>Lines and resonances: environment or sensor</h3><table><tr>"
                    "<th>channel</th><th>term</th><th>frequency</th><th>origin</th>"
                    f"<th>common with</th><th>why</th></tr>{body}</table>")
+    shapes = co.get("shared_shapes") or []
+    if shapes:
+        out.append("<h3>One spectral shape, no common signal: the chain's filter</h3>")
+        out.extend(f"<p>{escape(str(s.get('text', '')))}</p>" for s in shapes)
     return "\n".join(out)
 
 

@@ -126,6 +126,12 @@ def test_diagnose_names_a_filter_every_channel_passes_through(tmp_path):
     proc = _run("analyze", path)
     assert proc.returncode == 0, proc.stderr
     assert "spectral shape: gyro_x, gyro_y, accel_x, accel_y share one" in proc.stdout
+    report = tmp_path / "report.html"
+    proc = _run("analyze", path, "--report", report)
+    assert proc.returncode == 0, proc.stderr
+    html = report.read_text()
+    assert "One spectral shape, no common signal: the chain's filter</h3>" in html
+    assert "gyro_x, gyro_y, accel_x, accel_y share one spectral shape" in html
 
 
 def test_subtract_common_on_a_streamed_file_is_a_usage_error(tmp_path):
