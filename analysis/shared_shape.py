@@ -34,7 +34,7 @@ sensors' physics.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Any
 
@@ -89,6 +89,10 @@ class SharedShape:
         explained: the smallest ``explained`` of the group's pairs.
         common_power: the largest ``common_power`` of the group's pairs.
         kinds: the kinds of quantity measured (``gyro``, ``accel``, ...).
+        deviance: per channel, the Whittle deviance per point of its PSD against the other
+            channels' shape times one constant (about :attr:`deviance_expected` when the
+            shape is exactly shared): how far a model made of that shape alone would follow
+            it, beside the deviance of a fitted model.
     """
 
     channels: tuple[str, ...]
@@ -98,6 +102,13 @@ class SharedShape:
     explained: float
     common_power: float
     kinds: tuple[str, ...]
+    deviance: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def deviance_expected(self) -> float:
+        """About what :attr:`deviance` is for channels of exactly one shape: 1, plus the
+        scatter of the average of the other channels' spectra (``1/(channels - 1)``)."""
+        return 1.0 + 1.0 / max(len(self.channels) - 1, 1)
 
     def text(self) -> str:
         """One sentence for the user."""
@@ -112,14 +123,18 @@ class SharedShape:
                 f"{100.0 * self.explained:.1f} % of each one's variation, which spans a "
                 f"factor {self.span:.3g} over {self.f_lo_hz:.3g}-{self.f_hi_hz:.3g} Hz) while "
                 f"no frequency has more than {100.0 * max(self.common_power, 0.001):.1f} % "
-                f"of its power in common between two of them; {source}. Terms fitted to "
-                f"this shape describe that chain, not only the sensing element.")
+                f"of its power in common between two of them; {source}. The others' shape "
+                f"times a constant follows each one's PSD to a Whittle deviance of "
+                f"{min(self.deviance.values()):.3g}-{max(self.deviance.values()):.3g} per "
+                f"point (about {self.deviance_expected:.2g} for one exact shape). Terms "
+                f"fitted to this shape describe that chain, not only the sensing element.")
 
     def to_dict(self) -> dict[str, Any]:
         return {"channels": list(self.channels), "f_hz": [self.f_lo_hz, self.f_hi_hz],
                 "span": self.span, "explained": self.explained,
                 "common_power": self.common_power, "kinds": list(self.kinds),
-                "text": self.text()}
+                "deviance_per_point": dict(self.deviance),
+                "deviance_expected": self.deviance_expected, "text": self.text()}
 
 
 def _log_psd(co: Coherence) -> tuple[np.ndarray, np.ndarray]:
@@ -198,10 +213,28 @@ def shared_shapes(co: Coherence) -> list[SharedShape]:
     out = []
     for g in sorted(groups, key=lambda g: (-len(g), g)):
         members = [pairs[(i, j)] for i, j in combinations(g, 2)]
-        f = np.asarray(co.f_hz, dtype=np.float64)[np.all(w[g] > 0, axis=0)]
+        both = np.all(w[g] > 0, axis=0)
+        f = np.asarray(co.f_hz, dtype=np.float64)[both]
         out.append(SharedShape(
             channels=tuple(names[k] for k in g), f_lo_hz=float(f[0]), f_hi_hz=float(f[-1]),
             span=min(spans[k] for k in g), explained=min(p.explained for p in members),
             common_power=max(p.common_power for p in members),
-            kinds=tuple(channel_kind(names[k]) for k in g)))
+            kinds=tuple(channel_kind(names[k]) for k in g),
+            deviance={names[k]: _deviance_from_others(logs[:, both], w[:, both], g, k)
+                      for k in g}))
     return out
+
+
+def _deviance_from_others(logs: np.ndarray, n: np.ndarray, group: list[int], k: int
+                          ) -> float:
+    """Whittle deviance per point of channel ``k``'s PSD against the shape of the group's
+    other channels times one constant: each other channel brought to ``k``'s level by its
+    weighted mean log-ratio, their log-PSDs averaged, the level then set by Whittle's
+    estimate. The points' degrees of freedom are ``2 n``."""
+    others = [j for j in group if j != k]
+    weights = n[k]
+    shape = np.mean([logs[j] - np.sum(weights * (logs[j] - logs[k])) / np.sum(weights)
+                     for j in others], axis=0)
+    u = np.exp(logs[k] - shape)
+    u /= np.sum(weights * u) / np.sum(weights)
+    return float(np.mean(2.0 * weights * (u - 1.0 - np.log(u))))
