@@ -214,6 +214,8 @@ def shared_shapes(co: Coherence) -> list[SharedShape]:
     for g in sorted(groups, key=lambda g: (-len(g), g)):
         members = [pairs[(i, j)] for i, j in combinations(g, 2)]
         both = np.all(w[g] > 0, axis=0)
+        if np.sum(both) < 3:  # every pair has points, the whole group too few together
+            continue
         f = np.asarray(co.f_hz, dtype=np.float64)[both]
         out.append(SharedShape(
             channels=tuple(names[k] for k in g), f_lo_hz=float(f[0]), f_hi_hz=float(f[-1]),

@@ -64,6 +64,25 @@ def test_a_constant_channel_leaves_out_only_itself():
     assert np.isfinite(shapes[0].span) and shapes[0].f_hi_hz > 40.0
 
 
+def test_a_group_whose_channels_have_no_point_in_common_is_left_out():
+    # three random walks (one 1/f^2 shape, no coherence), each missing a third of the points
+    # so that every pair shares twelve of them but no point has all three
+    import dataclasses
+
+    rng = np.random.default_rng(16)
+    co = _view(np.cumsum(rng.standard_normal((N, 3)), axis=0), NAMES[:3])
+    psd = np.array(co.psd, dtype=np.float64)
+    k = np.arange(psd.shape[1])
+    third = psd.shape[1] // 3
+    psd[0, k >= 2 * third] = 0.0
+    psd[1, k < third] = 0.0
+    psd[2, (k >= third) & (k < 2 * third)] = 0.0
+    cut = dataclasses.replace(co, psd=psd)
+    assert pair_shape(cut, "gyro_x", "gyro_y").explained > 0.95
+    assert shared_shapes(cut) == []
+    assert [s.channels for s in shared_shapes(co)] == [tuple(NAMES[:3])]
+
+
 def test_a_pair_through_one_filter_has_its_ratio_and_the_others_are_not_joined():
     rng = np.random.default_rng(12)
     w = rng.standard_normal((N, 4))
