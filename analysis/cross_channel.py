@@ -21,7 +21,7 @@ from imunoise.analysis.environment import (
     features_from_diagnosis,
 )
 from imunoise.analysis.hat import sensors_document
-from imunoise.analysis.shared_shape import shared_shapes
+from imunoise.analysis.shared_shape import annotate_shapes, shared_shapes
 from imunoise.analysis.subtraction import Subtraction, subtract_common
 
 MAX_LINES_PER_CHANNEL = 5
@@ -114,12 +114,16 @@ def cross_channel_view(values: dict[str, np.ndarray], fs_hz: float, *,
             features += evidence_features(c, x[:, k], fs_hz, segment_starts, alpha)
     means = {c: float(np.mean(x[:, k])) for k, c in enumerate(names)}
     origins = classify(features, cs, means=means, alpha=alpha, ci=ci)
-    if suggestions:
-        annotate({c: v if isinstance(v, list) else list(getattr(v, "suggestions", []))
-                  for c, v in suggestions.items()}, origins)
+    listed = {c: v if isinstance(v, list) else list(getattr(v, "suggestions", []))
+              for c, v in (suggestions or {}).items()}
+    if listed:
+        annotate(listed, origins)
     doc = co.to_dict()
     doc["classification"] = [o.to_dict() for o in origins]
-    doc["shared_shapes"] = [s.to_dict() for s in shared_shapes(co)]
+    shapes = shared_shapes(co)
+    doc["shared_shapes"] = [s.to_dict() for s in shapes]
+    if listed:
+        annotate_shapes(listed, shapes)
     shared = [c for c in names if channel_device(c)]
     bases = [c[len(channel_device(c)) + 1:] for c in shared]
     if any(bases.count(b) >= 2 for b in bases):

@@ -240,3 +240,38 @@ def _deviance_from_others(logs: np.ndarray, n: np.ndarray, group: list[int], k: 
     u = np.exp(logs[k] - shape)
     u /= np.sum(weights * u) / np.sum(weights)
     return float(np.mean(2.0 * weights * (u - 1.0 - np.log(u))))
+
+
+def _shapes_spectrum(term: str) -> bool:
+    """Whether a suggested term is a spectral shape (a Gaussian noise term or an output
+    filter), as opposed to a line, a step, a ramp or a regression."""
+    from imunoise.analysis.terms import TermError, get_term
+
+    try:
+        t = get_term(term)
+    except TermError:  # an unknown name is not a shape; the caller names it
+        return False
+    return t.kind == "filter" or t.role == "noise"
+
+
+def annotate_shapes(suggestions: dict[str, list[Any]], shapes: list[SharedShape]) -> int:
+    """Append to the ``why`` of every suggestion of a shaping term (noise or filter) of a
+    channel in a shared-shape group that the term may describe the chain's filter (objects
+    or dicts). Returns the number of suggestions annotated."""
+    count = 0
+    for shape in shapes:
+        for channel in shape.channels:
+            others = [c for c in shape.channels if c != channel]
+            sentence = (f"The channel's spectrum has the shape of {', '.join(others)} with no "
+                        f"signal in common (coherence.shared_shapes): this term may describe "
+                        f"the filter the samples pass through, not the sensing element.")
+            for s in suggestions.get(channel, []):
+                term = s.get("term") if isinstance(s, dict) else getattr(s, "term", None)
+                if not isinstance(term, str) or not _shapes_spectrum(term):
+                    continue
+                if isinstance(s, dict):
+                    s["why"] = f"{s.get('why', '')} {sentence}".strip()
+                else:
+                    s.why = f"{getattr(s, 'why', '')} {sentence}".strip()
+                count += 1
+    return count

@@ -11,6 +11,7 @@ from imunoise.analysis.shared_shape import (
     MAX_COMMON_POWER,
     MAX_UNEXPLAINED,
     MIN_RANGE,
+    annotate_shapes,
     pair_shape,
     shared_shapes,
 )
@@ -81,6 +82,24 @@ def test_a_group_whose_channels_have_no_point_in_common_is_left_out():
     assert pair_shape(cut, "gyro_x", "gyro_y").explained > 0.95
     assert shared_shapes(cut) == []
     assert [s.channels for s in shared_shapes(co)] == [tuple(NAMES[:3])]
+
+
+def test_only_the_shaping_suggestions_of_a_grouped_channel_are_annotated():
+    rng = np.random.default_rng(17)
+    shapes = shared_shapes(_view(_through(5.0, rng.standard_normal((N, 4)))))
+    sug = {"gyro_x": [{"term": "resonance", "why": "A peak."}, {"term": "sinusoid", "why": ""},
+                      {"term": "bias_step", "why": ""}, {"term": "lowpass", "why": ""},
+                      {"term": "no_such_term", "why": ""}],
+           "elsewhere": [{"term": "resonance", "why": ""}]}
+    assert annotate_shapes(sug, shapes) == 2
+    res, line, step, lowpass, unknown = sug["gyro_x"]
+    assert res["why"] == ("A peak. The channel's spectrum has the shape of gyro_y, accel_x, "
+                          "accel_y with no signal in common (coherence.shared_shapes): this "
+                          "term may describe the filter the samples pass through, not the "
+                          "sensing element.")
+    assert lowpass["why"].startswith("The channel's spectrum has the shape of gyro_y, ")
+    assert all(s["why"] == "" for s in (line, step, unknown))
+    assert sug["elsewhere"][0]["why"] == ""
 
 
 def test_a_pair_through_one_filter_has_its_ratio_and_the_others_are_not_joined():

@@ -120,8 +120,15 @@ def test_diagnose_names_a_filter_every_channel_passes_through(tmp_path):
     assert "the channel's spectral shape (against the other channels)" in proc.stdout
     assert "share one spectral shape and no signal" in proc.stdout
     proc = _run("diagnose", path, "--channel", "accel_x", "--model", "white", "--json")
-    shapes = json.loads(proc.stdout)["coherence"]["shared_shapes"]
+    doc = json.loads(proc.stdout)
+    shapes = doc["coherence"]["shared_shapes"]
     assert len(shapes) == 1 and sorted(shapes[0]["channels"]) == sorted(names)
+    shaping = [s for s in doc["suggestions"] if s["term"] in ("resonance", "gauss_markov",
+                                                               "moving_average", "lowpass")]
+    assert shaping and all("The channel's spectrum has the shape of gyro_x, gyro_y, accel_y "
+                           "with no signal in common" in s["why"] for s in shaping)
+    assert all("shared_shapes" not in s["why"] for s in doc["suggestions"]
+               if s["term"] in ("sinusoid", "bias_step"))
     assert shapes[0]["span"] > 100.0 and shapes[0]["kinds"].count("gyro") == 2
     proc = _run("analyze", path)
     assert proc.returncode == 0, proc.stderr
