@@ -42,6 +42,7 @@ import numpy as np
 
 from imunoise.analysis.coherence import Coherence
 from imunoise.analysis.environment import channel_kind
+from imunoise.analysis.terms import TermError, get_term
 
 MIN_RANGE = 10.0
 """Smallest span (max/min) of a channel's PSD for its shape to count as one."""
@@ -245,8 +246,6 @@ def _deviance_from_others(logs: np.ndarray, n: np.ndarray, group: list[int], k: 
 def _shapes_spectrum(term: str) -> bool:
     """Whether a suggested term is a spectral shape (a Gaussian noise term or an output
     filter), as opposed to a line, a step, a ramp or a regression."""
-    from imunoise.analysis.terms import TermError, get_term
-
     try:
         t = get_term(term)
     except TermError:  # an unknown name is not a shape; the caller names it
