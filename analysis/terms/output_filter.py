@@ -16,13 +16,16 @@ Filtered Allan variance, exact where it matters:
   ``[sum_{|k|<m} (m-|k|) R(k) - sum_{k=1}^{2m-1} (m-|k-m|) R(k)] / m^2``, which beyond the last
   lag ``K`` is ``(m sum_k R(k) - 3 sum_{k>0} k R(k)) / m^2``.
 * The other noise terms (random walk, flicker, Markov) hold their power where ``|G|^2`` is 1
-  to within ``(f L/fs)^2``; their filtered Allan variance is their own plus
-  ``(fs/2) int_0^{1/2} S(u fs) (|G(u)|^2 - 1) 4 sin^4(pi u m) / (m^2 sin^2(pi u)) du``, summed
-  on a grid in ``u = f/fs`` with the ``sin^4`` factor bin-averaged where it oscillates faster
-  than the grid (:mod:`imunoise.analysis.bin_average`). The correction relative to the term's own
-  Allan variance shrinks as ``(L/m)^2`` (``L`` the filter length); beyond ``m = 300 L`` it is
-  below 1e-5 and left out. As ``0 <= |G|^2 <= 1`` it is also smaller than the term's own
-  Allan variance, and is left out where that is below 1e-4 of the model's.
+  to within ``(f L/fs)^2``; their filtered Allan variance is their own times the ratio
+  ``I_G / I_1`` of ``I_G = (fs/2) int_0^{1/2} S(u fs) |G(u)|^2 4 sin^4(pi u m) /
+  (m^2 sin^2(pi u)) du`` to the same integral without the filter, summed on a grid in
+  ``u = f/fs`` with the ``sin^4`` factor bin-averaged where it oscillates faster than the
+  grid (:mod:`imunoise.analysis.bin_average`). Where the term's own formula is exact the
+  ratio adds exactly ``I_G - I_1``; where it is asymptotic (a flicker floor at one sample)
+  the ratio stays positive. Its departure from 1 shrinks as ``(L/m)^2`` (``L`` the filter
+  length); beyond ``m = 300 L`` it is below 1e-5 and left out. As ``0 <= |G|^2 <= 1`` the
+  change is also smaller than the term's own Allan variance, and is left out where that is
+  below 1e-4 of the model's.
 """
 
 from __future__ import annotations
@@ -287,8 +290,7 @@ class OutputFilter(Term):
             if kept is not None and np.array_equal(mask, kept.matters[n]):  # type: ignore[arg-type]
                 parts[n] = kept.parts[n]
             else:
-                parts[n] = a + self._correction(term, p, np.where(mask, m, np.inf), fs_hz,
-                                                params)
+                parts[n] = a * self._ratio(term, p, np.where(mask, m, np.inf), fs_hz, params)
             out += parts[n]
         return FilteredNoise(out, parts, own, matters)
 
@@ -319,29 +321,40 @@ class OutputFilter(Term):
                                tuple(sorted(params.items())), m.tobytes()), make)
         return unit * float(p[term.amplitude]) ** 2
 
-    def _correction(self, term: Term, p: dict[str, float], m: np.ndarray, fs_hz: float,
-                    params: dict[str, float]) -> np.ndarray:
-        """Filtered minus unfiltered Allan variance of one noise term (see the module)."""
+    def _ratio(self, term: Term, p: dict[str, float], m: np.ndarray, fs_hz: float,
+               params: dict[str, float]) -> np.ndarray:
+        """Filtered over unfiltered Allan variance of one noise term (see the module), 1 beyond
+        the correction's reach.
+
+        The term's own Allan variance is scaled by this ratio, not shifted by the difference
+        of the two integrals: where the own formula is asymptotic (a flicker floor, constant
+        down to one sample, while the sampled 1/f spectrum gives more at m = 1) and the filter
+        removes most of the band, the difference exceeds the own value and the filtered
+        variance came out negative (a 20-tap moving average on B = 1.6e-3 at 10 Hz: -2.0e-7
+        at tau = 0.1 s). The ratio is the same where the formula and the integral agree."""
         length = self.length(fs_hz, params)
         near = m <= _CORRECTION_REACH * max(length, 1.0)
-        out = np.zeros_like(m)
+        out = np.ones_like(m)
         if not np.any(near):
             return out
-        # computed at unit amplitude (a noise term's spectrum scales with its square), so a
-        # fit that moves only amplitudes finds it remembered
+        # computed at unit amplitude (the ratio does not depend on it), so a fit that moves
+        # only amplitudes finds it remembered
         shape = {k: v for k, v in p.items() if k != term.amplitude}
-        key = ("corr", term.name, fs_hz, tuple(sorted(shape.items())),
+        key = ("ratio", term.name, fs_hz, tuple(sorted(shape.items())),
                tuple(sorted(params.items())), m[near].tobytes())
 
         def make() -> np.ndarray:
             bins_key, (ua, ub, um, width, sin2), excess = self._grid(
                 fs_hz, params, float(m[near].max()))
             s = term.psd(um * fs_hz, fs_hz, **{**shape, term.amplitude: 1.0})
-            smooth = 0.5 * fs_hz * s * excess * 4.0 / sin2 * width
-            mm = m[near][:, None]
-            return (sin4_table_shared(mm, um, ua, ub, bins_key) @ smooth) / (m[near] ** 2)
+            weight = 0.5 * fs_hz * s * 4.0 / sin2 * width
+            table = sin4_table_shared(m[near][:, None], um, ua, ub, bins_key)
+            unfiltered = table @ weight
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = 1.0 + (table @ (weight * excess)) / unfiltered
+            return np.clip(np.where(unfiltered > 0.0, ratio, 1.0), 0.0, None)
 
-        out[near] = self._remember(key, make) * float(p[term.amplitude]) ** 2
+        out[near] = self._remember(key, make)
         return out
 
     def _grid(self, fs_hz: float, params: dict[str, float], m_max: float

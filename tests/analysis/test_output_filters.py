@@ -60,8 +60,24 @@ def test_numeric_route_agrees_with_the_time_domain(filt) -> None:
     term, white = get_term(name), get_term("white")
     m = np.array([1, 2, 3, 4, 8, 16, 64, 1000], dtype=float)
     exact = model_avar([("white", {"N": 1.0}), (name, p)], m / FS, FS)
-    numeric = white.avar(m / FS, FS, N=1.0) + term._correction(white, {"N": 1.0}, m, FS, p)
+    numeric = white.avar(m / FS, FS, N=1.0) * term._ratio(white, {"N": 1.0}, m, FS, p)
     np.testing.assert_allclose(numeric, exact, rtol=2e-3)
+
+
+def test_filtered_flicker_stays_positive_under_a_long_filter() -> None:
+    # the flicker floor is asymptotic: at one sample the sampled 1/f spectrum holds more
+    # than B^2 times the floor constant, and the difference of the filtered and unfiltered
+    # integrals exceeded the floor itself (-2.0e-7 at tau = 0.1 s for these numbers)
+    fs = 10.0
+    tau = np.array([0.1, 0.2, 1.0, 10.0, 100.0])
+    own = model_avar([("bias_instability", {"B": 1.6e-3})], tau, fs)
+    got = model_avar([("bias_instability", {"B": 1.6e-3}), ("moving_average", {"taps": 20})],
+                     tau, fs)
+    assert np.all(got > 0.0)
+    assert np.all(got <= own)
+    # the filter's effect fades where tau spans many filter lengths
+    assert got[-1] == pytest.approx(own[-1], rel=1e-3)
+    assert got[0] < 0.05 * own[0]
 
 
 @pytest.mark.parametrize("filt", FILTERS, ids=[f[0] for f in FILTERS])
