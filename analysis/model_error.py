@@ -49,6 +49,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from imunoise.analysis import chain_shape
 from imunoise.analysis.distributions import norm
 from imunoise.analysis.jobs import JobMap, serial_map
 from imunoise.analysis.psd import PsdEstimate, default_nperseg, log_psd
@@ -215,22 +216,25 @@ def _fit_half(shared: tuple[Any, ...], k: int) -> HalfFit:
 
     halves, fs_hz, spec, fixed, fitted = shared
     h, starts = halves[k]
-    fit = fit_series(h, fs_hz, spec, segment_starts=starts, fixed=fixed, start=fitted,
-                     intervals="jacobian")[0]
-    if _start_misled(fit, fitted):
-        cold = fit_series(h, fs_hz, spec, segment_starts=starts, fixed=fixed,
-                          intervals="jacobian")[0]
-        if cold.misfit.chi2 < fit.misfit.chi2:
-            fit = cold
-    fit = fit.in_canonical_order()
+    with chain_shape.using_half(k):
+        fit = fit_series(h, fs_hz, spec, segment_starts=starts, fixed=fixed, start=fitted,
+                         intervals="jacobian")[0]
+        if _start_misled(fit, fitted):
+            cold = fit_series(h, fs_hz, spec, segment_starts=starts, fixed=fixed,
+                              intervals="jacobian")[0]
+            if cold.misfit.chi2 < fit.misfit.chi2:
+                fit = cold
+        fit = fit.in_canonical_order()
     other, other_starts = halves[1 - k]
     predicts: Prediction | Exception
     try:
-        predicts = _prediction(other, other_starts, fs_hz, fit, frozenset(), {})
+        with chain_shape.using_half(1 - k):
+            predicts = _prediction(other, other_starts, fs_hz, fit, frozenset(), {})
     except _HALF_ERRORS as exc:
         predicts = exc
     try:
-        pins = pin_resonances(h, fs_hz, fit.params, set(), starts)
+        with chain_shape.using_half(k):
+            pins = pin_resonances(h, fs_hz, fit.params, set(), starts)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):
         return HalfFit(fit, None, predicts)
     return HalfFit(fit, {p.index: p for p in pins}, predicts)
@@ -548,7 +552,8 @@ class HoldoutHalves:
         """Half ``k`` predicted by the other half's fitted model ``other``, every parameter
         held but those labelled in ``free`` (fitted on half ``k``)."""
         h, starts = self.halves[k]
-        return _prediction(h, starts, self.fs_hz, other, free, self.memo)
+        with chain_shape.using_half(k):
+            return _prediction(h, starts, self.fs_hz, other, free, self.memo)
 
     def _held_rise(self, fits: Sequence[Any], half: int, index: int, param: str,
                    value: float) -> float | None:
@@ -560,9 +565,10 @@ class HoldoutHalves:
         h, starts = self.halves[half]
         try:
             # only chi2 is wanted: no profile intervals
-            held = fit_series(h, self.fs_hz, self.spec, segment_starts=starts, fixed=fixed,
-                              start=fits[half], intervals="jacobian", memo=self.memo,
-                              profile_terms=())[0]
+            with chain_shape.using_half(half):
+                held = fit_series(h, self.fs_hz, self.spec, segment_starts=starts,
+                                  fixed=fixed, start=fits[half], intervals="jacobian",
+                                  memo=self.memo, profile_terms=())[0]
         except _HALF_ERRORS:
             return None
         return max(0.0, float(held.misfit.chi2 - fits[half].misfit.chi2))
@@ -685,6 +691,8 @@ def holdout_halves(values: np.ndarray, fs_hz: float, model: Any, fitted: Any,
     if any(get_term(n).role == "regressor" for n in spec.names):
         return {"chi2_per_dof": None, "parts": 2,
                 "reason": "a temperature regression is not carried into the halves"}
+    if any(get_term(n).needs_record == "channels" for n in spec.names):
+        chain_shape.prepare_halves()  # here, not in each worker the halves' fits run in
     bounds = _bounds(x.size, segment_starts)
     mid = x.size // 2
     return HoldoutHalves([_half(x, bounds, 0, mid), _half(x, bounds, mid, x.size)], fs_hz,

@@ -399,7 +399,7 @@ def _swaps(spec: ModelSpec, base: FitResult,
     the poles leave it (:func:`_skirts_miss`)."""
     out: list[tuple[int, str]] = []
     if base.failures and sensor_filter is None:
-        filters = [n for n, t in TERMS.items() if t.kind == "filter"]
+        filters = [n for n, t in TERMS.items() if t.kind == "filter" and t.usable()]
         out += [(i, other) for i, entry in enumerate(spec.entries)
                 if get_term(entry.name).kind == "filter" and not entry.fixed
                 for other in filters if other != entry.name]
@@ -577,13 +577,18 @@ def _candidates(names: list[str], base: FitResult, filt: Finding | None, has_tem
     second Markov time constant or a second resonance, even if it is; a term that refines
     another only in its place, :func:`_swaps`), and the output
     filters when the shortest taus show one (only the device's own when its configuration
-    states it)."""
+    states it); the filter the record's other channels measure
+    (:mod:`imunoise.analysis.terms.chain_filter`) whenever they do."""
     candidates = [n for n, t in TERMS.items() if (n not in names or t.repeatable)
                   and t.kind == "additive" and t.replaces is None
                   and (t.needs_record != "temperature" or has_temperature)]
     if not any(get_term(n).kind == "filter" for n in names):
+        filters = [n for n, t in TERMS.items() if t.kind == "filter" and t.usable()]
         if sensor_filter is not None:
             candidates.append(get_term(sensor_filter[0]).name)
         elif _filter_signature(base, filt):
-            candidates += [n for n, t in TERMS.items() if t.kind == "filter"]
+            candidates += filters
+        else:
+            # a response the record's other channels measure is evidence of its own
+            candidates += [n for n in filters if get_term(n).needs_record == "channels"]
     return candidates

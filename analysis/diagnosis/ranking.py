@@ -99,7 +99,7 @@ def _filter_rechosen(ctx: _Context, suggestions: list[Suggestion], alpha: float
             or ctx.sensor_filter is not None or get_term(top.term).kind == "filter":
         return suggestions
     spec = parse_model(str(top.apply["model"]))
-    kinds = [n for n, t in TERMS.items() if t.kind == "filter"]
+    kinds = [n for n, t in TERMS.items() if t.kind == "filter" and t.usable()]
     trials = [(i, other) for i, e in enumerate(spec.entries[:len(ctx.spec)])
               if get_term(e.name).kind == "filter" and not e.fixed
               for other in kinds if other != e.name]

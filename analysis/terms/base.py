@@ -164,6 +164,11 @@ class Term:
     replaces: ClassVar[str | None] = None
 
     # --- vocabulary --------------------------------------------------------------------------
+    def usable(self) -> bool:
+        """Whether the term can be evaluated here (a term measured from the record's other
+        channels needs them; see :mod:`imunoise.analysis.chain_shape`)."""
+        return True
+
     @property
     def param_names(self) -> tuple[str, ...]:
         return tuple(p.name for p in self.params)

@@ -188,6 +188,8 @@ def _distinct_files(paths: list[str]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from imunoise.analysis import chain_shape
+
     parse_model(args.model)  # a misspelt term fails before a long read
     if len(args.file) > 1:
         return run_replicates(args)
@@ -195,35 +197,42 @@ def run(args: argparse.Namespace) -> int:
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
                                    args.static)
     group = cross_channel.comparison_group(record.channels, key)
+    whole = record.channels[key]
     apply_window(record, key, args.skip, args.split)
     # the channels' coherence does not depend on the fit: computed beside it
     pending = cross_channel.start_channel_coherence(record, key, group, args.skip,
                                                     args.split or ())
-    diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)
-    for sug in diag.suggestions:
-        sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip, args.split)
-    # the lines and resonances judged against the other channels: common or own
-    doc, coherence = diagnosis_document(record, key, diag, group, args.skip, args.split or (),
-                                        pending)
-    if args.json:
-        from imunoise.pipeline import documents
+    names, _ = parse_model(args.model)
+    shape = cross_channel.chain_shape_source(
+        record, key, group, whole, None if args.skip or args.split else pending)
+    with chain_shape.using(shape):
+        cross_channel.require_chain_shape(names, key)  # measured now if the model names it
+        diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)
+        for sug in diag.suggestions:
+            sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip,
+                                                 args.split)
+        # the lines and resonances judged against the other channels: common or own
+        doc, coherence = diagnosis_document(record, key, diag, group, args.skip,
+                                            args.split or (), pending)
+        if args.json:
+            from imunoise.pipeline import documents
 
-        sys.stdout.write(documents.dumps(doc) + "\n")
-    else:
-        for w in record.warnings:
-            print(f"warning: {w}", file=sys.stderr)
-        print(diagnosis_text(key, record.series(key), diag, args.file, args.model))
-        lines = [c for c in (coherence or {}).get("classification", [])]
-        if lines:
-            print()
-            print("  environment or sensor (coherence with the other channels)")
-            for c in lines:
-                print(f"    {c['term']} at {c['f_hz']:.4g} Hz: {c['origin']}. {c['why']}")
-        shapes = [s for s in (coherence or {}).get("shared_shapes", [])
-                  if key in s.get("channels", [])]
-        if shapes:
-            print()
-            print("  the channel's spectral shape (against the other channels)")
-            for s in shapes:
-                print(f"    {s['text']}")
+            sys.stdout.write(documents.dumps(doc) + "\n")
+        else:
+            for w in record.warnings:
+                print(f"warning: {w}", file=sys.stderr)
+            print(diagnosis_text(key, record.series(key), diag, args.file, args.model))
+            lines = [c for c in (coherence or {}).get("classification", [])]
+            if lines:
+                print()
+                print("  environment or sensor (coherence with the other channels)")
+                for c in lines:
+                    print(f"    {c['term']} at {c['f_hz']:.4g} Hz: {c['origin']}. {c['why']}")
+            shapes = [s for s in (coherence or {}).get("shared_shapes", [])
+                      if key in s.get("channels", [])]
+            if shapes:
+                print()
+                print("  the channel's spectral shape (against the other channels)")
+                for s in shapes:
+                    print(f"    {s['text']}")
     return 0

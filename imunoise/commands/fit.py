@@ -69,20 +69,29 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    parse_model(args.model)  # a misspelt term fails before a long read
+    from imunoise.analysis import chain_shape
+    from imunoise.pipeline import cross_channel
+
+    names, _ = parse_model(args.model)  # a misspelt term fails before a long read
     record, key = open_imu_channel(args.file, args.rate, args.channel, "fit", args.static)
+    group = cross_channel.comparison_group(record.channels, key)
+    whole = record.channels[key]
     apply_window(record, key, args.skip, args.split)
-    result, curve = fit_channel(record, key, args.model)
-    doc, parts = fit_document(record, key, args.model, result, curve)
-    if args.json:
-        from imunoise.pipeline import documents
+    shape = cross_channel.chain_shape_source(record, key, group, whole)
+    # the fit's results read the shared response whenever they evaluate the model
+    with chain_shape.using(shape if "chain_filter" in names else None):
+        cross_channel.require_chain_shape(names, key)
+        result, curve = fit_channel(record, key, args.model)
+        doc, parts = fit_document(record, key, args.model, result, curve)
+        if args.json:
+            from imunoise.pipeline import documents
 
-        sys.stdout.write(documents.dumps(doc) + "\n")
-    else:
-        from imunoise.analysis.model_error import parts_line
+            sys.stdout.write(documents.dumps(doc) + "\n")
+        else:
+            from imunoise.analysis.model_error import parts_line
 
-        for w in doc.get("warnings", []):  # the reader's, and the channel's held samples
-            print(f"warning: {w}", file=sys.stderr)
-        print(fit_text(key, record.series(key), result, curve))
-        print("  " + parts_line(result.chi2_per_dof, parts).replace("\n", "\n  "))
+            for w in doc.get("warnings", []):  # the reader's, and the channel's held samples
+                print(f"warning: {w}", file=sys.stderr)
+            print(fit_text(key, record.series(key), result, curve))
+            print("  " + parts_line(result.chi2_per_dof, parts).replace("\n", "\n  "))
     return 0

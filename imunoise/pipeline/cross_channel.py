@@ -329,3 +329,71 @@ def coherence_lines(co: dict[str, Any] | None) -> list[str]:
     for s in co.get("shared_shapes", []):
         lines.append(f"  spectral shape: {s['text']}")
     return lines
+
+
+def chain_shape_source(record: Record, key: str, group: list[str], whole: ChannelSeries,
+                       pending: PendingCoherence | None = None) -> Any:
+    """The :class:`imunoise.analysis.chain_shape.ChainSource` of channel ``key``: the response
+    it shares with the other channels of ``group``
+    (:func:`imunoise.analysis.chain_shape.chain_shape`; None without one), measured when a
+    fit first needs it, on the whole record or on either half of it.
+
+    The response is measured on the whole record, ``whole`` being ``key``'s series before
+    ``--skip``/``--split``: a cut changes what is fitted, not the chain the samples passed
+    through, and a shape measured on the cut record is another estimate (Galaxy S5 accel_z
+    cut at 85 s: Allan chi2/dof 1.73 with the whole record's shape, 1.84 with the cut
+    one's). ``pending``: the same coherence started in the background (only when nothing
+    was cut)."""
+    from imunoise.analysis.chain_shape import ChainSource, chain_shape
+    from imunoise.analysis.coherence import cross_spectra, log_coherence
+
+    memo: dict[str, Any] = {}
+
+    def inputs() -> CoherenceInputs | None:
+        if "inputs" not in memo:
+            series = {**{k: record.channels[k] for k in group}, key: whole}
+            memo["inputs"] = coherence_inputs(record, group, series) if len(group) > 1 \
+                else None
+        return memo["inputs"]
+
+    def measure(k: int | None) -> Any:
+        """The shape on the whole record (``k`` None) or on half ``k``."""
+        got = inputs()
+        if got is None:
+            return None
+        x = np.column_stack([np.asarray(v, dtype=np.float64) for v in got.values.values()])
+        lo, hi = 0, x.shape[0]
+        if k is not None:
+            mid = x.shape[0] // 2
+            lo, hi = (0, mid) if k == 0 else (mid, x.shape[0])
+        starts = np.asarray(got.first.segment_starts, dtype=np.int64)
+        starts = np.unique(np.concatenate(([0], starts[(starts > lo) & (starts < hi)] - lo)))
+        try:
+            # the shape needs the spectra and the zero-coherence test, not the intervals
+            co = log_coherence(cross_spectra(x[lo:hi], got.first.fs_hz, list(got.values),
+                                             segment_starts=starts), intervals=False)
+        except ValueError:  # too short for a coherence: no shape to measure
+            return None
+        return chain_shape(co, key)
+
+    def measure_whole() -> Any:
+        if pending is not None and pending.inputs is not None:
+            try:
+                return chain_shape(pending.coherence(), key)
+            except ValueError:
+                return None
+        return measure(None)
+
+    return ChainSource(measure_whole, measure)
+
+
+def require_chain_shape(model_names: list[str], key: str) -> None:
+    """A usage error when the model names ``chain_filter`` and no other channel of the record
+    shares ``key``'s spectral shape (call inside :func:`imunoise.analysis.chain_shape.using`)."""
+    from imunoise.analysis.chain_shape import current
+    from imunoise.errors import UsageError
+
+    if "chain_filter" in model_names and current() is None:
+        raise UsageError(f"chain_filter: no other channel of this record has {key}'s spectral "
+                         f"shape without a signal in common, so there is no shared response "
+                         f"to measure (imunoise analyze lists shared shapes)")

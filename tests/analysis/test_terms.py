@@ -21,7 +21,7 @@ def test_registry_matches_contract_vocabulary_and_units():
     assert TERM_NAMES[:len(CONTRACT)] == tuple(CONTRACT)
     assert set(TERM_NAMES[len(CONTRACT):]) == {"resonance", "wandering_resonance",
                                                 "antiresonance", "moving_average", "bartlett",
-                                                "lowpass"}
+                                                "lowpass", "chain_filter"}
     for name, params in CONTRACT.items():
         term = get_term(name)
         assert term.param_names == params
