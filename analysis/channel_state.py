@@ -69,9 +69,12 @@ def check_terms(terms: Iterable[str]) -> None:
     spec = parse_model(list(terms))
     for name in spec.names:
         if not get_term(name).live:
-            raise ValueError(f"the {name} term needs the whole {get_term(name).needs_record} "
-                             f"record and is fitted by 'imunoise fit FILE --model "
-                             f"...,{name}'; valid live terms: {', '.join(VALID_TERMS)}")
+            needs = get_term(name).needs_record
+            what = "the record's other channels" if needs == "channels" \
+                else f"the whole {needs} record"
+            raise ValueError(f"the {name} term needs {what} and is fitted by 'imunoise fit "
+                             f"FILE --model ...,{name}'; valid live terms: "
+                             f"{', '.join(VALID_TERMS)}")
 
 
 def _lifted(params: Sequence[tuple[str, dict[str, float]]], curve: AllanCurve,

@@ -47,8 +47,9 @@ class ChainFilter(OutputFilter):
         if shape is None:
             raise TermError(
                 "chain_filter needs the record's other channels: its response is the shape "
-                "they share with this channel (imunoise analyze lists shared shapes), and "
-                "no channel of this record has it")
+                "they share with this channel, which imunoise fit and diagnose measure from "
+                "the file they read (imunoise analyze lists shared shapes); none is "
+                "available here")
         return shape
 
     def _remember(self, key: tuple, make: Any) -> Any:

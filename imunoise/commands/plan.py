@@ -113,9 +113,28 @@ def _line(row: dict[str, Any], p: Any, recorded: float | None) -> str:
     return line
 
 
+def _usable_terms(model: str | None) -> None:
+    """A usage error for a term that only a record's other channels define (``chain_filter``):
+    a plan simulates the model's estimates with no such record."""
+    from imunoise.analysis.terms import TermError, get_term, parse_model
+
+    if not model:
+        return
+    try:
+        names = parse_model(model).names
+    except TermError as exc:
+        raise UsageError(f"plan: {exc}") from None
+    for name in names:
+        if not get_term(name).usable():
+            raise UsageError(f"plan: {name} is measured from a record's other channels "
+                             f"(imunoise fit FILE --model ...,{name}); plan from the model "
+                             f"without it")
+
+
 def run(args: argparse.Namespace) -> int:
     from imunoise.analysis.planning import parse_targets, plan
 
+    _usable_terms(args.model)
     if args.file:
         spec, fs, facts = _from_file(args)
     else:
