@@ -15,10 +15,11 @@ coherence view's cross-spectra; below ``fs/100`` it is 1 (what the other channel
 their own bias instability and random walk, which a decimation filter passes). It is measured
 from the other channels only, so the channel's own noise is fitted against it, not with it.
 
-The shape in use is a context (:func:`using`): the command that reads the record installs it
-before it fits, every term evaluation in the same context (and in the worker processes forked
-from it) reads it with :func:`current`. A provider may be installed in its place (a function
-that measures the shape when first asked, e.g. from a coherence computed in the background).
+The shape in use is a context (:func:`using`): the command that reads the record installs a
+:class:`ChainSource` before it fits (it measures the shape when first asked, from a coherence
+computed in the background where there is one), and every term evaluation in the same context,
+and in the worker processes forked from it, reads it with :func:`current`. The hold-out part
+fits each half of the record against that half's own shape (:func:`using_half`).
 """
 
 from __future__ import annotations
