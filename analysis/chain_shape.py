@@ -69,6 +69,16 @@ class ChainShape:
         digest = hashlib.sha1(p.tobytes() + np.float64(fs_hz).tobytes()).hexdigest()[:16]
         return cls(f, p, float(fs_hz), tuple(channels), digest)
 
+    def to_dict(self, points: int = 60) -> dict[str, Any]:
+        """JSON-ready summary: the channels, the reference band and ``power`` at ``points``
+        log-spaced frequencies from the first bin above the reference band to Nyquist."""
+        lo = REFERENCE_BAND[1] * self.fs_hz
+        f = np.geomspace(lo, 0.5 * self.fs_hz, points)
+        return {"channels": list(self.channels), "fs_hz": self.fs_hz,
+                "reference_band_hz": [REFERENCE_BAND[0] * self.fs_hz, lo],
+                "f_hz": np.round(f, 9).tolist(),
+                "power": np.round(self.response(f), 9).tolist()}
+
     def response(self, f_hz: np.ndarray, depth: float = 1.0) -> np.ndarray:
         """``|G(f)|^(2 depth)`` at ``f_hz`` (Hz); a frequency beyond Nyquist folds back (the
         response of a sampled filter is periodic in ``fs`` and even)."""

@@ -50,6 +50,14 @@ def fit_summary(result: Any, units: str) -> str:
     return "\n".join(model_lines(result, units) + failure_lines(result))
 
 
+def chain_shape_line(shape: dict[str, Any]) -> str:
+    """The sentence that says where ``chain_filter``'s response came from."""
+    lo, hi = shape["reference_band_hz"]
+    return (f"chain_filter: the response measured from {', '.join(shape['channels'])} of this "
+            f"record (their PSDs' geometric mean, each divided by its median over "
+            f"{lo:g}-{hi:g} Hz; 1 below {hi:g} Hz)")
+
+
 def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
     """Readable report: model with intervals, curve against model, failing ranges, error."""
     lines = [f"{key}  [{series.units}]  fs {series.fs_hz:g} Hz  {series.n_samples:,} samples  "
@@ -93,5 +101,7 @@ def run(args: argparse.Namespace) -> int:
             for w in doc.get("warnings", []):  # the reader's, and the channel's held samples
                 print(f"warning: {w}", file=sys.stderr)
             print(fit_text(key, record.series(key), result, curve))
+            if "chain_shape" in doc:
+                print("  " + chain_shape_line(doc["chain_shape"]))
             print("  " + parts_line(result.chi2_per_dof, parts).replace("\n", "\n  "))
     return 0

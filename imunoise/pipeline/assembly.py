@@ -59,7 +59,21 @@ def fit_document(record: Record, key: str, model_text: str, result: Any, curve: 
     """``fit``'s document of a fit of ``model_text`` to channel ``key``, with the PSD, hold-out
     and time-domain parts of its error: ``(document, parts)``."""
     parts = fit_error_parts(record, key, model_text, result)
-    return fit_json(record, key, result, curve, parts), parts[1]
+    doc = fit_json(record, key, result, curve, parts)
+    if any(t.term == "chain_filter" for t in result.terms):
+        _add_chain_shape(doc)
+    return doc, parts[1]
+
+
+def _add_chain_shape(doc: dict[str, Any]) -> None:
+    """``doc["chain_shape"]``: the response the record's other channels measure, which
+    ``chain_filter`` applies (:func:`imunoise.analysis.chain_shape.current`), where there is
+    one."""
+    from imunoise.analysis.chain_shape import current
+
+    shape = current()
+    if shape is not None:
+        doc["chain_shape"] = shape.to_dict()
 
 
 def diagnosis_document(record: Record, key: str, diagnosis: Any, group: list[str],
@@ -73,6 +87,7 @@ def diagnosis_document(record: Record, key: str, diagnosis: Any, group: list[str
     coherence = cross_channel.channel_coherence(record, key, diagnosis, group, skip_s,
                                                 list(split_s), pending)
     doc = diagnosis_json(record, key, diagnosis)
+    _add_chain_shape(doc)
     if coherence is not None:
         doc["coherence"] = coherence
         cross_channel.mark_origins(doc["suggestions"], coherence, key)

@@ -59,9 +59,20 @@ def test_diagnose_offers_the_shared_response_and_fit_applies_it(decimated):
     assert fit["error"]["psd"]["deviance_per_bin"] < 2.0 < before
     depth = next(t for t in fit["model"] if t["term"] == "chain_filter")["params"]["depth"]
     assert depth == pytest.approx(1.0, abs=0.1)
+    shape = fit["chain_shape"]
+    assert shape["channels"] == ["gyro_x", "gyro_y", "accel_y"]
+    assert shape["reference_band_hz"] == [0.2, 1.0] and shape["fs_hz"] == 100.0
+    # the 6th-order lowpass at 5 Hz: flat below it, 1e-3 (the floor) far above it
+    f, power = np.array(shape["f_hz"]), np.array(shape["power"])
+    assert np.all(np.abs(np.log(power[f < 2.0])) < 0.2)
+    assert np.all(power[f > 30.0] < 3e-3)
+    assert doc["chain_shape"]["channels"] == shape["channels"]  # the diagnosis states it too
     proc = _run("fit", decimated, "--channel", "accel_x", "--model", "white,chain_filter")
     assert proc.returncode == 0, proc.stderr
     assert "chain_filter      depth" in proc.stdout
+    assert ("chain_filter: the response measured from gyro_x, gyro_y, accel_y of this record "
+            "(their PSDs' geometric mean, each divided by its median over 0.2-1 Hz; 1 below "
+            "1 Hz)") in proc.stdout
 
 
 def test_a_record_without_a_shared_shape_is_a_usage_error(tmp_path):
@@ -77,7 +88,9 @@ def test_a_record_without_a_shared_shape_is_a_usage_error(tmp_path):
             "(imunoise analyze lists shared shapes)"]
     proc = _run("diagnose", path, "--channel", "gyro_x", "--model", "white", "--json")
     assert proc.returncode == 0, proc.stderr
-    assert all(s["term"] != "chain_filter" for s in json.loads(proc.stdout)["suggestions"])
+    doc = json.loads(proc.stdout)
+    assert all(s["term"] != "chain_filter" for s in doc["suggestions"])
+    assert "chain_shape" not in doc
 
 
 @pytest.mark.skipif(not GALAXY.exists(), reason="needs ../shared/data (the Galaxy S5 record)")
