@@ -143,3 +143,20 @@ def test_the_python_api_neither_offers_nor_fits_it(decimated):
         imunoise.fit(rec["accel_x"], "white,chain_filter")
     d = imunoise.diagnose(rec["accel_x"], "white")
     assert d.suggestions and all(s["term"] != "chain_filter" for s in d.suggestions)
+
+
+def test_a_gap_in_another_channel_still_measures_the_response(decimated, tmp_path):
+    # gyro_y loses ten samples: it is no longer on accel_x's time base and is brought onto
+    # it for the coherence; an unusable channel is left out of the response
+    x = np.loadtxt(decimated, delimiter=",", skiprows=1)[:, 1:]
+    x[1000:1010, 1] = np.nan
+    gap = _csv(tmp_path / "gap.csv", x, NAMES, 100.0)
+    x[:, 1] = np.nan
+    dead = _csv(tmp_path / "dead.csv", x, NAMES, 100.0)
+    for path, used in ((gap, {"gyro_x", "gyro_y", "accel_y"}), (dead, {"gyro_x", "accel_y"})):
+        proc = _run("fit", path, "--channel", "accel_x", "--model", "white,chain_filter",
+                    "--json")
+        assert proc.returncode == 0, proc.stderr
+        doc = json.loads(proc.stdout)
+        assert set(doc["chain_shape"]["channels"]) == used
+        assert doc["error"]["psd"]["deviance_per_bin"] < 2.0
