@@ -34,9 +34,10 @@ class ChainFilter(OutputFilter):
     explanation = (
         "Every channel of the record passed through one filter before it was stored (a "
         "phone's decimation, a logger's smoothing): their spectra have one shape and no "
-        "signal in common. The filter's power response is taken from the other channels, "
-        "each normalised to 1 below fs/100, and applied to this channel's noise terms; "
-        "depth raises it to a power (1: as measured).")
+        "signal in common. The filter's power response is taken from the other channels "
+        "(the geometric mean of their spectra, each divided by its median over fs/500 to "
+        "fs/100; 1 below fs/100) and applied to this channel's noise terms; depth raises it "
+        "to a power (1: as measured).")
     small_default = {"depth": 1.0}
 
     def usable(self) -> bool:
