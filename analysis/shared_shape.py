@@ -128,7 +128,9 @@ class SharedShape:
                 f"times a constant follows each one's PSD to a Whittle deviance of "
                 f"{min(self.deviance.values()):.3g}-{max(self.deviance.values()):.3g} per "
                 f"point (about {self.deviance_expected:.2g} for one exact shape). Terms "
-                f"fitted to this shape describe that chain, not only the sensing element.")
+                f"fitted to this shape describe that chain, not only the sensing element; "
+                f"the chain_filter term takes the chain's response from the other channels "
+                f"(--model ...,chain_filter).")
 
     def to_dict(self) -> dict[str, Any]:
         return {"channels": list(self.channels), "f_hz": [self.f_lo_hz, self.f_hi_hz],

@@ -50,6 +50,8 @@ def test_independent_noise_through_one_filter_is_named_as_one_shape():
     dev = list(s.deviance.values())
     assert all(v < 3.0 for v in dev) and 1.0 < float(np.mean(dev)) < 2.0, s.deviance
     assert "share one spectral shape and no signal" in s.text()
+    assert s.text().endswith("the chain_filter term takes the chain's response from the "
+                             "other channels (--model ...,chain_filter).")
     assert "different quantities" in s.text()
     doc = s.to_dict()
     assert doc["channels"] == NAMES and doc["text"] == s.text()
