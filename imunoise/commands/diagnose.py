@@ -2,7 +2,9 @@
 
 Every term of the vocabulary that the model lacks is added in turn and the model refitted;
 evidence the Allan curve cannot give joins in (spectral lines, correlation with the
-temperature record, drift, a changing noise level, outliers, gaps). A suggestion is
+temperature record, drift, a changing noise level, outliers, gaps). Where the channel steps
+together with the record's other channels of its kind (the bench knocked or tilted), taking
+those steps out (``common_steps``) is a suggestion too. A suggestion is
 significant only when it passes the tool's own test, set so that on data the model fully
 explains nothing is significant in at least 95 % of cases.
 
@@ -27,7 +29,7 @@ import numpy as np
 from imunoise.commands.common import add_rate_option, add_window_options
 from imunoise.commands.fit import fit_text
 from imunoise.errors import UsageError
-from imunoise.pipeline import cross_channel
+from imunoise.pipeline import common_steps, cross_channel
 from imunoise.pipeline.assembly import diagnosis_document
 from imunoise.pipeline.fitting import diagnose_channel, full_window_args, parse_model
 from imunoise.pipeline.reading import apply_window, open_imu_channel
@@ -190,30 +192,48 @@ def _distinct_files(paths: list[str]) -> None:
 def run(args: argparse.Namespace) -> int:
     from imunoise.analysis import chain_shape
 
-    parse_model(args.model)  # a misspelt term fails before a long read
+    model, with_steps = common_steps.split_model(args.model)
+    parse_model(model)  # a misspelt term fails before a long read
     if len(args.file) > 1:
+        if with_steps:
+            raise UsageError(f"diagnose: {common_steps.TERM} is found per record; diagnose "
+                             f"the replicates without it")
         return run_replicates(args)
     args.file = args.file[0]
     record, key = open_imu_channel(args.file, args.rate, args.channel, "diagnose",
                                    args.static)
     group = cross_channel.comparison_group(record.channels, key)
     whole = record.channels[key]
+    steps = common_steps.steps_of(record, key, group)
+    if with_steps:
+        common_steps.require_steps(steps, key, whole.units)
+        common_steps.remove_steps(record, key, steps)
+    # the record with the steps taken out, cut below as the channel is, for the suggestion
+    without_steps = common_steps.corrected_copy(record, key, steps) \
+        if not with_steps and steps is not None and steps.of(key) else None
     apply_window(record, key, args.skip, args.split)
     # the channels' coherence does not depend on the fit: computed beside it
     pending = cross_channel.start_channel_coherence(record, key, group, args.skip,
                                                     args.split or ())
-    names, _ = parse_model(args.model)
+    names, _ = parse_model(model)
     shape = cross_channel.chain_shape_source(
         record, key, group, whole, None if args.skip or args.split else pending)
     with chain_shape.using(shape):
         cross_channel.require_chain_shape(names, key)  # measured now if the model names it
-        diag = diagnose_channel(record, key, args.model, time_origin_s=args.skip)
+        diag = diagnose_channel(record, key, model, time_origin_s=args.skip)
+        if with_steps:
+            common_steps.keep_in_applies(diag.suggestions)
+        elif without_steps is not None:
+            diag.suggestions = common_steps.rank_removal(
+                diag, without_steps, key, steps, model, args.skip, args.split or [])
         for sug in diag.suggestions:
             sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip,
                                                  args.split)
         # the lines and resonances judged against the other channels: common or own
         doc, coherence = diagnosis_document(record, key, diag, group, args.skip,
                                             args.split or (), pending)
+        if with_steps:
+            common_steps.add_to_document(doc, steps, key)
         if args.json:
             from imunoise.pipeline import documents
 
@@ -222,6 +242,8 @@ def run(args: argparse.Namespace) -> int:
             for w in record.warnings:
                 print(f"warning: {w}", file=sys.stderr)
             print(diagnosis_text(key, record.series(key), diag, args.file, args.model))
+            if with_steps:
+                print("  " + common_steps.steps_line(steps, key, whole.units))
             lines = [c for c in (coherence or {}).get("classification", [])]
             if lines:
                 print()

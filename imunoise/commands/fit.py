@@ -2,7 +2,9 @@
 
 The model is a comma-separated list of terms (listed below). A parameter written after a term
 is held at that value (SI units): ``--model white,gauss_markov:T=100,random_walk``; a model
-with every parameter given is evaluated as it stands.
+with every parameter given is evaluated as it stands. ``common_steps`` in the model takes out of
+the channel, before the fit, the bias steps it takes together with the record's other channels
+of its kind (a knock or a tilt of the bench; docs/environment.md).
 """
 
 from __future__ import annotations
@@ -78,19 +80,26 @@ def fit_text(key: str, series: Any, result: Any, curve: Any) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from imunoise.analysis import chain_shape
-    from imunoise.pipeline import cross_channel
+    from imunoise.pipeline import common_steps, cross_channel
 
-    names, _ = parse_model(args.model)  # a misspelt term fails before a long read
+    model, with_steps = common_steps.split_model(args.model)
+    names, _ = parse_model(model)  # a misspelt term fails before a long read
     record, key = open_imu_channel(args.file, args.rate, args.channel, "fit", args.static)
     group = cross_channel.comparison_group(record.channels, key)
     whole = record.channels[key]
+    steps = common_steps.steps_of(record, key, group) if with_steps else None
+    if with_steps:
+        common_steps.require_steps(steps, key, whole.units)
+        common_steps.remove_steps(record, key, steps)
     apply_window(record, key, args.skip, args.split)
     shape = cross_channel.chain_shape_source(record, key, group, whole)
     # the fit's results read the shared response whenever they evaluate the model
     with chain_shape.using(shape if "chain_filter" in names else None):
         cross_channel.require_chain_shape(names, key)
-        result, curve = fit_channel(record, key, args.model)
-        doc, parts = fit_document(record, key, args.model, result, curve)
+        result, curve = fit_channel(record, key, model)
+        doc, parts = fit_document(record, key, model, result, curve)
+        if steps is not None:
+            common_steps.add_to_document(doc, steps, key)
         if args.json:
             from imunoise.pipeline import documents
 
@@ -103,5 +112,7 @@ def run(args: argparse.Namespace) -> int:
             print(fit_text(key, record.series(key), result, curve))
             if "chain_shape" in doc:
                 print("  " + chain_shape_line(doc["chain_shape"]))
+            if steps is not None:
+                print("  " + common_steps.steps_line(steps, key, whole.units))
             print("  " + parts_line(result.chi2_per_dof, parts).replace("\n", "\n  "))
     return 0

@@ -28,6 +28,11 @@ def parse_model(text: str) -> tuple[list[str], dict[str | int, dict[str, float]]
 
     if not text.strip(" ,"):
         raise UsageError(f"--model {text!r} names no term")
+    if "common_steps" in [t.split(":")[0].strip() for t in text.split(",")]:
+        # imunoise fit and diagnose take it out of the model before it reaches here
+        raise UsageError("common_steps is a correction of the record, not a term: imunoise fit "
+                         "and diagnose apply it, reading the record's other channels; here "
+                         "name the noise terms only")
     try:
         spec = parse_model(text)
     except TermError as exc:
