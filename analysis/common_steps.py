@@ -6,8 +6,9 @@ of the bias seen by all the accelerometer channels at the same instant. These ar
 environment, not noise of the sensing element, but a noise model fitted to the channel takes
 them for random walk: its long-tau Allan variance rises, differently in each part of the night
 (a step falls in one half and not in the other), and the model predicts neither half. The six
-ADIS16405 runs of the shared data hold 4 to 10 such steps each (up to 20 standard scores on one
-axis; run 1 at 2149 s, 8, 8 and 10 on accel_x, accel_y, accel_z).
+ADIS16405 runs of the shared data hold 5 to 8 such steps each in their accelerometers (up to
+19.5 standard scores on one axis; run 1 at 2149 s, 8.1, 8.2 and 10.2 on accel_x, accel_y,
+accel_z).
 
 Detection, per gap-free segment of the channels' common time base:
 

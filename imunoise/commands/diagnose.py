@@ -204,13 +204,14 @@ def run(args: argparse.Namespace) -> int:
                                    args.static)
     group = cross_channel.comparison_group(record.channels, key)
     whole = record.channels[key]
-    steps = common_steps.steps_of(record, key, group)
-    if with_steps:
-        common_steps.require_steps(steps, key, whole.units)
-        common_steps.remove_steps(record, key, steps)
+    found = common_steps.steps_of(record, key, group)
+    # taken out of the channel (the model names them), or offered as a suggestion
+    removed = common_steps.required(found, key, whole.units) if with_steps else None
+    offered = found if not with_steps and found is not None and found.of(key) else None
+    if removed is not None:
+        common_steps.remove_steps(record, key, removed)
     # the record with the steps taken out, cut below as the channel is, for the suggestion
-    without_steps = common_steps.corrected_copy(record, key, steps) \
-        if not with_steps and steps is not None and steps.of(key) else None
+    without_steps = common_steps.corrected_copy(record, key, offered) if offered else None
     apply_window(record, key, args.skip, args.split)
     # the channels' coherence does not depend on the fit: computed beside it
     pending = cross_channel.start_channel_coherence(record, key, group, args.skip,
@@ -221,19 +222,19 @@ def run(args: argparse.Namespace) -> int:
     with chain_shape.using(shape):
         cross_channel.require_chain_shape(names, key)  # measured now if the model names it
         diag = diagnose_channel(record, key, model, time_origin_s=args.skip)
-        if with_steps:
+        if removed is not None:
             common_steps.keep_in_applies(diag.suggestions)
-        elif without_steps is not None:
+        elif offered is not None and without_steps is not None:
             diag.suggestions = common_steps.rank_removal(
-                diag, without_steps, key, steps, model, args.skip, args.split or [])
+                diag, without_steps, key, offered, model, args.skip, args.split or [])
         for sug in diag.suggestions:
             sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip,
                                                  args.split)
         # the lines and resonances judged against the other channels: common or own
         doc, coherence = diagnosis_document(record, key, diag, group, args.skip,
                                             args.split or (), pending)
-        if with_steps:
-            common_steps.add_to_document(doc, steps, key)
+        if removed is not None:
+            common_steps.add_to_document(doc, removed, key)
         if args.json:
             from imunoise.pipeline import documents
 
@@ -242,8 +243,8 @@ def run(args: argparse.Namespace) -> int:
             for w in record.warnings:
                 print(f"warning: {w}", file=sys.stderr)
             print(diagnosis_text(key, record.series(key), diag, args.file, args.model))
-            if with_steps:
-                print("  " + common_steps.steps_line(steps, key, whole.units))
+            if removed is not None:
+                print("  " + common_steps.steps_line(removed, key, whole.units))
             lines = [c for c in (coherence or {}).get("classification", [])]
             if lines:
                 print()

@@ -87,9 +87,9 @@ def run(args: argparse.Namespace) -> int:
     record, key = open_imu_channel(args.file, args.rate, args.channel, "fit", args.static)
     group = cross_channel.comparison_group(record.channels, key)
     whole = record.channels[key]
-    steps = common_steps.steps_of(record, key, group) if with_steps else None
-    if with_steps:
-        common_steps.require_steps(steps, key, whole.units)
+    steps = common_steps.required(common_steps.steps_of(record, key, group), key,
+                                  whole.units) if with_steps else None
+    if steps is not None:
         common_steps.remove_steps(record, key, steps)
     apply_window(record, key, args.skip, args.split)
     shape = cross_channel.chain_shape_source(record, key, group, whole)

@@ -14,13 +14,16 @@ that half's own steps.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from imunoise.core.record import Record
 from imunoise.errors import UsageError
 from imunoise.pipeline.cross_channel import time_base_group
+
+if TYPE_CHECKING:
+    from imunoise.analysis.common_steps import CommonSteps
 
 TERM = "common_steps"
 
@@ -46,7 +49,7 @@ def split_model(model_text: str) -> tuple[str, bool]:
     return rest, named
 
 
-def steps_of(record: Record, key: str, group: list[str]) -> Any:
+def steps_of(record: Record, key: str, group: list[str]) -> CommonSteps | None:
     """The :class:`imunoise.analysis.common_steps.CommonSteps` of the channels of ``group``
     (``key`` first) that share ``key``'s time base and units, or None where no other channel
     does. Call before ``--skip``/``--split`` cut ``key``."""
@@ -54,30 +57,33 @@ def steps_of(record: Record, key: str, group: list[str]) -> Any:
 
     series = record.channels
     units = series[key].units
-    same = [k for k in time_base_group(series, group) if series[k].units == units]
-    if key not in same or len(same) < 2:
+    # a channel on key's time base: the pair is one group (another device's is not)
+    same = [k for k in group if k in series and series[k].units == units
+            and (k == key or time_base_group(series, [key, k]) == [key, k])]
+    if len(same) < 2:
         return None
     x = np.column_stack([np.asarray(series[k].values, dtype=np.float64) for k in same])
     return find_common_steps(x, series[key].fs_hz, same, series[key].segment_starts)
 
 
-def require_steps(steps: Any, key: str, units: str) -> None:
-    """A usage error where the model names ``common_steps`` and no other channel of the record
-    shares ``key``'s time base and units."""
+def required(steps: CommonSteps | None, key: str, units: str) -> CommonSteps:
+    """``steps``, or a usage error where the model names ``common_steps`` and no other channel
+    of the record shares ``key``'s time base and units (``steps`` None)."""
     if steps is None:
         raise UsageError(f"{TERM}: no other channel of this record shares {key}'s time base "
                          f"and units ({units}), so steps common to them cannot be told from "
                          f"{key}'s own wander")
+    return steps
 
 
-def remove_steps(record: Record, key: str, steps: Any) -> None:
+def remove_steps(record: Record, key: str, steps: CommonSteps) -> None:
     """Channel ``key`` of ``record`` with its common steps taken out (in place)."""
     series = record.channels[key]
     record.channels[key] = dataclasses.replace(series,
                                                values=steps.corrected(series.values, key))
 
 
-def corrected_copy(record: Record, key: str, steps: Any) -> Record:
+def corrected_copy(record: Record, key: str, steps: CommonSteps) -> Record:
     """A copy of ``record`` whose channel ``key`` has its common steps taken out."""
     copy = dataclasses.replace(record, channels=dict(record.channels),
                                warnings=list(record.warnings))
@@ -85,7 +91,7 @@ def corrected_copy(record: Record, key: str, steps: Any) -> Record:
     return copy
 
 
-def add_to_document(doc: dict[str, Any], steps: Any, key: str) -> None:
+def add_to_document(doc: dict[str, Any], steps: CommonSteps, key: str) -> None:
     """``doc``'s model lists ``common_steps`` (no parameters) and ``doc["common_steps"]`` the
     steps taken out of ``key``."""
     doc.setdefault("model", []).append({"term": TERM, "params": {}, "ci95": {},
@@ -102,7 +108,7 @@ def keep_in_applies(suggestions: list[Any]) -> None:
             s.apply["model"] = f"{model},{TERM}"
 
 
-def rank_removal(diag: Any, corrected: Record, key: str, steps: Any, model_text: str,
+def rank_removal(diag: Any, corrected: Record, key: str, steps: CommonSteps, model_text: str,
                  skip_s: float, split_s: list[float]) -> list[Any]:
     """``diag.suggestions`` with the ``common_steps`` suggestion in its place
     (:func:`imunoise.analysis.diagnosis.common_steps.steps_suggestion`): the model
@@ -120,7 +126,7 @@ def rank_removal(diag: Any, corrected: Record, key: str, steps: Any, model_text:
     return ranked_in(diag.suggestions, new)
 
 
-def steps_line(steps: Any, key: str, units: str) -> str:
+def steps_line(steps: CommonSteps, key: str, units: str) -> str:
     """One line of text: the steps taken out of ``key``."""
     own = steps.of(key)
     if not steps.steps:

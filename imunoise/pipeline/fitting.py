@@ -25,14 +25,15 @@ def parse_model(text: str) -> tuple[list[str], dict[str | int, dict[str, float]]
     a bad or out-of-range parameter or an empty model is a usage error naming the valid
     terms."""
     from imunoise.analysis.terms import TermError, parse_model
+    from imunoise.pipeline.common_steps import TERM
 
     if not text.strip(" ,"):
         raise UsageError(f"--model {text!r} names no term")
-    if "common_steps" in [t.split(":")[0].strip() for t in text.split(",")]:
+    if TERM in [t.split(":")[0].strip() for t in text.split(",")]:
         # imunoise fit and diagnose take it out of the model before it reaches here
-        raise UsageError("common_steps is a correction of the record, not a term: imunoise fit "
-                         "and diagnose apply it, reading the record's other channels; here "
-                         "name the noise terms only")
+        raise UsageError(f"{TERM} is a correction of the record, not a term: imunoise fit "
+                         f"and diagnose apply it, reading the record's other channels; here "
+                         f"name the noise terms only")
     try:
         spec = parse_model(text)
     except TermError as exc:
