@@ -59,11 +59,12 @@ def steps_suggestion(diag: Diagnosis, steps: CommonSteps, channel: str, after: F
                                    parts.get("holdout") or {}, float(diag.fit.misfit.dof),
                                    claims=True)
     group = ", ".join(steps.channels)
-    why = (f"The channels {group} step together {len(steps.steps)} time(s), and {channel} "
-           f"{len(own)} of them: at {_when(steps, channel, units)}. A knock, a tilt or a "
-           f"weight put on the bench moves the bias of every axis at once; the noise terms "
-           f"take such steps for random walk, differently in each part of the record. Taking "
-           f"them out of {channel} brings chi2/dof from {before:.3g} to {chi_after:.3g}")
+    why = (f"The channels {group} jump together {len(steps.steps)} time(s), and {len(own)} "
+           f"of the jumps leave a lasting step on {channel}: at {_when(steps, channel, units)}. "
+           f"A knock, a tilt or a weight put on the bench moves the bias of every axis at "
+           f"once; the noise terms take such steps for random walk, differently in each part "
+           f"of the record. Taking them out of {channel} brings chi2/dof from {before:.3g} to "
+           f"{chi_after:.3g}")
     psd_b, psd_a = _deviance(psd_before), _deviance(psd_after)
     if psd_b is not None and psd_a is not None:
         why += f" and the PSD part from {psd_b:.3g} to {psd_a:.3g}"

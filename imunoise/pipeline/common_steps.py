@@ -133,7 +133,7 @@ def steps_line(steps: CommonSteps, key: str, units: str) -> str:
         return f"{TERM}: no step found in {', '.join(steps.channels)}; {key} is fitted as read"
     if not own:
         return (f"{TERM}: none taken out of {key} ({len(steps.steps)} found in "
-                f"{', '.join(steps.channels)}, none beyond {key}'s own noise)")
+                f"{', '.join(steps.channels)}, none lasting beyond {key}'s own noise)")
     told = ", ".join(f"{s.t_s:.0f} s {s.sizes[key]:+.3g} {units}" for s in own)
     return (f"{TERM}: {len(own)} step(s) taken out of {key} (found together in "
             f"{', '.join(steps.channels)}): {told}")

@@ -54,7 +54,8 @@ def test_diagnose_offers_the_steps_and_fit_takes_them_out(knocked):
     top = next(s for s in doc["suggestions"] if s["significant"])
     assert top["term"] == "common_steps" and top["params"] == {}
     assert top["apply"] == {"model": BASE + ",common_steps", "args": []}
-    assert "step together 3 time(s)" in top["why"]
+    assert "jump together 3 time(s), and 3 of the jumps leave a lasting step on accel_x" \
+        in top["why"]
     assert top["chi2_per_dof_after"] < top["chi2_per_dof_before"]
     proc = _run("fit", knocked, "--channel", "accel_x", "--model", top["apply"]["model"],
                 "--json")
@@ -144,8 +145,9 @@ def test_adis16405_run1_accel_z_loses_the_knock(tmp_path):
     proc = _run("fit", path, "--channel", "accel_z", "--model", model, "--json")
     assert proc.returncode == 0, proc.stderr
     steps = {round(s["t_s"]): s for s in json.loads(proc.stdout)["common_steps"]["steps"]}
-    assert steps[2149]["size"] == pytest.approx(0.0251, rel=0.05)
-    assert steps[2149]["z"] > 8.0
+    # it jumps by 10.3 standard scores and keeps 0.0098 m/s^2 of it (3.2 scores)
+    assert steps[2149]["jump_z"] == pytest.approx(10.3, abs=0.05)
+    assert steps[2149]["size"] == pytest.approx(0.0098, abs=5e-5)
 
 
 def test_the_python_api_says_it_does_not_take_the_removal(knocked):
