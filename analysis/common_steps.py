@@ -5,10 +5,10 @@ leaned on or a weight is put down on it, the projection changes at once on every
 of the bias seen by all the accelerometer channels at the same instant. These are events of the
 environment, not noise of the sensing element, but a noise model fitted to the channel takes
 them for random walk: its long-tau Allan variance rises, differently in each part of the night
-(a step falls in one half and not in the other), and the model predicts neither half. The six
-ADIS16405 runs of the shared data hold 5 to 8 such steps each in their accelerometers (up to
-19.5 standard scores on one axis; run 1 at 2149 s, 8.1, 8.3 and 10.3 on accel_x, accel_y,
-accel_z).
+(a step falls in one half and not in the other), and the model predicts neither half. The
+accelerometers of the six ADIS16405 runs of the shared data jump together 5 to 8 times a run
+(up to 19.5 standard scores on one axis; run 1 at 2149 s, 8.1, 8.3 and 10.3 on accel_x,
+accel_y, accel_z), and 2 to 8 of those jumps leave a lasting step on at least one axis.
 
 Detection, per gap-free segment of the channels' common time base:
 
