@@ -226,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
             common_steps.keep_in_applies(diag.suggestions)
         elif offered is not None and without_steps is not None:
             diag.suggestions = common_steps.rank_removal(
-                diag, without_steps, key, offered, model, args.skip, args.split or [])
+                diag, without_steps, whole, key, offered, model, args.skip, args.split or [])
         for sug in diag.suggestions:
             sug.apply["args"] = full_window_args(sug.apply.get("args", []), args.skip,
                                                  args.split)

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from imunoise.core.record import Record
+from imunoise.core.series import ChannelSeries
 from imunoise.errors import UsageError
 from imunoise.pipeline.cross_channel import time_base_group
 
@@ -108,19 +109,49 @@ def keep_in_applies(suggestions: list[Any]) -> None:
             s.apply["model"] = f"{model},{TERM}"
 
 
-def rank_removal(diag: Any, corrected: Record, key: str, steps: CommonSteps, model_text: str,
-                 skip_s: float, split_s: list[float]) -> list[Any]:
+def halves_corrected(raw: ChannelSeries, record: Record, key: str, channels: list[str]
+                     ) -> np.ndarray:
+    """``key``'s samples with each half's own common steps taken out: the steps searched in
+    each half of the record alone (``channels`` of ``record`` on ``raw``'s time base, ``raw``
+    standing for ``key``), as a fit of that half would find them."""
+    from imunoise.analysis.common_steps import find_common_steps
+
+    x = np.column_stack([np.asarray(raw.values if k == key else record.channels[k].values,
+                                    dtype=np.float64) for k in channels])
+    starts = np.asarray(raw.segment_starts, dtype=np.int64)
+    out = np.array(raw.values, dtype=np.float64, copy=True)
+    mid = x.shape[0] // 2
+    for a, b in ((0, mid), (mid, x.shape[0])):
+        inner = np.concatenate(([0], starts[(starts > a) & (starts < b)] - a))
+        half = find_common_steps(x[a:b], raw.fs_hz, channels, inner)
+        out[a:b] = half.corrected(out[a:b], key)
+    return out
+
+
+def rank_removal(diag: Any, corrected: Record, raw: ChannelSeries, key: str,
+                 steps: CommonSteps, model_text: str, skip_s: float,
+                 split_s: list[float]) -> list[Any]:
     """``diag.suggestions`` with the ``common_steps`` suggestion in its place
     (:func:`imunoise.analysis.diagnosis.common_steps.steps_suggestion`): the model
     ``model_text`` fitted to ``corrected`` (:func:`corrected_copy` of the record before the
-    cuts; cut here as the diagnosed channel was) and its error parts."""
+    cuts; cut here as the diagnosed channel was) and its error parts. Its hold-out part fits
+    each half with that half's own steps taken out (:func:`halves_corrected`, ``raw`` being
+    ``key`` as read), as a fit of the half does; with ``--skip`` or ``--split`` the halves of
+    the corrected channel are used instead."""
     from imunoise.analysis.diagnosis.common_steps import ranked_in, steps_suggestion
+    from imunoise.analysis.model_error import holdout_part
     from imunoise.pipeline.fitting import fit_channel, fit_error_parts
     from imunoise.pipeline.reading import apply_window
+    from imunoise.pipeline.workers import cpu_job_map
 
     apply_window(corrected, key, skip_s, split_s)
     result, _ = fit_channel(corrected, key, model_text)
     _, parts = fit_error_parts(corrected, key, model_text, result)
+    if not skip_s and not split_s:
+        values = halves_corrected(raw, corrected, key, steps.channels)
+        parts["holdout"] = holdout_part(values, raw.fs_hz, model_text, result,
+                                        segment_starts=raw.segment_starts,
+                                        job_map=cpu_job_map())
     new = steps_suggestion(diag, steps, key, result, parts, model_text,
                            corrected.channels[key].units)
     return ranked_in(diag.suggestions, new)
