@@ -46,6 +46,9 @@ import numpy as np
 
 from imunoise.analysis.distributions import chi2
 
+TERM = "common_steps"
+"""The name a model specification gives the removal (``fit``/``diagnose --model ...``)."""
+
 BLOCK_S = 1.0
 """Block length (s) of the means the contrasts are built from: the steps' time resolution."""
 

@@ -19,14 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from imunoise.analysis.common_steps import CommonSteps
+from imunoise.analysis.common_steps import TERM, CommonSteps
 from imunoise.analysis.diagnosis.holdout import _holdout_worse
 from imunoise.analysis.diagnosis.result import Diagnosis, Suggestion
 from imunoise.analysis.diagnosis.statistics import PSD_BIN_CORRELATION, _deviance, _rises
 from imunoise.analysis.fit import FitResult
-
-TERM = "common_steps"
-"""The name the model specification gives the removal."""
 
 
 def _when(steps: CommonSteps, channel: str, units: str) -> str:

@@ -14,19 +14,15 @@ that half's own steps.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from imunoise.analysis.common_steps import TERM, CommonSteps, find_common_steps
 from imunoise.core.record import Record
 from imunoise.core.series import ChannelSeries
 from imunoise.errors import UsageError
 from imunoise.pipeline.cross_channel import time_base_group
-
-if TYPE_CHECKING:
-    from imunoise.analysis.common_steps import CommonSteps
-
-TERM = "common_steps"
 
 
 def split_model(model_text: str) -> tuple[str, bool]:
@@ -54,8 +50,6 @@ def steps_of(record: Record, key: str, group: list[str]) -> CommonSteps | None:
     """The :class:`imunoise.analysis.common_steps.CommonSteps` of the channels of ``group``
     (``key`` first) that share ``key``'s time base and units, or None where no other channel
     does. Call before ``--skip``/``--split`` cut ``key``."""
-    from imunoise.analysis.common_steps import find_common_steps
-
     series = record.channels
     units = series[key].units
     # a channel on key's time base: the pair is one group (another device's is not)
@@ -114,8 +108,6 @@ def halves_corrected(raw: ChannelSeries, record: Record, key: str, channels: lis
     """``key``'s samples with each half's own common steps taken out: the steps searched in
     each half of the record alone (``channels`` of ``record`` on ``raw``'s time base, ``raw``
     standing for ``key``), as a fit of that half would find them."""
-    from imunoise.analysis.common_steps import find_common_steps
-
     x = np.column_stack([np.asarray(raw.values if k == key else record.channels[k].values,
                                     dtype=np.float64) for k in channels])
     starts = np.asarray(raw.segment_starts, dtype=np.int64)

@@ -24,8 +24,8 @@ def parse_model(text: str) -> tuple[list[str], dict[str | int, dict[str, float]]
     """Term names and held parameters (by model index) of ``--model TERMS``; an unknown term,
     a bad or out-of-range parameter or an empty model is a usage error naming the valid
     terms."""
+    from imunoise.analysis.common_steps import TERM
     from imunoise.analysis.terms import TermError, parse_model
-    from imunoise.pipeline.common_steps import TERM
 
     if not text.strip(" ,"):
         raise UsageError(f"--model {text!r} names no term")
