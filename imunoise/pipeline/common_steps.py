@@ -138,8 +138,10 @@ def rank_removal(diag: Any, corrected: Record, raw: ChannelSeries, key: str,
 
     apply_window(corrected, key, skip_s, split_s)
     result, _ = fit_channel(corrected, key, model_text)
-    _, parts = fit_error_parts(corrected, key, model_text, result)
-    if not skip_s and not split_s:
+    per_half = not skip_s and not split_s
+    # the corrected channel's own halves only where each half's steps cannot be searched
+    _, parts = fit_error_parts(corrected, key, model_text, result, holdout=not per_half)
+    if per_half:
         values = halves_corrected(raw, corrected, key, steps.channels)
         parts["holdout"] = holdout_part(values, raw.fs_hz, model_text, result,
                                         segment_starts=raw.segment_starts,

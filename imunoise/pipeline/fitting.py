@@ -87,18 +87,19 @@ def fit_channel(record: Record, key: str, model_text: str) -> tuple[Any, Any]:
     return result.in_canonical_order(), curve
 
 
-def fit_error_parts(record: Record, key: str, model_text: str, result: Any
-                    ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+def fit_error_parts(record: Record, key: str, model_text: str, result: Any,
+                    holdout: bool = True) -> tuple[dict[str, Any] | None, dict[str, Any]]:
     """``(psd block, error parts)`` of a fit of ``model_text`` to channel ``key``: the PSD,
     hold-out and time-domain parts beside the Allan chi2/dof
-    (:func:`imunoise.analysis.model_error.error_parts`)."""
+    (:func:`imunoise.analysis.model_error.error_parts`); ``holdout`` False leaves the
+    hold-out part out (for a caller that computes it on other halves)."""
     from imunoise.analysis.model_error import error_parts
 
     series = record.series(key)
     with fit_errors(key):
         return error_parts(series.values, series.fs_hz, model_text, result,
                            segment_starts=series.segment_starts, units=series.units,
-                           job_map=cpu_job_map())
+                           holdout=holdout, job_map=cpu_job_map())
 
 
 ADIS_INTERNAL_RATE_HZ = 819.2
