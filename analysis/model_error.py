@@ -264,8 +264,8 @@ Rechecks = Callable[[Sequence[tuple[int, int, str, float]]], list[float | None]]
 def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {}),
              recheck: Recheck | None = None) -> list[dict[str, Any]]:
     """Parameters fitted on both halves whose values differ beyond their intervals. A
-    resonance's f0 and Q come from each half's spectrum where both spectra resolve its peak
-    (``shapes``; ``"source": "psd"``). An amplitude that vanished on one half is named only
+    resonance's f0, Q and power come from each half's spectrum where both spectra resolve
+    its peak (``shapes``; ``"source": "psd"``). An amplitude that vanished on one half is named only
     if that half's data also refuse the near end of the other half's interval (``recheck``):
     flicker and random walk trade places on a half's few long-tau points, so one of them can
     reach zero while the half's curve is the other's."""
@@ -281,6 +281,12 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
             ca, cb, source = ta.ci95.get(k), tb.ci95.get(k), "allan"
             if pa is not None and pb is not None and k in PINNED:
                 a, b, ca, cb, source = pa.params[k], pb.params[k], pa.ci95[k], pb.ci95[k], "psd"
+            elif pa is not None and pb is not None and k == "sigma" \
+                    and pa.sigma_ci95 is not None and pb.sigma_ci95 is not None:
+                # the peak's power: the spectrum tells it from a neighbouring term's, which
+                # the Allan curve need not
+                a, b, ca, cb, source = pa.params[k], pb.params[k], pa.sigma_ci95, \
+                    pb.sigma_ci95, "psd"
             sa, sb = _log_se(ca), _log_se(cb)
             if sa is None or sb is None or sa == 0.0 and sb == 0.0:
                 z = _vanished_z(a, b, ca, cb)

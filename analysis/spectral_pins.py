@@ -32,7 +32,9 @@ information), widened by the Hann window's equivalent noise bandwidth in bins (1
 neighbouring bins share that much of their data) and by the deviance per degree of freedom
 where it exceeds 1. A peak whose shape the term does not follow exactly, such as one whose
 frequency drifts through the record, so gets an interval for its mean position that is as wide
-as the misfit says, not the width an ideal peak would allow.
+as the misfit says, not the width an ideal peak would allow. The peak's power (``sigma``) has
+an interval too (:attr:`Pin.sigma_ci95`, widened by :data:`POWER_BINS`): the hold-out part
+compares it between the halves.
 
 A pin is kept only where the spectrum resolves a peak: the fitted f0 inside the band (not at
 its edge), Q's interval above Q's lower bound (0.5, no peak), and the resonance lowering the
@@ -71,6 +73,13 @@ ENBW_BINS = 1.5
 """Equivalent noise bandwidth of the Hann window in bins: the factor neighbouring bins' shared
 data widens an interval's variance by."""
 
+POWER_BINS = 1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0)
+"""The factor a sum over many bins has its variance widened by: a Hann window's neighbouring
+power bins correlate by (2/3)^2, the next but one by (1/6)^2. A resonance's power rests on
+every bin of its peak alike, so its interval takes this factor where the shape's take
+:data:`ENBW_BINS` (40 simulated records: the power's spread 1.2 times its Fisher deviation
+with the ENBW alone)."""
+
 GAIN_LEVEL = 0.001
 """A resonance is resolved when its deviance gain exceeds this upper point of chi-square(3)."""
 
@@ -95,6 +104,9 @@ class Pin:
         band_hz: the band fitted, Hz.
         deviance_per_dof: the band's Whittle deviance per degree of freedom (about 1 when the
             peak has the term's shape).
+        sigma_ci95: 95 % interval of ``sigma`` from the same fit: the peak's power as the
+            spectrum measures it, apart from the background level fitted beside it (None
+            where the spectrum does not bound it).
     """
 
     index: int
@@ -102,6 +114,7 @@ class Pin:
     ci95: dict[str, tuple[float, float]]
     band_hz: tuple[float, float]
     deviance_per_dof: float
+    sigma_ci95: tuple[float, float] | None = None
 
 
 def pin_nperseg(n_longest: int) -> int:
@@ -216,7 +229,11 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     ci = _resolved_intervals(theta, sd, lo_b, hi_b, own)
     if ci is None:
         return None
-    return Pin(index, shape_of(theta), ci, (float(fb[0]), float(fb[-1])), dev1 / n_dof)
+    sd_power = sd[0] * math.sqrt(POWER_BINS / ENBW_BINS)
+    sigma_ci = (math.exp(theta[0] - _Z95 * sd_power), math.exp(theta[0] + _Z95 * sd_power)) \
+        if sd_power > 0.0 else None
+    return Pin(index, shape_of(theta), ci, (float(fb[0]), float(fb[-1])), dev1 / n_dof,
+               sigma_ci)
 
 
 def _pin_sd(jac: np.ndarray, disp: float, level_free: bool, first_background: int
@@ -342,7 +359,8 @@ def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, 
             if pin is None:
                 continue
             work[pos[i]] = (work[pos[i]][0], dict(pin.params))
-            pins.append(Pin(i, pin.params, pin.ci95, pin.band_hz, pin.deviance_per_dof))
+            pins.append(Pin(i, pin.params, pin.ci95, pin.band_hz, pin.deviance_per_dof,
+                            pin.sigma_ci95))
     pins.sort(key=lambda p: p.index)
     return pins
 

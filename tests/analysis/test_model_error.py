@@ -122,6 +122,22 @@ def test_a_resonance_that_moves_between_the_halves_is_named(moving_peak):
         in parts_line(1.0, {"holdout": ho})
 
 
+def test_a_resonance_whose_power_falls_is_named_from_each_halfs_spectrum():
+    # the peak's power, 3e-3 then 2.4e-3 at one f0 and Q, is read from each half's
+    # spectrum, where the peak's area lies apart from the floor beside it; each half's
+    # interval is about +-2 % (test_spectral_pins), so the values come within 5 %
+    halves = [simulate([("white", {"N": 1e-3}),
+                        ("resonance", {"sigma": sigma, "f0": 20.0, "Q": 30.0})], N // 2, FS,
+                       rng=seed) for sigma, seed in ((3e-3, 5), (2.4e-3, 6))]
+    x = np.concatenate(halves)
+    fit = fit_series(x, FS, "white,resonance")[0]
+    ho = holdout_part(x, FS, "white,resonance", fit)
+    fell = next(c for c in ho["changed"] if c["param"] == "resonance.sigma")
+    assert fell["source"] == "psd"
+    assert fell["values"] == pytest.approx([3e-3, 2.4e-3], rel=0.05)
+    assert not any(c["param"] in ("resonance.f0", "resonance.Q") for c in ho["changed"]), ho
+
+
 def test_a_resonance_that_stays_put_is_not_named():
     # family level 5 % per record over every parameter compared; 6 seeds: one false naming
     # has probability about 0.26, two about 0.03

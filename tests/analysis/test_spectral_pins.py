@@ -19,15 +19,18 @@ ALLAN_LIKE = [("white", {"N": 1.05e-3}), ("resonance", {"sigma": 2.5e-3, "f0": 2
 def test_intervals_cover_the_true_shape_over_40_seeds():
     # 95 % intervals: over 40 seeds the count covering the truth is binomial(40, 0.95), 35-40
     # in 98 % of runs; the Hann window's shared bins and a misfit widen the Fisher interval
-    covered_f0 = covered_q = 0
+    # (the power's, sigma_ci95, by the sum of the neighbouring bins' correlations)
+    covered_f0 = covered_q = covered_sigma = 0
     for seed in range(40):
         x = simulate(TRUE, 1 << 18, FS, rng=seed)
         (pin,) = pin_resonances(x, FS, ALLAN_LIKE, set())
         assert pin.index == 1 and pin.band_hz[0] < 20.0 < pin.band_hz[1]
         covered_f0 += pin.ci95["f0"][0] <= 20.0 <= pin.ci95["f0"][1]
         covered_q += pin.ci95["Q"][0] <= 30.0 <= pin.ci95["Q"][1]
+        assert pin.sigma_ci95 is not None
+        covered_sigma += pin.sigma_ci95[0] <= 3e-3 <= pin.sigma_ci95[1]
         assert pin.ci95["f0"][1] - pin.ci95["f0"][0] < 0.1  # the Allan fit's was +-0.5 Hz
-    assert 35 <= covered_f0 <= 40 and 35 <= covered_q <= 40
+    assert 35 <= covered_f0 <= 40 and 35 <= covered_q <= 40 and 35 <= covered_sigma <= 40
 
 
 def test_held_shapes_and_records_too_short_are_left_alone():
