@@ -265,10 +265,10 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
              recheck: Recheck | None = None) -> list[dict[str, Any]]:
     """Parameters fitted on both halves whose values differ beyond their intervals. A
     resonance's f0, Q and power come from each half's spectrum where both spectra resolve
-    its peak (``shapes``; ``"source": "psd"``). An amplitude that vanished on one half is named only
-    if that half's data also refuse the near end of the other half's interval (``recheck``):
-    flicker and random walk trade places on a half's few long-tau points, so one of them can
-    reach zero while the half's curve is the other's."""
+    its peak (``shapes``; ``"source": "psd"``). An amplitude that vanished on one half is
+    named only if that half's data also refuse the near end of the other half's interval
+    (``recheck``): flicker and random walk trade places on a half's few long-tau points, so
+    one of them can reach zero while the half's curve is the other's."""
     from imunoise.analysis.spectral_pins import PINNED
 
     pairs = []
@@ -283,8 +283,8 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
                 a, b, ca, cb, source = pa.params[k], pb.params[k], pa.ci95[k], pb.ci95[k], "psd"
             elif pa is not None and pb is not None and k == "sigma" \
                     and pa.sigma_ci95 is not None and pb.sigma_ci95 is not None:
-                # the peak's power: the spectrum tells it from a neighbouring term's, which
-                # the Allan curve need not
+                # the peak's power: the spectrum tells it apart from the terms that bend the
+                # Allan curve at the same taus
                 a, b, ca, cb, source = pa.params[k], pb.params[k], pa.sigma_ci95, \
                     pb.sigma_ci95, "psd"
             sa, sb = _log_se(ca), _log_se(cb)
