@@ -281,8 +281,7 @@ def _changed(fit_a: Any, fit_b: Any, shapes: Sequence[dict[int, Any]] = ({}, {})
             ca, cb, source = ta.ci95.get(k), tb.ci95.get(k), "allan"
             if pa is not None and pb is not None and k in PINNED:
                 a, b, ca, cb, source = pa.params[k], pb.params[k], pa.ci95[k], pb.ci95[k], "psd"
-            elif pa is not None and pb is not None and k == "sigma" \
-                    and pa.sigma_ci95 is not None and pb.sigma_ci95 is not None:
+            elif pa is not None and pb is not None and k == "sigma":
                 # the peak's power: the spectrum tells it apart from the terms that bend the
                 # Allan curve at the same taus
                 a, b, ca, cb, source = pa.params[k], pb.params[k], pa.sigma_ci95, \

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -105,8 +105,7 @@ class Pin:
         deviance_per_dof: the band's Whittle deviance per degree of freedom (about 1 when the
             peak has the term's shape).
         sigma_ci95: 95 % interval of ``sigma`` from the same fit: the peak's power as the
-            spectrum measures it, apart from the background level fitted beside it (None
-            where the spectrum does not bound it).
+            spectrum measures it, apart from the background level fitted beside it.
     """
 
     index: int
@@ -114,7 +113,7 @@ class Pin:
     ci95: dict[str, tuple[float, float]]
     band_hz: tuple[float, float]
     deviance_per_dof: float
-    sigma_ci95: tuple[float, float] | None = None
+    sigma_ci95: tuple[float, float]
 
 
 def pin_nperseg(n_longest: int) -> int:
@@ -229,9 +228,8 @@ def _one(index: int, model: list[tuple[str, dict[str, float]]], f: np.ndarray, p
     ci = _resolved_intervals(theta, sd, lo_b, hi_b, own)
     if ci is None:
         return None
-    sd_power = sd[0] * math.sqrt(POWER_BINS / ENBW_BINS)
-    sigma_ci = (math.exp(theta[0] - _Z95 * sd_power), math.exp(theta[0] + _Z95 * sd_power)) \
-        if sd_power > 0.0 else None
+    sd_power = sd[0] * math.sqrt(POWER_BINS / ENBW_BINS)  # sigma is always kept: sd[0] > 0
+    sigma_ci = (math.exp(theta[0] - _Z95 * sd_power), math.exp(theta[0] + _Z95 * sd_power))
     return Pin(index, shape_of(theta), ci, (float(fb[0]), float(fb[-1])), dev1 / n_dof,
                sigma_ci)
 
@@ -359,8 +357,7 @@ def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, 
             if pin is None:
                 continue
             work[pos[i]] = (work[pos[i]][0], dict(pin.params))
-            pins.append(Pin(i, pin.params, pin.ci95, pin.band_hz, pin.deviance_per_dof,
-                            pin.sigma_ci95))
+            pins.append(replace(pin, index=i))
     pins.sort(key=lambda p: p.index)
     return pins
 
