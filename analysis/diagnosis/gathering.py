@@ -16,7 +16,7 @@ from imunoise.analysis.evidence.resonance_drift import MIN_Q as DRIFT_MIN_Q
 from imunoise.analysis.fit import FitResult
 from imunoise.analysis.model_error import measured_psd, psd_parts, time_domain_part
 from imunoise.analysis.psd_model import grid_gains
-from imunoise.analysis.terms import get_term, model_psd
+from imunoise.analysis.terms import TERMS, get_term, model_psd
 
 
 def _sensor_filter(fit: FitResult, alpha: float) -> Finding | None:
@@ -94,6 +94,19 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
             exclude_hz=held_lines)
     except ValueError:
         pass
+    held = [(tf.term, float(tf.params["f"]), float(tf.params["A"]), tf.ci95.get("A"))
+            for tf in base.terms if tf.term.split("#")[0] in TERMS
+            and get_term(tf.term.split("#")[0]).role == "line"
+            and "f" in tf.params and "A" in tf.params]
+    if held:
+        # the Allan curve lumps lines a few tens of per cent apart: the spectrum parts them
+        lines_found = by_term["sinusoid"].details.get("lines", []) if "sinusoid" in by_term \
+            else []
+        try:
+            findings.append(evidence.line_powers(segments, fs_hz, held, alpha=alpha,
+                                                 units=units, found=lines_found))
+        except ValueError:
+            pass
     if "rate_ramp" not in names:
         by_term["rate_ramp"] = evidence.drift(t_rate, x, alpha=alpha, units=units)
     if temperature is not None and "temperature" not in names:

@@ -13,8 +13,9 @@ class Finding:
     """The outcome of one evidence test on one channel.
 
     Attributes:
-        kind: which test: ``"spectral_line"``, ``"temperature"``, ``"nonstationarity"``,
-            ``"drift"``, ``"resonance_drift"``, ``"outliers"``, ``"held_samples"`` or ``"gaps"``.
+        kind: which test: ``"spectral_line"``, ``"line_power"``, ``"temperature"``,
+            ``"nonstationarity"``, ``"drift"``, ``"resonance_drift"``, ``"outliers"``,
+            ``"held_samples"`` or ``"gaps"``.
         term: the model term (docs/terms.md vocabulary) this evidence supports, or ``None`` when
             the effect is not a noise term (outliers, gaps, warm-up of the noise level).
         statistic: the test statistic (its meaning is given by ``statistic_name``).

@@ -30,11 +30,13 @@ from imunoise.analysis.evidence.finding import Finding, family_p
 
 _MAINS_HZ = (50.0, 60.0)
 _HALF_WINDOW = 12      # neighbour bins on each side used for the continuum
-_GUARD = 2             # bins next to the tested bin left out (Hann main lobe is +-2 bins)
+LOBE_HALF_WIDTH = 2
+"""Bins on either side of a line's peak that its power spreads over (the Hann main lobe): left
+out of the continuum under it, summed for its power."""
 _MIN_SEGMENTS = 16
-# Powers in adjacent Hann bins correlate by |2/3|^2 (next-but-one: |1/6|^2), so a fit to
-# neighbouring bins is noisier than one to independent bins by 1 + 2 (4/9 + 1/36).
-_HANN_NEIGHBOUR_INFLATION = 1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0)
+HANN_NEIGHBOUR_INFLATION = 1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0)
+"""Powers in adjacent Hann bins correlate by |2/3|^2 (next-but-one: |1/6|^2), so a sum or fit
+over neighbouring bins is noisier than one over independent bins by this factor."""
 EXCLUDE_HALF_WIDTH = 4
 """Bins on either side of a line the model holds that a search for a further line leaves out:
 the Hann main lobe (2 bins) and the held frequency's own resolution."""
@@ -89,7 +91,7 @@ def welch_bins(segments: list[np.ndarray], fs_hz: float, nperseg: int | None = N
     return WelchBins(np.fft.rfftfreq(nperseg, 1.0 / fs_hz), psd, 2 * x.shape[0], df, enbw)
 
 
-def _continuum(logp: np.ndarray, logf: np.ndarray,
+def continuum(logp: np.ndarray, logf: np.ndarray,
                nu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Continuum PSD under each testable bin, its degrees of freedom, and the bins' indices.
 
@@ -99,12 +101,12 @@ def _continuum(logp: np.ndarray, logf: np.ndarray,
     variance of the fitted intercept, inflated for the correlation of neighbouring Hann bins.
     """
     n = logp.size
-    k0 = 2 * (_HALF_WINDOW + _GUARD)
-    idx = np.arange(k0, n - _HALF_WINDOW - _GUARD - 1)
+    k0 = 2 * (_HALF_WINDOW + LOBE_HALF_WIDTH)
+    idx = np.arange(k0, n - _HALF_WINDOW - LOBE_HALF_WIDTH - 1)
     if idx.size == 0:
         return idx.astype(float), idx.astype(float), idx
-    offs = np.concatenate((np.arange(-_GUARD - _HALF_WINDOW, -_GUARD),
-                           np.arange(_GUARD + 1, _GUARD + _HALF_WINDOW + 1)))
+    offs = np.concatenate((np.arange(-LOBE_HALF_WIDTH - _HALF_WINDOW, -LOBE_HALF_WIDTH),
+                           np.arange(LOBE_HALF_WIDTH + 1, LOBE_HALF_WIDTH + _HALF_WINDOW + 1)))
     nb = idx[:, None] + offs[None, :]
     u = logf[nb] - logf[idx][:, None]
     y = logp[nb]
@@ -118,8 +120,16 @@ def _continuum(logp: np.ndarray, logf: np.ndarray,
     coef = np.linalg.solve(a, rhs)[..., 0]
     a00 = np.linalg.inv(a)[:, 0, 0]
     log_bias = special.digamma(nu / 2.0) - np.log(nu / 2.0)
-    var_log = special.polygamma(1, nu / 2.0) * a00 * _HANN_NEIGHBOUR_INFLATION
+    var_log = special.polygamma(1, nu / 2.0) * a00 * HANN_NEIGHBOUR_INFLATION
     return np.exp(coef[:, 0] - log_bias), 2.0 / var_log, idx
+
+
+def lobe_power(psd: np.ndarray, cont: float, k: int, df_hz: float) -> float:
+    """A line's power (units^2): the PSD above the continuum ``cont`` (units^2/Hz) summed
+    over the Hann main lobe around its peak bin ``k``; a sinusoid of amplitude ``A`` gives
+    ``A^2 / 2``."""
+    lobe = psd[k - LOBE_HALF_WIDTH:k + LOBE_HALF_WIDTH + 1]
+    return float(np.sum(np.maximum(lobe - cont, 0.0)) * df_hz)
 
 
 def _mains_label(f: float, tol_hz: float, fs_hz: float) -> str:
@@ -146,7 +156,7 @@ def _model_shape_ok(model_psd: Callable[[np.ndarray], np.ndarray], wb: WelchBins
     # searched; any bin whose continuum would rest on such a value is not searched either.
     log_model = np.log(np.maximum(np.where(np.isfinite(expected), expected, np.nan), tiny))
     # A noiseless "estimate": the same fit with (practically) infinite dof has no bias term.
-    cont, _, _ = _continuum(log_model, logf, 1 << 40)
+    cont, _, _ = continuum(log_model, logf, 1 << 40)
     with np.errstate(invalid="ignore"):
         dev = np.abs(log_model[idx] - np.log(np.maximum(cont, tiny)))
         return dev <= np.log(MODEL_SHAPE_TOLERANCE)
@@ -184,7 +194,7 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
     logf = np.log(np.maximum(wb.f_hz, wb.df_hz * 1e-3))
     psd = np.maximum(wb.psd, np.finfo(float).tiny)
     logp = np.log(psd)
-    cont, d2, idx = _continuum(logp, logf, wb.nu)
+    cont, d2, idx = continuum(logp, logf, wb.nu)
     skipped = 0
     if model_psd is not None and idx.size:
         keep = _model_shape_ok(model_psd, wb, logf, idx)
@@ -217,8 +227,7 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
         denom = la - 2 * lb + lc
         delta = 0.5 * (la - lc) / denom if denom < 0 else 0.0
         f = float((k + np.clip(delta, -0.5, 0.5)) * wb.df_hz)
-        excess = np.sum(np.maximum(psd[k - _GUARD:k + _GUARD + 1] - cont[j], 0.0)) * wb.df_hz
-        amp = float(np.sqrt(2.0 * excess))
+        amp = float(np.sqrt(2.0 * lobe_power(psd, float(cont[j]), k, wb.df_hz)))
         lines.append({"f_hz": f, "A": amp, "ratio": float(ratio[j]),
                       "p_value": float(p_fam[j]),
                       "mains": _mains_label(f, max(2 * wb.df_hz, 0.2), fs_hz)})
