@@ -86,27 +86,29 @@ def _evidence(x: np.ndarray, fs_hz: float, starts: np.ndarray, segments: list[np
     held_lines = [float(p["f"]) for n, p in base.params
                   if get_term(n).role == "line" and "f" in p]
     try:
-        # the fitted model's own shape (a filter's notches) is no line, nor is a line it
-        # already holds: a further sinusoid needs a further line
-        by_term["sinusoid"] = evidence.spectral_lines(
-            segments, fs_hz, alpha=alpha, units=units,
-            model_psd=lambda f: model_psd(base.params, f, fs_hz, continuous_only=True),
-            exclude_hz=held_lines)
+        spectrum = evidence.line_spectrum(segments, fs_hz)
     except ValueError:
-        pass
+        spectrum = None  # too short for a spectrum: no line to search or compare
+    if spectrum is not None:
+        try:
+            # the fitted model's own shape (a filter's notches) is no line, nor is a line it
+            # already holds: a further sinusoid needs a further line
+            by_term["sinusoid"] = evidence.spectral_lines(
+                segments, fs_hz, alpha=alpha, units=units,
+                model_psd=lambda f: model_psd(base.params, f, fs_hz, continuous_only=True),
+                exclude_hz=held_lines, spectrum=spectrum)
+        except ValueError:
+            pass
     held = [(tf.term, float(tf.params["f"]), float(tf.params["A"]), tf.ci95.get("A"))
             for tf in base.terms if tf.term.split("#")[0] in TERMS
             and get_term(tf.term.split("#")[0]).role == "line"
             and "f" in tf.params and "A" in tf.params]
-    if held:
+    if held and spectrum is not None:
         # the Allan curve lumps lines a few tens of per cent apart: the spectrum parts them
         lines_found = by_term["sinusoid"].details.get("lines", []) if "sinusoid" in by_term \
             else []
-        try:
-            findings.append(evidence.line_powers(segments, fs_hz, held, alpha=alpha,
-                                                 units=units, found=lines_found))
-        except ValueError:
-            pass
+        findings.append(evidence.line_powers(segments, fs_hz, held, alpha=alpha, units=units,
+                                             found=lines_found, spectrum=spectrum))
     if "rate_ramp" not in names:
         by_term["rate_ramp"] = evidence.drift(t_rate, x, alpha=alpha, units=units)
     if temperature is not None and "temperature" not in names:

@@ -40,9 +40,9 @@ from imunoise.analysis.evidence.finding import Finding
 from imunoise.analysis.evidence.lines import (
     HANN_NEIGHBOUR_INFLATION,
     LOBE_HALF_WIDTH,
-    continuum,
+    LineSpectrum,
+    line_spectrum,
     lobe_power,
-    welch_bins,
 )
 
 _Z95 = 1.959963984540054
@@ -73,7 +73,8 @@ def _spectral_amplitude(psd: np.ndarray, cont: float, cont_dof: float, k: int, n
 def line_powers(segments: list[np.ndarray], fs_hz: float,
                 lines: Sequence[tuple[str, float, float, tuple[float, float] | None]],
                 alpha: float = 0.05, units: str = "rad/s", nperseg: int | None = None,
-                found: Sequence[dict[str, Any]] = ()) -> Finding:
+                found: Sequence[dict[str, Any]] = (),
+                spectrum: LineSpectrum | None = None) -> Finding:
     """Compare each held line's fitted amplitude with the spectrum's (see the module text).
 
     Args:
@@ -88,6 +89,9 @@ def line_powers(segments: list[np.ndarray], fs_hz: float,
         found: the significant lines of the spectrum the model does not hold
             (``details["lines"]`` of :func:`~imunoise.analysis.evidence.lines.spectral_lines`:
             ``f_hz`` and ``A``), named as the neighbours a fitted line carries.
+        spectrum: the bins and continuum of
+            :func:`~imunoise.analysis.evidence.lines.line_spectrum`, where the caller has
+            them already (``segments`` and ``nperseg`` are then not read).
 
     Returns:
         A :class:`Finding` of kind ``"line_power"`` (term ``sinusoid``): the largest |z|, its
@@ -95,10 +99,8 @@ def line_powers(segments: list[np.ndarray], fs_hz: float,
         ``details["lines"]`` every line compared with both amplitudes, the spectrum's 95 %
         interval, ``z`` and the neighbours named.
     """
-    wb = welch_bins(segments, fs_hz, nperseg)
-    logf = np.log(np.maximum(wb.f_hz, wb.df_hz * 1e-3))
-    psd = np.maximum(wb.psd, np.finfo(float).tiny)
-    cont, cont_dof, idx = continuum(np.log(psd), logf, wb.nu)
+    spec = line_spectrum(segments, fs_hz, nperseg) if spectrum is None else spectrum
+    wb, psd, cont, cont_dof, idx = spec.bins, spec.psd, spec.cont, spec.cont_dof, spec.idx
     compared: list[dict[str, Any]] = []
     for label, f_hz, a_fit, ci in lines:
         if ci is None or not (ci[0] > 0.0 and ci[1] > ci[0] and a_fit > 0.0):

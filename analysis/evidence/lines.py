@@ -124,6 +124,43 @@ def continuum(logp: np.ndarray, logf: np.ndarray,
     return np.exp(coef[:, 0] - log_bias), 2.0 / var_log, idx
 
 
+@dataclass(frozen=True)
+class LineSpectrum:
+    """The Welch bins a line search and a line's power are read from, with the continuum
+    under each testable bin (:func:`continuum`).
+
+    Attributes:
+        bins: the Welch estimate.
+        logf: natural log of each bin's frequency (the DC bin's floored at a thousandth of
+            a bin).
+        psd: the bins' PSD floored at the smallest positive float, units^2/Hz.
+        logp: its natural log.
+        cont: continuum PSD under each bin of ``idx``, units^2/Hz.
+        cont_dof: its equivalent chi-square degrees of freedom.
+        idx: the bins that have a continuum.
+    """
+
+    bins: WelchBins
+    logf: np.ndarray
+    psd: np.ndarray
+    logp: np.ndarray
+    cont: np.ndarray
+    cont_dof: np.ndarray
+    idx: np.ndarray
+
+
+def line_spectrum(segments: list[np.ndarray], fs_hz: float,
+                  nperseg: int | None = None) -> LineSpectrum:
+    """The Welch bins of ``segments`` (:func:`welch_bins`) and their continuum, computed once
+    for the line search and the held lines' powers."""
+    wb = welch_bins(segments, fs_hz, nperseg)
+    logf = np.log(np.maximum(wb.f_hz, wb.df_hz * 1e-3))
+    psd = np.maximum(wb.psd, np.finfo(float).tiny)
+    logp = np.log(psd)
+    cont, cont_dof, idx = continuum(logp, logf, wb.nu)
+    return LineSpectrum(wb, logf, psd, logp, cont, cont_dof, idx)
+
+
 def lobe_power(psd: np.ndarray, cont: float, k: int, df_hz: float) -> float:
     """A line's power (units^2): the PSD above the continuum ``cont`` (units^2/Hz) summed
     over the Hann main lobe around its peak bin ``k``; a sinusoid of amplitude ``A`` gives
@@ -166,7 +203,8 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
                    units: str = "rad/s", nperseg: int | None = None,
                    max_lines: int = 10,
                    model_psd: Callable[[np.ndarray], np.ndarray] | None = None,
-                   exclude_hz: Sequence[float] = ()) -> Finding:
+                   exclude_hz: Sequence[float] = (),
+                   spectrum: LineSpectrum | None = None) -> Finding:
     """Search the spectrum for narrow lines.
 
     Args:
@@ -183,6 +221,8 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
         exclude_hz: frequencies (Hz) of lines the model already holds; bins within
             :data:`EXCLUDE_HALF_WIDTH` bins (or 1 % of the frequency, if wider) of them are
             not searched, so the finding is about a further line.
+        spectrum: the bins and continuum of :func:`line_spectrum`, where the caller has
+            them already (``segments`` and ``nperseg`` are then not read).
 
     Returns:
         A :class:`Finding` of kind ``"spectral_line"`` whose params are the strongest line's
@@ -190,11 +230,9 @@ def spectral_lines(segments: list[np.ndarray], fs_hz: float, alpha: float = 0.05
         the samples, from the integrated excess power ``A^2/2``). ``details["lines"]`` lists
         every significant line, strongest first, with its mains label if it is one.
     """
-    wb = welch_bins(segments, fs_hz, nperseg)
-    logf = np.log(np.maximum(wb.f_hz, wb.df_hz * 1e-3))
-    psd = np.maximum(wb.psd, np.finfo(float).tiny)
-    logp = np.log(psd)
-    cont, d2, idx = continuum(logp, logf, wb.nu)
+    spec = line_spectrum(segments, fs_hz, nperseg) if spectrum is None else spectrum
+    wb, logf, psd, logp = spec.bins, spec.logf, spec.psd, spec.logp
+    cont, d2, idx = spec.cont, spec.cont_dof, spec.idx
     skipped = 0
     if model_psd is not None and idx.size:
         keep = _model_shape_ok(model_psd, wb, logf, idx)
