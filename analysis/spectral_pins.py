@@ -313,6 +313,24 @@ def _resolved_intervals(theta: np.ndarray, sd: np.ndarray, lo: np.ndarray, hi: n
     return ci
 
 
+def remembered_welch(values: np.ndarray, fs_hz: float, nperseg: int,
+                     segment_starts: np.ndarray | None, memo: dict | None) -> Any:
+    """The Welch estimate of ``values`` (:func:`imunoise.analysis.psd.welch_psd`), kept in
+    ``memo`` (shared by the fits of one series) by segment length; None where no gap-free
+    segment holds ``nperseg`` samples."""
+    key = ("welch", id(values), nperseg)
+    if memo is not None and key in memo:
+        return memo[key]
+    try:
+        est = welch_psd(np.asarray(values, dtype=np.float64), fs_hz, nperseg=nperseg,
+                        segment_starts=segment_starts)
+    except ValueError:
+        return None
+    if memo is not None:
+        memo[key] = est
+    return est
+
+
 def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, dict]],
                    held: set[tuple[int, str]], segment_starts: np.ndarray | None = None,
                    memo: dict | None = None) -> list[Pin]:
@@ -332,16 +350,9 @@ def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, 
     nperseg = pin_nperseg(int(np.max(np.diff(bounds))) if x.size else 0)
     if nperseg == 0:
         return []
-    key = ("pin-psd", id(values), nperseg)
-    if memo is not None and key in memo:
-        est = memo[key]
-    else:
-        try:
-            est = welch_psd(x, fs_hz, nperseg=nperseg, segment_starts=segment_starts)
-        except ValueError:
-            return []
-        if memo is not None:
-            memo[key] = est
+    est = remembered_welch(values, fs_hz, nperseg, segment_starts, memo)
+    if est is None:
+        return []
     # positions in the noise-only model used by the spectrum
     work = [(n, p) for _, n, p in noise]
     pos = {i: k for k, (i, _, _) in enumerate(noise)}

@@ -33,7 +33,12 @@ from typing import Any
 
 import numpy as np
 
-from imunoise.analysis.diagnosis.candidates import _candidates, _first_job, _swaps
+from imunoise.analysis.diagnosis.candidates import (
+    _candidates,
+    _first_job,
+    _swaps,
+    wants_band_refit,
+)
 from imunoise.analysis.diagnosis.context import _Context, _fold, _times
 from imunoise.analysis.diagnosis.gathering import _base_test, _BaseTests
 from imunoise.analysis.diagnosis.holdout import _check_holdout, _pair
@@ -149,15 +154,20 @@ def _diagnose(values: np.ndarray, fs_hz: float, model: str | list[str], *,
         if only is None else []
     if only is not None:
         candidates = [c for c in candidates if c in only]
+    # the spectrum's model of the resonance band, where the model misses the spectrum
+    band = only is None and wants_band_refit(base, psd_before)
     parts: dict[str, Any] = {"psd": psd_before, "time_domain": time_domain}
     ctx = _Context(x, fs_hz, starts, temp_at, memo, base, base_spec, by_term,
-                   len(candidates) + len(swaps) + len(cuts), sensor_filter, time_origin_s,
+                   len(candidates) + len(swaps) + len(cuts) + int(band), sensor_filter,
+                   time_origin_s,
                    psd_est, nperseg, psd_before, job_map, profile_added=only is None,
                    units=units)
     # the given model's hold-out halves are fitted beside the candidates' refits
     halves = holdout_halves(x, fs_hz, base_spec, base, starts) if holdout else None
     jobs: list[tuple[str, Any]] = [("term", c) for c in candidates]
     jobs += [("swap", w) for w in swaps]
+    if band:
+        jobs.append(("band", None))
     n_tried = len(jobs)
     if isinstance(halves, HoldoutHalves):
         jobs += [("half", 0), ("half", 1)]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,7 @@ from imunoise.analysis.model_error import (
     psd_parts,
     time_domain_part,
 )
+from imunoise.analysis.spectral_band import NARROW_Q, RESONANT, SHORT_TAU_BAND, band_fit
 from imunoise.analysis.spectral_pins import PINNED, pin_resonances, pinned_of
 from imunoise.analysis.terms import TERMS, Entry, ModelSpec, get_term
 from imunoise.analysis.terms.gauss_markov import MIN_T_SAMPLES
@@ -236,7 +238,8 @@ def _first_job(shared: tuple[_Context, float, HoldoutHalves | None], item: tuple
                ) -> Any:
     """One job of the diagnosis's first map, as a job map calls it: a candidate's
     :func:`_suggest` (``("term", name)``), a filter swap's :func:`_swap` (``("swap",
-    (index, name))``), or a hold-out half of the given model
+    (index, name))``), the spectrum's model of the resonance band (``("band", None)``,
+    :func:`_band_refit`), or a hold-out half of the given model
     (``("half", k)``, :func:`imunoise.analysis.model_error.fit_half`), which needs no
     candidate and so runs beside them."""
     ctx, alpha, halves = shared
@@ -247,6 +250,8 @@ def _first_job(shared: tuple[_Context, float, HoldoutHalves | None], item: tuple
     if kind == "swap":
         index, new = what
         return _swap(ctx, index, new, alpha)
+    if kind == "band":
+        return _band_refit(ctx, alpha)
     return _suggest(ctx, what, alpha)
 
 
@@ -436,6 +441,55 @@ def _skirts_miss(misses: Sequence[dict[str, Any]], f0: float) -> bool:
     return any(u != o for u in sides["under"] for o in sides["over"])
 
 
+@dataclass(frozen=True)
+class _Weighed:
+    """The evidence of a replacement's refit: its log p-value from the fall of the Allan
+    chi2 (as that of ``extra`` parameters) and of the PSD part, whether the Allan chi2/dof
+    falls, the refit's PSD part, and whether a part rises beyond its noise or the Allan
+    part does not fall at all."""
+
+    logp: float
+    falls: bool
+    psd_after: dict[str, Any] | None
+    psd_logp: float
+    rises: bool
+    allan_up: bool
+
+    def held_back(self, imitation: str | None) -> tuple[str, str]:
+        """``(held_by, held_reason)`` of :class:`Suggestion`."""
+        held_by, reason = _held_back(imitation, self.rises or self.allan_up)
+        if self.allan_up and imitation is None:
+            reason = "it does not lower the Allan chi2/dof."
+        return held_by, reason
+
+    def significant(self, alpha: float, imitation: str | None) -> bool:
+        """The rules an added term meets: the evidence beyond ``alpha``, the Allan or the
+        PSD part lower, no part higher beyond its noise, the solution identifiable."""
+        return bool(self.logp < np.log(alpha) and (self.falls or self.psd_logp < 0.0)
+                    and not self.rises and not self.allan_up and imitation is None)
+
+
+def _weighed(ctx: _Context, after: FitResult, extra: int) -> _Weighed:
+    """:class:`_Weighed` of a refit that replaces terms of the given model."""
+    drop = float(ctx.base.misfit.chi2 - after.misfit.chi2)
+    falls = bool(np.isfinite(after.chi2_per_dof) and after.chi2_per_dof < ctx.base.chi2_per_dof)
+    sources = [_chi2_logsf(drop / _dispersion(after.chi2_per_dof, after.misfit.dof), extra)] \
+        if falls and drop > 0 else []
+    psd_after = _psd_after(ctx, after)
+    psd_logp = _psd_logp(ctx, psd_after, extra)
+    if psd_logp < 0.0:
+        sources.append(psd_logp)
+    rises = _parts_rise(ctx, after, psd_after)
+    allan_up = not rises and not falls and bool(np.isfinite(after.chi2_per_dof))
+    return _Weighed(_combined_logp(ctx, sources), falls, psd_after, psd_logp, rises, allan_up)
+
+
+def _psd_clause(ctx: _Context, psd_after: dict[str, Any] | None) -> str:
+    """`` and the PSD part from B to A`` where both parts are known, else nothing."""
+    b, a = _deviance(ctx.psd_before), _deviance(psd_after)
+    return "" if b is None or a is None else f" and the PSD part from {b:.3g} to {a:.3g}"
+
+
 def _replaced(spec: ModelSpec, index: int, entry: Entry) -> ModelSpec:
     """``spec`` with its entry at ``index`` replaced by ``entry``."""
     return ModelSpec(spec.entries[:index] + (entry,) + spec.entries[index + 1:])
@@ -504,44 +558,98 @@ def _swap(ctx: _Context, index: int, new: str, alpha: float) -> Suggestion:
     if after is None:
         return _swap_not_offered(new, before, label, spec,
                                  why + " The model with it could not be fitted.")
-    drop = float(ctx.base.misfit.chi2 - after.misfit.chi2)
-    falls = bool(np.isfinite(after.chi2_per_dof) and after.chi2_per_dof < before)
-    sources = [_chi2_logsf(drop / _dispersion(after.chi2_per_dof, after.misfit.dof), extra)] \
-        if falls and drop > 0 else []
-    psd_after = _psd_after(ctx, after)
-    psd_logp = _psd_logp(ctx, psd_after, extra)
-    if psd_logp < 0.0:
-        sources.append(psd_logp)
-    logp = _combined_logp(ctx, sources)
+    w = _weighed(ctx, after, extra)
     tf = after.terms[index]
     # a filter's reason is the sentence itself; a refinement's what the evidence showed
     why = (why + " " if refines else "") + (
         f"Replacing {old} by {'an' if new[0] in 'aeiou' else 'a'} {new}"
         f"{'' if refines else ' filter'} brings chi2/dof from "
         f"{before:.3g} to {after.chi2_per_dof:.3g}")
-    psd_b, psd_a = _deviance(ctx.psd_before), _deviance(psd_after)
-    if psd_b is not None and psd_a is not None:
-        why += f" and the PSD part from {psd_b:.3g} to {psd_a:.3g}"
+    why += _psd_clause(ctx, w.psd_after)
     why += (f" with {'one parameter' if extra == 1 else f'{extra} parameters'} more."
             if refines else " with as many parameters.")
     imitation = _imitation(ctx, after, index)
-    rises = _parts_rise(ctx, after, psd_after)
-    allan_up = not rises and not falls and bool(np.isfinite(after.chi2_per_dof))
-    held_by, held_reason = _held_back(imitation, rises or allan_up)
-    if allan_up and imitation is None:
-        held_reason = "it does not lower the Allan chi2/dof."
+    held_by, held_reason = w.held_back(imitation)
     if held_reason:
         why += " " + held_reason[0].upper() + held_reason[1:]
     return Suggestion(
         # a held shape's interval is the spectrum's, as a pinned suggestion's is
         term=new, params=dict(tf.params), ci95={**tf.ci95, **shape_ci},
         chi2_per_dof_before=before,
-        chi2_per_dof_after=after.chi2_per_dof, p_value=float(np.exp(logp)), log_p=logp,
-        significant=bool(logp < np.log(alpha) and (falls or psd_logp < 0.0)
-                         and not rises and not allan_up and imitation is None),
+        chi2_per_dof_after=after.chi2_per_dof, p_value=float(np.exp(w.logp)), log_p=w.logp,
+        significant=w.significant(alpha, imitation),
         why=why, fit=after, apply={"model": spec.text(), "args": []}, action="replace",
         label=label, held_by=held_by, held_reason=held_reason,
-        error_after=_error_after(after, psd_after))
+        error_after=_error_after(after, w.psd_after))
+
+
+BAND_PSD_FAILS = 3.0
+"""The PSD part (deviance per bin) from which the spectrum's model of the resonance band is
+tried: the part of a model that describes the spectrum is about 1."""
+
+
+def wants_band_refit(base: FitResult, psd: dict[str, Any] | None) -> bool:
+    """Whether the diagnosis tries the spectrum's model of the resonance band
+    (:func:`_band_refit`): the given model holds a narrow resonance in the band only the
+    Allan curve's shortest taus see (:data:`~imunoise.analysis.spectral_band.SHORT_TAU_BAND`)
+    and misses the spectrum (its PSD part ``psd``, the given model's ``error.psd``, at least
+    :data:`BAND_PSD_FAILS`)."""
+    dev = _deviance(psd)
+    return dev is not None and dev >= BAND_PSD_FAILS and any(
+        n in RESONANT and float(ps["Q"]) >= NARROW_Q
+        and float(ps["f0"]) >= SHORT_TAU_BAND * base.fs_hz for n, ps in base.params)
+
+
+def _band_refit(ctx: _Context, alpha: float) -> Suggestion:
+    """The model's resonances and output filter replaced by the spectrum's model of their
+    band (:mod:`imunoise.analysis.spectral_band`: a wandering mode, two modes, a shelf, the
+    filter), every parameter of those terms held at the spectrum's values, the white level
+    and the long-tau terms refitted to the Allan curve as ``imunoise fit --model
+    apply.model`` fits them. Judged as an added term is, its parameters counted as those
+    the band's terms have beyond the given ones."""
+    before = ctx.base.chi2_per_dof
+    band = band_fit(ctx.x, ctx.fs_hz, ctx.base.params, ctx.starts, ctx.memo)
+    label = "band from the spectrum"
+    if band is None or band.structure == "as fitted":
+        return _swap_not_offered("wandering_resonance", before, label, ctx.spec,
+                                 "The spectrum offers no better model of the resonance band.")
+    kept = [e for i, e in enumerate(ctx.spec.entries) if i not in band.replaced]
+    spec = ModelSpec(tuple(kept) + tuple(Entry(n, dict(ps)) for n, ps in band.terms))
+    first = len(kept)
+    profiled = {i for i, n in enumerate(spec.names) if n == "white"}
+    after = _fit_model(ctx, spec, profiled)
+    lo = band.band_hz[0]
+    why = (f"Above {lo:.3g} Hz the spectrum holds more than the Allan curve can part: fitted "
+           f"to the spectrum there ({band.structure}), the band's terms miss it by a Whittle "
+           f"deviance of {band.deviance_per_bin:.3g} per bin against "
+           f"{band.given_deviance_per_bin:.3g} for the model's own terms refitted to it.")
+    if after is None:
+        return _swap_not_offered("wandering_resonance", before, label, spec,
+                                 why + " The model with them could not be fitted.")
+    extra = max(band.added, 1)
+    w = _weighed(ctx, after, extra)
+    why += f" Held in the model they bring chi2/dof from {before:.3g} to {after.chi2_per_dof:.3g}"
+    why += _psd_clause(ctx, w.psd_after)
+    why += f" with {extra} parameter{'' if extra == 1 else 's'} more."
+    imitation = next((r for i in range(first, len(spec))
+                      if (r := _imitation(ctx, after, i)) is not None), None)
+    held_by, held_reason = w.held_back(imitation)
+    if held_reason:
+        why += " " + held_reason[0].upper() + held_reason[1:]
+    main = next((i for i in range(first, len(spec))
+                 if spec.names[i] == "wandering_resonance"), first)
+    tf = after.terms[main]
+    return Suggestion(
+        # every parameter of the band is held at the spectrum's value: no interval is
+        # stated (a held parameter's would be the value itself); the halves' values are
+        # what the hold-out part compares
+        term=spec.names[main], params=dict(tf.params), ci95={},
+        chi2_per_dof_before=before, chi2_per_dof_after=after.chi2_per_dof,
+        p_value=float(np.exp(w.logp)), log_p=w.logp,
+        significant=w.significant(alpha, imitation),
+        why=why, fit=after, apply={"model": spec.text(), "args": []}, action="replace",
+        label=label, held_by=held_by, held_reason=held_reason,
+        error_after=_error_after(after, w.psd_after))
 
 
 def _swap_not_offered(new: str, before: float, label: str, spec: ModelSpec, why: str
