@@ -76,15 +76,15 @@ LEVEL = 1e-3
 """Significance of a larger structure's fall of the deviance."""
 
 SHELF_RATIO, SHELF_Q = 1.2, 5.0
-"""Where a broad resonance of the given model starts in the refined structures: above the
-strongest peak by this ratio, with this quality factor."""
+"""Where a shelf starts (a bend of the given model restarted, or a shelf added): above the
+strongest mode by this ratio, with this quality factor."""
 
 WANDER_Q, WANDER_SPREAD = 50.0, 0.025
 """A wandering mode starts with at least this quality factor and a wander of this fraction
 of its centre (the second mode twice that)."""
 
 MODE_NEAR = 0.1
-"""A second mode is tried only where no wandering mode lies within this fraction of the
+"""A second mode is tried only where no other mode lies within this fraction of the
 strongest one's centre already."""
 
 MODE_OFFSET = 0.02
@@ -139,8 +139,13 @@ def _bounds(name: str, key: str, value: float, f_lo: float, fs: float) -> tuple[
         return math.log(1e-3 * f_lo), math.log(0.25 * fs)
     if key == "taps":
         return 0.0, math.log(64.0)
+    # any other parameter (a power, a level, a filter's cutoff) within the term's own
+    # physical bounds and twelve e-folds of its start
     v = max(value, 1e-300)
-    return math.log(v) - 12.0, math.log(v) + 12.0
+    param = get_term(name).param(key)
+    lo = math.log(param.lo) if param.lo > 0.0 else -math.inf
+    hi = math.log(param.hi) if math.isfinite(param.hi) else math.inf
+    return max(math.log(v) - 12.0, lo + 1e-9), min(math.log(v) + 12.0, hi - 1e-9)
 
 
 def _fit(rest: Model, band: Model, f: np.ndarray, p: np.ndarray, nu: np.ndarray, fs: float,
