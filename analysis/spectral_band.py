@@ -47,7 +47,7 @@ import numpy as np
 from scipy import optimize
 
 from imunoise.analysis.distributions import chi2
-from imunoise.analysis.spectral_pins import pin_nperseg, remembered_welch
+from imunoise.analysis.spectral_pins import record_nperseg, remembered_welch
 from imunoise.analysis.terms import get_term
 from imunoise.analysis.terms.registry import model_psd
 
@@ -230,11 +230,8 @@ def _welch_band(values: np.ndarray, fs: float, segment_starts: np.ndarray | None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``(f, psd, dof)`` of the Welch bins from ``f_lo`` to 0.49 fs, their spacing at most
     :data:`BIN_WIDTH` of ``f_narrow`` (Hz); None where the record is too short for them."""
-    x = np.asarray(values, dtype=np.float64)
-    bounds = np.append(np.zeros(1, dtype=np.int64) if segment_starts is None
-                       else np.asarray(segment_starts, dtype=np.int64), x.size)
-    longest = pin_nperseg(int(np.max(np.diff(bounds))) if x.size else 0)
-    nperseg = min(longest, 2 ** int(math.ceil(math.log2(fs / (BIN_WIDTH * f_narrow)))))
+    fine = 2 ** int(math.ceil(math.log2(fs / (BIN_WIDTH * f_narrow))))
+    nperseg = min(record_nperseg(len(values), segment_starts), fine)
     if nperseg < 64:
         return None
     est = remembered_welch(values, fs, nperseg, segment_starts, memo)

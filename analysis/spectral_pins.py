@@ -125,6 +125,14 @@ def pin_nperseg(n_longest: int) -> int:
     return int(min(2 ** 14, 2 ** int(math.floor(math.log2(n_longest / 16)))))
 
 
+def record_nperseg(n_samples: int, segment_starts: np.ndarray | None) -> int:
+    """:func:`pin_nperseg` of a record of ``n_samples`` whose gap-free segments start at
+    ``segment_starts`` (None: one segment), from its longest segment."""
+    bounds = np.append(np.zeros(1, dtype=np.int64) if segment_starts is None
+                       else np.asarray(segment_starts, dtype=np.int64), n_samples)
+    return pin_nperseg(int(np.max(np.diff(bounds))) if n_samples else 0)
+
+
 def _deviance_residuals(p: np.ndarray, nu: np.ndarray, s: np.ndarray) -> np.ndarray:
     u = p / np.maximum(s, 1e-300)
     d = nu * (u - 1.0 - np.log(u))
@@ -344,10 +352,7 @@ def pin_resonances(values: np.ndarray, fs_hz: float, model: Sequence[tuple[str, 
                and not any((i, k) in held for k in PINNED)]
     if not targets:
         return []
-    x = np.asarray(values, dtype=np.float64)
-    bounds = np.append(np.zeros(1, dtype=np.int64) if segment_starts is None
-                       else np.asarray(segment_starts, dtype=np.int64), x.size)
-    nperseg = pin_nperseg(int(np.max(np.diff(bounds))) if x.size else 0)
+    nperseg = record_nperseg(len(values), segment_starts)
     if nperseg == 0:
         return []
     est = remembered_welch(values, fs_hz, nperseg, segment_starts, memo)

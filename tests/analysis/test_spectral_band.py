@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from imunoise.analysis.diagnosis import diagnose
+from imunoise.analysis.fit import fit_series
 from imunoise.analysis.noise_stream import simulate
 from imunoise.analysis.spectral_band import band_fit
 from imunoise.analysis.terms import parse_model
@@ -85,6 +86,9 @@ def test_the_diagnosis_offers_the_band_and_it_lowers_both_parts():
     names = [e.name for e in parse_model(s.apply["model"]).entries]
     assert names.count("wandering_resonance") == 2 and "moving_average" in names
     assert "Above 2.03 Hz the spectrum holds more than the Allan curve" in s.why
+    # the contract: chi2_per_dof_after is what fit reports for apply.model, as it stands
+    res, _ = fit_series(x, FS, s.apply["model"])
+    assert res.chi2_per_dof == pytest.approx(s.chi2_per_dof_after, rel=1e-9)
 
 
 @pytest.mark.skipif(not (SHARED / "adis16405" / "run4.npz").exists(),
